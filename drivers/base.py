@@ -1,0 +1,148 @@
+"""What all parsers share: counters, the error record, and the fixed-frame scanner.
+
+Parsers are sans-I/O: ``feed(data, t_ns)`` takes whatever a read returned and gives back the
+frames it completed; they never block, never raise on bad bytes, and keep at most one frame's
+worth of unconsumed bytes.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from drivers.frames import Frame
+
+MAX_RECENT_ERRORS = 16
+
+
+@dataclass(frozen=True, slots=True)
+class FrameError:
+    """A rejected piece of input: where it was (byte offset in the stream) and why."""
+
+    offset: int
+    reason: str
+
+    def __str__(self) -> str:
+        return f"byte {self.offset}: {self.reason}"
+
+
+@dataclass
+class ParserStats:
+    """Counters every parser keeps instead of raising. ``bytes_skipped`` counts every input
+    byte that is not part of an emitted frame (garbage, rejected frames, prompt and echo
+    lines); ``dropped`` counts well-formed pieces that could not make a frame (a WitMotion
+    cycle without gyro); ``device_errors`` counts error replies from the device itself."""
+
+    frames: int = 0
+    bytes_in: int = 0
+    bytes_skipped: int = 0
+    checksum_errors: int = 0
+    unknown_types: int = 0
+    malformed: int = 0
+    dropped: int = 0
+    device_errors: int = 0
+    recent_errors: collections.deque[FrameError] = field(
+        default_factory=lambda: collections.deque(maxlen=MAX_RECENT_ERRORS)
+    )
+
+    def as_dict(self) -> dict[str, Any]:
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        out["recent_errors"] = [str(e) for e in self.recent_errors]
+        return out
+
+
+class Parser(Protocol):
+    """The driver contract."""
+
+    stats: ParserStats
+
+    def feed(self, data: bytes, t_ns: int = 0) -> list[Frame]: ...
+
+    def flush(self) -> list[Frame]: ...
+
+
+@dataclass(frozen=True, slots=True)
+class Scan:
+    """Result of scanning a buffer for fixed-length frames.
+
+    ``starts``: offsets of accepted frames, in order, non-overlapping. ``keep_from``: where the
+    unconsumed tail begins (a possible frame start that is not complete yet).
+    ``rejected``: offsets of candidates (header and known type) that failed the checksum and
+    lay outside accepted frames; ``unknown``: offsets of headers followed by an unknown type.
+    """
+
+    starts: npt.NDArray[np.int64]
+    keep_from: int
+    skipped: int
+    rejected: npt.NDArray[np.int64]
+    unknown: npt.NDArray[np.int64]
+
+
+def scan_fixed(
+    buf: bytes | bytearray, length: int, header: int, known_types: npt.NDArray[np.bool_]
+) -> Scan:
+    """Find frames ``header, type, payload…, sum8`` of ``length`` bytes in ``buf``.
+
+    Semantics are those of the byte-by-byte resync loop: at each position, accept a frame if
+    the header matches, the type byte is known and the checksum of bytes ``0..length-2``
+    equals byte ``length-1``, then jump past it; otherwise slide one byte. Candidates are
+    tested for every position at once with numpy; only the (rare) overlapping ones are walked
+    in Python.
+    """
+    arr = np.frombuffer(buf, dtype=np.uint8)
+    n = arr.size
+    last = n - length  # last position a complete frame can start at
+    empty = np.empty(0, dtype=np.int64)
+    if last < 0:
+        heads = np.flatnonzero(arr == header)
+        keep = int(heads[0]) if heads.size else n
+        return Scan(empty, keep, keep, empty, empty)
+    heads = np.flatnonzero(arr[: last + 1] == header).astype(np.int64)
+    known = known_types[arr[heads + 1]]
+    cand = heads[known]
+    csum = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(arr, out=csum[1:])
+    ok = ((csum[cand + length - 1] - csum[cand]) & 0xFF) == arr[cand + length - 1]
+    good = cand[ok]
+    if good.size > 1 and np.any(np.diff(good) < length):
+        starts_list: list[int] = []
+        end = 0
+        for p in good.tolist():
+            if p >= end:
+                starts_list.append(p)
+                end = p + length
+        starts = np.asarray(starts_list, dtype=np.int64)
+    else:
+        starts = good
+    end = int(starts[-1]) + length if starts.size else 0
+    tail = np.flatnonzero(arr[max(end, last + 1) :] == header)
+    keep = max(end, last + 1) + int(tail[0]) if tail.size else n
+    skipped = keep - starts.size * length
+    rejected = _outside(cand[~ok], starts, length)
+    unknown = _outside(heads[~known], starts, length)
+    return Scan(starts, keep, skipped, rejected, unknown)
+
+
+def _outside(
+    pos: npt.NDArray[np.int64], starts: npt.NDArray[np.int64], length: int
+) -> npt.NDArray[np.int64]:
+    """The positions in ``pos`` that do not lie inside an accepted frame."""
+    if pos.size == 0 or starts.size == 0:
+        return pos
+    idx = np.searchsorted(starts, pos, side="right") - 1
+    inside = (idx >= 0) & (pos < starts[np.maximum(idx, 0)] + length)
+    return pos[~inside]
+
+
+def note_scan(stats: ParserStats, scan: Scan, base: int, what: str) -> None:
+    """Add a scan's rejections to ``stats``; ``base`` is the stream offset of the buffer."""
+    stats.bytes_skipped += scan.skipped
+    stats.checksum_errors += int(scan.rejected.size)
+    stats.unknown_types += int(scan.unknown.size)
+    for p in scan.rejected[-MAX_RECENT_ERRORS:].tolist():
+        stats.recent_errors.append(FrameError(base + p, f"{what}: checksum mismatch"))

@@ -1,0 +1,76 @@
+"""Typed frames that every driver produces and every encoder consumes.
+
+Conventions (see ARCHITECTURE.md, "Contracts"):
+
+* ``t_ns`` is the host receive time of the frame's last byte, integer nanoseconds since the
+  Unix epoch (``time.time_ns()``). Parsers have no clock: the source passes the receive time of
+  each read to ``feed(data, t_ns)`` and the frame completed by that read carries it.
+* Units are in field names. Vectors are tuples, so frames are immutable, hashable and compare
+  exactly (``parse(encode(f)) == f``).
+* Axes are the *sensor's own* axes as sent on the wire; the mounting rotation into the body
+  frame (forward-left-up) is applied by the fusion layer, not here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+Vec3 = tuple[float, float, float]
+Quat4 = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True, slots=True)
+class ImuSample:
+    """One IMU measurement in the sensor's axes.
+
+    ``device_time_ns`` is the sensor's own clock when it sends one (WitMotion 0x50 packet:
+    calendar time; Nooploop: system time), kept for de-jittering, never used as ``t_ns``.
+    ``angle_deg`` (roll, pitch, yaw) and ``quaternion_wire`` (wire order q0..q3) are the
+    device's own attitude solution; ``mag_raw`` is the magnetometer in device LSB.
+    """
+
+    t_ns: int
+    acc_mps2: Vec3
+    gyro_rps: Vec3
+    temperature_c: float | None = None
+    angle_deg: Vec3 | None = None
+    mag_raw: tuple[int, int, int] | None = None
+    quaternion_wire: Quat4 | None = None
+    device_time_ns: int | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class AnchorRange:
+    """One tag-to-anchor distance as the device reported it.
+
+    ``quality`` is what the device says about this range on its own scale (DWM1001: 0-100),
+    ``None`` when the device says nothing. ``anchor_position_m`` is the anchor position the
+    device sends with the range (DWM1001), ``None`` when positions come from configuration.
+    """
+
+    anchor_id: int
+    range_m: float
+    quality: float | None = None
+    anchor_position_m: Vec3 | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class UwbRanges:
+    """One ranging epoch of a UWB tag: the ranges plus the tag's own solution, if any.
+
+    ``quality`` is the device's position quality factor (DWM1001 qf, 0-100);
+    ``tag_position_error_m`` its estimated position error (Nooploop eop);
+    ``device_time_ms`` the tag's own millisecond clock (Nooploop system_time).
+    """
+
+    t_ns: int
+    ranges: tuple[AnchorRange, ...]
+    tag_position_m: Vec3 | None = None
+    quality: float | None = None
+    tag_velocity_mps: Vec3 | None = None
+    tag_position_error_m: Vec3 | None = None
+    tag_id: int | None = None
+    device_time_ms: int | None = None
+
+
+Frame = ImuSample | UwbRanges

@@ -1,0 +1,135 @@
+"""Nooploop LinkTrack NLink protocol, ``TagFrame0`` (WIRE_FORMATS.md §3.2).
+
+A fixed 128-byte frame ``55 01 …`` ending in the low byte of the sum of the 127 bytes before
+it. Distances to anchors 0..7 sit in ``dis_m``; 0 means "no range" and yields no
+:class:`AnchorRange`, so the ``anchor_id`` of a range is its slot 0..7. The tag's own position
+solution, velocity and estimated position error (``eop``) travel with the ranges.
+
+The tag also carries an IMU. It is emitted as an :class:`ImuSample` only when the parser is
+built with ``emit_imu=True`` (gyro assumed rad/s; the quaternion in wire order), so that a
+tag's IMU never enters the fusion as a second IMU by accident.
+
+Other NLink frames (other function marks after 0x55) are skipped and counted as unknown types.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from drivers.base import ParserStats, note_scan, scan_fixed
+from drivers.frames import AnchorRange, ImuSample, UwbRanges
+from drivers.layout import Field, Layout, sum8
+
+HEADER, MARK_TAG_FRAME0 = 0x55, 0x01
+N_SLOTS = 8
+ROLE_TAG = 2
+
+TAG_FRAME0 = Layout((
+    Field("header", "u8"), Field("mark", "u8"),
+    Field("id", "u8"), Field("role", "u8"),  # id before role in this frame
+    Field("pos_m", "i24", 3, 1000),
+    Field("vel_mps", "i24", 3, 10000),
+    Field("dis_m", "i24", N_SLOTS, 1000),
+    Field("imu_gyro", "f32", 3),
+    Field("imu_acc_mps2", "f32", 3),
+    Field("reserved1", "pad", 12),
+    Field("angle_deg", "i16", 3, 100),
+    Field("quaternion", "f32", 4),
+    Field("reserved2", "pad", 4),
+    Field("local_time_ms", "u32"),
+    Field("system_time_ms", "u32"),
+    Field("reserved3", "pad", 1),
+    Field("eop_m", "u8", 3, 100),
+    Field("voltage_v", "u16", 1, 1000),
+    Field("reserved4", "pad", 5),
+    Field("checksum", "u8"),
+))
+FRAME_LEN = TAG_FRAME0.size
+assert FRAME_LEN == 128
+
+_KNOWN = np.zeros(256, dtype=np.bool_)
+_KNOWN[MARK_TAG_FRAME0] = True
+
+
+def encode(frame: UwbRanges, imu: ImuSample | None = None) -> bytes:
+    """A TagFrame0 carrying ``frame`` (and the tag IMU ``imu``, if given).
+
+    Raises ``ValueError`` for an anchor id outside the 8 slots or a zero range, neither of
+    which the frame can carry.
+    """
+    dis = [0.0] * N_SLOTS
+    for r in frame.ranges:
+        if not 0 <= r.anchor_id < N_SLOTS:
+            raise ValueError(f"anchor id {r.anchor_id} is not a TagFrame0 slot 0..{N_SLOTS - 1}")
+        if round(r.range_m * 1000) == 0:
+            raise ValueError(f"anchor {r.anchor_id}: a zero range means 'missing' on the wire")
+        dis[r.anchor_id] = r.range_m
+    values: dict[str, object] = {
+        "header": HEADER, "mark": MARK_TAG_FRAME0, "id": frame.tag_id or 0, "role": ROLE_TAG,
+        "pos_m": frame.tag_position_m or (0.0, 0.0, 0.0),
+        "vel_mps": frame.tag_velocity_mps or (0.0, 0.0, 0.0),
+        "dis_m": dis,
+        "eop_m": frame.tag_position_error_m or (0.0, 0.0, 0.0),
+        "system_time_ms": frame.device_time_ms or 0,
+    }
+    if imu is not None:
+        values.update({
+            "imu_gyro": imu.gyro_rps, "imu_acc_mps2": imu.acc_mps2,
+            "angle_deg": imu.angle_deg or (0.0, 0.0, 0.0),
+            "quaternion": imu.quaternion_wire or (0.0, 0.0, 0.0, 0.0),
+        })
+    body = TAG_FRAME0.encode(values)
+    body[-1] = sum8(body[:-1])
+    return bytes(body)
+
+
+class NlinkParser:
+    """Incremental parser of an NLink byte stream (TagFrame0) into :class:`UwbRanges`."""
+
+    def __init__(self, emit_imu: bool = False) -> None:
+        self.stats = ParserStats()
+        self.emit_imu = emit_imu
+        self._buf = bytearray()
+        self._base = 0
+
+    def feed(self, data: bytes, t_ns: int = 0) -> list[UwbRanges | ImuSample]:
+        self.stats.bytes_in += len(data)
+        buf = self._buf + data if self._buf else data
+        scan = scan_fixed(buf, FRAME_LEN, HEADER, _KNOWN)
+        note_scan(self.stats, scan, self._base, "nlink TagFrame0")
+        out: list[UwbRanges | ImuSample] = []
+        for p in scan.starts.tolist():
+            self._frame(TAG_FRAME0.decode(buf, p), t_ns, out)
+        self.stats.frames += len(scan.starts)
+        self._base += scan.keep_from
+        self._buf = bytearray(buf[scan.keep_from :])
+        return out
+
+    def flush(self) -> list[UwbRanges | ImuSample]:
+        self.stats.bytes_skipped += len(self._buf)
+        self._base += len(self._buf)
+        self._buf.clear()
+        return []
+
+    def _frame(self, f: dict[str, Any], t_ns: int, out: list[UwbRanges | ImuSample]) -> None:
+        dis: tuple[float, ...] = f["dis_m"]
+        ranges = tuple(AnchorRange(k, d) for k, d in enumerate(dis) if d != 0.0)
+        out.append(UwbRanges(
+            t_ns=t_ns, ranges=ranges,
+            tag_position_m=f["pos_m"],
+            tag_velocity_mps=f["vel_mps"],
+            tag_position_error_m=f["eop_m"],
+            tag_id=f["id"],
+            device_time_ms=f["system_time_ms"],
+        ))
+        if self.emit_imu:
+            out.append(ImuSample(
+                t_ns=t_ns,
+                acc_mps2=f["imu_acc_mps2"],
+                gyro_rps=f["imu_gyro"],
+                angle_deg=f["angle_deg"],
+                quaternion_wire=f["quaternion"],
+                device_time_ns=f["system_time_ms"] * 1_000_000,
+            ))
