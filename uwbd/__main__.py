@@ -1,0 +1,3 @@
+from uwbd.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,164 @@
+"""The ``uwbd`` command line: one entry point, one subcommand per job.
+
+Errors the user can fix (a missing file, an unknown driver, a bad option value) print one
+line ``uwbd <command>: <what and where>`` and exit 2; an interrupted run exits 0 after
+cleaning up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from types import FrameType
+from typing import BinaryIO
+
+from drivers import PARSERS
+from drivers.emulator import ENCODERS, DeviceSpec, Emulator, Faults, Window
+from drivers.emulator.scenario import CircleScenario
+from uwbd import __version__
+from uwbd.codec import frame_to_dict
+
+READ_CHUNK_BYTES = 65536
+
+
+class UsageError(Exception):
+    """A problem with what the user asked for; printed as one line, exit code 2."""
+
+
+def _driver(name: str) -> str:
+    if name not in PARSERS:
+        raise UsageError(f"unknown driver {name!r} (known: {', '.join(PARSERS)})")
+    return name
+
+
+def cmd_dump(args: argparse.Namespace) -> int:
+    """Decode a byte capture: one JSON object per frame on stdout, parser counters on stderr.
+
+    A capture has no receive times, so every frame's ``t_ns`` is 0.
+    """
+    parser = PARSERS[_driver(args.driver)]()
+    try:
+        stream: BinaryIO = sys.stdin.buffer if args.file == "-" else open(args.file, "rb")  # noqa: SIM115
+    except OSError as err:
+        raise UsageError(f"cannot read {args.file}: {err.strerror}") from err
+    with stream:
+        while chunk := stream.read(READ_CHUNK_BYTES):
+            _print_frames(parser.feed(chunk, 0))
+        _print_frames(parser.flush())
+    print(json.dumps({"parser_stats": parser.stats.as_dict()}), file=sys.stderr)
+    return 0
+
+
+def _print_frames(frames: Sequence[object]) -> None:
+    for frame in frames:
+        sys.stdout.write(json.dumps(frame_to_dict(frame)) + "\n")  # type: ignore[arg-type]
+
+
+def _faults(args: argparse.Namespace) -> Faults:
+    try:
+        return Faults(
+            garbage_rate_hz=args.garbage_rate, split=args.split, corrupt_prob=args.corrupt,
+            drop_prob=args.drop, stalls=tuple(Window.parse(w) for w in args.stall),
+            unplugs=tuple(Window.parse(w) for w in args.unplug),
+        )
+    except ValueError as err:
+        raise UsageError(str(err)) from err
+
+
+def cmd_emulate(args: argparse.Namespace) -> int:
+    """Serve the built-in scenario on pseudo-terminals and print the paths to open."""
+    faults = _faults(args)
+    devices = [DeviceSpec(kind, _driver(name), faults)
+               for kind, name in (("imu", args.imu), ("uwb", args.uwb)) if name != "none"]
+    if not devices:
+        raise UsageError("nothing to emulate: both --imu and --uwb are 'none'")
+    link_dir = Path(args.link_dir) if args.link_dir else None
+    if link_dir is not None and not link_dir.is_dir():
+        raise UsageError(f"--link-dir {link_dir}: not a directory")
+    with Emulator(devices, CircleScenario(seed=args.seed), args.duration, link_dir) as emu:
+        for dev in devices:
+            port = emu.ports[dev.name]
+            print(f"{dev.name} {dev.driver} {port.path} ({port.tty_path})", flush=True)
+        emu.start()
+        _wait(emu)
+        print(json.dumps({name: vars(c) for name, c in emu.counts.items()}), file=sys.stderr)
+    return 0
+
+
+def _wait(emu: Emulator) -> None:
+    """Block until the emulator ends, Ctrl-C or SIGTERM."""
+    def on_term(signum: int, frame: FrameType | None) -> None:
+        raise KeyboardInterrupt
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        while not emu.finished.wait(0.2):
+            pass
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from uwbd.demo import run_demo
+
+    with tempfile.TemporaryDirectory(prefix="uwbd-demo-") as tmp:
+        return run_demo(Path(tmp), duration_s=args.duration, seed=args.seed)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="uwbd", description=__doc__.splitlines()[0])
+    ap.add_argument("--version", action="version", version=f"uwbd {__version__}")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("dump", help="decode a byte capture as JSON lines")
+    p.add_argument("--driver", required=True, help=f"one of: {', '.join(PARSERS)}")
+    p.add_argument("file", help="capture file, or - for standard input")
+    p.set_defaults(func=cmd_dump)
+
+    p = sub.add_parser("emulate", help="serve emulated devices on pseudo-terminals")
+    p.add_argument("--imu", default="wit", help="IMU driver, or none (default: wit)")
+    p.add_argument("--uwb", default="nlink",
+                   help=f"UWB driver, or none; one of {', '.join(set(ENCODERS) - {'wit'})}")
+    _common(p)
+    p.add_argument("--link-dir", help="create stable names DIR/imu and DIR/uwb for the ports")
+    p.add_argument("--garbage-rate", type=float, default=0.0, metavar="HZ",
+                   help="mean rate of garbage bursts")
+    p.add_argument("--split", action="store_true", help="split frames at random byte boundaries")
+    p.add_argument("--corrupt", type=float, default=0.0, metavar="P",
+                   help="probability a frame has a flipped byte")
+    p.add_argument("--drop", type=float, default=0.0, metavar="P",
+                   help="probability a frame is dropped")
+    p.add_argument("--stall", action="append", default=[], metavar="AT:DUR",
+                   help="send nothing from AT for DUR seconds (repeatable)")
+    p.add_argument("--unplug", action="append", default=[], metavar="AT:DUR",
+                   help="close the port at AT for DUR seconds (repeatable)")
+    p.set_defaults(func=cmd_emulate)
+
+    p = sub.add_parser("demo", help="emulated sensors through the drivers, live in the terminal")
+    _common(p)
+    p.set_defaults(func=cmd_demo)
+    return ap
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="stop after S seconds (default: run until Ctrl-C)")
+    p.add_argument("--seed", type=int, default=0, help="scenario and fault seed")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except UsageError as err:
+        print(f"uwbd {args.command}: {err}", file=sys.stderr)
+        return 2
+    except BrokenPipeError:
+        sys.stderr.close()  # output piped into e.g. `head`: not an error
+        return 0

@@ -1,0 +1,1 @@
+"""Fusion core: pure numpy, no I/O, no asyncio, no clock."""
