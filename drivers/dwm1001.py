@@ -78,14 +78,14 @@ class Dwm1001ShellParser:
         return out
 
     def _lines(self, chunk: bytes, t_ns: int) -> list[UwbRanges]:
-        out, used = [], 0
+        """Frames of the complete lines in ``chunk``; line terminators count as part of a line."""
+        out = []
         for m in _LINE.finditer(chunk):
-            frame, n = self._line(m.group(), self._base + m.start(), t_ns)
+            frame, skipped = self._line(m.group(), self._base + m.start(), t_ns)
+            self.stats.bytes_skipped += skipped
             if frame is not None:
                 out.append(frame)
-                used += n
         self.stats.frames += len(out)
-        self.stats.bytes_skipped += len(chunk) - used
         return out
 
     def _consume(self, n: int) -> None:
@@ -97,21 +97,21 @@ class Dwm1001ShellParser:
         self.stats.recent_errors.append(FrameError(offset, reason))
 
     def _line(self, line: bytes, offset: int, t_ns: int) -> tuple[UwbRanges | None, int]:
-        """The frame in one line, if any, and the bytes it spans."""
-        at = line.find(b"DIST,")
+        """The frame in one line, if any, and the number of bytes of the line not in it."""
+        at = line.rfind(b"DIST,")  # the last one: garbage glued before a line cannot hide it
         if at >= 0:
             frame = self._dist(line, at, t_ns)
         else:
-            at = line.find(b"POS,")
+            at = line.rfind(b"POS,")
             if at < 0:
-                return None, 0  # prompt, echo, banner: not an error
+                return None, len(line)  # prompt, echo, banner: not an error
             m = _LEP_RE.fullmatch(line, at)
             frame = None if m is None else UwbRanges(
                 t_ns, (), _vec(m.group(1, 2, 3)), float(m.group(4)))
         if frame is None:
             self._reject(offset + at, f"malformed record {line[at : at + 60]!r}")
-            return None, 0
-        return frame, len(line) - at
+            return None, len(line)
+        return frame, at
 
     def _dist(self, line: bytes, at: int, t_ns: int) -> UwbRanges | None:
         m = _DIST_RE.fullmatch(line, at)

@@ -13,6 +13,8 @@ set by its RSW register). The parser groups packets into cycles and emits one
   In steady state the sample therefore leaves with the cycle's last packet, without waiting
   for the next cycle; until learned, or when the closing packet is lost, it leaves on the wrap;
 * a cycle without accel or without gyro is counted in ``stats.dropped`` and not emitted;
+* if a packet follows the closing type without a wrap, the device's packet set has grown:
+  that orphan is dropped and the closing type is learned again;
 * ``t_ns`` is the receive time of the cycle's last packet; 0x5F register read-backs are not
   part of any cycle.
 
@@ -148,6 +150,10 @@ class WitParser:
             return
         if ptype <= self._last_type:
             self._close(out)
+        elif self._last_type == self._closing_type >= 0 and not self._cycle:
+            # a packet after the learned closing type, before any wrap: the device's cycle
+            # grew (its packet set was changed). Relearn; the orphan packet is dropped.
+            self._closing_type = -1
         self._last_type = ptype
         self._cycle_max = max(self._cycle_max, ptype)
         self._cycle_t_ns = t_ns
@@ -160,6 +166,7 @@ class WitParser:
                 self._cycle.update(fields)
         if ptype == self._closing_type:
             self._close(out)
+            self._last_type = ptype  # so the next packet tells a wrap from a longer cycle
 
     def _close(self, out: list[ImuSample]) -> None:
         cycle = self._cycle
