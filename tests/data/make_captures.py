@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from drivers import nlink, wit
+from drivers import wit
 from drivers.frames import ImuSample
 
 HERE = Path(__file__).parent
@@ -51,7 +51,6 @@ def main() -> None:
     (HERE / "dwm1001-tlv-ERROR.bin").write_bytes(
         b"@\x01\x01" + TLV_SPEC_EXAMPLE + b"\x40\x01\x04" + TLV_SPEC_EXAMPLE[:20])
     (HERE / "dwm1001-tlv-spec-example.bin").write_bytes(TLV_SPEC_EXAMPLE)
-    _ = nlink  # the golden vector is the vendor's, not our encoder's
 
 
 if __name__ == "__main__":
