@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -61,9 +62,11 @@ class Parser(Protocol):
 
     stats: ParserStats
 
-    def feed(self, data: bytes, t_ns: int = 0) -> list[Frame]: ...
+    def feed(self, data: bytes, t_ns: int = 0) -> Sequence[Frame]:
+        """Frames completed by ``data``, which arrived (last byte) at ``t_ns``."""
 
-    def flush(self) -> list[Frame]: ...
+    def flush(self) -> Sequence[Frame]:
+        """End of input: frames still pending, if complete; leftover bytes are counted."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -72,7 +72,8 @@ class Dwm1001TlvParser:
     def feed(self, data: bytes, t_ns: int = 0) -> list[UwbRanges]:
         self.stats.bytes_in += len(data)
         self._buf += data
-        buf, out, p = self._buf, [], 0
+        buf, p = self._buf, 0
+        out: list[UwbRanges] = []
         while True:
             q = buf.find(_SYNC, p)
             if q < 0:

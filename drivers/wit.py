@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import datetime as dt
 import math
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -52,8 +53,10 @@ PAYLOADS: dict[int, Layout] = {
         Field("YY", "u8"), Field("MM", "u8"), Field("DD", "u8"),
         Field("hh", "u8"), Field("mm", "u8"), Field("ss", "u8"), Field("ms", "u16"),
     )),
-    ACC: Layout((Field("acc_mps2", "i16", 3, ACC_DIV), Field("temperature_c", "i16", 1, TEMP_DIV))),
-    GYRO: Layout((Field("gyro_rps", "i16", 3, GYRO_DIV), Field("temperature_c", "i16", 1, TEMP_DIV))),
+    ACC: Layout((Field("acc_mps2", "i16", 3, ACC_DIV),
+                 Field("temperature_c", "i16", 1, TEMP_DIV))),
+    GYRO: Layout((Field("gyro_rps", "i16", 3, GYRO_DIV),
+                  Field("temperature_c", "i16", 1, TEMP_DIV))),
     ANGLE: Layout((Field("angle_deg", "i16", 3, ANGLE_DIV), Field("version", "u16"))),
     MAG: Layout((Field("mag_raw", "i16", 3), Field("temperature_c", "i16", 1, TEMP_DIV))),
     QUAT: Layout((Field("quaternion_wire", "i16", 4, QUAT_DIV),)),
@@ -84,7 +87,7 @@ def _time_fields(t_ns: int) -> dict[str, int]:
     }
 
 
-def encode_packet(ptype: int, fields: dict[str, object]) -> bytes:
+def encode_packet(ptype: int, fields: Mapping[str, object]) -> bytes:
     """One 11-byte packet of ``ptype`` from its payload fields."""
     body = bytearray((HEADER, ptype)) + PAYLOADS[ptype].encode(fields)
     return bytes(body + bytes((sum8(body),)))
@@ -148,9 +151,10 @@ class WitParser:
                 out: list[ImuSample]) -> None:
         if ptype == READBACK:
             return
-        if ptype <= self._last_type:
-            self._close(out)
-        elif self._last_type == self._closing_type >= 0 and not self._cycle:
+        if ptype <= self._last_type:  # the type number wrapped: a new cycle begins
+            if self._cycle_max >= 0:
+                self._close(out)
+        elif self._last_type == self._closing_type >= 0 and self._cycle_max < 0:
             # a packet after the learned closing type, before any wrap: the device's cycle
             # grew (its packet set was changed). Relearn; the orphan packet is dropped.
             self._closing_type = -1

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from drivers import PARSERS, ImuSample, UwbRanges
+from drivers.nlink import NlinkParser
 
 DATA = Path(__file__).parent / "data"
 
@@ -71,8 +72,6 @@ def test_nlink_vendor_golden_vector() -> None:
 
 
 def test_nlink_golden_vector_tag_imu() -> None:
-    from drivers.nlink import NlinkParser
-
     imu = NlinkParser(emit_imu=True).feed((DATA / "nlink-golden.bin").read_bytes())[1]
     assert isinstance(imu, ImuSample)
     assert imu.gyro_rps == pytest.approx((0.02767, 0.008514, -0.045762), abs=1e-6)

@@ -4,6 +4,7 @@ recovered, nothing raises. One property test per parser."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
@@ -40,7 +41,7 @@ def _run(driver: str, chunks: list[bytes], garbages: list[bytes], cuts: list[int
     parser = PARSERS[driver]()
     bounds = sorted({0, len(stream), *(c % (len(stream) + 1) for c in cuts)})
     frames = []
-    for a, b in zip(bounds, bounds[1:], strict=False):
+    for a, b in itertools.pairwise(bounds):
         frames += parser.feed(stream[a:b], 0)
     frames += parser.flush()
     assert parser.stats.bytes_in == len(stream)

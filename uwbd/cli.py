@@ -9,12 +9,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
-from types import FrameType
 from typing import BinaryIO
 
 from drivers import PARSERS
@@ -22,6 +20,8 @@ from drivers.emulator import ENCODERS, DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import CircleScenario
 from uwbd import __version__
 from uwbd.codec import frame_to_dict
+from uwbd.demo import run_demo
+from uwbd.interrupt import wait_until
 
 READ_CHUNK_BYTES = 65536
 
@@ -85,28 +85,13 @@ def cmd_emulate(args: argparse.Namespace) -> int:
             port = emu.ports[dev.name]
             print(f"{dev.name} {dev.driver} {port.path} ({port.tty_path})", flush=True)
         emu.start()
-        _wait(emu)
+        wait_until(emu.finished)
         print(json.dumps({name: vars(c) for name, c in emu.counts.items()}), file=sys.stderr)
     return 0
 
 
-def _wait(emu: Emulator) -> None:
-    """Block until the emulator ends, Ctrl-C or SIGTERM."""
-    def on_term(signum: int, frame: FrameType | None) -> None:
-        raise KeyboardInterrupt
-    previous = signal.signal(signal.SIGTERM, on_term)
-    try:
-        while not emu.finished.wait(0.2):
-            pass
-    except KeyboardInterrupt:
-        pass
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
 def cmd_demo(args: argparse.Namespace) -> int:
-    from uwbd.demo import run_demo
-
+    """Emulated sensors through the pipeline, live in the terminal, until Ctrl-C."""
     with tempfile.TemporaryDirectory(prefix="uwbd-demo-") as tmp:
         return run_demo(Path(tmp), duration_s=args.duration, seed=args.seed)
 

@@ -19,8 +19,8 @@ import serial
 from drivers import PARSERS, Parser, UwbRanges
 from drivers.emulator import DeviceSpec, Emulator, Faults
 from drivers.emulator.scenario import CircleScenario
-from uwbd.cli import _wait
 from uwbd.fusion.gating import GatingCounters, GatingPolicy, gate
+from uwbd.interrupt import wait_until
 
 DEMO_FAULTS = Faults(garbage_rate_hz=0.5, split=True, corrupt_prob=0.01)
 READ_BYTES = 4096
@@ -48,7 +48,7 @@ def _wait_with(reader: _Reader, emu: Emulator, scenario: CircleScenario) -> None
     thread = threading.Thread(target=reader.loop, args=(stop, scenario), daemon=True)
     thread.start()
     try:
-        _wait(emu)
+        wait_until(emu.finished)
     finally:
         stop.set()
         thread.join(timeout=2)

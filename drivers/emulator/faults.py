@@ -111,9 +111,9 @@ def inject(
             counts.dropped += 1
             continue
         if faults.corrupt_prob and rng.random() < faults.corrupt_prob and len(data) > 3:
-            buf = bytearray(data)
-            buf[int(rng.integers(1, len(data) - 2))] ^= 0x80
-            data = bytes(buf)
+            flipped = bytearray(data)
+            flipped[int(rng.integers(1, len(data) - 2))] ^= 0x80
+            data = bytes(flipped)  # noqa: PLW2901 - the frame as it leaves the faulty link
             counts.corrupted += 1
         counts.frames += 1
         if not faults.split:

@@ -78,7 +78,7 @@ class CircleScenario:
         k = 0
         while duration_s is None or k * period_ns <= duration_s * 1e9:
             t_ns = k * period_ns
-            theta, v, v_dot = self._motion(t_ns / 1e9)
+            _, v, v_dot = self._motion(t_ns / 1e9)
             # body frame: forward along the tangent, left towards the centre
             f_b = (v_dot, v * v / self.radius_m, GRAVITY_MPS2)
             noise = rng.normal(size=6)

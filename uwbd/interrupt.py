@@ -1,0 +1,21 @@
+"""Waiting in the foreground until work ends or the user (or systemd) says stop."""
+
+from __future__ import annotations
+
+import signal
+import threading
+from types import FrameType
+
+
+def wait_until(done: threading.Event, poll_s: float = 0.2) -> None:
+    """Block until ``done`` is set, Ctrl-C or SIGTERM; both signals end the wait quietly."""
+    def on_term(signum: int, frame: FrameType | None) -> None:
+        raise KeyboardInterrupt
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        while not done.wait(poll_s):
+            pass
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, previous)
