@@ -1,0 +1,101 @@
+"""The real ``uwbd`` command, run as a subprocess."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import serial
+
+from drivers import PARSERS
+
+DATA = Path(__file__).parent / "data"
+UWBD = [sys.executable, "-m", "uwbd"]
+
+
+def run(*args: str, stdin: bytes | None = None) -> subprocess.CompletedProcess[bytes]:
+    return subprocess.run([*UWBD, *args], input=stdin, capture_output=True, timeout=60,
+                          check=False)
+
+
+def test_dump_prints_one_json_object_per_frame_and_counters_on_stderr() -> None:
+    result = run("dump", "--driver", "nlink", str(DATA / "nlink-BADCK.bin"))
+    assert result.returncode == 0, result.stderr
+    (line,) = result.stdout.decode().splitlines()
+    frame = json.loads(line)
+    assert frame["type"] == "UwbRanges"
+    assert frame["tag_position_m"] == [2.702, -0.091, 1.0]
+    assert frame["ranges"][0] == {"anchor_id": 0, "range_m": 3.125, "quality": None,
+                                  "anchor_position_m": None}
+    stats = json.loads(result.stderr)["parser_stats"]
+    assert stats["frames"] == 1 and stats["checksum_errors"] == 1
+    assert stats["recent_errors"] == ["byte 0: nlink TagFrame0: checksum mismatch"]
+
+
+def test_dump_reads_standard_input() -> None:
+    data = (DATA / "wit-BADCK.bin").read_bytes()
+    result = run("dump", "--driver", "wit", "-", stdin=data)
+    assert result.returncode == 0
+    frames = [json.loads(x) for x in result.stdout.decode().splitlines()]
+    assert [f["type"] for f in frames] == ["ImuSample"] * 5
+    assert set(frames[0]) >= {"t_ns", "acc_mps2", "gyro_rps", "temperature_c"}
+
+
+def test_dump_missing_file_is_one_clear_line() -> None:
+    result = run("dump", "--driver", "wit", "/nonexistent/capture.bin")
+    assert result.returncode == 2
+    assert result.stderr.decode().strip() == (
+        "uwbd dump: cannot read /nonexistent/capture.bin: No such file or directory")
+
+
+def test_dump_unknown_driver_is_one_clear_line() -> None:
+    result = run("dump", "--driver", "witmotion", str(DATA / "wit-BADCK.bin"))
+    assert result.returncode == 2
+    (line,) = result.stderr.decode().splitlines()
+    assert "unknown driver 'witmotion'" in line and "nlink" in line
+
+
+def test_emulate_serves_ports_a_reader_can_open(tmp_path: Path) -> None:
+    proc = subprocess.Popen(
+        [*UWBD, "emulate", "--imu", "wit", "--uwb", "dwm1001", "--duration", "30",
+         "--link-dir", str(tmp_path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert proc.stdout is not None
+        lines = [proc.stdout.readline().decode().split() for _ in range(2)]
+        assert [(x[0], x[1]) for x in lines] == [("imu", "wit"), ("uwb", "dwm1001")]
+        assert lines[0][2] == str(tmp_path / "imu")
+        frames = {}
+        for name, driver, path, *_ in lines:
+            parser = PARSERS[driver]()
+            with serial.Serial(path, 115200, timeout=0.1) as port:
+                deadline = time.monotonic() + 5
+                found: list[object] = []
+                while len(found) < 3 and time.monotonic() < deadline:
+                    found += parser.feed(port.read(4096))
+            frames[name] = found
+        assert len(frames["imu"]) >= 3 and len(frames["uwb"]) >= 3
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    assert set(json.loads(err)) == {"imu", "uwb"}  # fault/frame counts per device
+    assert not (tmp_path / "imu").exists()  # stable names removed on exit
+
+
+def test_emulate_rejects_a_bad_fault_window() -> None:
+    result = run("emulate", "--unplug", "soon")
+    assert result.returncode == 2
+    assert "AT:DURATION" in result.stderr.decode()
+
+
+def test_demo_runs_and_prints_a_summary() -> None:
+    result = subprocess.run([*UWBD, "demo", "--duration", "2.5"], capture_output=True,
+                            timeout=60, check=False, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    out = result.stdout.decode()
+    assert result.returncode == 0, result.stderr
+    assert "imu" in out and "summary:" in out and "RMSE" in out
