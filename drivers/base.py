@@ -69,6 +69,31 @@ class Parser(Protocol):
         """End of input: frames still pending, if complete; leftover bytes are counted."""
 
 
+class BufferedParser:
+    """Bookkeeping every parser shares: counters, the bytes not consumed yet, and the
+    stream offset of the first of them (``_base``), which error reports cite."""
+
+    def __init__(self) -> None:
+        self.stats = ParserStats()
+        self._buf = bytearray()
+        self._base = 0
+
+    def _consume(self, n: int) -> None:
+        """Drop the first ``n`` pending bytes (already accounted for)."""
+        self._base += n
+        del self._buf[:n]
+
+    def _keep_tail(self, buf: bytes | bytearray, keep_from: int) -> None:
+        """``buf`` was the pending bytes plus a read; keep what follows ``keep_from``."""
+        self._base += keep_from
+        self._buf = bytearray(buf[keep_from:])
+
+    def _discard_rest(self) -> None:
+        """End of input: the pending bytes can no longer make a frame."""
+        self.stats.bytes_skipped += len(self._buf)
+        self._consume(len(self._buf))
+
+
 @dataclass(frozen=True, slots=True)
 class Scan:
     """Result of scanning a buffer for fixed-length frames.

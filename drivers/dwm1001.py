@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import re
 
-from drivers.base import FrameError, ParserStats
+from drivers.base import BufferedParser, FrameError
 from drivers.frames import AnchorRange, UwbRanges
 
 MAX_LINE_BYTES = 1024  # longest plausible line: 15 blocks of ~40 bytes; longer is garbage
@@ -49,13 +49,8 @@ def encode(frame: UwbRanges) -> bytes:
     return (",".join(parts) + "\r\n").encode("ascii")
 
 
-class Dwm1001ShellParser:
+class Dwm1001ShellParser(BufferedParser):
     """Incremental parser of the DWM1001 shell's ``lec`` (and ``lep``) output."""
-
-    def __init__(self) -> None:
-        self.stats = ParserStats()
-        self._buf = bytearray()
-        self._base = 0
 
     def feed(self, data: bytes, t_ns: int = 0) -> list[UwbRanges]:
         self.stats.bytes_in += len(data)
@@ -67,8 +62,7 @@ class Dwm1001ShellParser:
             self._consume(end)
         if len(self._buf) > MAX_LINE_BYTES:
             self._reject(self._base, f"line longer than {MAX_LINE_BYTES} bytes")
-            self.stats.bytes_skipped += len(self._buf)
-            self._consume(len(self._buf))
+            self._discard_rest()
         return out
 
     def flush(self) -> list[UwbRanges]:
@@ -87,10 +81,6 @@ class Dwm1001ShellParser:
                 out.append(frame)
         self.stats.frames += len(out)
         return out
-
-    def _consume(self, n: int) -> None:
-        self._base += n
-        del self._buf[:n]
 
     def _reject(self, offset: int, reason: str) -> None:
         self.stats.malformed += 1

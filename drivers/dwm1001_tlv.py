@@ -17,7 +17,7 @@ unknown types: uwbd runs on a tag.
 
 from __future__ import annotations
 
-from drivers.base import FrameError, ParserStats
+from drivers.base import BufferedParser, FrameError
 from drivers.frames import AnchorRange, UwbRanges
 from drivers.layout import Field, Layout
 
@@ -61,13 +61,8 @@ def encode_error(code: int) -> bytes:
     return bytes((T_STATUS, 1, code))
 
 
-class Dwm1001TlvParser:
+class Dwm1001TlvParser(BufferedParser):
     """Incremental parser of ``loc_get`` responses into :class:`UwbRanges`."""
-
-    def __init__(self) -> None:
-        self.stats = ParserStats()
-        self._buf = bytearray()
-        self._base = 0
 
     def feed(self, data: bytes, t_ns: int = 0) -> list[UwbRanges]:
         self.stats.bytes_in += len(data)
@@ -92,15 +87,12 @@ class Dwm1001TlvParser:
                 p += 1
             else:
                 p += used
-        self._base += p
-        del buf[:p]
+        self._consume(p)
         return out
 
     def flush(self) -> list[UwbRanges]:
         """End of input: whatever is left cannot complete a response."""
-        self._skip(len(self._buf))
-        self._base += len(self._buf)
-        self._buf.clear()
+        self._discard_rest()
         return []
 
     def _skip(self, n: int) -> None:

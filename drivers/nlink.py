@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.base import ParserStats, note_scan, scan_fixed
+from drivers.base import BufferedParser, note_scan, scan_fixed
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
 from drivers.layout import Field, Layout, sum8
 
@@ -85,14 +85,12 @@ def encode(frame: UwbRanges, imu: ImuSample | None = None) -> bytes:
     return bytes(body)
 
 
-class NlinkParser:
+class NlinkParser(BufferedParser):
     """Incremental parser of an NLink byte stream (TagFrame0) into :class:`UwbRanges`."""
 
     def __init__(self, emit_imu: bool = False) -> None:
-        self.stats = ParserStats()
+        super().__init__()
         self.emit_imu = emit_imu
-        self._buf = bytearray()
-        self._base = 0
 
     def feed(self, data: bytes, t_ns: int = 0) -> list[UwbRanges | ImuSample]:
         self.stats.bytes_in += len(data)
@@ -103,14 +101,11 @@ class NlinkParser:
         for p in scan.starts.tolist():
             self._frame(TAG_FRAME0.decode(buf, p), t_ns, out)
         self.stats.frames += len(scan.starts)
-        self._base += scan.keep_from
-        self._buf = bytearray(buf[scan.keep_from :])
+        self._keep_tail(buf, scan.keep_from)
         return out
 
     def flush(self) -> list[UwbRanges | ImuSample]:
-        self.stats.bytes_skipped += len(self._buf)
-        self._base += len(self._buf)
-        self._buf.clear()
+        self._discard_rest()
         return []
 
     def _frame(self, f: dict[str, Any], t_ns: int, out: list[UwbRanges | ImuSample]) -> None:

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.base import ParserStats, Scan, note_scan, scan_fixed
+from drivers.base import BufferedParser, Scan, note_scan, scan_fixed
 from drivers.frames import ImuSample
 from drivers.layout import Field, Layout, sum8
 
@@ -113,13 +113,11 @@ def encode(sample: ImuSample) -> bytes:
     return b"".join(out)
 
 
-class WitParser:
+class WitParser(BufferedParser):
     """Incremental parser of a WitMotion byte stream into :class:`ImuSample` (see module doc)."""
 
     def __init__(self) -> None:
-        self.stats = ParserStats()
-        self._buf = bytearray()
-        self._base = 0  # stream offset of self._buf[0]
+        super().__init__()
         self._cycle: dict[str, Any] = {}
         self._last_type = -1
         self._cycle_t_ns = 0
@@ -134,17 +132,14 @@ class WitParser:
         out: list[ImuSample] = []
         for p in scan.starts.tolist():
             self._packet(buf[p + 1], buf, p + _PAYLOAD_OFFSET, t_ns, out)
-        self._base += scan.keep_from
-        self._buf = bytearray(buf[scan.keep_from :])
+        self._keep_tail(buf, scan.keep_from)
         return out
 
     def flush(self) -> list[ImuSample]:
         """End of input: emit the pending cycle, if complete, and count leftover bytes."""
         out: list[ImuSample] = []
         self._close(out)
-        self.stats.bytes_skipped += len(self._buf)
-        self._base += len(self._buf)
-        self._buf.clear()
+        self._discard_rest()
         return out
 
     def _packet(self, ptype: int, buf: bytes | bytearray, at: int, t_ns: int,

@@ -74,10 +74,7 @@ class CircleScenario:
     def imu(self, duration_s: float | None = None) -> Iterator[tuple[int, ImuSample]]:
         """(time offset ns, sample) pairs; endless when ``duration_s`` is None."""
         rng = np.random.default_rng([self.seed, 1])
-        period_ns = round(1e9 / self.imu_rate_hz)
-        k = 0
-        while duration_s is None or k * period_ns <= duration_s * 1e9:
-            t_ns = k * period_ns
+        for t_ns in _ticks(self.imu_rate_hz, duration_s):
             _, v, v_dot = self._motion(t_ns / 1e9)
             # body frame: forward along the tangent, left towards the centre
             f_b = (v_dot, v * v / self.radius_m, GRAVITY_MPS2)
@@ -88,15 +85,11 @@ class CircleScenario:
             gyro = tuple(w + b + self.gyro_noise_rps * n
                          for w, b, n in zip(w_b, self.gyro_bias_rps, noise[3:], strict=True))
             yield t_ns, ImuSample(t_ns, _v3(acc), _v3(gyro), temperature_c=25.0)
-            k += 1
 
     def uwb(self, duration_s: float | None = None) -> Iterator[tuple[int, UwbRanges]]:
         """(time offset ns, ranging epoch) pairs with anchor ids 0..n-1."""
         rng = np.random.default_rng([self.seed, 2])
-        period_ns = round(1e9 / self.uwb_rate_hz)
-        k = 0
-        while duration_s is None or k * period_ns <= duration_s * 1e9:
-            t_ns = k * period_ns
+        for t_ns in _ticks(self.uwb_rate_hz, duration_s):
             p = self.position_m(t_ns / 1e9)
             noise = rng.normal(size=len(self.anchors_m) + 3)
             ranges = tuple(
@@ -105,7 +98,15 @@ class CircleScenario:
                 for i, a in enumerate(self.anchors_m))
             fix = _v3(x + self.range_noise_m * n for x, n in zip(p, noise[-3:], strict=True))
             yield t_ns, UwbRanges(t_ns, ranges, tag_position_m=fix, quality=90.0)
-            k += 1
+
+
+def _ticks(rate_hz: float, duration_s: float | None) -> Iterator[int]:
+    """Sample times (ns from the start) at ``rate_hz``, up to ``duration_s`` or forever."""
+    period_ns = round(1e9 / rate_hz)
+    k = 0
+    while duration_s is None or k * period_ns <= duration_s * 1e9:
+        yield k * period_ns
+        k += 1
 
 
 def _v3(values: Iterable[float]) -> tuple[float, float, float]:
