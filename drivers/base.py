@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -104,36 +105,77 @@ class Scan:
     lay outside accepted frames; ``unknown``: offsets of headers followed by an unknown type.
     """
 
-    starts: npt.NDArray[np.int64]
+    starts: list[int]
     keep_from: int
     skipped: int
-    rejected: npt.NDArray[np.int64]
-    unknown: npt.NDArray[np.int64]
+    rejected: list[int]
+    unknown: list[int]
 
 
-def scan_fixed(
-    buf: bytes | bytearray, length: int, header: int, known_types: npt.NDArray[np.bool_]
-) -> Scan:
+SMALL_SCAN_BYTES = 512  # below this, a plain loop beats numpy's per-call overhead
+
+
+def scan_fixed(buf: bytes | bytearray, length: int, header: int, known: frozenset[int]) -> Scan:
     """Find frames ``header, type, payload…, sum8`` of ``length`` bytes in ``buf``.
 
     Semantics are those of the byte-by-byte resync loop: at each position, accept a frame if
-    the header matches, the type byte is known and the checksum of bytes ``0..length-2``
-    equals byte ``length-1``, then jump past it; otherwise slide one byte. Candidates are
-    tested for every position at once with numpy; only the (rare) overlapping ones are walked
-    in Python.
+    the header matches, the type byte is in ``known`` and the checksum of bytes
+    ``0..length-2`` equals byte ``length-1``, then jump past it; otherwise slide one byte.
+    Short buffers (a live read) take that loop literally; long ones (a replay, a capture) test
+    every position at once with numpy and walk only overlapping candidates in Python.
     """
+    if len(buf) < SMALL_SCAN_BYTES:
+        return _scan_loop(buf, length, header, known)
+    return _scan_numpy(buf, length, header, _mask(known))
+
+
+def _scan_loop(buf: bytes | bytearray, length: int, header: int, known: frozenset[int]) -> Scan:
+    last = len(buf) - length
+    starts: list[int] = []
+    rejected: list[int] = []
+    unknown: list[int] = []
+    p = buf.find(header)
+    while 0 <= p <= last:
+        if buf[p + 1] not in known:
+            unknown.append(p)
+        elif sum(buf[p : p + length - 1]) & 0xFF == buf[p + length - 1]:
+            starts.append(p)
+            p = buf.find(header, p + length)
+            continue
+        else:
+            rejected.append(p)
+        p = buf.find(header, p + 1)
+    return _finish(buf, length, header, starts=starts, rejected=rejected, unknown=unknown)
+
+
+def _finish(buf: bytes | bytearray, length: int, header: int, *, starts: list[int],
+            rejected: list[int], unknown: list[int]) -> Scan:
+    """Where the tail worth keeping starts: the first header no complete frame could follow
+    yet (never a negative index: ``find`` would count that from the end)."""
+    end = starts[-1] + length if starts else 0
+    tail = buf.find(header, max(end, len(buf) - length + 1, 0))
+    keep = tail if tail >= 0 else len(buf)
+    return Scan(starts, keep, keep - len(starts) * length, rejected, unknown)
+
+
+@functools.lru_cache(maxsize=16)
+def _mask(known: frozenset[int]) -> npt.NDArray[np.bool_]:
+    mask = np.zeros(256, dtype=np.bool_)
+    mask[list(known)] = True
+    return mask
+
+
+def _scan_numpy(
+    buf: bytes | bytearray, length: int, header: int, known_types: npt.NDArray[np.bool_]
+) -> Scan:
     arr = np.frombuffer(buf, dtype=np.uint8)
-    n = arr.size
-    last = n - length  # last position a complete frame can start at
-    empty = np.empty(0, dtype=np.int64)
+    last = arr.size - length  # last position a complete frame can start at
     if last < 0:
-        heads = np.flatnonzero(arr == header)
-        keep = int(heads[0]) if heads.size else n
-        return Scan(empty, keep, keep, empty, empty)
+        return _finish(buf, length, header, starts=[], rejected=[], unknown=[])
     heads = np.flatnonzero(arr[: last + 1] == header).astype(np.int64)
     known = known_types[arr[heads + 1]]
     cand = heads[known]
-    csum = np.zeros(n + 1, dtype=np.int64)
+    csum = np.zeros(arr.size + 1, dtype=np.int64)
     np.cumsum(arr, out=csum[1:])
     ok = ((csum[cand + length - 1] - csum[cand]) & 0xFF) == arr[cand + length - 1]
     good = cand[ok]
@@ -147,13 +189,9 @@ def scan_fixed(
         starts = np.asarray(starts_list, dtype=np.int64)
     else:
         starts = good
-    end = int(starts[-1]) + length if starts.size else 0
-    tail = np.flatnonzero(arr[max(end, last + 1) :] == header)
-    keep = max(end, last + 1) + int(tail[0]) if tail.size else n
-    skipped = keep - starts.size * length
-    rejected = _outside(cand[~ok], starts, length)
-    unknown = _outside(heads[~known], starts, length)
-    return Scan(starts, keep, skipped, rejected, unknown)
+    return _finish(buf, length, header, starts=starts.tolist(),
+                   rejected=_outside(cand[~ok], starts, length).tolist(),
+                   unknown=_outside(heads[~known], starts, length).tolist())
 
 
 def _outside(
@@ -170,7 +208,7 @@ def _outside(
 def note_scan(stats: ParserStats, scan: Scan, base: int, what: str) -> None:
     """Add a scan's rejections to ``stats``; ``base`` is the stream offset of the buffer."""
     stats.bytes_skipped += scan.skipped
-    stats.checksum_errors += int(scan.rejected.size)
-    stats.unknown_types += int(scan.unknown.size)
-    for p in scan.rejected[-MAX_RECENT_ERRORS:].tolist():
+    stats.checksum_errors += len(scan.rejected)
+    stats.unknown_types += len(scan.unknown)
+    for p in scan.rejected[-MAX_RECENT_ERRORS:]:
         stats.recent_errors.append(FrameError(base + p, f"{what}: checksum mismatch"))

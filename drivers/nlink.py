@@ -16,8 +16,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
-
 from drivers.base import BufferedParser, note_scan, scan_fixed
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
 from drivers.layout import Field, Layout, sum8
@@ -49,8 +47,7 @@ TAG_FRAME0 = Layout((
 FRAME_LEN = TAG_FRAME0.size
 assert FRAME_LEN == 128
 
-_KNOWN = np.zeros(256, dtype=np.bool_)
-_KNOWN[MARK_TAG_FRAME0] = True
+_KNOWN = frozenset({MARK_TAG_FRAME0})
 
 
 def encode(frame: UwbRanges, imu: ImuSample | None = None) -> bytes:
@@ -98,7 +95,7 @@ class NlinkParser(BufferedParser):
         scan = scan_fixed(buf, FRAME_LEN, HEADER, _KNOWN)
         note_scan(self.stats, scan, self._base, "nlink TagFrame0")
         out: list[UwbRanges | ImuSample] = []
-        for p in scan.starts.tolist():
+        for p in scan.starts:
             self._frame(TAG_FRAME0.decode(buf, p), t_ns, out)
         self.stats.frames += len(scan.starts)
         self._keep_tail(buf, scan.keep_from)

@@ -28,8 +28,6 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-import numpy as np
-
 from drivers.base import BufferedParser, Scan, note_scan, scan_fixed
 from drivers.frames import ImuSample
 from drivers.layout import Field, Layout, sum8
@@ -63,8 +61,6 @@ PAYLOADS: dict[int, Layout] = {
 }
 _PAYLOAD_OFFSET = 2
 
-_KNOWN = np.zeros(256, dtype=np.bool_)
-_KNOWN[list(KNOWN_TYPES)] = True
 
 
 def device_time_ns(fields: dict[str, int]) -> int | None:
@@ -127,10 +123,10 @@ class WitParser(BufferedParser):
     def feed(self, data: bytes, t_ns: int = 0) -> list[ImuSample]:
         self.stats.bytes_in += len(data)
         buf = self._buf + data if self._buf else data
-        scan: Scan = scan_fixed(buf, PACKET_LEN, HEADER, _KNOWN)
+        scan: Scan = scan_fixed(buf, PACKET_LEN, HEADER, KNOWN_TYPES)
         note_scan(self.stats, scan, self._base, "wit packet")
         out: list[ImuSample] = []
-        for p in scan.starts.tolist():
+        for p in scan.starts:
             self._packet(buf[p + 1], buf, p + _PAYLOAD_OFFSET, t_ns, out)
         self._keep_tail(buf, scan.keep_from)
         return out

@@ -10,7 +10,8 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from strategies import dwm_shell_epochs, dwm_tlv_epochs, nlink_epochs, wit_streams
 
-from drivers import PARSERS, dwm1001, dwm1001_tlv, nlink, wit
+from drivers import PARSERS, ImuSample, dwm1001, dwm1001_tlv, nlink, wit
+from drivers.base import _mask, _scan_loop, _scan_numpy
 from drivers.layout import sum8
 
 # garbage rich in the bytes that start or look like frames of the formats under test
@@ -103,3 +104,19 @@ def test_frames_carry_the_receive_time_of_their_last_byte(epochs, cut) -> None:
     ends = [(k + 1) * nlink.FRAME_LEN for k in range(len(epochs))]
     assert frames == [dataclasses.replace(e, t_ns=100 if end <= cut else 200)
                       for e, end in zip(epochs, ends, strict=True)]
+
+
+
+_valid = st.sampled_from([
+    wit.encode(ImuSample(0, (0.0, 0.0, 9.80665), (0.0, 0.01, 0.0), 25.0)),
+    wit.encode_packet(wit.ANGLE, {"angle_deg": (1.0, 2.0, 3.0)}),
+])
+
+
+@settings(max_examples=300)
+@given(st.lists(garbage | _valid | _valid.map(lambda b: b[:7]), max_size=40).map(b"".join))
+def test_small_and_large_scanners_agree(stream: bytes) -> None:
+    """The plain loop (live reads) and the numpy scan (replays) are the same algorithm."""
+    known = frozenset(wit.KNOWN_TYPES)
+    assert _scan_loop(stream, wit.PACKET_LEN, 0x55, known) == _scan_numpy(
+        stream, wit.PACKET_LEN, 0x55, _mask(known))
