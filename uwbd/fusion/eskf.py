@@ -1,0 +1,185 @@
+"""Error-state EKF: strapdown INS nominal state plus a linear error state (docs/ekf.md).
+
+Symbols follow the derivation: ``p v q b_g b_a b_r`` nominal, ``δx`` error, ``F Φ Q_d P H R
+S K y``. The per-IMU-sample path (:meth:`Eskf.predict`) is plain float arithmetic; the
+covariance is propagated once per update interval (:meth:`Eskf.propagate`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from uwbd.fusion.rotation import Array, quat_from_rotvec, quat_mul, quat_to_matrix, skew
+
+GRAVITY_MPS2 = 9.80665
+Vector = Sequence[float] | Array
+# error-state layout
+P_, V_, TH_, BG_, BA_ = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
+N_CORE = 15
+
+
+@dataclass(frozen=True)
+class ImuNoise:
+    """Continuous-time noise densities.
+
+    Defaults suit a MEMS IMU (e.g. a WitMotion): accel white noise ``σ_a`` (m/s²/√Hz), gyro
+    ``σ_g`` (rad/s/√Hz), bias random walks ``σ_ba`` (m/s³/√Hz), ``σ_bg`` (rad/s²/√Hz), and the
+    range-bias random walk ``σ_br`` (m/√s) when range-bias states are on.
+    """
+
+    acc: float = 0.05
+    gyro: float = 0.005
+    acc_bias: float = 1e-3
+    gyro_bias: float = 1e-4
+    range_bias: float = 1e-4
+
+
+class Eskf:
+    """The filter's state and the algebra on it; policy (gating, modes) lives in ``Filter``."""
+
+    def __init__(self, p: Vector, v: Vector, q: Vector,
+                 P0: Array, noise: ImuNoise, n_range_bias: int = 0,
+                 b_g: Vector = (0.0, 0.0, 0.0),
+                 b_a: Vector = (0.0, 0.0, 0.0)) -> None:
+        self.n = N_CORE + n_range_bias
+        if P0.shape != (self.n, self.n):
+            raise ValueError(f"P0 must be {self.n}x{self.n}, got {P0.shape}")
+        self.p, self.v, self.q = list(map(float, p)), list(map(float, v)), list(map(float, q))
+        self.b_g, self.b_a = list(map(float, b_g)), list(map(float, b_a))
+        self.b_r = np.zeros(n_range_bias)
+        self.P = P0.astype(float).copy()
+        self.noise = noise
+        self._reset_interval()
+
+    # -- nominal propagation: every IMU sample -------------------------------------------
+    def predict(self, acc_b: Vector, gyro_b: Vector, dt: float) -> None:
+        """Integrate one IMU sample over ``dt`` seconds (docs/ekf.md §2)."""
+        wx, wy, wz = (gyro_b[0] - self.b_g[0]) * dt, (gyro_b[1] - self.b_g[1]) * dt, \
+            (gyro_b[2] - self.b_g[2]) * dt
+        fx, fy, fz = acc_b[0] - self.b_a[0], acc_b[1] - self.b_a[1], acc_b[2] - self.b_a[2]
+        qw, qx, qy, qz = self.q
+        # a = R f + g, with R from q (before the attitude step: f was measured over dt)
+        ax = (1 - 2 * (qy * qy + qz * qz)) * fx + 2 * (qx * qy - qw * qz) * fy \
+            + 2 * (qx * qz + qw * qy) * fz
+        ay = 2 * (qx * qy + qw * qz) * fx + (1 - 2 * (qx * qx + qz * qz)) * fy \
+            + 2 * (qy * qz - qw * qx) * fz
+        az = 2 * (qx * qz - qw * qy) * fx + 2 * (qy * qz + qw * qx) * fy \
+            + (1 - 2 * (qx * qx + qy * qy)) * fz
+        self._sum_fn[0] += ax * dt
+        self._sum_fn[1] += ay * dt
+        self._sum_fn[2] += az * dt
+        self._sum_w[0] += wx
+        self._sum_w[1] += wy
+        self._sum_w[2] += wz
+        self._T += dt
+        az -= GRAVITY_MPS2
+        p, v = self.p, self.v
+        p[0] += (v[0] + 0.5 * ax * dt) * dt
+        p[1] += (v[1] + 0.5 * ay * dt) * dt
+        p[2] += (v[2] + 0.5 * az * dt) * dt
+        v[0] += ax * dt
+        v[1] += ay * dt
+        v[2] += az * dt
+        # q ← q ⊗ Exp(ω dt)
+        angle = math.sqrt(wx * wx + wy * wy + wz * wz)
+        if angle < 1e-9:
+            dw, s = 1.0, 0.5
+        else:
+            dw, s = math.cos(0.5 * angle), math.sin(0.5 * angle) / angle
+        dx, dy, dz = s * wx, s * wy, s * wz
+        nw = qw * dw - qx * dx - qy * dy - qz * dz
+        nx = qw * dx + qx * dw + qy * dz - qz * dy
+        ny = qw * dy - qx * dz + qy * dw + qz * dx
+        nz = qw * dz + qx * dy - qy * dx + qz * dw
+        norm = math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+        self.q = [nw / norm, nx / norm, ny / norm, nz / norm]
+
+    # -- covariance propagation: once per update interval --------------------------------
+    def _reset_interval(self) -> None:
+        self._T = 0.0
+        self._sum_fn = [0.0, 0.0, 0.0]
+        self._sum_w = [0.0, 0.0, 0.0]
+
+    def propagate(self) -> None:
+        """``P ← Φ P Φᵀ + Q_d`` over the interval accumulated by :meth:`predict` (§3)."""
+        T = self._T
+        if T <= 0.0:
+            return
+        R = self.R
+        f_n = np.array(self._sum_fn) / T
+        w = np.array(self._sum_w) / T
+        n = self.n
+        F = np.zeros((n, n))
+        F[P_, V_] = np.eye(3)
+        F[V_, TH_] = -skew(f_n) @ R  # −R [f]× = −[R f]× R
+        F[V_, BA_] = -R
+        F[TH_, TH_] = -skew(w)
+        F[TH_, BG_] = -np.eye(3)
+        A = F * T
+        Phi = np.eye(n) + A + 0.5 * (A @ A)
+        q = np.zeros(n)
+        nz = self.noise
+        q[V_] = nz.acc**2 * T
+        q[TH_] = nz.gyro**2 * T
+        q[BG_] = nz.gyro_bias**2 * T
+        q[BA_] = nz.acc_bias**2 * T
+        q[N_CORE:] = nz.range_bias**2 * T
+        P = Phi @ self.P @ Phi.T
+        P[np.diag_indices(n)] += q
+        self.P = 0.5 * (P + P.T)
+        self._reset_interval()
+
+    # -- measurement update --------------------------------------------------------------
+    def innovation_variances(self, H: Array, R: Array) -> Array:
+        """``S_ii = H_i P H_iᵀ + R_i`` for each row, at the current prior (for gating)."""
+        return np.einsum("ij,jk,ik->i", H, self.P, H) + R
+
+    def update(self, H: Array, y: Array, R: Array) -> Array:
+        """Fuse rows ``H`` (m×n) with residuals ``y`` and independent noise variances ``R``.
+
+        ``K = P Hᵀ S⁻¹``; Joseph form ``P ← (I−KH) P (I−KH)ᵀ + K R Kᵀ``; then inject and
+        reset (§5). Returns the injected ``δx``.
+        """
+        P = self.P
+        PHt = P @ H.T
+        S = H @ PHt + np.diag(R)
+        K = np.linalg.solve(S, PHt.T).T  # S is symmetric
+        dx = K @ y
+        I_KH = np.eye(self.n) - K @ H
+        P = I_KH @ P @ I_KH.T + (K * R) @ K.T
+        self.P = 0.5 * (P + P.T)
+        self.inject(dx)
+        return dx
+
+    def inject(self, dx: Array) -> None:
+        """Closed-loop correction of the nominal state, then the error reset ``P ← G P Gᵀ``."""
+        for i in range(3):
+            self.p[i] += dx[i]
+            self.v[i] += dx[3 + i]
+            self.b_g[i] += dx[9 + i]
+            self.b_a[i] += dx[12 + i]
+        self.b_r += dx[N_CORE:]
+        dq = quat_from_rotvec(dx[TH_])
+        q = quat_mul(np.array(self.q), dq)
+        self.q = list(q / np.linalg.norm(q))
+        G = np.eye(self.n)
+        G[TH_, TH_] -= 0.5 * skew(dx[TH_])
+        self.P = G @ self.P @ G.T
+
+    # -- views ----------------------------------------------------------------------------
+    @property
+    def R(self) -> Array:
+        """Body-to-navigation rotation matrix of the nominal attitude."""
+        return quat_to_matrix(np.array(self.q))
+
+    def position_sigma_m(self) -> Array:
+        return np.sqrt(np.diag(self.P)[P_])
+
+    def yaw_sigma_rad(self) -> float:
+        """Standard deviation of the heading error: the nav-z component of ``R δθ``."""
+        r = self.R[2]
+        return float(math.sqrt(max(r @ self.P[TH_, TH_] @ r, 0.0)))

@@ -1,0 +1,404 @@
+"""The fusion filter: frames in, poses and per-measurement reports out.
+
+``Filter.predict(imu)``, ``Filter.update(uwb)``, ``Filter.pose()`` — pure and deterministic
+(same frames in, same poses out). Policy lives here; the algebra in :mod:`uwbd.fusion.eskf`.
+
+Life cycle:
+
+1. **Waiting**: IMU samples (turned into body axes) and UWB least-squares fixes are collected.
+   When the IMU has been at rest for ``init_static_s`` and fixes exist for that time, the
+   filter starts from rest: gyro bias = mean gyro, roll and pitch from the mean specific
+   force, position = mean fix, velocity 0. If the vehicle never rests within
+   ``init_max_wait_s``, it starts **moving**: position from the latest fix, velocity from
+   the fixes' slope, roll/pitch from the mean specific force, a larger gyro-bias variance,
+   and the status says so.
+2. **Running**: heading starts unknown (yaw σ = 180°) and is aligned by the ranges once the
+   vehicle moves; ``heading_observable`` turns true when its σ falls below 10°.
+3. **Recovery**: when most ranges keep failing the gate (NLOS, or a diverged state) for
+   ``reinit_after_bad_epochs`` epochs, position and velocity are re-initialised from UWB
+   least squares and the event is counted and reported.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from enum import Enum
+
+import numpy as np
+from scipy.stats import chi2
+
+from drivers.frames import ImuSample, UwbRanges
+from uwbd.fusion.eskf import N_CORE, P_, TH_, V_, Eskf, ImuNoise
+from uwbd.fusion.gating import GatingCounters, GatingPolicy, gate
+from uwbd.fusion.lsq import LsqFix, coplanar, multilaterate
+from uwbd.fusion.rotation import Array, quat_from_euler, quat_to_matrix, skew
+from uwbd.fusion.types import FusionReport, Pose
+
+Vec3 = tuple[float, float, float]
+IDENTITY3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+
+class Mode(str, Enum):
+    LOOSE = "loose"  # UWB least-squares positions are the measurements
+    TIGHT = "tight"  # every range is a scalar measurement
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Everything the filter is told. Units in names; rotations as row-major 3×3 tuples."""
+
+    mode: Mode = Mode.TIGHT
+    anchors_m: Mapping[int, Vec3] = field(default_factory=dict)
+    mounting_rotation: tuple[Vec3, Vec3, Vec3] = IDENTITY3  # C_bs: sensor axes -> body FLU
+    lever_arm_m: Vec3 = (0.0, 0.0, 0.0)  # IMU -> UWB antenna, body axes
+    imu_noise: ImuNoise = field(default_factory=ImuNoise)
+    range_sigma_m: float = 0.10
+    gate_probability: float = 0.997  # per-measurement χ² gate (3 σ for a scalar)
+    gating: GatingPolicy = field(default_factory=lambda: GatingPolicy(min_anchors=1))
+    range_bias_states: bool = False
+    range_bias_sigma_m: float = 0.2
+    zupt: bool = True
+    zupt_sigma_mps: float = 0.02
+    nhc: bool = False
+    nhc_sigma_mps: float = 0.1
+    known_height_m: float | None = None
+    height_sigma_m: float = 0.05
+    static_window_s: float = 0.5
+    static_acc_std_mps2: float = 0.15
+    static_gyro_rps: float = 0.03
+    init_static_s: float = 1.0
+    init_max_wait_s: float = 3.0
+    max_imu_gap_s: float = 0.5
+    reinit_after_bad_epochs: int = 20
+
+
+class Filter:
+    """Loosely or tightly coupled UWB/INS error-state EKF (see module doc)."""
+
+    def __init__(self, config: FilterConfig) -> None:
+        self.cfg = config
+        self.C_bs = np.array(config.mounting_rotation, dtype=float)
+        if not np.allclose(self.C_bs @ self.C_bs.T, np.eye(3), atol=1e-6) or \
+                np.linalg.det(self.C_bs) < 0:
+            raise ValueError("mounting_rotation must be a proper rotation matrix")
+        self.lever = np.array(config.lever_arm_m, dtype=float)
+        self.ekf: Eskf | None = None
+        self.counters: collections.Counter[str] = collections.Counter()
+        self.gating = GatingCounters()
+        self.status = "waiting for data"
+        self.t_ns: int | None = None  # time of the nominal state
+        self._imu_t_ns: int | None = None
+        self._last_imu: tuple[Array, Array] | None = None
+        self._window: collections.deque[tuple[int, Array, Array]] = collections.deque()
+        self._fixes: collections.deque[tuple[int, Array]] = collections.deque(maxlen=50)
+        self._first_t_ns: int | None = None
+        self._bad_epochs = 0
+        self._bias_index: dict[int, int] = {}
+        if config.range_bias_states:
+            self._bias_index = {a: N_CORE + i for i, a in enumerate(sorted(config.anchors_m))}
+        self._gate_1 = float(chi2.ppf(config.gate_probability, 1))
+        self._gate_3 = float(chi2.ppf(config.gate_probability, 3))
+        anchors = np.array(list(config.anchors_m.values())) if config.anchors_m else None
+        self._fixed_z = (config.known_height_m if anchors is not None and coplanar(anchors)
+                         else None)
+
+    # -- inputs ---------------------------------------------------------------------------
+    def predict(self, imu: ImuSample) -> None:
+        """Integrate one IMU sample (sensor axes); bad samples are counted, never used."""
+        acc = self.C_bs @ np.asarray(imu.acc_mps2, dtype=float)
+        gyro = self.C_bs @ np.asarray(imu.gyro_rps, dtype=float)
+        if not (np.all(np.isfinite(acc)) and np.all(np.isfinite(gyro))):
+            self.counters["imu_not_finite"] += 1
+            return
+        if self._first_t_ns is None:
+            self._first_t_ns = imu.t_ns
+        prev = self._imu_t_ns
+        if prev is not None and imu.t_ns <= prev:
+            self.counters["imu_out_of_order"] += 1
+            return
+        self._imu_t_ns = imu.t_ns
+        self._remember(imu.t_ns, acc, gyro)
+        if self.ekf is None:
+            self._last_imu = (acc, gyro)
+            return
+        assert self.t_ns is not None
+        dt = (imu.t_ns - self.t_ns) / 1e9
+        if dt > self.cfg.max_imu_gap_s:
+            # a gap: do not integrate across it; grow the uncertainty it leaves instead
+            self.counters["imu_gaps"] += 1
+            self._inflate(velocity_mps=1.0 * dt, attitude_rad=0.05 * dt)
+        elif dt > 0:
+            self.ekf.predict(acc, gyro, dt)
+        self.t_ns = imu.t_ns
+        self._last_imu = (acc, gyro)
+
+    def update(self, uwb: UwbRanges) -> list[FusionReport]:
+        """Fuse one ranging epoch; returns one report per measurement (accepted or not)."""
+        if self._first_t_ns is None:
+            self._first_t_ns = uwb.t_ns
+        result = gate(uwb, self.cfg.gating, self.gating)
+        reports = [FusionReport(uwb.t_ns, "range", str(r.anchor_id), math.nan, math.nan,
+                                math.nan, False, why.value) for r, why in result.rejected]
+        if result.epoch is None:
+            return reports
+        ids, anchors, ranges = self._resolve(result.epoch, reports)
+        if len(ids) == 0:
+            return reports
+        fix = self._lsq(anchors, ranges)
+        if fix is not None:
+            self._fixes.append((uwb.t_ns, fix.position_m))
+        if self.ekf is None:
+            self._try_initialise(uwb.t_ns, fix)
+            return reports
+        if self.t_ns is not None and uwb.t_ns < self.t_ns:
+            self.counters["uwb_late"] += 1  # older than the state: the aligner's job
+            return reports
+        self._predict_to(uwb.t_ns)
+        self.ekf.propagate()
+        H, y, R, keys = self._measurement_rows(ids, anchors, ranges, fix)
+        self._constraints(H, y, R, keys)
+        reports += self._fuse(uwb.t_ns, H, y, R, keys)
+        self._check_health(fix, reports)
+        return reports
+
+    # -- outputs --------------------------------------------------------------------------
+    def pose(self) -> Pose | None:
+        ekf = self.ekf
+        if ekf is None or self.t_ns is None:
+            return None
+        R = ekf.R
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = ekf.P[P_, P_]
+        cov[:3, 3:] = ekf.P[P_, TH_] @ R.T
+        cov[3:, :3] = cov[:3, 3:].T
+        cov[3:, 3:] = R @ ekf.P[TH_, TH_] @ R.T
+        w, x, y, z = ekf.q
+        return Pose(
+            t_ns=self.t_ns, position_m=(ekf.p[0], ekf.p[1], ekf.p[2]),
+            velocity_mps=(ekf.v[0], ekf.v[1], ekf.v[2]), orientation_xyzw=(x, y, z, w),
+            covariance=tuple(float(c) for c in cov.ravel()), status=self.status,
+            heading_observable=ekf.yaw_sigma_rad() < math.radians(10),
+        )
+
+    # -- internals ------------------------------------------------------------------------
+    def _remember(self, t_ns: int, acc: Array, gyro: Array) -> None:
+        window_ns = int(max(self.cfg.static_window_s, self.cfg.init_static_s) * 1e9)
+        self._window.append((t_ns, acc, gyro))
+        while self._window and self._window[0][0] < t_ns - window_ns:
+            self._window.popleft()
+
+    def _static(self, span_s: float) -> bool:
+        """At rest over the last ``span_s``: specific force steady and rotation small."""
+        if not self._window:
+            return False
+        t_end = self._window[-1][0]
+        recent = [(a, g) for t, a, g in self._window if t >= t_end - span_s * 1e9]
+        if len(recent) < 3 or (t_end - self._window[0][0]) < 0.9 * span_s * 1e9:
+            return False
+        acc = np.array([a for a, _ in recent])
+        gyro = np.array([g for _, g in recent])
+        return bool(np.linalg.norm(acc.std(axis=0)) < self.cfg.static_acc_std_mps2
+                    and np.linalg.norm(gyro.mean(axis=0)) < self.cfg.static_gyro_rps
+                    and np.linalg.norm(gyro.std(axis=0)) < self.cfg.static_gyro_rps)
+
+    def _resolve(self, epoch: UwbRanges, reports: list[FusionReport]
+                 ) -> tuple[list[int], Array, Array]:
+        """Anchor positions for each range: configured first, else as the device sends."""
+        ids, anchors, ranges = [], [], []
+        for r in epoch.ranges:
+            pos = self.cfg.anchors_m.get(r.anchor_id, r.anchor_position_m)
+            if pos is None:
+                self.gating.rejections["unknown_anchor"] += 1
+                reports.append(FusionReport(epoch.t_ns, "range", str(r.anchor_id), math.nan,
+                                            math.nan, math.nan, False, "unknown_anchor"))
+                continue
+            ids.append(r.anchor_id)
+            anchors.append(pos)
+            ranges.append(r.range_m)
+        return ids, np.array(anchors, dtype=float).reshape(-1, 3), np.array(ranges)
+
+    def _lsq(self, anchors: Array, ranges: Array) -> LsqFix | None:
+        x0 = None
+        if self.ekf is not None:
+            x0 = np.array(self.ekf.p) + self.ekf.R @ self.lever
+        elif self._fixes:
+            x0 = self._fixes[-1][1]
+        return multilaterate(anchors, ranges, self.cfg.range_sigma_m, x0, self._fixed_z)
+
+    def _try_initialise(self, t_ns: int, fix: LsqFix | None) -> None:
+        if fix is None or not self._window:
+            return
+        cfg = self.cfg
+        waited_s = (t_ns - (self._first_t_ns or t_ns)) / 1e9
+        acc = np.mean([a for _, a, _ in self._window], axis=0)
+        gyro = np.mean([g for _, _, g in self._window], axis=0)
+        recent = [p for t, p in self._fixes if t >= t_ns - cfg.init_static_s * 1e9]
+        roll = math.atan2(acc[1], acc[2])
+        pitch = math.atan2(-acc[0], math.hypot(acc[1], acc[2]))
+        q = quat_from_euler(roll, pitch, 0.0)
+        P0 = np.zeros((N_CORE + len(self._bias_index),) * 2)
+        if self._static(cfg.init_static_s) and len(recent) >= 3:
+            p_ant, v, bg = np.mean(recent, axis=0), np.zeros(3), gyro
+            sig_v, sig_bg, self.status = 0.05, 0.005, "running (started at rest)"
+        elif waited_s >= cfg.init_max_wait_s and len(self._fixes) >= 2:
+            (t0, p0), (t1, p1) = self._fixes[-2], self._fixes[-1]
+            p_ant, v, bg = p1, (p1 - p0) / max((t1 - t0) / 1e9, 1e-3), np.zeros(3)
+            sig_v, sig_bg, self.status = 1.0, 0.02, "running (started while moving)"
+        else:
+            return
+        self.counters["initialisations"] += 1
+        R0 = quat_to_matrix(q)
+        p = p_ant - R0 @ self.lever
+        sig_p = float(np.sqrt(max(np.trace(fix.covariance) / 3, 0.05**2)))
+        np.fill_diagonal(P0, np.concatenate([
+            np.full(3, sig_p**2), np.full(3, sig_v**2),
+            [math.radians(2) ** 2, math.radians(2) ** 2, math.pi**2],
+            np.full(3, sig_bg**2), np.full(3, 0.1**2),
+            np.full(len(self._bias_index), cfg.range_bias_sigma_m**2)]))
+        self.ekf = Eskf(p, v, q, P0, cfg.imu_noise, len(self._bias_index), b_g=bg)
+        self.t_ns = t_ns
+
+    def _predict_to(self, t_ns: int) -> None:
+        """Hold the last IMU sample up to the measurement time (latency of one IMU period)."""
+        assert self.ekf is not None and self.t_ns is not None
+        dt = (t_ns - self.t_ns) / 1e9
+        if self._last_imu is not None and 0 < dt <= self.cfg.max_imu_gap_s:
+            self.ekf.predict(self._last_imu[0], self._last_imu[1], dt)
+        self.t_ns = t_ns
+
+    def _measurement_rows(self, ids: list[int], anchors: Array, ranges: Array,
+                          fix: LsqFix | None) -> tuple[list[Array], list[float], list[float],
+                                                       list[tuple[str, str]]]:
+        """Tight: one row per range (§4, range); loose: the fix's axes (§4, position)."""
+        ekf = self.ekf
+        assert ekf is not None
+        n = ekf.n
+        R = ekf.R
+        p_ant = np.array(ekf.p) + R @ self.lever
+        H_th_lever = -R @ skew(self.lever)
+        H: list[Array] = []
+        y: list[float] = []
+        var: list[float] = []
+        keys: list[tuple[str, str]] = []
+        if self.cfg.mode is Mode.TIGHT:
+            for anchor_id, a, d in zip(ids, anchors, ranges, strict=True):
+                diff = p_ant - a
+                dist = float(np.linalg.norm(diff))
+                if dist < 1e-3:
+                    continue
+                u = diff / dist
+                row = np.zeros(n)
+                row[P_] = u
+                row[TH_] = u @ H_th_lever
+                h = dist
+                k = self._bias_index.get(anchor_id)
+                if k is not None:
+                    row[k] = 1.0
+                    h += ekf.b_r[k - N_CORE]
+                H.append(row)
+                y.append(float(d - h))
+                var.append(self.cfg.range_sigma_m**2)
+                keys.append(("range", str(anchor_id)))
+        elif fix is not None:
+            for axis in range(3 if self._fixed_z is None else 2):
+                row = np.zeros(n)
+                row[axis] = 1.0
+                row[TH_] = H_th_lever[axis]
+                H.append(row)
+                y.append(float(fix.position_m[axis] - p_ant[axis]))
+                var.append(float(max(fix.covariance[axis, axis], 0.02**2)))
+                keys.append(("position", "xyz"[axis]))
+        return H, y, var, keys
+
+    def _constraints(self, H: list[Array], y: list[float], var: list[float],
+                     keys: list[tuple[str, str]]) -> None:
+        ekf = self.ekf
+        assert ekf is not None
+        n = ekf.n
+        if self.cfg.zupt and self._static(self.cfg.static_window_s):
+            self.counters["zupt"] += 1
+            for i in range(3):
+                row = np.zeros(n)
+                row[3 + i] = 1.0
+                H.append(row)
+                y.append(-ekf.v[i])
+                var.append(self.cfg.zupt_sigma_mps**2)
+                keys.append(("zupt", "xyz"[i]))
+        if self.cfg.nhc:
+            Rt = ekf.R.T
+            v_b = Rt @ np.array(ekf.v)
+            for i in (1, 2):
+                row = np.zeros(n)
+                row[V_] = Rt[i]
+                row[TH_] = skew(v_b)[i]
+                H.append(row)
+                y.append(-float(v_b[i]))
+                var.append(self.cfg.nhc_sigma_mps**2)
+                keys.append(("nhc", "yz"[i - 1]))
+        if self.cfg.known_height_m is not None:
+            row = np.zeros(n)
+            row[2] = 1.0
+            H.append(row)
+            y.append(self.cfg.known_height_m - ekf.p[2])
+            var.append(self.cfg.height_sigma_m**2)
+            keys.append(("height", "z"))
+
+    def _fuse(self, t_ns: int, H_rows: list[Array], y_list: list[float], var: list[float],
+              keys: list[tuple[str, str]]) -> list[FusionReport]:
+        ekf = self.ekf
+        assert ekf is not None
+        if not H_rows:
+            return []
+        H, y, R = np.array(H_rows), np.array(y_list), np.array(var)
+        S = ekf.innovation_variances(H, R)
+        nis = y * y / S
+        accept = nis <= self._gate_1
+        loose = np.array([k[0] == "position" for k in keys])
+        if loose.any():  # a position fix is one 3-D measurement: gate it as one
+            idx = np.flatnonzero(loose)
+            Hl = H[idx]
+            Sl = Hl @ ekf.P @ Hl.T + np.diag(R[idx])
+            nis_l = float(y[idx] @ np.linalg.solve(Sl, y[idx]))
+            accept[idx] = nis_l <= self._gate_3
+        reports = [FusionReport(t_ns, kind, key, float(y[i]), float(S[i]),
+                                float(nis[i] / self._gate_1), bool(accept[i]),
+                                "" if accept[i] else "innovation_gate")
+                   for i, (kind, key) in enumerate(keys)]
+        for r in reports:
+            self.counters[f"{r.kind}_{'accepted' if r.accepted else 'rejected'}"] += 1
+        if accept.any():
+            ekf.update(H[accept], y[accept], R[accept])
+        return reports
+
+    def _check_health(self, fix: LsqFix | None, reports: list[FusionReport]) -> None:
+        """Re-initialise from UWB when most ranges keep failing; catch a diverged state."""
+        ekf = self.ekf
+        assert ekf is not None
+        uwb = [r for r in reports if r.kind in ("range", "position") and not math.isnan(r.nis)]
+        bad = sum(not r.accepted for r in uwb)
+        self._bad_epochs = self._bad_epochs + 1 if uwb and bad > len(uwb) / 2 else 0
+        diverged = not (np.all(np.isfinite(ekf.P)) and np.all(np.isfinite(ekf.p))
+                        and ekf.position_sigma_m().max() < 100.0)
+        if (self._bad_epochs >= self.cfg.reinit_after_bad_epochs or diverged) and fix is not None:
+            self.counters["reinitialisations"] += 1
+            self.status = "running (re-initialised from UWB after rejected ranges)"
+            self._bad_epochs = 0
+            ekf.p = list(fix.position_m - ekf.R @ self.lever)
+            ekf.v = [0.0, 0.0, 0.0]
+            self._inflate(velocity_mps=1.0, attitude_rad=0.0, position_m=0.5)
+        elif ekf.yaw_sigma_rad() >= math.radians(10) and "heading" not in self.status:
+            self.status = self.status.replace(")", "; heading not yet observable)")
+        elif ekf.yaw_sigma_rad() < math.radians(10) and "heading not" in self.status:
+            self.status = self.status.replace("; heading not yet observable", "")
+
+    def _inflate(self, velocity_mps: float, attitude_rad: float, position_m: float = 0.0) -> None:
+        ekf = self.ekf
+        assert ekf is not None
+        d = np.zeros(ekf.n)
+        d[P_] = position_m**2
+        d[V_] = velocity_mps**2
+        d[TH_] = attitude_rad**2
+        ekf.P[np.diag_indices(ekf.n)] += d

@@ -1,0 +1,123 @@
+"""UWB-only position: Gauss–Newton multilateration with covariance.
+
+Residual ``r_i = |x − a_i| − d_i``, Jacobian rows ``u_iᵀ = (x − a_i)ᵀ/|x − a_i|``; each step
+solves ``(JᵀJ) δ = −Jᵀ r``; the covariance of the fix is ``σ² (JᵀJ)⁻¹``.
+
+* **2D / known height**: with ``fixed_z`` the height is held and only x, y are solved, for
+  anchors that are (nearly) coplanar, where the vertical is poorly observed and mirrored.
+* **One outlier**: with at least one range more than the unknowns need, the range with the
+  largest studentised residual is dropped when that residual exceeds ``outlier_sigma``,
+  and the fix is solved again.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from uwbd.fusion.rotation import Array
+
+MAX_ITERATIONS = 10
+CONVERGED_M = 1e-4
+
+
+@dataclass(frozen=True)
+class LsqFix:
+    """A multilateration solution. ``used`` marks the ranges kept; ``rms_m`` is the RMS of
+    their residuals."""
+
+    position_m: Array
+    covariance: Array
+    residuals_m: Array
+    used: Array
+    rms_m: float
+    iterations: int
+
+
+def coplanar(anchors_m: Array, tolerance_m: float = 0.3) -> bool:
+    """Do the anchors lie (within ``tolerance_m``) on one plane?"""
+    if len(anchors_m) < 4:
+        return True
+    centred = anchors_m - anchors_m.mean(axis=0)
+    return bool(np.linalg.svd(centred, compute_uv=False)[-1] / np.sqrt(len(anchors_m))
+                < tolerance_m)
+
+
+def multilaterate(anchors_m: Array, ranges_m: Array, sigma_m: float = 0.1,
+                  x0: Array | None = None, fixed_z: float | None = None,
+                  outlier_sigma: float = 3.0) -> LsqFix | None:
+    """Solve for the tag position; ``None`` when there are too few ranges or no convergence."""
+    dims = 2 if fixed_z is not None else 3
+    used = np.ones(len(ranges_m), dtype=bool)
+    fix = _solve(anchors_m, ranges_m, used, sigma_m, x0, fixed_z)
+    if fix is None or used.sum() <= dims + 1:
+        return fix
+    # studentised residuals: r_i / (σ √(1 − h_ii)), h_ii the leverage of range i
+    J = _jacobian(anchors_m[used], fix.position_m, dims)
+    lev = np.einsum("ij,jk,ik->i", J, np.linalg.pinv(J.T @ J), J)
+    student = np.abs(fix.residuals_m[used]) / (sigma_m * np.sqrt(np.clip(1 - lev, 1e-6, None)))
+    worst = int(np.argmax(student))
+    if student[worst] <= outlier_sigma:
+        return fix
+    used[np.flatnonzero(used)[worst]] = False
+    return _solve(anchors_m, ranges_m, used, sigma_m, fix.position_m, fixed_z) or fix
+
+
+def _jacobian(anchors: Array, x: Array, dims: int) -> Array:
+    diff = x - anchors
+    return (diff / np.linalg.norm(diff, axis=1, keepdims=True))[:, :dims]
+
+
+def _initial_guess(anchors: Array, ranges: Array, fixed_z: float | None) -> Array:
+    """Linear solution of the differenced range equations, else the anchors' centroid."""
+    centroid = anchors.mean(axis=0)
+    if fixed_z is None and len(anchors) >= 4 and not coplanar(anchors):
+        A = 2 * (anchors[1:] - anchors[0])
+        b = (ranges[0] ** 2 - ranges[1:] ** 2
+             + np.sum(anchors[1:] ** 2, axis=1) - np.sum(anchors[0] ** 2))
+        x, *_ = np.linalg.lstsq(A, b, rcond=None)
+        return np.asarray(x, dtype=float)
+    guess = centroid.copy()
+    if fixed_z is not None:
+        guess[2] = fixed_z
+    else:
+        guess[2] += 1.0  # above a plane of anchors, not in it
+    return guess
+
+
+def _solve(anchors_all: Array, ranges_all: Array, used: Array, sigma_m: float,
+           x0: Array | None, fixed_z: float | None) -> LsqFix | None:
+    dims = 2 if fixed_z is not None else 3
+    anchors, ranges = anchors_all[used], ranges_all[used]
+    if len(ranges) < dims:
+        return None
+    x = (np.array(x0, dtype=float) if x0 is not None
+         else _initial_guess(anchors, ranges, fixed_z))
+    if fixed_z is not None:
+        x[2] = fixed_z
+    iteration = 0
+    while True:
+        iteration += 1
+        diff = x - anchors
+        dist = np.linalg.norm(diff, axis=1)
+        if np.any(dist < 1e-6):
+            return None
+        r = dist - ranges
+        J = (diff / dist[:, None])[:, :dims]
+        JtJ = J.T @ J
+        try:
+            step = np.linalg.solve(JtJ, -J.T @ r)
+        except np.linalg.LinAlgError:
+            return None
+        x[:dims] += step
+        if float(np.linalg.norm(step)) < CONVERGED_M:
+            break
+        if iteration == MAX_ITERATIONS:
+            return None
+    residuals = np.full(len(ranges_all), np.nan)
+    residuals[used] = np.linalg.norm(x - anchors, axis=1) - ranges
+    cov = np.zeros((3, 3))
+    cov[:dims, :dims] = sigma_m**2 * np.linalg.inv(JtJ)
+    rms = float(np.sqrt(np.mean(residuals[used] ** 2)))
+    return LsqFix(x, cov, residuals, used.copy(), rms, iteration)
