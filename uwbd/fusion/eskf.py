@@ -26,13 +26,15 @@ N_CORE = 15
 class ImuNoise:
     """Continuous-time noise densities.
 
-    Defaults suit a MEMS IMU (e.g. a WitMotion): accel white noise ``σ_a`` (m/s²/√Hz), gyro
-    ``σ_g`` (rad/s/√Hz), bias random walks ``σ_ba`` (m/s³/√Hz), ``σ_bg`` (rad/s²/√Hz), and the
-    range-bias random walk ``σ_br`` (m/√s) when range-bias states are on.
+    Accel white noise ``σ_a`` (m/s²/√Hz), gyro ``σ_g`` (rad/s/√Hz), bias random walks ``σ_ba``
+    (m/s³/√Hz), ``σ_bg`` (rad/s²/√Hz), and the range-bias random walk ``σ_br`` (m/√s) when
+    range-bias states are on. Defaults: a consumer MEMS IMU's datasheet densities
+    (≈ 0.003 m/s²/√Hz, ≈ 0.0002 rad/s/√Hz for MPU-9250-class parts) raised 3-5× for
+    vibration and temperature, which real mountings add.
     """
 
-    acc: float = 0.05
-    gyro: float = 0.005
+    acc: float = 0.01
+    gyro: float = 0.001
     acc_bias: float = 1e-3
     gyro_bias: float = 1e-4
     range_bias: float = 1e-4

@@ -62,6 +62,7 @@ class FilterConfig:
     range_bias_sigma_m: float = 0.2
     zupt: bool = True
     zupt_sigma_mps: float = 0.02
+    zupt_max_speed_mps: float = 0.3
     nhc: bool = False
     nhc_sigma_mps: float = 0.1
     known_height_m: float | None = None
@@ -84,6 +85,7 @@ class Filter:
         if not np.allclose(self.C_bs @ self.C_bs.T, np.eye(3), atol=1e-6) or \
                 np.linalg.det(self.C_bs) < 0:
             raise ValueError("mounting_rotation must be a proper rotation matrix")
+        self._C = tuple(tuple(float(x) for x in row) for row in self.C_bs)
         self.lever = np.array(config.lever_arm_m, dtype=float)
         self.ekf: Eskf | None = None
         self.counters: collections.Counter[str] = collections.Counter()
@@ -91,8 +93,8 @@ class Filter:
         self.status = "waiting for data"
         self.t_ns: int | None = None  # time of the nominal state
         self._imu_t_ns: int | None = None
-        self._last_imu: tuple[Array, Array] | None = None
-        self._window: collections.deque[tuple[int, Array, Array]] = collections.deque()
+        self._last_imu: tuple[Vec3, Vec3] | None = None
+        self._window: collections.deque[tuple[int, Vec3, Vec3]] = collections.deque()
         self._fixes: collections.deque[tuple[int, Array]] = collections.deque(maxlen=50)
         self._first_t_ns: int | None = None
         self._bad_epochs = 0
@@ -108,11 +110,10 @@ class Filter:
     # -- inputs ---------------------------------------------------------------------------
     def predict(self, imu: ImuSample) -> None:
         """Integrate one IMU sample (sensor axes); bad samples are counted, never used."""
-        acc = self.C_bs @ np.asarray(imu.acc_mps2, dtype=float)
-        gyro = self.C_bs @ np.asarray(imu.gyro_rps, dtype=float)
-        if not (np.all(np.isfinite(acc)) and np.all(np.isfinite(gyro))):
+        if not all(map(math.isfinite, (*imu.acc_mps2, *imu.gyro_rps))):
             self.counters["imu_not_finite"] += 1
             return
+        acc, gyro = self._to_body(imu.acc_mps2), self._to_body(imu.gyro_rps)
         if self._first_t_ns is None:
             self._first_t_ns = imu.t_ns
         prev = self._imu_t_ns
@@ -147,9 +148,12 @@ class Filter:
         ids, anchors, ranges = self._resolve(result.epoch, reports)
         if len(ids) == 0:
             return reports
-        fix = self._lsq(anchors, ranges)
-        if fix is not None:
-            self._fixes.append((uwb.t_ns, fix.position_m))
+        # the least-squares fix is needed to start, in loose mode, and to recover
+        fix = None
+        if self.ekf is None or self.cfg.mode is Mode.LOOSE:
+            fix = self._lsq(anchors, ranges)
+            if fix is not None:
+                self._fixes.append((uwb.t_ns, fix.position_m))
         if self.ekf is None:
             self._try_initialise(uwb.t_ns, fix)
             return reports
@@ -161,7 +165,9 @@ class Filter:
         H, y, R, keys = self._measurement_rows(ids, anchors, ranges, fix)
         self._constraints(H, y, R, keys)
         reports += self._fuse(uwb.t_ns, H, y, R, keys)
-        self._check_health(fix, reports)
+        if self._needs_recovery(reports):
+            self._recover(fix or self._lsq(anchors, ranges))
+        self._update_status()
         return reports
 
     # -- outputs --------------------------------------------------------------------------
@@ -184,7 +190,13 @@ class Filter:
         )
 
     # -- internals ------------------------------------------------------------------------
-    def _remember(self, t_ns: int, acc: Array, gyro: Array) -> None:
+    def _to_body(self, v: tuple[float, float, float]) -> Vec3:
+        """``C_bs v`` in plain floats: this runs for every IMU sample."""
+        (a, b, c), (d, e, f), (g, h, i) = self._C
+        x, y, z = v
+        return (a * x + b * y + c * z, d * x + e * y + f * z, g * x + h * y + i * z)
+
+    def _remember(self, t_ns: int, acc: Vec3, gyro: Vec3) -> None:
         window_ns = int(max(self.cfg.static_window_s, self.cfg.init_static_s) * 1e9)
         self._window.append((t_ns, acc, gyro))
         while self._window and self._window[0][0] < t_ns - window_ns:
@@ -318,7 +330,9 @@ class Filter:
         ekf = self.ekf
         assert ekf is not None
         n = ekf.n
-        if self.cfg.zupt and self._static(self.cfg.static_window_s):
+        # constant velocity looks like rest to an IMU: require a slow estimate as well
+        slow = math.hypot(*ekf.v) < self.cfg.zupt_max_speed_mps
+        if self.cfg.zupt and slow and self._static(self.cfg.static_window_s):
             self.counters["zupt"] += 1
             for i in range(3):
                 row = np.zeros(n)
@@ -373,26 +387,39 @@ class Filter:
             ekf.update(H[accept], y[accept], R[accept])
         return reports
 
-    def _check_health(self, fix: LsqFix | None, reports: list[FusionReport]) -> None:
-        """Re-initialise from UWB when most ranges keep failing; catch a diverged state."""
+    def _needs_recovery(self, reports: list[FusionReport]) -> bool:
+        """Most ranges failing the gate for a while (NLOS, or a wrong state), or divergence."""
         ekf = self.ekf
         assert ekf is not None
         uwb = [r for r in reports if r.kind in ("range", "position") and not math.isnan(r.nis)]
         bad = sum(not r.accepted for r in uwb)
         self._bad_epochs = self._bad_epochs + 1 if uwb and bad > len(uwb) / 2 else 0
-        diverged = not (np.all(np.isfinite(ekf.P)) and np.all(np.isfinite(ekf.p))
+        diverged = not (np.all(np.isfinite(ekf.P)) and all(map(math.isfinite, ekf.p))
                         and ekf.position_sigma_m().max() < 100.0)
-        if (self._bad_epochs >= self.cfg.reinit_after_bad_epochs or diverged) and fix is not None:
-            self.counters["reinitialisations"] += 1
-            self.status = "running (re-initialised from UWB after rejected ranges)"
-            self._bad_epochs = 0
-            ekf.p = list(fix.position_m - ekf.R @ self.lever)
-            ekf.v = [0.0, 0.0, 0.0]
-            self._inflate(velocity_mps=1.0, attitude_rad=0.0, position_m=0.5)
-        elif ekf.yaw_sigma_rad() >= math.radians(10) and "heading" not in self.status:
-            self.status = self.status.replace(")", "; heading not yet observable)")
-        elif ekf.yaw_sigma_rad() < math.radians(10) and "heading not" in self.status:
-            self.status = self.status.replace("; heading not yet observable", "")
+        return diverged or self._bad_epochs >= self.cfg.reinit_after_bad_epochs
+
+    def _recover(self, fix: LsqFix | None) -> None:
+        """Restart position (and velocity) from UWB least squares, keeping the attitude."""
+        ekf = self.ekf
+        assert ekf is not None
+        if fix is None:
+            return
+        self.counters["reinitialisations"] += 1
+        self.status = "running (re-initialised from UWB after rejected ranges)"
+        self._bad_epochs = 0
+        ekf.p = list(fix.position_m - ekf.R @ self.lever)
+        ekf.v = [0.0, 0.0, 0.0]
+        self._inflate(velocity_mps=1.0, attitude_rad=0.0, position_m=0.5)
+
+    def _update_status(self) -> None:
+        ekf = self.ekf
+        assert ekf is not None
+        unknown = ekf.yaw_sigma_rad() >= math.radians(10)
+        note = "; heading not yet observable"
+        if unknown and note not in self.status:
+            self.status = self.status.replace(")", note + ")")
+        elif not unknown and note in self.status:
+            self.status = self.status.replace(note, "")
 
     def _inflate(self, velocity_mps: float, attitude_rad: float, position_m: float = 0.0) -> None:
         ekf = self.ekf

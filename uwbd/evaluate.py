@@ -1,0 +1,83 @@
+"""Running a method over time-ordered frames and scoring it against ground truth."""
+
+from __future__ import annotations
+
+import heapq
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from drivers.frames import Frame, ImuSample, UwbRanges
+from uwbd.fusion.filter import Filter, FilterConfig
+from uwbd.fusion.rotation import Array
+from uwbd.fusion.types import FusionReport, Pose
+
+
+def merge(imu: Iterable[ImuSample], uwb: Iterable[UwbRanges]) -> Iterator[Frame]:
+    """Both streams in timestamp order; at equal times the IMU sample comes first."""
+    imu_items: Iterator[tuple[int, int, Frame]] = ((f.t_ns, 0, f) for f in imu)
+    uwb_items: Iterator[tuple[int, int, Frame]] = ((f.t_ns, 1, f) for f in uwb)
+    tagged = heapq.merge(imu_items, uwb_items, key=lambda x: (x[0], x[1]))
+    return (f for _, _, f in tagged)
+
+
+def run_filter(config: FilterConfig, frames: Iterable[Frame]
+               ) -> tuple[list[Pose], list[FusionReport], Filter]:
+    """The filter over ``frames``; a pose after every UWB epoch."""
+    flt = Filter(config)
+    poses: list[Pose] = []
+    reports: list[FusionReport] = []
+    for frame in frames:
+        if isinstance(frame, ImuSample):
+            flt.predict(frame)
+        else:
+            reports += flt.update(frame)
+            pose = flt.pose()
+            if pose is not None:
+                poses.append(pose)
+    return poses, reports, flt
+
+
+@dataclass(frozen=True)
+class Accuracy:
+    n: int
+    rmse_xy_m: float
+    rmse_z_m: float
+    rmse_3d_m: float
+    nees_mean: float  # position NEES / 3: about 1 when consistent
+
+    def row(self, name: str) -> str:
+        return (f"{name:<22} {self.rmse_xy_m:8.3f} {self.rmse_z_m:8.3f} {self.rmse_3d_m:8.3f}"
+                f" {self.nees_mean:9.2f} {self.n:7d}")
+
+
+HEADER = f"{'method':<22} {'XY m':>8} {'Z m':>8} {'3D m':>8} {'NEES/3':>9} {'n':>7}"
+
+
+def score(t_ns: npt.NDArray[np.int64], position_m: Array, truth_t_ns: npt.NDArray[np.int64], truth_p_m: Array,
+          covariances: Array | None = None, skip_s: float = 0.0) -> Accuracy:
+    """RMSE against truth interpolated at the estimate times (estimates outside the truth's
+    span, or in the first ``skip_s`` seconds of it, are left out)."""
+    t0 = truth_t_ns[0] + skip_s * 1e9
+    keep = (t_ns >= t0) & (t_ns <= truth_t_ns[-1])
+    t, est = t_ns[keep], position_m[keep]
+    truth = np.column_stack([np.interp(t, truth_t_ns, truth_p_m[:, i]) for i in range(3)])
+    err = est - truth
+    nees = float("nan")
+    if covariances is not None:
+        cov = covariances[keep]
+        nees = float(np.mean([e @ np.linalg.solve(c, e) for e, c in zip(err, cov, strict=True)])
+                     / 3)
+    return Accuracy(len(t), float(np.sqrt(np.mean(np.sum(err[:, :2] ** 2, axis=1)))),
+                    float(np.sqrt(np.mean(err[:, 2] ** 2))),
+                    float(np.sqrt(np.mean(np.sum(err**2, axis=1)))), nees)
+
+
+def score_poses(poses: list[Pose], truth_t_ns: npt.NDArray[np.int64], truth_p_m: Array,
+                skip_s: float = 0.0) -> Accuracy:
+    t = np.array([p.t_ns for p in poses], dtype=np.int64)
+    pos = np.array([p.position_m for p in poses])
+    cov = np.array([np.array(p.covariance).reshape(6, 6)[:3, :3] for p in poses])
+    return score(t, pos, truth_t_ns, truth_p_m, cov, skip_s)
