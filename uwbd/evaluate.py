@@ -56,7 +56,10 @@ class Accuracy:
 HEADER = f"{'method':<22} {'XY m':>8} {'Z m':>8} {'3D m':>8} {'NEES/3':>9} {'n':>7}"
 
 
-def score(t_ns: npt.NDArray[np.int64], position_m: Array, truth_t_ns: npt.NDArray[np.int64], truth_p_m: Array,
+Times = npt.NDArray[np.int64]
+
+
+def score(t_ns: Times, position_m: Array, truth_t_ns: Times, truth_p_m: Array,
           covariances: Array | None = None, skip_s: float = 0.0) -> Accuracy:
     """RMSE against truth interpolated at the estimate times (estimates outside the truth's
     span, or in the first ``skip_s`` seconds of it, are left out)."""
@@ -75,7 +78,7 @@ def score(t_ns: npt.NDArray[np.int64], position_m: Array, truth_t_ns: npt.NDArra
                     float(np.sqrt(np.mean(np.sum(err**2, axis=1)))), nees)
 
 
-def score_poses(poses: list[Pose], truth_t_ns: npt.NDArray[np.int64], truth_p_m: Array,
+def score_poses(poses: list[Pose], truth_t_ns: Times, truth_p_m: Array,
                 skip_s: float = 0.0) -> Accuracy:
     t = np.array([p.t_ns for p in poses], dtype=np.int64)
     pos = np.array([p.position_m for p in poses])

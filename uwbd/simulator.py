@@ -19,6 +19,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+import numpy.typing as npt
 
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
 from uwbd.fusion.rotation import Array, quat_from_euler
@@ -78,7 +79,7 @@ class Simulation:
     config: SimConfig
     imu: list[ImuSample] = field(default_factory=list)
     uwb: list[UwbRanges] = field(default_factory=list)
-    truth_t_ns: Array = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    truth_t_ns: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     truth_p_m: Array = field(default_factory=lambda: np.zeros((0, 3)))
     truth_v_mps: Array = field(default_factory=lambda: np.zeros((0, 3)))
     truth_yaw_rad: Array = field(default_factory=lambda: np.zeros(0))
