@@ -59,6 +59,17 @@ HEADER = f"{'method':<22} {'XY m':>8} {'Z m':>8} {'3D m':>8} {'NEES/3':>9} {'n':
 Times = npt.NDArray[np.int64]
 
 
+def truth_spikes(truth_t_ns: Times, truth_p_m: Array, max_speed_mps: float = 5.0) -> Array:
+    """Mask of truth samples that are spikes: reached *and* left faster than ``max_speed_mps``
+    (a motion-capture glitch, e.g. a swapped marker). Interpolating across a spike would
+    charge every method for the truth's error."""
+    v = np.linalg.norm(np.diff(truth_p_m, axis=0), axis=1) / (np.diff(truth_t_ns) / 1e9)
+    fast = v > max_speed_mps
+    spikes = np.zeros(len(truth_t_ns), dtype=bool)
+    spikes[1:-1] = fast[:-1] & fast[1:]
+    return spikes
+
+
 def score(t_ns: Times, position_m: Array, truth_t_ns: Times, truth_p_m: Array,
           covariances: Array | None = None, skip_s: float = 0.0) -> Accuracy:
     """RMSE against truth interpolated at the estimate times (estimates outside the truth's

@@ -31,7 +31,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from drivers.frames import ImuSample, UwbRanges
-from uwbd.fusion.eskf import N_CORE, P_, TH_, V_, Eskf, ImuNoise
+from uwbd.fusion.eskf import GRAVITY_MPS2, N_CORE, P_, TH_, V_, Eskf, ImuNoise
 from uwbd.fusion.gating import GatingCounters, GatingPolicy, gate
 from uwbd.fusion.lsq import LsqFix, coplanar, multilaterate
 from uwbd.fusion.rotation import Array, quat_from_euler, quat_to_matrix, skew
@@ -56,9 +56,10 @@ class FilterConfig:
     lever_arm_m: Vec3 = (0.0, 0.0, 0.0)  # IMU -> UWB antenna, body axes
     imu_noise: ImuNoise = field(default_factory=ImuNoise)
     range_sigma_m: float = 0.10
+    acc_bias_sigma_mps2: float = 0.3  # initial: a mounted MEMS accelerometer's offset
     gate_probability: float = 0.997  # per-measurement χ² gate (3 σ for a scalar)
     gating: GatingPolicy = field(default_factory=lambda: GatingPolicy(min_anchors=1))
-    range_bias_states: bool = False
+    range_bias_states: bool = True  # self-calibrate each anchor's antenna delay
     range_bias_sigma_m: float = 0.2
     zupt: bool = True
     zupt_sigma_mps: float = 0.02
@@ -99,7 +100,7 @@ class Filter:
         self._first_t_ns: int | None = None
         self._bad_epochs = 0
         self._bias_index: dict[int, int] = {}
-        if config.range_bias_states:
+        if config.range_bias_states and config.mode is Mode.TIGHT:  # unobservable in loose
             self._bias_index = {a: N_CORE + i for i, a in enumerate(sorted(config.anchors_m))}
         self._gate_1 = float(chi2.ppf(config.gate_probability, 1))
         self._gate_3 = float(chi2.ppf(config.gate_probability, 3))
@@ -120,6 +121,7 @@ class Filter:
         if prev is not None and imu.t_ns <= prev:
             self.counters["imu_out_of_order"] += 1
             return
+        gap = prev is not None and (imu.t_ns - prev) / 1e9 > self.cfg.max_imu_gap_s
         self._imu_t_ns = imu.t_ns
         self._remember(imu.t_ns, acc, gyro)
         if self.ekf is None:
@@ -127,10 +129,8 @@ class Filter:
             return
         assert self.t_ns is not None
         dt = (imu.t_ns - self.t_ns) / 1e9
-        if dt > self.cfg.max_imu_gap_s:
-            # a gap: do not integrate across it; grow the uncertainty it leaves instead
-            self.counters["imu_gaps"] += 1
-            self._inflate(velocity_mps=1.0 * dt, attitude_rad=0.05 * dt)
+        if gap:
+            self.counters["imu_gaps"] += 1  # coasted through by _predict_to; resume here
         elif dt > 0:
             self.ekf.predict(acc, gyro, dt)
         self.t_ns = imu.t_ns
@@ -156,6 +156,8 @@ class Filter:
                 self._fixes.append((uwb.t_ns, fix.position_m))
         if self.ekf is None:
             self._try_initialise(uwb.t_ns, fix)
+            if self.ekf is not None:
+                self._update_status()
             return reports
         if self.t_ns is not None and uwb.t_ns < self.t_ns:
             self.counters["uwb_late"] += 1  # older than the state: the aligner's job
@@ -252,8 +254,12 @@ class Filter:
         pitch = math.atan2(-acc[0], math.hypot(acc[1], acc[2]))
         q = quat_from_euler(roll, pitch, 0.0)
         P0 = np.zeros((N_CORE + len(self._bias_index),) * 2)
+        f_norm = float(np.linalg.norm(acc))
+        ba = np.zeros(3)
         if self._static(cfg.init_static_s) and len(recent) >= 3:
-            p_ant, v, bg = np.mean(recent, axis=0), np.zeros(3), gyro
+            p_ant, v, bg = np.mean(recent, axis=0), np.zeros(3), np.asarray(gyro)
+            # at rest |f| = g: what is left over lies along the vertical, as an accel bias
+            ba = (f_norm - GRAVITY_MPS2) * np.asarray(acc) / f_norm
             sig_v, sig_bg, self.status = 0.05, 0.005, "running (started at rest)"
         elif waited_s >= cfg.init_max_wait_s and len(self._fixes) >= 2:
             (t0, p0), (t1, p1) = self._fixes[-2], self._fixes[-1]
@@ -268,17 +274,28 @@ class Filter:
         np.fill_diagonal(P0, np.concatenate([
             np.full(3, sig_p**2), np.full(3, sig_v**2),
             [math.radians(2) ** 2, math.radians(2) ** 2, math.pi**2],
-            np.full(3, sig_bg**2), np.full(3, 0.1**2),
+            np.full(3, sig_bg**2), np.full(3, cfg.acc_bias_sigma_mps2**2),
             np.full(len(self._bias_index), cfg.range_bias_sigma_m**2)]))
-        self.ekf = Eskf(p, v, q, P0, cfg.imu_noise, len(self._bias_index), b_g=bg)
+        self.ekf = Eskf(p, v, q, P0, cfg.imu_noise, len(self._bias_index), b_g=bg, b_a=ba)
         self.t_ns = t_ns
 
     def _predict_to(self, t_ns: int) -> None:
-        """Hold the last IMU sample up to the measurement time (latency of one IMU period)."""
-        assert self.ekf is not None and self.t_ns is not None
+        """Bring the state to the measurement time: hold the last IMU sample while it is fresh
+        (one IMU period at most, normally); in an IMU gap, coast at constant velocity with
+        growing uncertainty, so the ranges keep the position while the IMU is away."""
+        ekf = self.ekf
+        assert ekf is not None and self.t_ns is not None
         dt = (t_ns - self.t_ns) / 1e9
-        if self._last_imu is not None and 0 < dt <= self.cfg.max_imu_gap_s:
-            self.ekf.predict(self._last_imu[0], self._last_imu[1], dt)
+        if dt <= 0:
+            return
+        fresh = self._imu_t_ns is not None and \
+            (t_ns - self._imu_t_ns) / 1e9 <= self.cfg.max_imu_gap_s
+        if fresh and self._last_imu is not None:
+            ekf.predict(self._last_imu[0], self._last_imu[1], dt)
+        else:
+            ekf.p = [p + v * dt for p, v in zip(ekf.p, ekf.v, strict=True)]
+            self._inflate(velocity_mps=1.0 * dt, attitude_rad=0.01 * dt,
+                          position_m=0.5 * dt)
         self.t_ns = t_ns
 
     def _measurement_rows(self, ids: list[int], anchors: Array, ranges: Array,

@@ -5,6 +5,9 @@ solves ``(JᵀJ) δ = −Jᵀ r``; the covariance of the fix is ``σ² (JᵀJ)�
 
 * **2D / known height**: with ``fixed_z`` the height is held and only x, y are solved, for
   anchors that are (nearly) coplanar, where the vertical is poorly observed and mirrored.
+* Gauss–Newton converges only linearly where the vertical is weakly observed (a tag between
+  two anchor planes): the iteration stops at a 1 mm step, or keeps a fix still moving by
+  < 1 cm after 20 steps.
 * **One outlier**: with at least one range more than the unknowns need, the range with the
   largest studentised residual is dropped when that residual exceeds ``outlier_sigma``,
   and the fix is solved again.
@@ -18,8 +21,9 @@ import numpy as np
 
 from uwbd.fusion.rotation import Array
 
-MAX_ITERATIONS = 10
-CONVERGED_M = 1e-4
+MAX_ITERATIONS = 20
+CONVERGED_M = 1e-3  # a step this small ends the iteration: far below any range noise
+ACCEPT_LAST_STEP_M = 1e-2  # after MAX_ITERATIONS, a fix still creeping this slowly is kept
 
 
 @dataclass(frozen=True)
@@ -114,7 +118,9 @@ def _solve(anchors_all: Array, ranges_all: Array, used: Array, sigma_m: float,
         if float(np.linalg.norm(step)) < CONVERGED_M:
             break
         if iteration == MAX_ITERATIONS:
-            return None
+            if float(np.linalg.norm(step)) > ACCEPT_LAST_STEP_M:
+                return None  # diverging or oscillating: no fix
+            break
     residuals = np.full(len(ranges_all), np.nan)
     residuals[used] = np.linalg.norm(x - anchors, axis=1) - ranges
     cov = np.zeros((3, 3))

@@ -1,0 +1,218 @@
+"""The fusion core on short simulated runs, against the simulator's ground truth."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from drivers.frames import AnchorRange, ImuSample, UwbRanges
+from uwbd.evaluate import merge, run_filter, score, score_poses, truth_spikes
+from uwbd.fusion.eskf import N_CORE, Eskf, ImuNoise
+from uwbd.fusion.filter import Filter, FilterConfig, Mode
+from uwbd.fusion.lsq import coplanar, multilaterate
+from uwbd.fusion.rotation import euler_from_quat, quat_from_euler, quat_to_matrix
+from uwbd.simulator import SimConfig, Simulation, simulate
+
+SHORT = ((4.0, 0.0, 0.0, 0.0), (5.0, 1.5, 0.0, 0.0), (5.2, 1.5, 0.3, 0.0),
+         (5.0, 1.2, 0.0, 0.2), (3.0, 0.0, 0.0, 0.0))
+
+
+def short_sim(**kw: object) -> Simulation:
+    return simulate(SimConfig(segments=SHORT, **kw))  # type: ignore[arg-type]
+
+
+def config_for(sim: Simulation, **kw: object) -> FilterConfig:
+    return FilterConfig(anchors_m=dict(enumerate(sim.config.anchors_m)),
+                        mounting_rotation=sim.config.mounting,  # type: ignore[arg-type]
+                        lever_arm_m=sim.config.lever_arm_m, **kw)  # type: ignore[arg-type]
+
+
+@pytest.fixture(scope="module")
+def sim() -> Simulation:
+    return short_sim(seed=3)
+
+
+# -- the algebra -----------------------------------------------------------------------
+def random_eskf(seed: int) -> Eskf:
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(N_CORE + 2, N_CORE + 2))
+    P0 = A @ A.T / 10 + np.eye(N_CORE + 2) * 0.01
+    return Eskf(rng.normal(size=3), rng.normal(size=3), quat_from_euler(0.1, -0.2, 1.0), P0,
+                ImuNoise(), n_range_bias=2)
+
+
+def test_joint_update_equals_sequential_scalar_updates() -> None:
+    """With H at the prior and no re-linearisation, one joint update = sequential ones."""
+    rng = np.random.default_rng(7)
+    H, y, R = rng.normal(size=(5, N_CORE + 2)), rng.normal(size=5), rng.uniform(0.01, 0.1, 5)
+    joint, seq = random_eskf(1), random_eskf(1)
+    P0 = joint.P.copy()
+    # the error state before injection, done by hand for the sequential version
+    P, dx = P0.copy(), np.zeros(N_CORE + 2)
+    for i in range(5):
+        h = H[i]
+        S = h @ P @ h + R[i]
+        K = P @ h / S
+        dx = dx + K * (y[i] - h @ dx)
+        IKH = np.eye(len(dx)) - np.outer(K, h)
+        P = IKH @ P @ IKH.T + R[i] * np.outer(K, K)
+    dx_joint = joint.update(H, y, R)
+    np.testing.assert_allclose(dx_joint, dx, atol=1e-12)
+    _ = seq
+
+
+def test_joseph_update_keeps_p_symmetric_positive_definite() -> None:
+    ekf = random_eskf(2)
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        H = rng.normal(size=(3, ekf.n))
+        ekf.update(H, rng.normal(size=3), np.full(3, 1e-6))  # very precise: stresses P
+        ekf.predict((0.1, 0.0, 9.8), (0.0, 0.0, 0.1), 0.005)
+        ekf.propagate()
+    assert np.allclose(ekf.P, ekf.P.T)
+    assert np.linalg.eigvalsh(ekf.P).min() > 0
+
+
+def test_strapdown_at_rest_stays_put() -> None:
+    q = quat_from_euler(0.2, -0.1, 0.7)
+    f_b = quat_to_matrix(q).T @ np.array([0, 0, 9.80665])
+    ekf = Eskf((1, 2, 3), (0, 0, 0), q, np.eye(N_CORE) * 1e-4, ImuNoise())
+    for _ in range(2000):  # 10 s at 200 Hz
+        ekf.predict(f_b, (0.0, 0.0, 0.0), 0.005)
+    np.testing.assert_allclose(ekf.p, (1, 2, 3), atol=1e-9)
+    assert euler_from_quat(np.array(ekf.q)) == pytest.approx((0.2, -0.1, 0.7), abs=1e-12)
+
+
+# -- least squares ---------------------------------------------------------------------
+def test_least_squares_finds_the_tag_and_rejects_one_outlier() -> None:
+    anchors = np.array(SimConfig().anchors_m)
+    tag = np.array([3.0, -2.0, 1.0])
+    d = np.linalg.norm(anchors - tag, axis=1)
+    fix = multilaterate(anchors, d)
+    assert fix is not None and np.allclose(fix.position_m, tag, atol=1e-3)
+    d_bad = d.copy()
+    d_bad[2] += 2.0  # one NLOS range
+    fix = multilaterate(anchors, d_bad, sigma_m=0.05)
+    assert fix is not None and not fix.used[2]
+    assert np.allclose(fix.position_m, tag, atol=1e-3)
+
+
+def test_coplanar_anchors_use_the_known_height() -> None:
+    anchors = np.array([[0, 0, 2.0], [10, 0, 2.0], [10, 10, 2.0], [0, 10, 2.0]])
+    assert coplanar(anchors)
+    tag = np.array([4.0, 6.0, 0.5])
+    fix = multilaterate(anchors, np.linalg.norm(anchors - tag, axis=1), fixed_z=0.5)
+    assert fix is not None and np.allclose(fix.position_m, tag, atol=1e-3)
+
+
+# -- the filter against truth ----------------------------------------------------------
+@pytest.mark.parametrize("mode", [Mode.TIGHT, Mode.LOOSE])
+def test_filter_beats_least_squares_and_is_consistent(sim: Simulation, mode: Mode) -> None:
+    poses, reports, flt = run_filter(config_for(sim, mode=mode), merge(sim.imu, sim.uwb))
+    acc = score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=6)
+    anchors = np.array(sim.config.anchors_m)
+    fixes = [(e.t_ns, multilaterate(anchors[[r.anchor_id for r in e.ranges]],
+                                    np.array([r.range_m for r in e.ranges]))) for e in sim.uwb]
+    ls = score(np.array([t for t, f in fixes if f]), np.array([f.position_m for _, f in fixes
+                                                              if f]),
+               sim.truth_t_ns, sim.truth_p_m, skip_s=6)
+    assert acc.rmse_xy_m < 0.8 * ls.rmse_xy_m
+    if mode is Mode.TIGHT:  # loose trusts fixes whose errors are biased and correlated
+        assert acc.rmse_xy_m < 0.07
+        assert 0.3 < acc.nees_mean < 3.0
+    assert flt.counters["initialisations"] == 1
+    assert "started at rest" in flt.status and all(r.kind for r in reports)
+    final = poses[-1]
+    assert final.heading_observable
+    yaw = euler_from_quat(np.array([final.orientation_xyzw[3], *final.orientation_xyzw[:3]]))[2]
+    assert abs(math.remainder(yaw - sim.truth_yaw_rad[-1], math.tau)) < math.radians(3)
+
+
+def test_heading_unknown_at_start_is_reported_then_found(sim: Simulation) -> None:
+    poses, _, _ = run_filter(config_for(sim), merge(sim.imu, sim.uwb))
+    assert not poses[0].heading_observable
+    assert "heading not yet observable" in poses[0].status
+    assert poses[-1].heading_observable
+
+
+def test_start_while_moving() -> None:
+    moving = simulate(SimConfig(seed=4, segments=((3.0, 1.0, 0.1, 0.0), (12.0, 1.2, 0.0, 0.0))))
+    poses, _, flt = run_filter(config_for(moving), merge(moving.imu, moving.uwb))
+    assert "started while moving" in flt.status
+    assert score_poses(poses, moving.truth_t_ns, moving.truth_p_m, skip_s=8).rmse_xy_m < 0.15
+
+
+def test_gyro_bias_is_estimated_at_rest(sim: Simulation) -> None:
+    _, _, flt = run_filter(config_for(sim), merge(sim.imu, sim.uwb))
+    C = np.array(sim.config.mounting)
+    assert flt.ekf is not None
+    np.testing.assert_allclose(flt.ekf.b_g, C @ sim.gyro_bias_rps, atol=0.002)
+
+
+# -- bad input -------------------------------------------------------------------------
+def test_bad_input_is_counted_never_in_the_state(sim: Simulation) -> None:
+    frames = list(merge(sim.imu, sim.uwb))
+    bad: list[ImuSample | UwbRanges] = []
+    for k, f in enumerate(frames):
+        bad.append(f)
+        if isinstance(f, ImuSample) and k % 97 == 0:
+            bad.append(dataclasses.replace(f, acc_mps2=(math.nan, 0.0, 9.8)))
+            bad.append(dataclasses.replace(f, t_ns=f.t_ns - 3_000_000))  # out of order
+        if isinstance(f, UwbRanges) and k % 41 == 0:
+            bad.append(dataclasses.replace(f, ranges=(
+                AnchorRange(0, math.inf), AnchorRange(1, -3.0), AnchorRange(2, 1e7),
+                AnchorRange(99, 5.0))))
+    poses, _, flt = run_filter(config_for(sim), iter(bad))
+    clean, _, _ = run_filter(config_for(sim), merge(sim.imu, sim.uwb))
+    assert flt.counters["imu_not_finite"] > 0 and flt.counters["imu_out_of_order"] > 0
+    rej = flt.gating.rejections
+    assert rej["not_finite"] > 0 and rej["negative"] > 0 and rej["too_long"] > 0
+    assert rej["unknown_anchor"] > 0
+    assert all(map(math.isfinite, poses[-1].position_m))
+    assert np.allclose(poses[-1].position_m, clean[-1].position_m, atol=0.05)
+
+
+def test_imu_gap_is_survived(sim: Simulation) -> None:
+    gap = (sim.truth_t_ns[0] + 8 * 10**9, sim.truth_t_ns[0] + 10 * 10**9)
+    imu = [s for s in sim.imu if not gap[0] <= s.t_ns < gap[1]]
+    poses, _, flt = run_filter(config_for(sim), merge(imu, sim.uwb))
+    assert flt.counters["imu_gaps"] == 1
+    assert score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=12).rmse_xy_m < 0.1
+
+
+def test_persistent_nlos_cannot_lock_the_filter_out(sim: Simulation) -> None:
+    """Every range jumps by 3 m for 3 s: the filter re-initialises from UWB and recovers."""
+    t0 = sim.truth_t_ns[0]
+    def shifted(e: UwbRanges) -> UwbRanges:
+        if t0 + 9e9 <= e.t_ns < t0 + 12e9:
+            return dataclasses.replace(e, ranges=tuple(
+                dataclasses.replace(r, range_m=r.range_m + 3.0) for r in e.ranges))
+        return e
+    uwb = [shifted(e) for e in sim.uwb]
+    poses, _, flt = run_filter(config_for(sim), merge(sim.imu, uwb))
+    assert flt.counters["reinitialisations"] >= 1
+    tail = [p for p in poses if p.t_ns > t0 + 16e9]
+    err = np.array([p.position_m for p in tail]) - np.array(
+        [sim.truth_p_m[np.searchsorted(sim.truth_t_ns, p.t_ns)] for p in tail])
+    assert np.sqrt(np.mean(np.sum(err[:, :2] ** 2, axis=1))) < 0.15
+
+
+def test_same_frames_same_poses_bit_for_bit(sim: Simulation) -> None:
+    a, _, _ = run_filter(config_for(sim), merge(sim.imu, sim.uwb))
+    b, _, _ = run_filter(config_for(sim), merge(sim.imu, sim.uwb))
+    assert a == b
+
+
+def test_truth_spikes_are_found() -> None:
+    t = np.arange(10, dtype=np.int64) * 100_000_000
+    p = np.column_stack([np.arange(10) * 0.05, np.zeros(10), np.zeros(10)])
+    p[5, 2] = 2.0
+    assert np.flatnonzero(truth_spikes(t, p)).tolist() == [5]
+
+
+def test_filter_rejects_an_improper_mounting_rotation() -> None:
+    with pytest.raises(ValueError, match="mounting_rotation"):
+        Filter(FilterConfig(mounting_rotation=((1, 0, 0), (0, 1, 0), (0, 0, -1))))  # type: ignore[arg-type]
