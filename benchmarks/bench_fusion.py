@@ -1,0 +1,124 @@
+"""Fusion speed and accuracy, side by side in one run.
+
+    python benchmarks/bench_fusion.py [--seeds 6] [--data ../shared/data/iasl-s1]
+
+Speed: the filter alone (frames built beforehand) on the issue's load, a 200 Hz IMU and
+8 anchors at 10 Hz, as a multiple of real time, per mode.
+Accuracy: position RMSE against ground truth for UWB least squares and the loose and tight
+filters, on simulator runs (mean over seeds; the first 8 s, the still start, left out) and
+on the real flight, scored against all truth samples and against the truth with its
+motion-capture spikes removed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from uwbd.evaluate import HEADER, Accuracy, merge, run_filter, score, score_poses, truth_spikes
+from uwbd.fusion.filter import FilterConfig, Mode
+from uwbd.fusion.lsq import multilaterate
+from uwbd.importer import load_iasl
+from uwbd.simulator import Z_DOWN, SimConfig, Simulation, simulate
+
+ANCHORS_8 = ((-5.0, 30.0, 0.0), (-5.0, -30.0, 0.0), (10.0, 10.0, 5.0), (10.0, -10.0, 5.0),
+             (20.0, 30.0, 0.0), (20.0, -30.0, 0.0), (0.0, 0.0, 3.0), (15.0, 0.0, 3.0))
+DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "iasl-s1"
+
+
+def least_squares(anchors_m: dict[int, tuple[float, float, float]], uwb: list,  # type: ignore[type-arg]
+                  ) -> tuple[np.ndarray, np.ndarray]:  # type: ignore[type-arg]
+    t, p = [], []
+    for epoch in uwb:
+        ids = [r.anchor_id for r in epoch.ranges]
+        fix = multilaterate(np.array([anchors_m[i] for i in ids]),
+                            np.array([r.range_m for r in epoch.ranges]))
+        if fix is not None:
+            t.append(epoch.t_ns)
+            p.append(fix.position_m)
+    return np.array(t, dtype=np.int64), np.array(p)
+
+
+def speed(modes: list[Mode]) -> None:
+    sim = simulate(SimConfig(anchors_m=ANCHORS_8, seed=1))
+    frames = list(merge(sim.imu, sim.uwb))
+    duration_s = (sim.truth_t_ns[-1] - sim.truth_t_ns[0]) / 1e9
+    print(f"speed: filter alone, 200 Hz IMU + 8 anchors x 10 Hz, {duration_s:.0f} s of data")
+    for mode in modes:
+        cfg = FilterConfig(mode=mode, anchors_m=dict(enumerate(ANCHORS_8)),
+                           mounting_rotation=Z_DOWN, lever_arm_m=sim.config.lever_arm_m)
+        best = min(_timed(cfg, frames) for _ in range(3))
+        print(f"  {mode.value:<6} {duration_s / best:7.0f} x real time "
+              f"({best * 1e3:.0f} ms; {best / len(sim.imu) * 1e6:.1f} us per IMU sample, all in)")
+
+
+def _timed(cfg: FilterConfig, frames: list) -> float:  # type: ignore[type-arg]
+    t0 = time.perf_counter()
+    run_filter(cfg, frames)
+    return time.perf_counter() - t0
+
+
+def accuracy_sim(seeds: int) -> None:
+    rows: dict[str, list[Accuracy]] = {}
+    for seed in range(seeds):
+        sim: Simulation = simulate(SimConfig(seed=seed))
+        anchors = dict(enumerate(sim.config.anchors_m))
+        t, p = least_squares(anchors, sim.uwb)
+        rows.setdefault("uwb least squares", []).append(
+            score(t, p, sim.truth_t_ns, sim.truth_p_m, skip_s=8))
+        for mode in Mode:
+            cfg = FilterConfig(mode=mode, anchors_m=anchors, mounting_rotation=Z_DOWN,
+                               lever_arm_m=sim.config.lever_arm_m)
+            poses, _, _ = run_filter(cfg, merge(sim.imu, sim.uwb))
+            rows.setdefault(f"{mode.value} ESKF", []).append(
+                score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=8))
+    print(f"\naccuracy: simulator, 6 anchors, sigma_range 0.10 m, mean of {seeds} seeds")
+    print(HEADER)
+    for name, accs in rows.items():
+        mean = Accuracy(sum(a.n for a in accs), *(float(np.mean([getattr(a, f) for a in accs]))
+                        for f in ("rmse_xy_m", "rmse_z_m", "rmse_3d_m", "nees_mean")))
+        print(mean.row(name))
+
+
+def accuracy_real(directory: Path) -> None:
+    if not directory.is_dir():
+        print(f"\n(real flight skipped: {directory} not found)")
+        return
+    ds = load_iasl(directory)
+    clean = ~truth_spikes(ds.truth_t_ns, ds.truth_p_m)
+    results = {}
+    t, p = least_squares(ds.anchors_m, ds.uwb)
+    results["uwb least squares"] = (t, p, None)
+    tag = [(e.t_ns, e.tag_position_m) for e in ds.uwb if e.tag_position_m is not None]
+    results["tag's own solution"] = (np.array([x for x, _ in tag], dtype=np.int64),
+                                     np.array([y for _, y in tag]), None)
+    for mode in Mode:
+        cfg = FilterConfig(mode=mode, anchors_m=ds.anchors_m, mounting_rotation=Z_DOWN)
+        poses, _, _ = run_filter(cfg, merge(ds.imu, ds.uwb))
+        results[f"{mode.value} ESKF"] = (
+            np.array([q.t_ns for q in poses], dtype=np.int64),
+            np.array([q.position_m for q in poses]),
+            np.array([np.array(q.covariance).reshape(6, 6)[:3, :3] for q in poses]))
+    for label, mask in (("all truth samples", np.ones_like(clean)),
+                        (f"truth without its {int((~clean).sum())} mocap spike(s)", clean)):
+        print(f"\naccuracy: real flight {directory.name}, {label}")
+        print(HEADER)
+        for name, (t, p, cov) in results.items():
+            print(score(t, p, ds.truth_t_ns[mask], ds.truth_p_m[mask], cov).row(name))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=6)
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    args = ap.parse_args()
+    speed(list(Mode))
+    accuracy_sim(args.seeds)
+    accuracy_real(args.data)
+
+
+if __name__ == "__main__":
+    main()
