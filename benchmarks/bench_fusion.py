@@ -18,9 +18,20 @@ from pathlib import Path
 
 import numpy as np
 
-from uwbd.evaluate import HEADER, Accuracy, merge, run_filter, score, score_poses, truth_spikes
+from drivers.frames import Frame, UwbRanges
+from uwbd.evaluate import (
+    HEADER,
+    Accuracy,
+    Times,
+    merge,
+    run_filter,
+    score,
+    score_poses,
+    truth_spikes,
+)
 from uwbd.fusion.filter import FilterConfig, Mode
 from uwbd.fusion.lsq import multilaterate
+from uwbd.fusion.rotation import Array
 from uwbd.importer import load_iasl
 from uwbd.simulator import Z_DOWN, SimConfig, Simulation, simulate
 
@@ -29,8 +40,8 @@ ANCHORS_8 = ((-5.0, 30.0, 0.0), (-5.0, -30.0, 0.0), (10.0, 10.0, 5.0), (10.0, -1
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "iasl-s1"
 
 
-def least_squares(anchors_m: dict[int, tuple[float, float, float]], uwb: list,  # type: ignore[type-arg]
-                  ) -> tuple[np.ndarray, np.ndarray]:  # type: ignore[type-arg]
+def least_squares(anchors_m: dict[int, tuple[float, float, float]], uwb: list[UwbRanges]
+                  ) -> tuple[Times, Array]:
     t, p = [], []
     for epoch in uwb:
         ids = [r.anchor_id for r in epoch.ranges]
@@ -55,7 +66,7 @@ def speed(modes: list[Mode]) -> None:
               f"({best * 1e3:.0f} ms; {best / len(sim.imu) * 1e6:.1f} us per IMU sample, all in)")
 
 
-def _timed(cfg: FilterConfig, frames: list) -> float:  # type: ignore[type-arg]
+def _timed(cfg: FilterConfig, frames: list[Frame]) -> float:
     t0 = time.perf_counter()
     run_filter(cfg, frames)
     return time.perf_counter() - t0
@@ -89,7 +100,7 @@ def accuracy_real(directory: Path) -> None:
         return
     ds = load_iasl(directory)
     clean = ~truth_spikes(ds.truth_t_ns, ds.truth_p_m)
-    results = {}
+    results: dict[str, tuple[Times, Array, Array | None]] = {}
     t, p = least_squares(ds.anchors_m, ds.uwb)
     results["uwb least squares"] = (t, p, None)
     tag = [(e.t_ns, e.tag_position_m) for e in ds.uwb if e.tag_position_m is not None]

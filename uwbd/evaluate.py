@@ -59,7 +59,8 @@ HEADER = f"{'method':<22} {'XY m':>8} {'Z m':>8} {'3D m':>8} {'NEES/3':>9} {'n':
 Times = npt.NDArray[np.int64]
 
 
-def truth_spikes(truth_t_ns: Times, truth_p_m: Array, max_speed_mps: float = 5.0) -> Array:
+def truth_spikes(truth_t_ns: Times, truth_p_m: Array,
+                 max_speed_mps: float = 5.0) -> npt.NDArray[np.bool_]:
     """Mask of truth samples that are spikes: reached *and* left faster than ``max_speed_mps``
     (a motion-capture glitch, e.g. a swapped marker). Interpolating across a spike would
     charge every method for the truth's error."""
