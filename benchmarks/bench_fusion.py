@@ -4,9 +4,10 @@
 
 Speed: the filter alone (frames built beforehand) on the issue's load, a 200 Hz IMU and
 8 anchors at 10 Hz, as a multiple of real time, per mode.
-Accuracy: position RMSE against ground truth for UWB least squares and the loose and tight
-filters, on simulator runs (mean over seeds; the first 8 s, the still start, left out) and
-on the real flight, scored against all truth samples and against the truth with its
+Accuracy: position RMSE against ground truth for the baselines (pure INS, UWB least
+squares, the thesis's 4-state KF with a complementary attitude filter) and the loose and
+tight error-state filters, on simulator runs (mean over seeds; the first 8 s, the still
+start, left out) and on the real flight, scored against all truth samples and against the truth with its
 motion-capture spikes removed.
 """
 
@@ -18,19 +19,21 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.frames import Frame, UwbRanges
+from drivers.frames import Frame, ImuSample, UwbRanges
 from uwbd.evaluate import (
     HEADER,
     Accuracy,
+    Method,
     Times,
     merge,
     run_filter,
+    run_method,
     score,
     score_poses,
     truth_spikes,
 )
+from uwbd.fusion.baselines import Kf4, PureIns, UwbLeastSquares
 from uwbd.fusion.filter import FilterConfig, Mode
-from uwbd.fusion.lsq import multilaterate
 from uwbd.fusion.rotation import Array
 from uwbd.importer import load_iasl
 from uwbd.simulator import Z_DOWN, SimConfig, Simulation, simulate
@@ -40,17 +43,12 @@ ANCHORS_8 = ((-5.0, 30.0, 0.0), (-5.0, -30.0, 0.0), (10.0, 10.0, 5.0), (10.0, -1
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "iasl-s1"
 
 
-def least_squares(anchors_m: dict[int, tuple[float, float, float]], uwb: list[UwbRanges]
-                  ) -> tuple[Times, Array]:
-    t, p = [], []
-    for epoch in uwb:
-        ids = [r.anchor_id for r in epoch.ranges]
-        fix = multilaterate(np.array([anchors_m[i] for i in ids]),
-                            np.array([r.range_m for r in epoch.ranges]))
-        if fix is not None:
-            t.append(epoch.t_ns)
-            p.append(fix.position_m)
-    return np.array(t, dtype=np.int64), np.array(p)
+def baselines(cfg: FilterConfig, imu: list[ImuSample], uwb: list[UwbRanges]
+              ) -> dict[str, tuple[Times, Array]]:
+    """Positions of the comparison methods over one recording."""
+    methods: dict[str, Method] = {"pure INS": PureIns(cfg), "uwb least squares": UwbLeastSquares(cfg),
+               "4-state KF (thesis)": Kf4(cfg)}
+    return {name: run_method(m, merge(imu, uwb)) for name, m in methods.items()}
 
 
 def speed(modes: list[Mode]) -> None:
@@ -77,9 +75,10 @@ def accuracy_sim(seeds: int) -> None:
     for seed in range(seeds):
         sim: Simulation = simulate(SimConfig(seed=seed))
         anchors = dict(enumerate(sim.config.anchors_m))
-        t, p = least_squares(anchors, sim.uwb)
-        rows.setdefault("uwb least squares", []).append(
-            score(t, p, sim.truth_t_ns, sim.truth_p_m, skip_s=8))
+        base = FilterConfig(anchors_m=anchors, mounting_rotation=Z_DOWN,
+                            lever_arm_m=sim.config.lever_arm_m)
+        for name, (t, p) in baselines(base, sim.imu, sim.uwb).items():
+            rows.setdefault(name, []).append(score(t, p, sim.truth_t_ns, sim.truth_p_m, skip_s=8))
         for mode in Mode:
             cfg = FilterConfig(mode=mode, anchors_m=anchors, mounting_rotation=Z_DOWN,
                                lever_arm_m=sim.config.lever_arm_m)
@@ -101,8 +100,9 @@ def accuracy_real(directory: Path) -> None:
     ds = load_iasl(directory)
     clean = ~truth_spikes(ds.truth_t_ns, ds.truth_p_m)
     results: dict[str, tuple[Times, Array, Array | None]] = {}
-    t, p = least_squares(ds.anchors_m, ds.uwb)
-    results["uwb least squares"] = (t, p, None)
+    base = FilterConfig(anchors_m=ds.anchors_m, mounting_rotation=Z_DOWN)
+    for name, (t, p) in baselines(base, ds.imu, ds.uwb).items():
+        results[name] = (t, p, None)
     tag = [(e.t_ns, e.tag_position_m) for e in ds.uwb if e.tag_position_m is not None]
     results["tag's own solution"] = (np.array([x for x, _ in tag], dtype=np.int64),
                                      np.array([y for _, y in tag]), None)

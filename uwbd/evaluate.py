@@ -5,6 +5,7 @@ from __future__ import annotations
 import heapq
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -96,3 +97,29 @@ def score_poses(poses: list[Pose], truth_t_ns: Times, truth_p_m: Array,
     pos = np.array([p.position_m for p in poses])
     cov = np.array([np.array(p.covariance).reshape(6, 6)[:3, :3] for p in poses])
     return score(t, pos, truth_t_ns, truth_p_m, cov, skip_s)
+
+
+class Method(Protocol):
+    """What every compared method offers (the main filter via :class:`FilterMethod`)."""
+
+    def predict(self, imu: ImuSample) -> None: ...
+
+    def update(self, uwb: UwbRanges) -> object: ...
+
+    def position(self) -> Array | None: ...
+
+
+def run_method(method: Method, frames: Iterable[Frame]) -> tuple[Times, Array]:
+    """Positions of ``method`` after every UWB epoch."""
+    t: list[int] = []
+    p: list[Array] = []
+    for frame in frames:
+        if isinstance(frame, ImuSample):
+            method.predict(frame)
+            continue
+        method.update(frame)
+        pos = method.position()
+        if pos is not None:
+            t.append(frame.t_ns)
+            p.append(pos)
+    return np.array(t, dtype=np.int64), np.array(p).reshape(-1, 3)
