@@ -7,8 +7,8 @@ Speed: the filter alone (frames built beforehand) on the issue's load, a 200 Hz 
 Accuracy: position RMSE against ground truth for the baselines (pure INS, UWB least
 squares, the thesis's 4-state KF with a complementary attitude filter) and the loose and
 tight error-state filters, on simulator runs (mean over seeds; the first 8 s, the still
-start, left out) and on the real flight, scored against all truth samples and against the truth with its
-motion-capture spikes removed.
+start, left out) and on the real flight, scored against all truth samples and against the
+truth with its motion-capture spikes removed.
 """
 
 from __future__ import annotations
@@ -46,8 +46,9 @@ DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "iasl-s
 def baselines(cfg: FilterConfig, imu: list[ImuSample], uwb: list[UwbRanges]
               ) -> dict[str, tuple[Times, Array]]:
     """Positions of the comparison methods over one recording."""
-    methods: dict[str, Method] = {"pure INS": PureIns(cfg), "uwb least squares": UwbLeastSquares(cfg),
-               "4-state KF (thesis)": Kf4(cfg)}
+    methods: dict[str, Method] = {
+        "pure INS": PureIns(cfg), "uwb least squares": UwbLeastSquares(cfg),
+        "4-state KF (thesis)": Kf4(cfg)}
     return {name: run_method(m, merge(imu, uwb)) for name, m in methods.items()}
 
 
