@@ -10,7 +10,7 @@ import dataclasses
 import math
 from typing import Any
 
-from drivers.frames import Frame
+from drivers.frames import AnchorRange, Frame, ImuSample, UwbRanges
 
 
 def frame_to_dict(frame: Frame) -> dict[str, Any]:
@@ -28,3 +28,25 @@ def _plain(value: Any) -> Any:
     if isinstance(value, (list, tuple)):
         return [_plain(v) for v in value]
     return value
+
+
+def frame_from_dict(d: dict[str, Any]) -> Frame:
+    """The inverse of :func:`frame_to_dict` (``null`` back to NaN where a number was)."""
+    def vec(v: Any) -> Any:
+        return None if v is None else tuple(math.nan if x is None else x for x in v)
+
+    kind = d.get("type")
+    if kind == "ImuSample":
+        return ImuSample(
+            int(d["t_ns"]), vec(d["acc_mps2"]), vec(d["gyro_rps"]), d.get("temperature_c"),
+            vec(d.get("angle_deg")), vec(d.get("mag_raw")), vec(d.get("quaternion_wire")),
+            d.get("device_time_ns"))
+    if kind == "UwbRanges":
+        ranges = tuple(AnchorRange(int(r["anchor_id"]),
+                                   math.nan if r["range_m"] is None else float(r["range_m"]),
+                                   r.get("quality"), vec(r.get("anchor_position_m")))
+                       for r in d["ranges"])
+        return UwbRanges(int(d["t_ns"]), ranges, vec(d.get("tag_position_m")), d.get("quality"),
+                         vec(d.get("tag_velocity_mps")), vec(d.get("tag_position_error_m")),
+                         d.get("tag_id"), d.get("device_time_ms"))
+    raise ValueError(f"not a frame: type {kind!r}")

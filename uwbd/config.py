@@ -1,0 +1,197 @@
+"""uwbd's TOML configuration, validated into typed objects.
+
+Every problem is a :class:`ConfigError` naming the file and the key (``cfg.toml: fusion.mode:
+expected one of loose, tight, got 'tite'``); unknown keys are errors too, since a misspelt
+option that is silently ignored is worse than none. Sections::
+
+    [[sources]]          name, driver, port, baud
+    [anchors]            "<id>" = [x, y, z]            (m, navigation frame ENU)
+    [imu]                mounting = 3x3 rows (sensor -> body FLU), lever_arm_m = [x, y, z]
+    [fusion]             mode, range_sigma_m, range_bias_states, zupt, nhc, known_height_m,
+                         gate_probability, min_anchors, max_range_m
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from drivers import PARSERS
+from uwbd.fusion.filter import IDENTITY3, Filter, FilterConfig, Mode
+from uwbd.fusion.gating import GatingPolicy
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+Vec3 = tuple[float, float, float]
+
+
+class ConfigError(ValueError):
+    """A configuration problem, with the file and key it is about."""
+
+
+@dataclass(frozen=True)
+class SourceConfig:
+    name: str
+    driver: str
+    port: str
+    baud: int = 115200
+
+
+@dataclass(frozen=True)
+class Config:
+    sources: tuple[SourceConfig, ...] = ()
+    anchors_m: dict[int, Vec3] = field(default_factory=dict)
+    mounting: tuple[Vec3, Vec3, Vec3] = IDENTITY3
+    lever_arm_m: Vec3 = (0.0, 0.0, 0.0)
+    fusion: dict[str, Any] = field(default_factory=dict)
+    text: str = ""  # the TOML as read, for the log
+
+    def filter_config(self) -> FilterConfig:
+        f = self.fusion
+        return FilterConfig(
+            mode=Mode(f.get("mode", "tight")), anchors_m=self.anchors_m,
+            mounting_rotation=self.mounting, lever_arm_m=self.lever_arm_m,
+            range_sigma_m=f.get("range_sigma_m", 0.10),
+            range_bias_states=f.get("range_bias_states", True), zupt=f.get("zupt", True),
+            nhc=f.get("nhc", False), known_height_m=f.get("known_height_m"),
+            gate_probability=f.get("gate_probability", 0.997),
+            gating=GatingPolicy(min_anchors=f.get("min_anchors", 1),
+                                max_range_m=f.get("max_range_m", 100.0)),
+        )
+
+
+_FUSION_KEYS: dict[str, type | tuple[type, ...]] = {
+    "mode": str, "range_sigma_m": (int, float), "range_bias_states": bool, "zupt": bool,
+    "nhc": bool, "known_height_m": (int, float), "gate_probability": (int, float),
+    "min_anchors": int, "max_range_m": (int, float),
+}
+
+
+def load(path: Path) -> Config:
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise ConfigError(f"{path}: {err.strerror}") from err
+    return parse(text, str(path))
+
+
+def parse(text: str, where: str = "<config>") -> Config:
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{where}: {err}") from err
+    _only(doc, {"sources", "anchors", "imu", "fusion"}, where, "")
+    sources = tuple(_source(s, where, i) for i, s in enumerate(_list(doc, "sources", where)))
+    names = [s.name for s in sources]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"{where}: sources: names must be unique, got {names}")
+    anchors = {}
+    for key, value in _table(doc, "anchors", where).items():
+        try:
+            anchor_id = int(key, 0)
+        except ValueError as err:
+            raise ConfigError(f"{where}: anchors.{key}: not an integer id") from err
+        anchors[anchor_id] = _vec(value, where, f"anchors.{key}")
+    imu = _table(doc, "imu", where)
+    _only(imu, {"mounting", "lever_arm_m"}, where, "imu.")
+    mounting = IDENTITY3
+    if "mounting" in imu:
+        rows = imu["mounting"]
+        if not isinstance(rows, list) or len(rows) != 3:
+            raise ConfigError(f"{where}: imu.mounting: expected 3 rows of 3 numbers")
+        mounting = (_vec(rows[0], where, "imu.mounting[0]"),
+                    _vec(rows[1], where, "imu.mounting[1]"),
+                    _vec(rows[2], where, "imu.mounting[2]"))
+    lever = _vec(imu.get("lever_arm_m", [0, 0, 0]), where, "imu.lever_arm_m")
+    fusion = _table(doc, "fusion", where)
+    _only(fusion, set(_FUSION_KEYS), where, "fusion.")
+    for key, value in fusion.items():
+        kind = _FUSION_KEYS[key]
+        if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
+            raise ConfigError(f"{where}: fusion.{key}: wrong type {type(value).__name__}")
+    if "mode" in fusion and fusion["mode"] not in {m.value for m in Mode}:
+        raise ConfigError(f"{where}: fusion.mode: expected one of "
+                          f"{', '.join(m.value for m in Mode)}, got {fusion['mode']!r}")
+    config = Config(sources, anchors, mounting, lever, fusion, text)
+    try:
+        Filter(config.filter_config())  # the filter checks what only it understands
+    except ValueError as err:
+        raise ConfigError(f"{where}: {err}") from err
+    return config
+
+
+def _only(table: dict[str, Any], allowed: set[str], where: str, prefix: str) -> None:
+    for key in table:
+        if key not in allowed:
+            raise ConfigError(f"{where}: {prefix}{key}: unknown key "
+                              f"(known: {', '.join(sorted(allowed))})")
+
+
+def _table(doc: dict[str, Any], key: str, where: str) -> dict[str, Any]:
+    value = doc.get(key, {})
+    if not isinstance(value, dict):
+        raise ConfigError(f"{where}: {key}: expected a table")
+    return value
+
+
+def _list(doc: dict[str, Any], key: str, where: str) -> list[Any]:
+    value = doc.get(key, [])
+    if not isinstance(value, list):
+        raise ConfigError(f"{where}: {key}: expected an array of tables ([[{key}]])")
+    return value
+
+
+def _vec(value: Any, where: str, key: str) -> Vec3:
+    if (not isinstance(value, list) or len(value) != 3
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+            or not all(math.isfinite(v) for v in value)):
+        raise ConfigError(f"{where}: {key}: expected [x, y, z] of finite numbers, got {value!r}")
+    return (float(value[0]), float(value[1]), float(value[2]))
+
+
+def _source(s: Any, where: str, index: int) -> SourceConfig:
+    key = f"sources[{index}]"
+    if not isinstance(s, dict):
+        raise ConfigError(f"{where}: {key}: expected a table")
+    _only(s, {"name", "driver", "port", "baud"}, where, f"{key}.")
+    for required in ("name", "driver", "port"):
+        if not isinstance(s.get(required), str):
+            raise ConfigError(f"{where}: {key}.{required}: required, a string")
+    if s["driver"] not in PARSERS:
+        raise ConfigError(f"{where}: {key}.driver: unknown driver {s['driver']!r} "
+                          f"(known: {', '.join(PARSERS)})")
+    baud = s.get("baud", 115200)
+    if not isinstance(baud, int) or isinstance(baud, bool) or baud <= 0:
+        raise ConfigError(f"{where}: {key}.baud: expected a positive integer")
+    return SourceConfig(s["name"], s["driver"], s["port"], baud)
+
+
+def to_toml(sources: tuple[SourceConfig, ...], anchors_m: dict[int, Vec3],
+            mounting: tuple[Vec3, Vec3, Vec3], lever_arm_m: Vec3,
+            fusion: dict[str, Any] | None = None) -> str:
+    """A config file for these settings (what ``uwbd simulate`` and ``import`` store)."""
+    def num(v: float) -> str:
+        return repr(float(v))
+
+    def vec(v: Vec3) -> str:
+        return "[" + ", ".join(num(x) for x in v) + "]"
+
+    lines = []
+    for s in sources:
+        lines += ["[[sources]]", f'name = "{s.name}"', f'driver = "{s.driver}"',
+                  f'port = "{s.port}"', f"baud = {s.baud}", ""]
+    lines.append("[anchors]")
+    lines += [f'"{k}" = {vec(v)}' for k, v in sorted(anchors_m.items())]
+    lines += ["", "[imu]", "mounting = [" + ", ".join(vec(r) for r in mounting) + "]",
+              f"lever_arm_m = {vec(lever_arm_m)}", "", "[fusion]"]
+    for key, value in (fusion or {}).items():
+        lines.append(f"{key} = " + (f'"{value}"' if isinstance(value, str)
+                                    else str(value).lower() if isinstance(value, bool)
+                                    else num(value)))
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,195 @@
+"""uwbd's MCAP logs: the layout of ARCHITECTURE.md, written and read back.
+
+| topic | encoding | content |
+|---|---|---|
+| ``/raw/<source>`` | schemaless, ``uwbd.raw`` | bytes exactly as read, one message per read |
+| ``/imu``, ``/uwb`` | ``json`` + JSON Schema | decoded frames (:mod:`uwbd.codec`) |
+| ``/pose``, ``/truth`` | ``json``, schema ``foxglove.PoseInFrame`` | fused pose; ground truth |
+| ``/status`` | ``json`` | health and counters |
+
+``log_time`` is the receive time in ns since the Unix epoch. Metadata record ``uwbd``: the uwbd
+version, the config TOML as used, and the sources (name, driver, port) as JSON.
+
+Reading is a linear scan of the records, so a log cut short by a crash (no footer, which
+the seeking reader refuses) reads up to its last complete chunk; ``LogContents.truncated``
+says so.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import IO, Any
+
+from mcap.exceptions import McapError
+from mcap.records import Channel, Message, Metadata
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from drivers.frames import Frame, ImuSample
+from uwbd import __version__
+from uwbd.codec import frame_to_dict
+from uwbd.fusion.types import Pose
+
+RAW_ENCODING = "uwbd.raw"
+METADATA_NAME = "uwbd"
+CHUNK_BYTES = 64 * 1024  # ~1 s of a 200 Hz IMU + UWB: a crash loses about that much
+POSE_SCHEMA = {
+    "title": "foxglove.PoseInFrame", "type": "object",
+    "properties": {
+        "timestamp": {"type": "object", "properties": {
+            "sec": {"type": "integer"}, "nsec": {"type": "integer"}}},
+        "frame_id": {"type": "string"},
+        "pose": {"type": "object", "properties": {
+            "position": {"type": "object", "properties": {
+                k: {"type": "number"} for k in "xyz"}},
+            "orientation": {"type": "object", "properties": {
+                k: {"type": "number"} for k in "xyzw"}}}},
+    },
+}
+FRAME_SCHEMA = {"type": "object", "properties": {"type": {"type": "string"},
+                                                  "t_ns": {"type": "integer"}}}
+NAV_FRAME_ID = "enu"
+
+
+def pose_message(t_ns: int, position_m: tuple[float, float, float],
+                 orientation_xyzw: tuple[float, float, float, float],
+                 extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """A ``foxglove.PoseInFrame`` JSON object (plus uwbd's own fields, which Foxglove ignores)."""
+    x, y, z = position_m
+    qx, qy, qz, qw = orientation_xyzw
+    msg: dict[str, Any] = {
+        "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
+        "frame_id": NAV_FRAME_ID,
+        "pose": {"position": {"x": x, "y": y, "z": z},
+                 "orientation": {"x": qx, "y": qy, "z": qz, "w": qw}},
+        "t_ns": t_ns,
+    }
+    msg.update(extra or {})
+    return msg
+
+
+def pose_to_message(pose: Pose) -> dict[str, Any]:
+    return pose_message(pose.t_ns, pose.position_m, pose.orientation_xyzw, {
+        "velocity_mps": list(pose.velocity_mps), "covariance": list(pose.covariance),
+        "status": pose.status, "heading_observable": pose.heading_observable})
+
+
+@dataclass(frozen=True)
+class SourceInfo:
+    name: str
+    driver: str
+    port: str = ""
+
+
+class LogWriter:
+    """Writes one MCAP file; use as a context manager so it is finished on every path."""
+
+    def __init__(self, path: Path, config_toml: str = "", sources: tuple[SourceInfo, ...] = (),
+                 chunk_bytes: int = CHUNK_BYTES) -> None:
+        self.path = path
+        self._file: IO[bytes] = path.open("wb")
+        self._w = Writer(self._file, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
+        self._w.start(profile="", library=f"uwbd {__version__}")
+        self._w.add_metadata(METADATA_NAME, {
+            "version": __version__, "config_toml": config_toml,
+            "sources": json.dumps([vars(s) for s in sources])})
+        self._channels: dict[str, int] = {}
+        self._schemas: dict[str, int] = {}
+        self._sequence = 0
+
+    def _channel(self, topic: str, encoding: str, schema_name: str = "",
+                 schema: dict[str, Any] | None = None) -> int:
+        if topic not in self._channels:
+            schema_id = 0
+            if schema is not None:
+                if schema_name not in self._schemas:
+                    self._schemas[schema_name] = self._w.register_schema(
+                        schema_name, "jsonschema", json.dumps(schema).encode())
+                schema_id = self._schemas[schema_name]
+            self._channels[topic] = self._w.register_channel(topic, encoding, schema_id)
+        return self._channels[topic]
+
+    def _add(self, channel: int, t_ns: int, data: bytes) -> None:
+        self._sequence += 1
+        self._w.add_message(channel, log_time=t_ns, publish_time=t_ns, data=data,
+                            sequence=self._sequence)
+
+    def raw(self, source: str, t_ns: int, data: bytes) -> None:
+        self._add(self._channel(f"/raw/{source}", RAW_ENCODING), t_ns, data)
+
+    def frame(self, frame: Frame) -> None:
+        topic = "/imu" if isinstance(frame, ImuSample) else "/uwb"
+        channel = self._channel(topic, "json", f"uwbd.{type(frame).__name__}", FRAME_SCHEMA)
+        self._add(channel, frame.t_ns, json.dumps(frame_to_dict(frame)).encode())
+
+    def pose(self, pose: Pose, topic: str = "/pose") -> None:
+        self.json(topic, pose.t_ns, pose_to_message(pose), "foxglove.PoseInFrame", POSE_SCHEMA)
+
+    def json(self, topic: str, t_ns: int, obj: dict[str, Any], schema_name: str = "",
+             schema: dict[str, Any] | None = None) -> None:
+        channel = self._channel(topic, "json", schema_name, schema)
+        self._add(channel, t_ns, json.dumps(obj).encode())
+
+    def flush(self) -> None:
+        """Close the open chunk and hand it to the OS (about once a second)."""
+        self._w.flush()  # type: ignore[no-untyped-call]
+
+    def close(self) -> None:
+        if not self._file.closed:
+            self._w.finish()  # type: ignore[no-untyped-call]
+            self._file.close()
+
+    def __enter__(self) -> LogWriter:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+
+@dataclass(frozen=True)
+class LogMessage:
+    topic: str
+    log_time_ns: int
+    data: bytes
+
+
+@dataclass
+class LogContents:
+    """Everything in a log, in file order. ``truncated``: the file ended mid-record (a crash);
+    what came before its last complete chunk is here."""
+
+    messages: list[LogMessage] = field(default_factory=list)
+    metadata: dict[str, str] = field(default_factory=dict)
+    truncated: bool = False
+    error: str = ""
+
+    def topics(self) -> set[str]:
+        return {m.topic for m in self.messages}
+
+    def json(self, topic: str) -> Iterator[dict[str, Any]]:
+        return (json.loads(m.data) for m in self.messages if m.topic == topic)
+
+
+def read_log(path: Path) -> LogContents:
+    """Read a (possibly unfinished) uwbd log by a linear scan."""
+    out = LogContents()
+    channels: dict[int, str] = {}
+    with path.open("rb") as f:
+        try:
+            for record in StreamReader(f).records:
+                if isinstance(record, Channel):
+                    channels[record.id] = record.topic
+                elif isinstance(record, Message):
+                    out.messages.append(LogMessage(channels.get(record.channel_id, "?"),
+                                                   record.log_time, record.data))
+                elif isinstance(record, Metadata) and record.name == METADATA_NAME:
+                    out.metadata = dict(record.metadata)
+        except (McapError, EOFError, ValueError) as err:
+            out.truncated = True
+            out.error = f"{path}: {type(err).__name__}: {err}"
+    return out
