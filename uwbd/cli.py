@@ -20,8 +20,14 @@ from drivers.emulator import ENCODERS, DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import CircleScenario
 from uwbd import __version__
 from uwbd.codec import frame_to_dict
+from uwbd.config import ConfigError
 from uwbd.demo import run_demo
+from uwbd.importer import DatasetError, load_iasl
 from uwbd.interrupt import wait_until
+from uwbd.logtools import load_recording, write_dataset, write_simulation
+from uwbd.mcaplog import read_log
+from uwbd.report import report
+from uwbd.simulator import Z_DOWN, SimConfig, simulate
 
 READ_CHUNK_BYTES = 65536
 
@@ -96,6 +102,47 @@ def cmd_demo(args: argparse.Namespace) -> int:
         return run_demo(Path(tmp), duration_s=args.duration, seed=args.seed)
 
 
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """Run the simulator and write its log (raw device bytes + ground truth)."""
+    sim = simulate(SimConfig(seed=args.seed))
+    out = Path(args.output)
+    write_simulation(sim, out, _driver(args.uwb))
+    duration = (sim.truth_t_ns[-1] - sim.truth_t_ns[0]) / 1e9
+    print(f"{out}: {duration:.0f} s simulated, {len(sim.imu)} IMU samples, "
+          f"{len(sim.uwb)} UWB epochs ({args.uwb}), seed {args.seed}")
+    return 0
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    """Turn a recorded dataset into a replayable log with its ground truth."""
+    directory, out = Path(args.directory), Path(args.output)
+    try:
+        ds = load_iasl(directory)
+    except DatasetError as err:
+        raise UsageError(str(err)) from err
+    write_dataset(ds, out, Z_DOWN)
+    print(f"{out}: {len(ds.imu)} IMU samples, {len(ds.uwb)} UWB epochs, "
+          f"{len(ds.truth_t_ns)} truth samples from {directory}")
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    """Every method on one log, scored against its ground truth, with plots."""
+    path = Path(args.log)
+    if not path.is_file():
+        raise UsageError(f"cannot read {path}: no such file")
+    contents = read_log(path)
+    if contents.truncated:
+        print(f"warning: {contents.error}; reporting what was complete", file=sys.stderr)
+    try:
+        rec = load_recording(contents, str(path))
+    except ConfigError as err:
+        raise UsageError(str(err)) from err
+    out_dir = Path(args.out_dir) if args.out_dir else path.with_suffix("")
+    print(report(rec, out_dir, args.skip))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="uwbd", description=__doc__.splitlines()[0])
     ap.add_argument("--version", action="version", version=f"uwbd {__version__}")
@@ -124,6 +171,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--unplug", action="append", default=[], metavar="AT:DUR",
                    help="close the port at AT for DUR seconds (repeatable)")
     p.set_defaults(func=cmd_emulate)
+
+    p = sub.add_parser("simulate", help="simulate a run and write its MCAP log")
+    p.add_argument("-o", "--output", default="sim.mcap", help="log to write (default sim.mcap)")
+    p.add_argument("--uwb", default="nlink", help="UWB wire format in the log (default nlink)")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("import", help="turn a recorded dataset into an MCAP log")
+    p.add_argument("format", choices=["iasl"], help="dataset layout")
+    p.add_argument("directory", help="dataset folder (imu.csv, uwb.csv, gt.csv)")
+    p.add_argument("-o", "--output", default="import.mcap")
+    p.set_defaults(func=cmd_import)
+
+    p = sub.add_parser("report", help="compare all methods on a log against its ground truth")
+    p.add_argument("log")
+    p.add_argument("-o", "--out-dir", help="where the plots go (default: next to the log)")
+    p.add_argument("--skip", type=float, default=0.0, metavar="S",
+                   help="leave the first S seconds of truth out of the scores")
+    p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("demo", help="emulated sensors through the drivers, live in the terminal")
     _common(p)

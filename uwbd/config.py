@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -172,14 +173,14 @@ def _source(s: Any, where: str, index: int) -> SourceConfig:
     return SourceConfig(s["name"], s["driver"], s["port"], baud)
 
 
-def to_toml(sources: tuple[SourceConfig, ...], anchors_m: dict[int, Vec3],
-            mounting: tuple[Vec3, Vec3, Vec3], lever_arm_m: Vec3,
+def to_toml(sources: Sequence[SourceConfig], anchors_m: Mapping[int, Sequence[float]],
+            mounting: Sequence[Sequence[float]], lever_arm_m: Sequence[float],
             fusion: dict[str, Any] | None = None) -> str:
     """A config file for these settings (what ``uwbd simulate`` and ``import`` store)."""
     def num(v: float) -> str:
         return repr(float(v))
 
-    def vec(v: Vec3) -> str:
+    def vec(v: Sequence[float]) -> str:
         return "[" + ", ".join(num(x) for x in v) + "]"
 
     lines = []

@@ -18,7 +18,8 @@ says so.
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+import struct
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -55,12 +56,11 @@ FRAME_SCHEMA = {"type": "object", "properties": {"type": {"type": "string"},
 NAV_FRAME_ID = "enu"
 
 
-def pose_message(t_ns: int, position_m: tuple[float, float, float],
-                 orientation_xyzw: tuple[float, float, float, float],
+def pose_message(t_ns: int, position_m: Sequence[float], orientation_xyzw: Sequence[float],
                  extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """A ``foxglove.PoseInFrame`` JSON object (plus uwbd's own fields, which Foxglove ignores)."""
-    x, y, z = position_m
-    qx, qy, qz, qw = orientation_xyzw
+    x, y, z = (float(v) for v in position_m)
+    qx, qy, qz, qw = (float(v) for v in orientation_xyzw)
     msg: dict[str, Any] = {
         "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
         "frame_id": NAV_FRAME_ID,
@@ -189,7 +189,8 @@ def read_log(path: Path) -> LogContents:
                                                    record.log_time, record.data))
                 elif isinstance(record, Metadata) and record.name == METADATA_NAME:
                     out.metadata = dict(record.metadata)
-        except (McapError, EOFError, ValueError) as err:
+        except (McapError, EOFError, ValueError, struct.error) as err:
+            # a torn last record: mcap raises struct.error when the stream ends inside one
             out.truncated = True
             out.error = f"{path}: {type(err).__name__}: {err}"
     return out

@@ -1,0 +1,149 @@
+"""MCAP logs, the config file, and the fusion commands, as real files and subprocesses."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from drivers.frames import ImuSample, UwbRanges
+from uwbd import config as cfgmod
+from uwbd.logtools import load_recording, write_simulation
+from uwbd.mcaplog import LogWriter, SourceInfo, read_log
+from uwbd.simulator import SimConfig, simulate
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "iasl-s1"
+UWBD = [sys.executable, "-m", "uwbd"]
+SHORT = ((3.0, 0.0, 0.0, 0.0), (4.0, 1.0, 0.2, 0.0), (2.0, 0.0, 0.0, 0.0))
+
+
+def uwbd(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*UWBD, *args], capture_output=True, text=True, timeout=120,
+                          check=False, cwd=cwd, env={**os.environ, "MPLBACKEND": "Agg"})
+
+
+def test_simulated_log_replays_through_the_drivers(tmp_path: Path) -> None:
+    sim = simulate(SimConfig(segments=SHORT, seed=2))
+    path = tmp_path / "sim.mcap"
+    write_simulation(sim, path, "dwm1001-tlv")
+    contents = read_log(path)
+    assert not contents.truncated
+    assert {"/raw/imu", "/raw/uwb", "/truth"} <= contents.topics()
+    rec = load_recording(contents, str(path))
+    imu = [f for f in rec.frames if isinstance(f, ImuSample)]
+    uwb = [f for f in rec.frames if isinstance(f, UwbRanges)]
+    assert len(imu) == len(sim.imu) and len(uwb) == len(sim.uwb)
+    # the same times, and values within the wire formats' resolution
+    assert [f.t_ns for f in imu] == [f.t_ns for f in sim.imu]
+    assert all(abs(a.acc_mps2[2] - b.acc_mps2[2]) < 0.005 for a, b in zip(imu, sim.imu,
+                                                                          strict=True))
+    assert all(abs(a.ranges[0].range_m - b.ranges[0].range_m) < 0.0006
+               for a, b in zip(uwb, sim.uwb, strict=True))
+    assert rec.config.anchors_m == dict(enumerate(sim.config.anchors_m))
+    assert all(s["bytes_skipped"] == 0 for s in rec.parser_stats.values())
+    assert len(rec.truth_t_ns) > 100
+
+
+def test_a_log_cut_short_by_a_crash_still_reads(tmp_path: Path) -> None:
+    path = tmp_path / "cut.mcap"
+    with LogWriter(path, sources=(SourceInfo("uwb", "nlink"),), chunk_bytes=1024) as log:
+        for k in range(2000):
+            log.raw("uwb", k * 10**7, bytes(64))
+            if k % 100 == 99:
+                log.flush()
+    data = path.read_bytes()
+    cut = tmp_path / "crashed.mcap"
+    cut.write_bytes(data[: len(data) * 2 // 3])  # no footer, a torn chunk at the end
+    contents = read_log(cut)
+    assert contents.truncated and "crashed.mcap" in contents.error
+    assert 1000 <= len(contents.messages) < 2000
+    assert [m.log_time_ns for m in contents.messages] == [
+        k * 10**7 for k in range(len(contents.messages))]
+
+
+CONFIG = """
+[[sources]]
+name = "imu"
+driver = "wit"
+port = "/dev/uwbd-imu"
+baud = 921600
+
+[anchors]
+"0" = [0.0, 0.0, 0.0]
+"0x1151" = [8.0, 0.0, 2.2]
+
+[imu]
+mounting = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]
+
+[fusion]
+mode = "loose"
+"""
+
+
+def test_config_parses_into_typed_objects() -> None:
+    c = cfgmod.parse(CONFIG, "cfg.toml")
+    assert c.sources[0] == cfgmod.SourceConfig("imu", "wit", "/dev/uwbd-imu", 921600)
+    assert c.anchors_m == {0: (0.0, 0.0, 0.0), 0x1151: (8.0, 0.0, 2.2)}
+    assert c.filter_config().mode.value == "loose"
+    again = cfgmod.parse(cfgmod.to_toml(c.sources, c.anchors_m, c.mounting, c.lever_arm_m,
+                                        c.fusion))
+    assert (again.sources, again.anchors_m, again.mounting, again.fusion) == (
+        c.sources, c.anchors_m, c.mounting, c.fusion)
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ('mode = "loose"', 'fusion.mode: expected one of loose, tight'),
+    ('[fusion]', 'unknown key'),
+    ('driver = "wit"', 'sources[0].driver: unknown driver'),
+    ('"0" = [0.0, 0.0, 0.0]', 'anchors.0: expected [x, y, z]'),
+    ('mounting = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]', 'mounting_rotation'),
+    ('baud = 921600', 'sources[0].baud'),
+])
+def test_config_errors_name_file_and_key(change: str, message: str) -> None:
+    bad = {
+        'mode = "loose"': 'mode = "tite"',
+        '[fusion]': '[fusion]\nspeed_of_light = 3',
+        'driver = "wit"': 'driver = "witmotion"',
+        '"0" = [0.0, 0.0, 0.0]': '"0" = [0.0, 0.0]',
+        'mounting = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]':
+            'mounting = [[1, 0, 0], [0, 1, 0], [0, 0, -1]]',
+        'baud = 921600': 'baud = "fast"',
+    }[change]
+    with pytest.raises(cfgmod.ConfigError, match=r"cfg\.toml") as err:
+        cfgmod.parse(CONFIG.replace(change, bad), "cfg.toml")
+    assert message in str(err.value)
+
+
+def test_simulate_then_report_as_commands(tmp_path: Path) -> None:
+    sim = uwbd("simulate", "-o", "s.mcap", "--seed", "1", cwd=tmp_path)
+    assert sim.returncode == 0, sim.stderr
+    rep = uwbd("report", "s.mcap", "--skip", "8", cwd=tmp_path)
+    assert rep.returncode == 0, rep.stderr
+    rows = {line.split("  ")[0].strip(): line.split() for line in rep.stdout.splitlines()
+            if ("ESKF" in line and "NIS" not in line) or "least squares" in line}
+    tight_xy, ls_xy = float(rows["tight ESKF"][-5]), float(rows["uwb least squares"][-5])
+    assert tight_xy < 0.08 and tight_xy < 0.6 * ls_xy
+    assert (tmp_path / "s" / "trajectory.png").stat().st_size > 10_000
+    assert (tmp_path / "s" / "error.png").stat().st_size > 10_000
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="shared/data not beside the repository")
+def test_import_real_flight_then_report(tmp_path: Path) -> None:
+    imp = uwbd("import", "iasl", str(DATA), "-o", "f.mcap", cwd=tmp_path)
+    assert imp.returncode == 0, imp.stderr
+    rep = uwbd("report", "f.mcap", cwd=tmp_path)
+    assert rep.returncode == 0, rep.stderr
+    assert "without its 1 motion-capture spike" in rep.stdout
+    clean = rep.stdout.split("without its")[1]
+    tight = next(line for line in clean.splitlines() if line.startswith("tight ESKF")).split()
+    assert float(tight[2]) < 0.07 and float(tight[4]) < 0.12  # XY, 3D
+
+
+def test_fusion_commands_fail_clearly(tmp_path: Path) -> None:
+    missing = uwbd("report", "nope.mcap", cwd=tmp_path)
+    assert missing.returncode == 2 and "nope.mcap" in missing.stderr
+    bad = uwbd("import", "iasl", str(tmp_path), cwd=tmp_path)
+    assert bad.returncode == 2 and "imu.csv" in bad.stderr

@@ -1,0 +1,118 @@
+"""Logs in and out: simulator runs and datasets to MCAP, and MCAP back to frames and truth.
+
+A simulated log carries the simulator's frames as the bytes the devices would send (the
+drivers' encoders), on ``/raw/imu`` and ``/raw/uwb``, so it goes through the parsers exactly
+like a recorded one. A dataset that holds decoded values only (i-ASL) is written to the
+decoded ``/imu`` and ``/uwb`` channels. Ground truth goes to ``/truth``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from drivers import PARSERS
+from drivers.emulator import ENCODERS
+from drivers.frames import Frame, ImuSample, UwbRanges
+from uwbd import config as cfgmod
+from uwbd.codec import frame_from_dict
+from uwbd.evaluate import merge
+from uwbd.fusion.rotation import Array, quat_from_euler, quat_from_matrix
+from uwbd.importer import Dataset
+from uwbd.mcaplog import LogContents, LogWriter, SourceInfo, pose_message
+from uwbd.simulator import Simulation
+
+FLUSH_EVERY_NS = 1_000_000_000
+TRUTH_EVERY = 4  # of the simulator's IMU-rate truth: 50 Hz
+
+
+def write_simulation(sim: Simulation, path: Path, uwb_driver: str = "nlink") -> None:
+    c = sim.config
+    sources = (cfgmod.SourceConfig("imu", "wit", "simulated", 921600),
+               cfgmod.SourceConfig("uwb", uwb_driver, "simulated", 921600))
+    toml = cfgmod.to_toml(sources, dict(enumerate(c.anchors_m)), c.mounting, c.lever_arm_m)
+    infos = tuple(SourceInfo(s.name, s.driver, s.port) for s in sources)
+    encode_uwb = ENCODERS[uwb_driver]
+    encode_imu = ENCODERS["wit"]
+    with LogWriter(path, toml, infos) as log:
+        next_flush = sim.truth_t_ns[0] + FLUSH_EVERY_NS
+        truth_k = 0
+        for frame in merge(sim.imu, sim.uwb):
+            if isinstance(frame, ImuSample):
+                log.raw("imu", frame.t_ns, encode_imu(frame))
+            else:
+                log.raw("uwb", frame.t_ns, encode_uwb(frame))
+            while truth_k < len(sim.truth_t_ns) and sim.truth_t_ns[truth_k] <= frame.t_ns:
+                t = int(sim.truth_t_ns[truth_k])
+                w, x, y, z = quat_from_euler(0.0, 0.0, float(sim.truth_yaw_rad[truth_k]))
+                log.json("/truth", t, pose_message(t, sim.truth_p_m[truth_k], (x, y, z, w)),
+                         "foxglove.PoseInFrame")
+                truth_k += TRUTH_EVERY
+            if frame.t_ns >= next_flush:
+                log.flush()
+                next_flush += FLUSH_EVERY_NS
+
+
+def write_dataset(ds: Dataset, path: Path, mounting: Sequence[Sequence[float]]) -> None:
+    toml = cfgmod.to_toml((), ds.anchors_m, mounting, (0.0, 0.0, 0.0))
+    with LogWriter(path, toml) as log:
+        for frame in merge(ds.imu, ds.uwb):
+            log.frame(frame)
+        for t, p, r in zip(ds.truth_t_ns, ds.truth_p_m, ds.truth_rotation, strict=True):
+            w, x, y, z = quat_from_matrix(r)
+            log.json("/truth", int(t), pose_message(int(t), p, (x, y, z, w)),
+                     "foxglove.PoseInFrame")
+
+
+@dataclass
+class Recording:
+    """What a log holds for fusion: its config, frames in time order, and truth if any."""
+
+    config: cfgmod.Config
+    frames: list[Frame]
+    truth_t_ns: npt.NDArray[np.int64]
+    truth_p_m: Array
+    parser_stats: dict[str, dict[str, object]]
+
+
+def load_recording(contents: LogContents, where: str) -> Recording:
+    """Decode a log: raw channels through the drivers named in its metadata, else the
+    decoded channels. The config comes from the log's metadata."""
+    config = cfgmod.parse(contents.metadata.get("config_toml", ""), f"{where} (metadata)")
+    sources = json.loads(contents.metadata.get("sources", "[]") or "[]")
+    raw_topics = {f"/raw/{s['name']}": s for s in sources}
+    imu: list[ImuSample] = []
+    uwb: list[UwbRanges] = []
+    stats: dict[str, dict[str, object]] = {}
+    if any(m.topic in raw_topics for m in contents.messages):
+        parsers = {topic: PARSERS[s["driver"]]() for topic, s in raw_topics.items()}
+        for m in contents.messages:
+            parser = parsers.get(m.topic)
+            if parser is not None:
+                _sort(parser.feed(m.data, m.log_time_ns), imu, uwb)
+        for topic, parser in parsers.items():
+            _sort(parser.flush(), imu, uwb)
+            stats[topic] = parser.stats.as_dict()
+    else:
+        for topic in ("/imu", "/uwb"):
+            for d in contents.json(topic):
+                _sort([frame_from_dict(d)], imu, uwb)
+    truth = list(contents.json("/truth"))
+    t = np.array([d["t_ns"] for d in truth], dtype=np.int64)
+    p = np.array([[d["pose"]["position"][k] for k in "xyz"] for d in truth]).reshape(-1, 3)
+    imu.sort(key=lambda f: f.t_ns)
+    uwb.sort(key=lambda f: f.t_ns)
+    return Recording(config, list(merge(imu, uwb)), t, p, stats)
+
+
+def _sort(frames: Iterable[Frame], imu: list[ImuSample], uwb: list[UwbRanges]) -> None:
+    for f in frames:
+        if isinstance(f, ImuSample):
+            imu.append(f)
+        else:
+            uwb.append(f)

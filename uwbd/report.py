@@ -1,0 +1,115 @@
+"""``uwbd report log.mcap``: every method on one recording, scored against its ground truth.
+
+Methods: pure INS, UWB least squares, the thesis's 4-state KF, and the loose and tight
+error-state filters with the log's own config. Printed: position RMSE (XY, Z, 3D) and
+position NEES/3 per method, the tight filter's mean NIS per accepted range, and, where the
+truth has motion-capture spikes, the same table without them. Written: ``trajectory.png``
+(XY paths) and ``error.png`` (horizontal error over time).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only: no display needed
+import matplotlib.pyplot as plt
+import numpy as np
+
+from uwbd.evaluate import (
+    HEADER,
+    Method,
+    Times,
+    run_filter,
+    run_method,
+    score,
+    truth_spikes,
+)
+from uwbd.fusion.baselines import Kf4, PureIns, UwbLeastSquares
+from uwbd.fusion.filter import Mode
+from uwbd.fusion.rotation import Array
+from uwbd.logtools import Recording
+
+Track = tuple[Times, Array, Array | None]
+
+
+def run_all(rec: Recording) -> tuple[dict[str, Track], dict[str, float]]:
+    """Positions (and covariances) of every method; consistency figures of the filters."""
+    cfg = rec.config.filter_config()
+    tracks: dict[str, Track] = {}
+    baselines: dict[str, Method] = {
+        "pure INS": PureIns(cfg), "uwb least squares": UwbLeastSquares(cfg),
+        "4-state KF (thesis)": Kf4(cfg)}
+    for name, method in baselines.items():
+        t, p = run_method(method, rec.frames)
+        tracks[name] = (t, p, None)
+    extra: dict[str, float] = {}
+    for mode in Mode:
+        poses, reports, _ = run_filter(dataclasses.replace(cfg, mode=mode), rec.frames)
+        tracks[f"{mode.value} ESKF"] = (
+            np.array([q.t_ns for q in poses], dtype=np.int64),
+            np.array([q.position_m for q in poses]).reshape(-1, 3),
+            np.array([np.array(q.covariance).reshape(6, 6)[:3, :3] for q in poses]))
+        nis = [r.nis for r in reports if r.accepted and r.kind in ("range", "position")]
+        extra[f"{mode.value} ESKF mean NIS (accepted UWB)"] = float(np.mean(nis)) if nis else 0.0
+    return tracks, extra
+
+
+def report(rec: Recording, out_dir: Path, skip_s: float = 0.0) -> str:
+    """The text report; plots go to ``out_dir``."""
+    tracks, extra = run_all(rec)
+    lines = []
+    if len(rec.truth_t_ns) < 2:
+        lines.append("no ground truth in this log: positions only, no accuracy")
+    else:
+        spikes = truth_spikes(rec.truth_t_ns, rec.truth_p_m)
+        cases = [("all truth samples", np.ones(len(spikes), dtype=bool))]
+        if spikes.any():
+            cases.append((f"truth without its {int(spikes.sum())} motion-capture spike(s)",
+                          ~spikes))
+        for label, mask in cases:
+            lines += [f"position error against {label}", HEADER]
+            for name, (t, p, cov) in tracks.items():
+                if len(t):
+                    lines.append(score(t, p, rec.truth_t_ns[mask], rec.truth_p_m[mask], cov,
+                                       skip_s).row(name))
+            lines.append("")
+    lines += [f"{k}: {v:.2f}" for k, v in extra.items()]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    _plots(rec, tracks, out_dir)
+    lines.append(f"plots: {out_dir / 'trajectory.png'}, {out_dir / 'error.png'}")
+    return "\n".join(lines)
+
+
+def _plots(rec: Recording, tracks: dict[str, Track], out_dir: Path) -> None:
+    fig, ax = plt.subplots(figsize=(8, 7))
+    if len(rec.truth_t_ns) >= 2:
+        good = rec.truth_p_m[~truth_spikes(rec.truth_t_ns, rec.truth_p_m)]
+        ax.plot(good[:, 0], good[:, 1], "k-", lw=2.5, label="truth (spikes removed)")
+    for name, (_, p, _) in tracks.items():
+        if len(p) and name != "pure INS":  # it leaves the room; its error plot shows it
+            ax.plot(p[:, 0], p[:, 1], lw=1, label=name)
+    anchors = np.array(list(rec.config.anchors_m.values())).reshape(-1, 3)
+    ax.plot(anchors[:, 0], anchors[:, 1], "r^", label="anchors")
+    ax.set(xlabel="east (m)", ylabel="north (m)", title="trajectory (ENU, top view)")
+    ax.set_aspect("equal")
+    ax.legend(fontsize=8)
+    fig.savefig(out_dir / "trajectory.png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(10, 4))
+    if len(rec.truth_t_ns) >= 2:
+        t0 = rec.truth_t_ns[0]
+        for name, (t, p, _) in tracks.items():
+            if not len(t):
+                continue
+            truth = np.column_stack([np.interp(t, rec.truth_t_ns, rec.truth_p_m[:, i])
+                                     for i in range(2)])
+            ax.plot((t - t0) / 1e9, np.linalg.norm(p[:, :2] - truth, axis=1), lw=0.8,
+                    label=name)
+        ax.set_yscale("log")
+    ax.set(xlabel="time (s)", ylabel="horizontal error (m)", title="error over time")
+    ax.legend(fontsize=8)
+    fig.savefig(out_dir / "error.png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
