@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import BinaryIO
 
-from drivers import PARSERS
+from drivers import PARSERS, Frame
 from drivers.emulator import ENCODERS, DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import CircleScenario
 from uwbd import __version__
@@ -60,9 +60,9 @@ def cmd_dump(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_frames(frames: Sequence[object]) -> None:
+def _print_frames(frames: Sequence[Frame]) -> None:
     for frame in frames:
-        sys.stdout.write(json.dumps(frame_to_dict(frame)) + "\n")  # type: ignore[arg-type]
+        sys.stdout.write(json.dumps(frame_to_dict(frame)) + "\n")
 
 
 def _faults(args: argparse.Namespace) -> Faults:
