@@ -191,7 +191,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="leave the first S seconds of truth out of the scores")
     p.set_defaults(func=cmd_report)
 
-    p = sub.add_parser("demo", help="emulated sensors through the drivers, live in the terminal")
+    p = sub.add_parser("demo", help="emulated sensors through drivers and fusion, live poses")
     _common(p)
     p.set_defaults(func=cmd_demo)
     return ap
