@@ -101,3 +101,20 @@ def test_demo_runs_and_prints_a_summary() -> None:
     assert "imu" in out and "summary:" in out
     assert "pose (" in out  # a live fused pose line
     assert "fused pose vs scenario truth: XY RMSE" in out
+
+
+def test_demo_survives_ctrl_c_twice() -> None:
+    """A second SIGINT during shutdown (a user pressing Ctrl-C again, or GNU timeout, which
+    signals the process and its group) must not break the clean stop."""
+    proc = subprocess.Popen([*UWBD, "demo"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    assert proc.stdout is not None
+    while b"pose (" not in proc.stdout.readline():
+        pass
+    proc.send_signal(signal.SIGINT)
+    time.sleep(0.01)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err.decode()
+    assert b"Traceback" not in err
+    assert b"fused pose vs scenario truth" in out

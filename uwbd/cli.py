@@ -23,7 +23,7 @@ from uwbd.codec import frame_to_dict
 from uwbd.config import ConfigError
 from uwbd.demo import run_demo
 from uwbd.importer import DatasetError, load_iasl
-from uwbd.interrupt import wait_until
+from uwbd.interrupt import shielded, wait_until
 from uwbd.logtools import load_recording, write_dataset, write_simulation
 from uwbd.mcaplog import read_log
 from uwbd.report import report
@@ -92,7 +92,10 @@ def cmd_emulate(args: argparse.Namespace) -> int:
             print(f"{dev.name} {dev.driver} {port.path} ({port.tty_path})", flush=True)
         emu.start()
         wait_until(emu.finished)
-        print(json.dumps({name: vars(c) for name, c in emu.counts.items()}), file=sys.stderr)
+        with shielded():
+            emu.close()
+            print(json.dumps({name: vars(c) for name, c in emu.counts.items()}),
+                  file=sys.stderr)
     return 0
 
 
@@ -213,3 +216,5 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:
         sys.stderr.close()  # output piped into e.g. `head`: not an error
         return 0
+    except KeyboardInterrupt:  # interrupted before the command was ready to stop cleanly
+        return 130

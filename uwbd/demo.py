@@ -25,7 +25,7 @@ from drivers.emulator import DeviceSpec, Emulator, Faults
 from drivers.emulator.scenario import CircleScenario
 from uwbd.fusion.filter import Filter, FilterConfig
 from uwbd.fusion.types import Pose
-from uwbd.interrupt import wait_until
+from uwbd.interrupt import shielded, wait_until
 
 DEMO_FAULTS = Faults(garbage_rate_hz=0.5, split=True, corrupt_prob=0.01)
 ALIGN_WAIT_NS = 20_000_000  # a frame is held this long for later-read, earlier-stamped ones
@@ -35,22 +35,28 @@ def run_demo(workdir: Path, duration_s: float | None, seed: int) -> int:
     """Run until ``duration_s`` or Ctrl-C; prints live lines and a summary. Returns 0."""
     devices = [DeviceSpec("imu", "wit", DEMO_FAULTS), DeviceSpec("uwb", "nlink", DEMO_FAULTS)]
     scenario = CircleScenario(seed=seed)
-    with Emulator(devices, scenario, duration_s, workdir) as emu:
+    emu = Emulator(devices, scenario, duration_s, workdir)
+    stop = threading.Event()
+    reader: _Reader | None = None
+    thread: threading.Thread | None = None
+    try:
         reader = _Reader({d.name: (emu.ports[d.name].path, d.driver) for d in devices},
                          scenario)
         print(f"uwbd demo: emulated WitMotion IMU on {emu.ports['imu'].path}, "
               f"Nooploop tag on {emu.ports['uwb'].path}; Ctrl-C to stop", flush=True)
-        stop = threading.Event()
         thread = threading.Thread(target=reader.loop, args=(stop,), daemon=True)
         thread.start()
         emu.start()
-        try:
-            wait_until(emu.finished)
-        finally:
+        wait_until(emu.finished)
+    finally:
+        with shielded():
             stop.set()
-            thread.join(timeout=2)
-            reader.close()
-        reader.summary()
+            if thread is not None:
+                thread.join(timeout=2)
+            emu.close()
+            if reader is not None:
+                reader.close()
+                reader.summary()
     return 0
 
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
+from collections.abc import Iterator
 from types import FrameType
 
 
@@ -19,3 +21,15 @@ def wait_until(done: threading.Event, poll_s: float = 0.2) -> None:
         pass
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+@contextlib.contextmanager
+def shielded() -> Iterator[None]:
+    """Finish cleaning up even when Ctrl-C comes again, or a supervisor signals the process
+    and its group (GNU ``timeout`` does both): further SIGINT/SIGTERM are ignored inside."""
+    previous = {s: signal.signal(s, signal.SIG_IGN) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
