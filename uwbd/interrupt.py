@@ -10,7 +10,13 @@ from types import FrameType
 
 
 def wait_until(done: threading.Event, poll_s: float = 0.2) -> None:
-    """Block until ``done`` is set, Ctrl-C or SIGTERM; both signals end the wait quietly."""
+    """Block until ``done`` is set, Ctrl-C or SIGTERM; both signals end the wait quietly.
+
+    Once a stop was asked for, further SIGINT/SIGTERM are ignored for the rest of the
+    process, so a second Ctrl-C (or a supervisor that signals the process and then its
+    group, as GNU ``timeout`` does) cannot cut the clean-up short; every wait in the
+    clean-up is bounded, so it cannot hang either.
+    """
     def on_term(signum: int, frame: FrameType | None) -> None:
         raise KeyboardInterrupt
     previous = signal.signal(signal.SIGTERM, on_term)
@@ -18,9 +24,10 @@ def wait_until(done: threading.Event, poll_s: float = 0.2) -> None:
         while not done.wait(poll_s):
             pass
     except KeyboardInterrupt:
-        pass
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        return
+    signal.signal(signal.SIGTERM, previous)
 
 
 @contextlib.contextmanager
