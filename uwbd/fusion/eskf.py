@@ -106,6 +106,29 @@ class Eskf:
         self._sum_fn = [0.0, 0.0, 0.0]
         self._sum_w = [0.0, 0.0, 0.0]
 
+    def interval_dv_n(self) -> tuple[float, float, float]:
+        """``Σ R f Δt`` since the last :meth:`propagate`: the INS's own velocity change
+        (gravity aside) in the navigation frame, untouched by any measurement."""
+        return (self._sum_fn[0], self._sum_fn[1], self._sum_fn[2])
+
+    def rotate_heading(self, dpsi: float, yaw_sigma_rad: float) -> None:
+        """Turn the nominal attitude by ``dpsi`` about the navigation z axis (a coarse heading
+        alignment) and restart the heading's variance at ``yaw_sigma_rad``, uncorrelated with
+        the rest; roll and pitch statistics are kept. The velocity is left alone: position
+        fixes kept it right while the heading was wrong."""
+        q = quat_mul(np.array([math.cos(dpsi / 2), 0.0, 0.0, math.sin(dpsi / 2)]),
+                     np.array(self.q))
+        self.q = list(q / np.linalg.norm(q))
+        R = self.R
+        T = np.eye(self.n)  # body-frame attitude error -> nav-frame attitude error
+        T[TH_, TH_] = R
+        P = T @ self.P @ T.T
+        k = TH_.start + 2  # nav-frame yaw error
+        P[k, :] = 0.0
+        P[:, k] = 0.0
+        P[k, k] = yaw_sigma_rad**2
+        self.P = T.T @ P @ T
+
     def propagate(self) -> None:
         """``P ← Φ P Φᵀ + Q_d`` over the interval accumulated by :meth:`predict` (§3)."""
         T = self._T

@@ -38,6 +38,8 @@ from uwbd.fusion.rotation import Array, quat_from_euler, quat_to_matrix, skew
 from uwbd.fusion.types import FusionReport, Pose
 
 Vec3 = tuple[float, float, float]
+HELD_YAW_SIGMA_RAD = 1e-3  # the heading's σ while it is held, before the coarse alignment
+ALIGN_SAMPLE_NS = 95_000_000  # fixes for the alignment: about 10 Hz
 IDENTITY3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 
@@ -56,7 +58,7 @@ class FilterConfig:
     lever_arm_m: Vec3 = (0.0, 0.0, 0.0)  # IMU -> UWB antenna, body axes
     imu_noise: ImuNoise = field(default_factory=ImuNoise)
     range_sigma_m: float = 0.10
-    acc_bias_sigma_mps2: float = 0.3  # initial: a mounted MEMS accelerometer's offset
+    acc_bias_sigma_mps2: float = 0.1  # initial; the vertical part is set from |f| - g at rest
     gate_probability: float = 0.997  # per-measurement χ² gate (3 σ for a scalar)
     gating: GatingPolicy = field(default_factory=lambda: GatingPolicy(min_anchors=1))
     range_bias_states: bool = True  # self-calibrate each anchor's antenna delay
@@ -75,6 +77,8 @@ class FilterConfig:
     init_max_wait_s: float = 3.0
     max_imu_gap_s: float = 0.5
     reinit_after_bad_epochs: int = 20
+    align_window_s: float = 2.0  # coarse heading alignment: window of UWB fixes compared
+    align_min_dv_mps: float = 0.8  # ... with this much horizontal velocity change at least
 
 
 class Filter:
@@ -96,9 +100,15 @@ class Filter:
         self._imu_t_ns: int | None = None
         self._last_imu: tuple[Vec3, Vec3] | None = None
         self._window: collections.deque[tuple[int, Vec3, Vec3]] = collections.deque()
-        self._fixes: collections.deque[tuple[int, Array]] = collections.deque(maxlen=50)
+        self._fixes: collections.deque[tuple[int, Array]] = collections.deque(maxlen=100)
+        self._align_fixes: collections.deque[tuple[int, Array]] = collections.deque()
         self._first_t_ns: int | None = None
         self._bad_epochs = 0
+        # coarse heading alignment: cumulative INS-only horizontal Δv, and fixes, over time
+        self._ins_dv: collections.deque[tuple[int, float, float]] = collections.deque()
+        self._dv_xy = [0.0, 0.0]
+        self._aligned = False
+        self._align_sigma_m = config.range_sigma_m
         self._bias_index: dict[int, int] = {}
         if config.range_bias_states and config.mode is Mode.TIGHT:  # unobservable in loose
             self._bias_index = {a: N_CORE + i for i, a in enumerate(sorted(config.anchors_m))}
@@ -163,7 +173,19 @@ class Filter:
             self.counters["uwb_late"] += 1  # older than the state: the aligner's job
             return reports
         self._predict_to(uwb.t_ns)
+        dv = self.ekf.interval_dv_n()
+        self._dv_xy[0] += dv[0]
+        self._dv_xy[1] += dv[1]
         self.ekf.propagate()
+        if not self._aligned:
+            # the heading is unknown: the INS's horizontal Δv may point anywhere; for a heading
+            # error uniform over ±180° the RMS error of a turned Δv is √2 |Δv|, so the fixes
+            # must be free to say where it went
+            extra = 2.0 * (dv[0] ** 2 + dv[1] ** 2)
+            self.ekf.P[3, 3] += extra
+            self.ekf.P[4, 4] += extra
+        if not self._aligned:
+            self._align_heading(uwb.t_ns, fix, anchors, ranges)
         H, y, R, keys = self._measurement_rows(ids, anchors, ranges, fix)
         self._constraints(H, y, R, keys)
         reports += self._fuse(uwb.t_ns, H, y, R, keys)
@@ -188,7 +210,7 @@ class Filter:
             t_ns=self.t_ns, position_m=(ekf.p[0], ekf.p[1], ekf.p[2]),
             velocity_mps=(ekf.v[0], ekf.v[1], ekf.v[2]), orientation_xyzw=(x, y, z, w),
             covariance=tuple(float(c) for c in cov.ravel()), status=self.status,
-            heading_observable=ekf.yaw_sigma_rad() < math.radians(10),
+            heading_observable=self._aligned and ekf.yaw_sigma_rad() < math.radians(10),
         )
 
     # -- internals ------------------------------------------------------------------------
@@ -278,6 +300,74 @@ class Filter:
             np.full(len(self._bias_index), cfg.range_bias_sigma_m**2)]))
         self.ekf = Eskf(p, v, q, P0, cfg.imu_noise, len(self._bias_index), b_g=bg, b_a=ba)
         self.t_ns = t_ns
+
+    def _align_heading(self, t_ns: int, fix: LsqFix | None, anchors: Array,
+                       ranges: Array) -> None:
+        """Coarse heading alignment (module doc, step 2).
+
+        A yaw error ψ turns every velocity change the INS integrates by ψ about the vertical.
+        Until aligned, the heading is held (the EKF linearised about a large yaw error turns
+        falsely confident within a second of motion) and velocity absorbs the difference.
+        Each epoch, over windows of 2, 4 and 6 s back, the UWB fixes' horizontal velocity
+        change (line fits over the last second at both ends) is compared with the INS's own;
+        once both exceed ``align_min_dv_mps``, the angle between them is the yaw error: the
+        attitude is turned by it and the EKF takes over with a heading σ from the fit.
+        """
+        ekf = self.ekf
+        assert ekf is not None
+        ekf.rotate_heading(0.0, HELD_YAW_SIGMA_RAD)  # hold the heading until aligned
+        if self._align_fixes and t_ns - self._align_fixes[-1][0] < ALIGN_SAMPLE_NS:
+            return  # fixes at 10 Hz are plenty for line fits over a second
+        fix = fix or self._lsq(anchors, ranges)
+        if fix is None:
+            return
+        self._align_fixes.append((t_ns, fix.position_m))
+        self._align_sigma_m = float(np.sqrt(max(np.trace(fix.covariance[:2, :2]) / 2, 1e-4)))
+        self._ins_dv.append((t_ns, self._dv_xy[0], self._dv_xy[1]))
+        horizon_ns = int(3 * self.cfg.align_window_s * 1e9) + 2_000_000_000
+        for history in (self._ins_dv, self._align_fixes):
+            while history and history[0][0] < t_ns - horizon_ns:
+                history.popleft()
+        result = self._heading_error(t_ns)
+        if result is None:
+            return
+        dpsi, sigma = result
+        ekf.rotate_heading(dpsi, sigma)
+        self._aligned = True
+        self.counters["heading_alignments"] += 1
+
+    def _heading_error(self, t_ns: int) -> tuple[float, float] | None:
+        """(yaw error, its σ) from the first window with enough velocity change, or None."""
+        fit_ns = 1_000_000_000
+        end = [(t, p) for t, p in self._align_fixes if t >= t_ns - fit_ns]
+        if len(end) < 5 or not self._ins_dv:
+            return None
+        v1, t1 = _velocity_fit(end)
+        times = np.array([t for t, _, _ in self._ins_dv], dtype=float)
+        cum = np.array([(x, y) for _, x, y in self._ins_dv])
+        for k in (1, 2, 3):
+            w_ns = int(k * self.cfg.align_window_s * 1e9)
+            if times[0] > t_ns - w_ns:
+                return None  # not that much history yet
+            start = [(t, p) for t, p in self._align_fixes
+                     if t_ns - w_ns <= t < t_ns - w_ns + fit_ns]
+            if len(start) < 5:
+                continue
+            v0, t0 = _velocity_fit(start)
+            dv_uwb = v1 - v0
+            dv_ins = np.array([np.interp(t1, times, cum[:, i]) - np.interp(t0, times, cum[:, i])
+                               for i in range(2)])
+            size = min(float(np.linalg.norm(dv_uwb)), float(np.linalg.norm(dv_ins)))
+            if size < self.cfg.align_min_dv_mps:
+                continue
+            dpsi = math.atan2(dv_ins[0] * dv_uwb[1] - dv_ins[1] * dv_uwb[0],
+                              dv_ins[0] * dv_uwb[0] + dv_ins[1] * dv_uwb[1])
+            # the angle error is the Δv error across the Δv over its length; that error is a
+            # line-fit velocity's (one second of fixes with their own horizontal σ) at each end
+            sigma_v = self._align_sigma_m * math.sqrt(12 / len(end)) * math.sqrt(2)
+            sigma = min(max(math.atan2(sigma_v, size), math.radians(3)), math.radians(45))
+            return dpsi, sigma
+        return None
 
     def _predict_to(self, t_ns: int) -> None:
         """Bring the state to the measurement time: hold the last IMU sample while it is fresh
@@ -431,7 +521,7 @@ class Filter:
     def _update_status(self) -> None:
         ekf = self.ekf
         assert ekf is not None
-        unknown = ekf.yaw_sigma_rad() >= math.radians(10)
+        unknown = not self._aligned or ekf.yaw_sigma_rad() >= math.radians(10)
         note = "; heading not yet observable"
         if unknown and note not in self.status:
             self.status = self.status.replace(")", note + ")")
@@ -446,3 +536,13 @@ class Filter:
         d[V_] = velocity_mps**2
         d[TH_] = attitude_rad**2
         ekf.P[np.diag_indices(ekf.n)] += d
+
+
+def _velocity_fit(fixes: list[tuple[int, Array]]) -> tuple[Array, float]:
+    """Horizontal velocity (m/s) of a straight-line fit through fixes, and its mid time (ns)."""
+    t = np.array([t for t, _ in fixes], dtype=float)
+    p = np.array([p[:2] for _, p in fixes])
+    tm = float(t.mean())
+    dt = (t - tm) / 1e9
+    v = (dt @ (p - p.mean(axis=0))) / max(float(dt @ dt), 1e-9)
+    return v, tm
