@@ -8,6 +8,7 @@ cleaning up.
 from __future__ import annotations
 
 import argparse
+import asyncio
 import json
 import sys
 import tempfile
@@ -21,11 +22,14 @@ from drivers.emulator.scenario import CircleScenario
 from uwbd import __version__
 from uwbd.codec import frame_to_dict
 from uwbd.config import ConfigError
+from uwbd.config import load as load_config
+from uwbd.daemon import run as run_daemon
 from uwbd.demo import run_demo
 from uwbd.importer import DatasetError, load_iasl
 from uwbd.interrupt import shielded, wait_until
 from uwbd.logtools import load_recording, write_dataset, write_simulation
 from uwbd.mcaplog import read_log
+from uwbd.replay import replay
 from uwbd.report import report
 from uwbd.simulator import Z_DOWN, SimConfig, simulate
 
@@ -146,6 +150,44 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_replay(args: argparse.Namespace) -> int:
+    """A log's reads through the live pipeline; the poses to -o, a summary to stdout."""
+    path = Path(args.log)
+    if not path.is_file():
+        raise UsageError(f"cannot read {path}: no such file")
+    contents = read_log(path)
+    if contents.truncated:
+        print(f"warning: {contents.error}; replaying what was complete", file=sys.stderr)
+    out = Path(args.output) if args.output else None
+    try:
+        pipeline, poses = replay(contents, str(path), out, args.realtime,
+                                 progress=sys.stderr.isatty())
+    except ConfigError as err:
+        raise UsageError(str(err)) from err
+    print(f"{path}: {pipeline.poses} poses; filter {pipeline.filter.status}"
+          + (f"; written to {out}" if out else ""))
+    if poses.poses:
+        x, y, z = poses.poses[-1].position_m
+        print(f"last pose ({x:.3f}, {y:.3f}, {z:.3f}) m")
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """The daemon: serial ports → fusion → MCAP logs, until SIGINT/SIGTERM."""
+    try:
+        config = load_config(Path(args.config))
+    except ConfigError as err:
+        raise UsageError(str(err)) from err
+    if not config.sources:
+        raise UsageError(f"{args.config}: sources: at least one [[sources]] is needed")
+    log_dir = Path(args.log_dir or config.log.get("directory", "logs"))
+    pipeline = asyncio.run(run_daemon(config, log_dir, args.duration))
+    files = [str(p) for sink in pipeline.sinks for p in getattr(sink, "files", [])]
+    print(f"stopped: {pipeline.poses} poses; logs: {', '.join(files) or 'none'}",
+          file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="uwbd", description=__doc__.splitlines()[0])
     ap.add_argument("--version", action="version", version=f"uwbd {__version__}")
@@ -174,6 +216,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--unplug", action="append", default=[], metavar="AT:DUR",
                    help="close the port at AT for DUR seconds (repeatable)")
     p.set_defaults(func=cmd_emulate)
+
+    p = sub.add_parser("run", help="the daemon: serial ports -> fusion -> MCAP")
+    p.add_argument("-c", "--config", required=True, help="configuration TOML")
+    p.add_argument("--log-dir", help="where logs go (default: [log] directory, or ./logs)")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="stop after S seconds (default: until SIGINT/SIGTERM)")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("replay", help="re-run a log through the same pipeline")
+    p.add_argument("log")
+    p.add_argument("-o", "--output", help="write the replayed run (raw, frames, poses) here")
+    p.add_argument("--realtime", action="store_true", help="pace by the log's times")
+    p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser("simulate", help="simulate a run and write its MCAP log")
     p.add_argument("-o", "--output", default="sim.mcap", help="log to write (default sim.mcap)")

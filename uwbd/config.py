@@ -9,6 +9,8 @@ option that is silently ignored is worse than none. Sections::
     [imu]                mounting = 3x3 rows (sensor -> body FLU), lever_arm_m = [x, y, z]
     [fusion]             mode, range_sigma_m, range_bias_states, zupt, nhc, known_height_m,
                          gate_probability, min_anchors, max_range_m
+    [pipeline]           aligner_wait_ms (0), pose_rate_hz (50), status_period_s (1)
+    [log]                directory ("logs"), rotate_mb (256), rotate_minutes (60)
 """
 
 from __future__ import annotations
@@ -51,7 +53,21 @@ class Config:
     mounting: tuple[Vec3, Vec3, Vec3] = IDENTITY3
     lever_arm_m: Vec3 = (0.0, 0.0, 0.0)
     fusion: dict[str, Any] = field(default_factory=dict)
+    pipeline: dict[str, Any] = field(default_factory=dict)
+    log: dict[str, Any] = field(default_factory=dict)
     text: str = ""  # the TOML as read, for the log
+
+    @property
+    def aligner_wait_ns(self) -> int:
+        return int(self.pipeline.get("aligner_wait_ms", 0) * 1_000_000)
+
+    @property
+    def pose_period_ns(self) -> int:
+        return int(1e9 / self.pipeline.get("pose_rate_hz", 50))
+
+    @property
+    def status_period_ns(self) -> int:
+        return int(self.pipeline.get("status_period_s", 1.0) * 1e9)
 
     def filter_config(self) -> FilterConfig:
         f = self.fusion
@@ -67,6 +83,11 @@ class Config:
         )
 
 
+Number = (int, float)
+_PIPELINE_KEYS: dict[str, type | tuple[type, ...]] = {
+    "aligner_wait_ms": Number, "pose_rate_hz": Number, "status_period_s": Number}
+_LOG_KEYS: dict[str, type | tuple[type, ...]] = {
+    "directory": str, "rotate_mb": Number, "rotate_minutes": Number}
 _FUSION_KEYS: dict[str, type | tuple[type, ...]] = {
     "mode": str, "range_sigma_m": (int, float), "range_bias_states": bool, "zupt": bool,
     "nhc": bool, "known_height_m": (int, float), "gate_probability": (int, float),
@@ -87,7 +108,7 @@ def parse(text: str, where: str = "<config>") -> Config:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{where}: {err}") from err
-    _only(doc, {"sources", "anchors", "imu", "fusion"}, where, "")
+    _only(doc, {"sources", "anchors", "imu", "fusion", "pipeline", "log"}, where, "")
     sources = tuple(_source(s, where, i) for i, s in enumerate(_list(doc, "sources", where)))
     names = [s.name for s in sources]
     if len(set(names)) != len(names):
@@ -110,21 +131,34 @@ def parse(text: str, where: str = "<config>") -> Config:
                     _vec(rows[1], where, "imu.mounting[1]"),
                     _vec(rows[2], where, "imu.mounting[2]"))
     lever = _vec(imu.get("lever_arm_m", [0, 0, 0]), where, "imu.lever_arm_m")
-    fusion = _table(doc, "fusion", where)
-    _only(fusion, set(_FUSION_KEYS), where, "fusion.")
-    for key, value in fusion.items():
-        kind = _FUSION_KEYS[key]
-        if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
-            raise ConfigError(f"{where}: fusion.{key}: wrong type {type(value).__name__}")
+    fusion = _typed_table(doc, "fusion", _FUSION_KEYS, where)
+    pipeline = _typed_table(doc, "pipeline", _PIPELINE_KEYS, where)
+    log = _typed_table(doc, "log", _LOG_KEYS, where)
+    for section, table in (("pipeline", pipeline), ("log", log)):
+        for key, value in table.items():
+            zero_ok = key == "aligner_wait_ms"
+            if not isinstance(value, str) and not (value > 0 or (zero_ok and value == 0)):
+                raise ConfigError(f"{where}: {section}.{key}: must be positive, got {value}")
     if "mode" in fusion and fusion["mode"] not in {m.value for m in Mode}:
         raise ConfigError(f"{where}: fusion.mode: expected one of "
                           f"{', '.join(m.value for m in Mode)}, got {fusion['mode']!r}")
-    config = Config(sources, anchors, mounting, lever, fusion, text)
+    config = Config(sources, anchors, mounting, lever, fusion, pipeline, log, text)
     try:
         Filter(config.filter_config())  # the filter checks what only it understands
     except ValueError as err:
         raise ConfigError(f"{where}: {err}") from err
     return config
+
+
+def _typed_table(doc: dict[str, Any], name: str, spec: dict[str, type | tuple[type, ...]],
+                 where: str) -> dict[str, Any]:
+    table = _table(doc, name, where)
+    _only(table, set(spec), where, f"{name}.")
+    for key, value in table.items():
+        kind = spec[key]
+        if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
+            raise ConfigError(f"{where}: {name}.{key}: wrong type {type(value).__name__}")
+    return table
 
 
 def _only(table: dict[str, Any], allowed: set[str], where: str, prefix: str) -> None:

@@ -1,0 +1,146 @@
+"""``uwbd run``: serial ports → pipeline → MCAP (and, with the Zenoh sink, the network).
+
+Each source is a serial port read without blocking: pyserial opens it (non-blocking, with an
+exclusive lock), its file descriptor goes into the event loop with ``add_reader``, and every
+read is stamped with ``time.time_ns()`` as it completes. A port that is absent at start or
+vanishes (unplugged) is retried with a backoff of 0.1 s doubling to 2 s; its state shows in
+the status. SIGINT and SIGTERM stop the loop and finish the log.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import serial
+
+from uwbd.config import Config, SourceConfig
+from uwbd.pipeline import McapSink, Pipeline, Sink
+
+READ_BYTES = 4096
+BACKOFF_START_S = 0.1
+BACKOFF_MAX_S = 2.0
+
+
+@dataclass
+class SourceState:
+    state: str = "closed"  # closed | open
+    opens: int = 0
+    losses: int = 0
+    last_error: str = ""
+    bytes_read: int = 0
+    fields: dict[str, Any] = field(default_factory=dict)
+
+
+class SerialSource:
+    def __init__(self, cfg: SourceConfig, pipeline: Pipeline,
+                 loop: asyncio.AbstractEventLoop) -> None:
+        self.cfg = cfg
+        self.pipeline = pipeline
+        self.loop = loop
+        self.info = SourceState()
+        self._port: serial.Serial | None = None
+        self._fd = -1
+        self._backoff_s = BACKOFF_START_S
+        self._retry: asyncio.TimerHandle | None = None
+        self._closed = False
+
+    def start(self) -> None:
+        self._open()
+
+    def _open(self) -> None:
+        self._retry = None
+        if self._closed:
+            return
+        try:
+            port = serial.Serial(self.cfg.port, self.cfg.baud, timeout=0, exclusive=True)
+        except (OSError, ValueError) as err:
+            self._schedule_retry(f"cannot open {self.cfg.port}: {err}")
+            return
+        self._port, self._fd = port, port.fileno()
+        self.loop.add_reader(self._fd, self._readable)
+        self.info.state = "open"
+        self.info.opens += 1
+        self._backoff_s = BACKOFF_START_S
+
+    def _schedule_retry(self, reason: str) -> None:
+        self.info.state = "closed"
+        self.info.last_error = reason
+        self._retry = self.loop.call_later(self._backoff_s, self._open)
+        self._backoff_s = min(self._backoff_s * 2, BACKOFF_MAX_S)
+
+    def _readable(self) -> None:
+        try:
+            data = os.read(self._fd, READ_BYTES)
+            if not data:
+                raise OSError("port closed (device gone)")
+        except BlockingIOError:
+            return
+        except OSError as err:
+            self._lost(err)
+            return
+        t_ns = time.time_ns()
+        self.info.bytes_read += len(data)
+        self.pipeline.on_bytes(self.cfg.name, t_ns, data)
+
+    def _lost(self, err: OSError) -> None:
+        self.info.losses += 1
+        self._release()
+        self._schedule_retry(f"lost {self.cfg.port}: {err}")
+
+    def _release(self) -> None:
+        if self._port is not None:
+            self.loop.remove_reader(self._fd)
+            with contextlib.suppress(OSError):  # the device is gone: nothing left to release
+                self._port.close()
+            self._port, self._fd = None, -1
+
+    def close(self) -> None:
+        self._closed = True
+        if self._retry is not None:
+            self._retry.cancel()
+        self._release()
+
+
+async def run(config: Config, log_dir: Path, duration_s: float | None = None,
+              extra_sinks: tuple[Sink, ...] = ()) -> Pipeline:
+    """Run until SIGINT/SIGTERM (or ``duration_s``); returns the finished pipeline."""
+    loop = asyncio.get_running_loop()
+    rotate_mb = config.log.get("rotate_mb", 256)
+    rotate_min = config.log.get("rotate_minutes", 60)
+    mcap = McapSink(config, directory=log_dir, rotate_bytes=int(rotate_mb * 1e6),
+                    rotate_ns=int(rotate_min * 60e9))
+    pipeline = Pipeline(config, [mcap, *extra_sinks])
+    sources = [SerialSource(s, pipeline, loop) for s in config.sources]
+    stop = asyncio.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        for source in sources:
+            source.start()
+        deadline = None if duration_s is None else loop.time() + duration_s
+        while not stop.is_set():
+            pipeline.extra_status["sources"] = {
+                s.cfg.name: {"port": s.cfg.port, "state": s.info.state, "opens": s.info.opens,
+                             "losses": s.info.losses, "bytes": s.info.bytes_read,
+                             "last_error": s.info.last_error} for s in sources}
+            timeout = 0.5 if deadline is None else min(0.5, deadline - loop.time())
+            if timeout <= 0:
+                break
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(stop.wait(), timeout)
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+            signal.signal(sig, signal.SIG_IGN)  # the stop is under way: finish it
+        for source in sources:
+            source.close()
+        pipeline.finish()
+        pipeline.close()
+    return pipeline

@@ -1,0 +1,278 @@
+"""The pipeline core: bytes → drivers → aligner → filter → sinks, one synchronous call per read.
+
+``uwbd run`` calls :meth:`Pipeline.on_bytes` for every read from a serial port, ``uwbd
+replay`` for every ``/raw/<source>`` message of a log, in log order with its logged time:
+the same code in the same order, so a replay reproduces the live poses bit for bit. Logs
+that carry only decoded frames go in through :meth:`Pipeline.on_frame`.
+
+Poses leave after every UWB update and, between updates, at most every
+``pose_period_ns`` of data time; status every ``status_period_ns``. Sinks receive
+everything (raw bytes, frames, poses, status); one that fails does not stop the others.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Protocol
+
+from drivers import PARSERS, Frame, ImuSample, Parser
+from uwbd import __version__
+from uwbd.aligner import Aligner
+from uwbd.config import Config
+from uwbd.fusion.filter import Filter
+from uwbd.fusion.types import Pose
+from uwbd.mcaplog import LogWriter, SourceInfo
+
+FLUSH_PERIOD_NS = 1_000_000_000  # the log is handed to the OS about once a second
+
+
+class Sink(Protocol):
+    def raw(self, source: str, t_ns: int, data: bytes) -> None: ...
+
+    def frame(self, frame: Frame) -> None: ...
+
+    def pose(self, pose: Pose) -> None: ...
+
+    def status(self, t_ns: int, status: dict[str, Any]) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class Pipeline:
+    def __init__(self, config: Config, sinks: Sequence[Sink]) -> None:
+        self.config = config
+        self.sinks = list(sinks)
+        self.parsers: dict[str, Parser] = {s.name: PARSERS[s.driver]() for s in config.sources}
+        self.aligner = Aligner(config.aligner_wait_ns)
+        self.filter = Filter(config.filter_config())
+        self.poses = 0
+        self.unknown_sources = 0
+        self.extra_status: dict[str, Any] = {}  # e.g. port states, set by the runner
+        self._last_pose_ns = -(2**63)
+        self._last_status_ns: int | None = None
+
+    def on_bytes(self, source: str, t_ns: int, data: bytes) -> None:
+        """One read of ``data`` from ``source`` whose last byte arrived at ``t_ns``."""
+        parser = self.parsers.get(source)
+        if parser is None:
+            self.unknown_sources += 1
+            return
+        for sink in self.sinks:
+            sink.raw(source, t_ns, data)
+        self._frames(parser.feed(data, t_ns))
+        self._tick(t_ns)
+
+    def on_frame(self, frame: Frame) -> None:
+        """A decoded frame (logs without raw channels)."""
+        self._frames([frame])
+        self._tick(frame.t_ns)
+
+    def finish(self) -> None:
+        """End of input: parsers and aligner give up what they hold; a last status."""
+        for parser in self.parsers.values():
+            self._frames(parser.flush())
+        for frame in self.aligner.flush():
+            self._fuse(frame)
+        if self._last_status_ns is not None:
+            self._emit_status(self._last_status_ns)
+
+    def close(self) -> None:
+        for sink in self.sinks:
+            sink.close()
+
+    def _frames(self, frames: Sequence[Frame]) -> None:
+        for frame in frames:
+            for sink in self.sinks:
+                sink.frame(frame)
+            for ready in self.aligner.push(frame):
+                self._fuse(ready)
+
+    def _fuse(self, frame: Frame) -> None:
+        flt = self.filter
+        if isinstance(frame, ImuSample):
+            flt.predict(frame)
+            if frame.t_ns - self._last_pose_ns < self.config.pose_period_ns:
+                return
+        else:
+            flt.update(frame)
+        pose = flt.pose()
+        if pose is not None:
+            self._last_pose_ns = pose.t_ns
+            self.poses += 1
+            for sink in self.sinks:
+                sink.pose(pose)
+
+    def _tick(self, t_ns: int) -> None:
+        if self._last_status_ns is None:
+            self._last_status_ns = t_ns
+        elif t_ns - self._last_status_ns >= self.config.status_period_ns:
+            self._last_status_ns = t_ns
+            self._emit_status(t_ns)
+
+    def _emit_status(self, t_ns: int) -> None:
+        status = self.status(t_ns)
+        for sink in self.sinks:
+            sink.status(t_ns, status)
+
+    def status(self, t_ns: int) -> dict[str, Any]:
+        """Filter health, gating counts, parser and aligner statistics."""
+        flt = self.filter
+        pose = flt.pose()
+        out: dict[str, Any] = {
+            "t_ns": t_ns, "version": __version__, "filter": flt.status,
+            "heading_observable": bool(pose and pose.heading_observable),
+            "poses": self.poses, "fusion_counters": dict(flt.counters),
+            "gating_rejections": dict(flt.gating.rejections),
+            "aligner": self.aligner.stats(),
+            "parsers": {name: _brief(p) for name, p in self.parsers.items()},
+        }
+        if self.unknown_sources:
+            out["unknown_source_reads"] = self.unknown_sources
+        out.update(self.extra_status)
+        for sink in self.sinks:
+            problem = getattr(sink, "error", "")
+            if problem:
+                out.setdefault("sink_errors", []).append(problem)
+        return out
+
+
+def _brief(parser: Parser) -> dict[str, Any]:
+    stats = parser.stats.as_dict()
+    recent = stats.pop("recent_errors")
+    stats["last_error"] = recent[-1] if recent else ""
+    return stats
+
+
+class McapSink:
+    """Writes the pipeline to MCAP files: one file, or a rotating series in a directory.
+
+    Rotation starts a new file when the current one passes ``rotate_bytes`` or spans
+    ``rotate_ns`` of data time. The file is flushed about once a second of data time, so a
+    crash loses about that much. An ``OSError`` (disk full, directory gone) stops logging,
+    is kept in :attr:`error` for the status, and never reaches the pipeline.
+    """
+
+    def __init__(self, config: Config, path: Path | None = None, directory: Path | None = None,
+                 rotate_bytes: int | None = None, rotate_ns: int | None = None) -> None:
+        if (path is None) == (directory is None):
+            raise ValueError("give either a file path or a directory")
+        self.config = config
+        self.path = path
+        self.directory = directory
+        self.rotate_bytes = rotate_bytes
+        self.rotate_ns = rotate_ns
+        self.files: list[Path] = []
+        self.error = ""
+        self._log: LogWriter | None = None
+        self._opened_ns = 0
+        self._flushed_ns = 0
+
+    def _writer(self, t_ns: int) -> LogWriter | None:
+        if self.error:
+            return None
+        log = self._log
+        if log is not None and self.directory is not None and (
+                (self.rotate_bytes and log.path.stat().st_size >= self.rotate_bytes)
+                or (self.rotate_ns and t_ns - self._opened_ns >= self.rotate_ns)):
+            self._close_current()
+            log = None
+        if log is None:
+            path = self.path or self._next_name(t_ns)
+            sources = tuple(SourceInfo(s.name, s.driver, s.port) for s in self.config.sources)
+            try:
+                if self.directory is not None:
+                    self.directory.mkdir(parents=True, exist_ok=True)
+                log = self._log = LogWriter(path, self.config.text, sources)
+            except OSError as err:
+                self._fail(f"cannot write log {path}: {err.strerror or err}")
+                return None
+            self.files.append(path)
+            self._opened_ns = self._flushed_ns = t_ns
+        return log
+
+    def _next_name(self, t_ns: int) -> Path:
+        assert self.directory is not None
+        stamp = datetime.fromtimestamp(t_ns / 1e9, tz=timezone.utc).strftime("%Y%m%d-%H%M%S")
+        path = self.directory / f"uwbd-{stamp}.mcap"
+        k = 1
+        while path.exists() or path in self.files:
+            path = self.directory / f"uwbd-{stamp}-{k}.mcap"
+            k += 1
+        return path
+
+    def _write(self, t_ns: int, action: str, *args: Any) -> None:
+        log = self._writer(t_ns)
+        if log is None:
+            return
+        try:
+            getattr(log, action)(*args)
+            if t_ns - self._flushed_ns >= FLUSH_PERIOD_NS:
+                log.flush()
+                self._flushed_ns = t_ns
+        except OSError as err:
+            self._fail(f"writing {log.path}: {err.strerror or err}")
+
+    def _fail(self, reason: str) -> None:
+        self.error = f"logging stopped: {reason}"
+        self._log = None
+
+    def raw(self, source: str, t_ns: int, data: bytes) -> None:
+        self._write(t_ns, "raw", source, t_ns, data)
+
+    def frame(self, frame: Frame) -> None:
+        self._write(frame.t_ns, "frame", frame)
+
+    def pose(self, pose: Pose) -> None:
+        self._write(pose.t_ns, "pose", pose)
+
+    def status(self, t_ns: int, status: dict[str, Any]) -> None:
+        self._write(t_ns, "json", "/status", t_ns, status)
+
+    def _close_current(self) -> None:
+        if self._log is not None:
+            try:
+                self._log.close()
+            except OSError as err:
+                self._fail(f"finishing {self._log.path}: {err.strerror or err}")
+            self._log = None
+
+    def close(self) -> None:
+        self._close_current()
+
+
+class PoseList:
+    """A sink that keeps the poses (replay comparisons, tests)."""
+
+    def __init__(self) -> None:
+        self.poses: list[Pose] = []
+        self.statuses: list[dict[str, Any]] = []
+
+    def raw(self, source: str, t_ns: int, data: bytes) -> None:
+        """Raw bytes are not kept."""
+
+    def frame(self, frame: Frame) -> None:
+        """Frames are not kept."""
+
+    def pose(self, pose: Pose) -> None:
+        self.poses.append(pose)
+
+    def status(self, t_ns: int, status: dict[str, Any]) -> None:
+        self.statuses.append(status)
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+def monotonic_pacer(start_log_ns: int) -> Any:
+    """For ``--realtime``: a function that sleeps until a log time is due, paced from one
+    start instant so no drift builds up."""
+    start = time.monotonic_ns()
+
+    def wait_for(t_ns: int) -> None:
+        delay = (t_ns - start_log_ns) - (time.monotonic_ns() - start)
+        if delay > 0:
+            time.sleep(delay / 1e9)
+    return wait_for
