@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import sys
@@ -9,6 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
+import zenoh
 
 from drivers.emulator import DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
@@ -35,6 +37,11 @@ baud = 921600
 
 [anchors]
 {anchors}
+
+[zenoh]
+prefix = "uwbd/test"
+listen = ["unixsock-stream/{tmp / 'z.sock'}"]
+multicast_scouting = false  # tests never send beyond loopback
 """
     path = tmp / "cfg.toml"
     path.write_text(text)
@@ -147,3 +154,46 @@ def test_replay_of_a_simulated_log_is_deterministic(tmp_path: Path) -> None:
     # and the replayed output is itself a log that replays to the same poses
     again = replay(read_log(tmp_path / "a.mcap"), "a.mcap")[1].poses
     assert [(p.t_ns, (*p.position_m, *p.orientation_xyzw)) for p in again] == outs[0]
+
+
+def test_poses_status_and_liveliness_over_zenoh(tmp_path: Path, emulator) -> None:
+    """A Zenoh subscriber in the test and `uwbd echo` both see the daemon."""
+    sock = tmp_path / "z.sock"
+    cfg = write_config(tmp_path, {n: p.path for n, p in emulator.ports.items()})
+    daemon = start_daemon(cfg, tmp_path / "logs")
+    session = None
+    try:
+        for _ in range(100):
+            if sock.exists():
+                break
+            time.sleep(0.05)
+        zcfg = zenoh.Config.from_json5(json.dumps({
+            "mode": "peer", "connect": {"endpoints": [f"unixsock-stream/{sock}"]},
+            "scouting": {"multicast": {"enabled": False}}}))
+        session = zenoh.open(zcfg)
+        poses: list[dict[str, object]] = []
+        sub = session.declare_subscriber("uwbd/test/pose",
+                                         lambda s: poses.append(json.loads(s.payload.to_bytes())))
+        time.sleep(0.5)
+        emulator.start()
+        time.sleep(3.0)
+        alive = [str(r.ok.key_expr) for r in session.liveliness().get("uwbd/**", timeout=2.0)
+                 if r.ok is not None]
+        status = [json.loads(r.ok.payload.to_bytes())
+                  for r in session.get("uwbd/test/status", timeout=2.0) if r.ok is not None]
+        echo = subprocess.run([*UWBD, "echo", "--prefix", "uwbd/test", "--connect",
+                               f"unixsock-stream/{sock}", "--count", "3", "--timeout", "10"],
+                              capture_output=True, text=True, timeout=30, check=False)
+        sub.undeclare()
+    finally:
+        if session is not None:
+            session.close()
+        daemon.send_signal(signal.SIGTERM)
+        daemon.communicate(timeout=20)
+    assert daemon.returncode == 0
+    assert alive == ["uwbd/test/alive"]
+    assert len(poses) > 50
+    assert poses[-1]["frame_id"] == "enu" and set(poses[-1]["pose"]) == {"position", "orientation"}
+    assert status and status[0]["sources"]["imu"]["state"] == "open"
+    assert echo.returncode == 0, echo.stderr
+    assert len([x for x in echo.stdout.splitlines() if " p=(" in x]) == 3

@@ -25,6 +25,7 @@ from uwbd.config import ConfigError
 from uwbd.config import load as load_config
 from uwbd.daemon import run as run_daemon
 from uwbd.demo import run_demo
+from uwbd.echo import echo
 from uwbd.importer import DatasetError, load_iasl
 from uwbd.interrupt import shielded, wait_until
 from uwbd.logtools import load_recording, write_dataset, write_simulation
@@ -32,6 +33,7 @@ from uwbd.mcaplog import read_log
 from uwbd.replay import replay
 from uwbd.report import report
 from uwbd.simulator import Z_DOWN, SimConfig, simulate
+from uwbd.zenohsink import default_prefix
 
 READ_CHUNK_BYTES = 65536
 
@@ -188,6 +190,22 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_echo(args: argparse.Namespace) -> int:
+    """Print the poses (or status) a daemon publishes."""
+    zcfg: dict[str, object] = {"mode": "peer", "multicast_scouting": not args.connect}
+    if args.connect:
+        zcfg["connect"] = args.connect
+    if args.config:
+        try:
+            zcfg.update(load_config(Path(args.config)).zenoh)
+        except ConfigError as err:
+            raise UsageError(str(err)) from err
+        zcfg["listen"] = []  # a subscriber dials; it does not take the daemon's listen port
+    prefix = args.prefix or str(zcfg.get("prefix") or default_prefix())
+    echo(zcfg, prefix, args.status, args.count, args.timeout)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="uwbd", description=__doc__.splitlines()[0])
     ap.add_argument("--version", action="version", version=f"uwbd {__version__}")
@@ -223,6 +241,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, default=None, metavar="S",
                    help="stop after S seconds (default: until SIGINT/SIGTERM)")
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("echo", help="print the poses (or --status) a daemon publishes")
+    p.add_argument("--status", action="store_true", help="status instead of poses")
+    p.add_argument("--prefix", help="key prefix (default: from -c, else uwbd/<hostname>)")
+    p.add_argument("-c", "--config", help="take the [zenoh] settings from this config")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="e.g. tcp/192.168.1.10:7447 (repeatable); default: scouting")
+    p.add_argument("--count", type=int, help="stop after N messages")
+    p.add_argument("--timeout", type=float, metavar="S", help="stop after S seconds")
+    p.set_defaults(func=cmd_echo)
 
     p = sub.add_parser("replay", help="re-run a log through the same pipeline")
     p.add_argument("log")

@@ -11,6 +11,8 @@ option that is silently ignored is worse than none. Sections::
                          gate_probability, min_anchors, max_range_m
     [pipeline]           aligner_wait_ms (0), pose_rate_hz (50), status_period_s (1)
     [log]                directory ("logs"), rotate_mb (256), rotate_minutes (60)
+    [zenoh]              enabled (true), mode ("peer"), connect [], listen [], prefix
+                         ("uwbd/<hostname>"), multicast_scouting (true)
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ class Config:
     fusion: dict[str, Any] = field(default_factory=dict)
     pipeline: dict[str, Any] = field(default_factory=dict)
     log: dict[str, Any] = field(default_factory=dict)
+    zenoh: dict[str, Any] = field(default_factory=dict)
     text: str = ""  # the TOML as read, for the log
 
     @property
@@ -88,6 +91,9 @@ _PIPELINE_KEYS: dict[str, type | tuple[type, ...]] = {
     "aligner_wait_ms": Number, "pose_rate_hz": Number, "status_period_s": Number}
 _LOG_KEYS: dict[str, type | tuple[type, ...]] = {
     "directory": str, "rotate_mb": Number, "rotate_minutes": Number}
+_ZENOH_KEYS: dict[str, type | tuple[type, ...]] = {
+    "enabled": bool, "mode": str, "connect": list, "listen": list, "prefix": str,
+    "multicast_scouting": bool}
 _FUSION_KEYS: dict[str, type | tuple[type, ...]] = {
     "mode": str, "range_sigma_m": (int, float), "range_bias_states": bool, "zupt": bool,
     "nhc": bool, "known_height_m": (int, float), "gate_probability": (int, float),
@@ -108,7 +114,7 @@ def parse(text: str, where: str = "<config>") -> Config:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{where}: {err}") from err
-    _only(doc, {"sources", "anchors", "imu", "fusion", "pipeline", "log"}, where, "")
+    _only(doc, {"sources", "anchors", "imu", "fusion", "pipeline", "log", "zenoh"}, where, "")
     sources = tuple(_source(s, where, i) for i, s in enumerate(_list(doc, "sources", where)))
     names = [s.name for s in sources]
     if len(set(names)) != len(names):
@@ -134,6 +140,13 @@ def parse(text: str, where: str = "<config>") -> Config:
     fusion = _typed_table(doc, "fusion", _FUSION_KEYS, where)
     pipeline = _typed_table(doc, "pipeline", _PIPELINE_KEYS, where)
     log = _typed_table(doc, "log", _LOG_KEYS, where)
+    zenoh = _typed_table(doc, "zenoh", _ZENOH_KEYS, where)
+    if zenoh.get("mode", "peer") not in ("peer", "client", "router"):
+        raise ConfigError(f"{where}: zenoh.mode: expected peer, client or router, "
+                          f"got {zenoh['mode']!r}")
+    for key in ("connect", "listen"):
+        if not all(isinstance(e, str) for e in zenoh.get(key, [])):
+            raise ConfigError(f"{where}: zenoh.{key}: expected a list of endpoint strings")
     for section, table in (("pipeline", pipeline), ("log", log)):
         for key, value in table.items():
             zero_ok = key == "aligner_wait_ms"
@@ -142,7 +155,7 @@ def parse(text: str, where: str = "<config>") -> Config:
     if "mode" in fusion and fusion["mode"] not in {m.value for m in Mode}:
         raise ConfigError(f"{where}: fusion.mode: expected one of "
                           f"{', '.join(m.value for m in Mode)}, got {fusion['mode']!r}")
-    config = Config(sources, anchors, mounting, lever, fusion, pipeline, log, text)
+    config = Config(sources, anchors, mounting, lever, fusion, pipeline, log, zenoh, text)
     try:
         Filter(config.filter_config())  # the filter checks what only it understands
     except ValueError as err:

@@ -13,15 +13,18 @@ import asyncio
 import contextlib
 import os
 import signal
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import serial
+import zenoh
 
 from uwbd.config import Config, SourceConfig
 from uwbd.pipeline import McapSink, Pipeline, Sink
+from uwbd.zenohsink import ZenohSink
 
 READ_BYTES = 4096
 BACKOFF_START_S = 0.1
@@ -116,7 +119,13 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
     rotate_min = config.log.get("rotate_minutes", 60)
     mcap = McapSink(config, directory=log_dir, rotate_bytes=int(rotate_mb * 1e6),
                     rotate_ns=int(rotate_min * 60e9))
-    pipeline = Pipeline(config, [mcap, *extra_sinks])
+    sinks: list[Sink] = [mcap, *extra_sinks]
+    if config.zenoh.get("enabled", True):
+        try:
+            sinks.append(ZenohSink(config.zenoh))
+        except zenoh.ZError as err:  # e.g. listen port taken: fusion and logging go on
+            print(f"uwbd run: zenoh disabled: {err}", file=sys.stderr)
+    pipeline = Pipeline(config, sinks)
     sources = [SerialSource(s, pipeline, loop) for s in config.sources]
     stop = asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

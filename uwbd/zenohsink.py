@@ -1,0 +1,75 @@
+"""Poses and status over Zenoh (ARCHITECTURE.md, "Zenoh").
+
+Keys under the configured prefix (default ``uwbd/<hostname>``): ``<prefix>/pose`` carries the
+same JSON as MCAP ``/pose`` (a ``foxglove.PoseInFrame`` object plus uwbd's fields), encoding
+``application/json``; ``<prefix>/status`` is published once a second and answered as a query;
+``<prefix>/alive`` is a liveliness token. Peer mode by default; mode and endpoints come from
+the ``[zenoh]`` config so a deployment can point at a zenohd router.
+
+``put`` never blocks (congestion control DROP), so a slow network cannot stall fusion. The
+queryable runs on a Zenoh thread and only reads the last status bytes, swapped atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+from typing import Any
+
+import zenoh
+
+from drivers.frames import Frame
+from uwbd.fusion.types import Pose
+from uwbd.mcaplog import pose_to_message
+
+
+def default_prefix() -> str:
+    host = "".join(c if c.isalnum() or c in "-_" else "_" for c in socket.gethostname())
+    return f"uwbd/{host or 'robot'}"
+
+
+def session_config(zcfg: dict[str, Any]) -> zenoh.Config:
+    """A Zenoh config from the ``[zenoh]`` table (mode, connect, listen, multicast_scouting)."""
+    config: zenoh.Config = zenoh.Config.from_json5(json.dumps({
+        "mode": zcfg.get("mode", "peer"),
+        "connect": {"endpoints": list(zcfg.get("connect", []))},
+        "listen": {"endpoints": list(zcfg.get("listen", []))},
+        "scouting": {"multicast": {"enabled": bool(zcfg.get("multicast_scouting", True))}},
+    }))
+    return config
+
+
+class ZenohSink:
+    def __init__(self, zcfg: dict[str, Any]) -> None:
+        self.prefix = str(zcfg.get("prefix") or default_prefix()).strip("/")
+        self.error = ""
+        self.session = zenoh.open(session_config(zcfg))
+        json_enc = zenoh.Encoding.APPLICATION_JSON
+        self._pose = self.session.declare_publisher(f"{self.prefix}/pose", encoding=json_enc)
+        self._status = self.session.declare_publisher(f"{self.prefix}/status", encoding=json_enc)
+        self._token = self.session.liveliness().declare_token(f"{self.prefix}/alive")
+        self._status_bytes = b"{}"
+        self._queryable = self.session.declare_queryable(f"{self.prefix}/status", self._on_query)
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        with query:  # finalises the query promptly
+            query.reply(f"{self.prefix}/status", self._status_bytes,
+                        encoding=zenoh.Encoding.APPLICATION_JSON)
+
+    def raw(self, source: str, t_ns: int, data: bytes) -> None:
+        """Raw bytes stay in the log."""
+
+    def frame(self, frame: Frame) -> None:
+        """Frames stay in the log."""
+
+    def pose(self, pose: Pose) -> None:
+        self._pose.put(json.dumps(pose_to_message(pose)).encode())
+
+    def status(self, t_ns: int, status: dict[str, Any]) -> None:
+        self._status_bytes = json.dumps(status).encode()
+        self._status.put(self._status_bytes)
+
+    def close(self) -> None:
+        for entity in (self._queryable, self._token, self._status, self._pose):
+            entity.undeclare()
+        self.session.close()  # a session left open hangs the interpreter at exit
