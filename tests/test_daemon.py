@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -197,3 +200,43 @@ def test_poses_status_and_liveliness_over_zenoh(tmp_path: Path, emulator) -> Non
     assert status and status[0]["sources"]["imu"]["state"] == "open"
     assert echo.returncode == 0, echo.stderr
     assert len([x for x in echo.stdout.splitlines() if " p=(" in x]) == 3
+
+
+def test_systemd_notifications(tmp_path: Path) -> None:
+    """READY, WATCHDOG at half WATCHDOG_USEC, STATUS, and STOPPING on SIGTERM."""
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    listener.bind(str(tmp_path / "notify.sock"))
+    listener.settimeout(0.2)
+    cfg = write_config(tmp_path, {"imu": str(tmp_path / "absent-imu"),
+                                  "uwb": str(tmp_path / "absent-uwb")})
+    env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify.sock"),
+           "WATCHDOG_USEC": "400000"}
+    daemon = subprocess.Popen([*UWBD, "run", "-c", str(cfg), "--log-dir", str(tmp_path / "l")],
+                              env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    messages: list[str] = []
+    try:
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and sum("WATCHDOG=1" in m for m in messages) < 4:
+            with contextlib.suppress(TimeoutError):
+                messages.append(listener.recv(4096).decode())
+        daemon.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and not any("STOPPING=1" in m for m in messages):
+            with contextlib.suppress(TimeoutError):
+                messages.append(listener.recv(4096).decode())
+    finally:
+        daemon.communicate(timeout=20)
+        listener.close()
+    assert messages[0].startswith("READY=1\nSTATUS=imu closed, uwb closed")
+    assert sum(m == "WATCHDOG=1" for m in messages) >= 4
+    assert any(m.startswith("STOPPING=1") for m in messages)
+    assert daemon.returncode == 0
+
+
+@pytest.mark.parametrize("path", sorted((Path(__file__).parents[1] / "config").glob("*.toml")),
+                         ids=lambda p: p.name)
+def test_shipped_configs_are_valid(path: Path) -> None:
+    result = subprocess.run([*UWBD, "check-config", str(path)], capture_output=True, text=True,
+                            timeout=30, check=False)
+    assert result.returncode == 0, result.stderr
+    assert ": ok (" in result.stdout

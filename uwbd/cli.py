@@ -174,6 +174,18 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_check_config(args: argparse.Namespace) -> int:
+    """Validate a configuration file: one line per problem-free file, or the problem."""
+    try:
+        config = load_config(Path(args.config))
+    except ConfigError as err:
+        raise UsageError(str(err)) from err
+    ports = ", ".join(f"{s.name}={s.driver}@{s.port}" for s in config.sources) or "no sources"
+    mode = config.filter_config().mode.value
+    print(f"{args.config}: ok ({ports}; {len(config.anchors_m)} anchors; {mode} fusion)")
+    return 0
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """The daemon: serial ports → fusion → MCAP logs, until SIGINT/SIGTERM."""
     try:
@@ -241,6 +253,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, default=None, metavar="S",
                    help="stop after S seconds (default: until SIGINT/SIGTERM)")
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("check-config", help="validate a configuration file")
+    p.add_argument("config")
+    p.set_defaults(func=cmd_check_config)
 
     p = sub.add_parser("echo", help="print the poses (or --status) a daemon publishes")
     p.add_argument("--status", action="store_true", help="status instead of poses")

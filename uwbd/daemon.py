@@ -23,6 +23,7 @@ import serial
 import zenoh
 
 from uwbd.config import Config, SourceConfig
+from uwbd.notify import Notifier
 from uwbd.pipeline import McapSink, Pipeline, Sink
 from uwbd.zenohsink import ZenohSink
 
@@ -130,21 +131,31 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
     stop = asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
+    notifier = Notifier()
+    tick_s = min(0.5, notifier.watchdog_s or 0.5)
     try:
         for source in sources:
             source.start()
+        notifier.notify("READY=1", f"STATUS={_summary(sources, pipeline)}")
         deadline = None if duration_s is None else loop.time() + duration_s
+        next_status = loop.time() + 1.0
         while not stop.is_set():
             pipeline.extra_status["sources"] = {
                 s.cfg.name: {"port": s.cfg.port, "state": s.info.state, "opens": s.info.opens,
                              "losses": s.info.losses, "bytes": s.info.bytes_read,
                              "last_error": s.info.last_error} for s in sources}
-            timeout = 0.5 if deadline is None else min(0.5, deadline - loop.time())
+            if notifier.watchdog_s is not None:
+                notifier.notify("WATCHDOG=1")
+            if loop.time() >= next_status:
+                next_status += 1.0
+                notifier.notify(f"STATUS={_summary(sources, pipeline)}")
+            timeout = tick_s if deadline is None else min(tick_s, deadline - loop.time())
             if timeout <= 0:
                 break
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(stop.wait(), timeout)
     finally:
+        notifier.notify("STOPPING=1", "STATUS=stopping: finishing the log")
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
             signal.signal(sig, signal.SIG_IGN)  # the stop is under way: finish it
@@ -152,4 +163,13 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
             source.close()
         pipeline.finish()
         pipeline.close()
+        notifier.close()
     return pipeline
+
+
+def _summary(sources: list[SerialSource], pipeline: Pipeline) -> str:
+    """One line for ``systemctl status``."""
+    ports = ", ".join(f"{s.cfg.name} {s.info.state}" for s in sources)
+    errors = [getattr(k, "error", "") for k in pipeline.sinks if getattr(k, "error", "")]
+    return f"{ports}; {pipeline.filter.status}; {pipeline.poses} poses" + (
+        f"; {errors[0]}" if errors else "")
