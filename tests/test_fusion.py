@@ -7,12 +7,13 @@ import math
 
 import numpy as np
 import pytest
+from scipy.stats import chi2
 
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
 from uwbd.evaluate import merge, run_filter, run_method, score, score_poses, truth_spikes
 from uwbd.fusion.baselines import ComplementaryAttitude, Kf4, PureIns, UwbLeastSquares
 from uwbd.fusion.eskf import N_CORE, Eskf, ImuNoise
-from uwbd.fusion.filter import Filter, FilterConfig, Mode
+from uwbd.fusion.filter import Filter, FilterConfig, Mode, chi2_quantile
 from uwbd.fusion.lsq import coplanar, multilaterate
 from uwbd.fusion.rotation import euler_from_quat, quat_from_euler, quat_to_matrix
 from uwbd.simulator import SimConfig, Simulation, simulate
@@ -261,3 +262,9 @@ def test_complementary_filter_finds_roll_and_pitch_at_rest() -> None:
         att.predict(ImuSample(k * 5_000_000, tuple(f_b), (0.0, 0.0, 0.0)))  # type: ignore[arg-type]
     roll, pitch, _ = euler_from_quat(att.q)
     assert (roll, pitch) == pytest.approx((0.1, -0.05), abs=1e-3)
+
+
+@pytest.mark.parametrize("p", [0.9, 0.99, 0.997, 0.9999])
+@pytest.mark.parametrize("dof", [1, 3])
+def test_chi2_gate_quantiles_match_scipy(p: float, dof: int) -> None:
+    assert chi2_quantile(p, dof) == pytest.approx(chi2.ppf(p, dof), rel=1e-12)

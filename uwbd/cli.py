@@ -31,7 +31,6 @@ from uwbd.interrupt import shielded, wait_until
 from uwbd.logtools import load_recording, write_dataset, write_simulation
 from uwbd.mcaplog import read_log
 from uwbd.replay import replay
-from uwbd.report import report
 from uwbd.simulator import Z_DOWN, SimConfig, simulate
 from uwbd.zenohsink import default_prefix
 
@@ -148,6 +147,10 @@ def cmd_report(args: argparse.Namespace) -> int:
     except ConfigError as err:
         raise UsageError(str(err)) from err
     out_dir = Path(args.out_dir) if args.out_dir else path.with_suffix("")
+    # imported here: plotting and the baselines (matplotlib, filterpy, scipy) would otherwise
+    # sit in the daemon's memory for nothing
+    from uwbd.report import report
+
     print(report(rec, out_dir, args.skip))
     return 0
 

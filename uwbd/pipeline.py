@@ -174,9 +174,10 @@ class McapSink:
         if self.error:
             return None
         log = self._log
-        if log is not None and self.directory is not None and (
+        # rotation is judged at flush time (about once a second), not on every message
+        if (log is not None and self.directory is not None and self._due_flush(t_ns) and (
                 (self.rotate_bytes and log.path.stat().st_size >= self.rotate_bytes)
-                or (self.rotate_ns and t_ns - self._opened_ns >= self.rotate_ns)):
+                or (self.rotate_ns and t_ns - self._opened_ns >= self.rotate_ns))):
             self._close_current()
             log = None
         if log is None:
@@ -192,6 +193,9 @@ class McapSink:
             self.files.append(path)
             self._opened_ns = self._flushed_ns = t_ns
         return log
+
+    def _due_flush(self, t_ns: int) -> bool:
+        return t_ns - self._flushed_ns >= FLUSH_PERIOD_NS
 
     def _next_name(self, t_ns: int) -> Path:
         assert self.directory is not None
@@ -209,7 +213,7 @@ class McapSink:
             return
         try:
             getattr(log, action)(*args)
-            if t_ns - self._flushed_ns >= FLUSH_PERIOD_NS:
+            if self._due_flush(t_ns):
                 log.flush()
                 self._flushed_ns = t_ns
         except OSError as err:

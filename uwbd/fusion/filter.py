@@ -26,9 +26,9 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum
+from statistics import NormalDist
 
 import numpy as np
-from scipy.stats import chi2
 
 from drivers.frames import ImuSample, UwbRanges
 from uwbd.fusion.eskf import GRAVITY_MPS2, N_CORE, P_, TH_, V_, Eskf, ImuNoise
@@ -112,8 +112,8 @@ class Filter:
         self._bias_index: dict[int, int] = {}
         if config.range_bias_states and config.mode is Mode.TIGHT:  # unobservable in loose
             self._bias_index = {a: N_CORE + i for i, a in enumerate(sorted(config.anchors_m))}
-        self._gate_1 = float(chi2.ppf(config.gate_probability, 1))
-        self._gate_3 = float(chi2.ppf(config.gate_probability, 3))
+        self._gate_1 = chi2_quantile(config.gate_probability, 1)
+        self._gate_3 = chi2_quantile(config.gate_probability, 3)
         anchors = np.array(list(config.anchors_m.values())) if config.anchors_m else None
         self._fixed_z = (config.known_height_m if anchors is not None and coplanar(anchors)
                          else None)
@@ -546,3 +546,29 @@ def _velocity_fit(fixes: list[tuple[int, Array]]) -> tuple[Array, float]:
     dt = (t - tm) / 1e9
     v = (dt @ (p - p.mean(axis=0))) / max(float(dt @ dt), 1e-9)
     return v, tm
+
+
+def chi2_quantile(p: float, dof: int) -> float:
+    """The ``p`` quantile of χ² with 1 or 3 degrees of freedom, exactly.
+
+    Written out rather than taken from ``scipy.stats``, whose import alone costs the daemon
+    ~70 MB of its memory budget: χ²₁ is the square of a standard normal, and the χ²₃ CDF
+    ``erf(√(x/2)) − √(2x/π)·e^(−x/2)`` is inverted by bisection.
+    """
+    if not 0.0 < p < 1.0:
+        raise ValueError(f"gate probability must be within (0, 1), got {p}")
+    if dof == 1:
+        return NormalDist().inv_cdf((1.0 + p) / 2.0) ** 2
+    if dof != 3:
+        raise ValueError(f"only 1 or 3 degrees of freedom, got {dof}")
+
+    def cdf3(x: float) -> float:
+        return math.erf(math.sqrt(x / 2)) - math.sqrt(2 * x / math.pi) * math.exp(-x / 2)
+
+    lo, hi = 0.0, 1.0
+    while cdf3(hi) < p:
+        hi *= 2
+    for _ in range(100):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if cdf3(mid) < p else (lo, mid)
+    return (lo + hi) / 2

@@ -1,0 +1,149 @@
+"""Daemon figures, measured side by side in one run.
+
+    python benchmarks/bench_daemon.py [--seconds 15]
+
+* latency: serial read → Zenoh receive. A pose's ``t_ns`` is the receive time of the read
+  that produced it (``time.time_ns()`` in the daemon), so a subscriber on the same host takes
+  ``time.time_ns() − t_ns`` on arrival: percentiles over every pose;
+* CPU (% of one core) and RSS of the ``uwbd run`` process, with the emulator feeding a
+  200 Hz WitMotion IMU and a 10 Hz Nooploop tag over pseudo-terminals, from ``/proc``;
+* replay speed: a 60 s simulated log through ``uwbd replay``'s pipeline, as a multiple of
+  real time, without and with writing the output log.
+Everything stays on this machine: Zenoh on a unix socket, no scouting.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from drivers.emulator import DeviceSpec, Emulator
+from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
+from uwbd.logtools import write_simulation
+from uwbd.mcaplog import read_log
+from uwbd.replay import replay
+from uwbd.simulator import SimConfig, simulate
+
+TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def config_text(imu: str, uwb: str, sock: Path) -> str:
+    anchors = "\n".join(f'"{i}" = [{x}, {y}, {z}]' for i, (x, y, z) in enumerate(DEFAULT_ANCHORS_M))
+    return f"""
+[[sources]]
+name = "imu"
+driver = "wit"
+port = "{imu}"
+baud = 921600
+
+[[sources]]
+name = "uwb"
+driver = "nlink"
+port = "{uwb}"
+baud = 921600
+
+[anchors]
+{anchors}
+
+[zenoh]
+prefix = "uwbd/bench"
+listen = ["unixsock-stream/{sock}"]
+multicast_scouting = false
+"""
+
+
+def cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / TICKS  # utime + stime
+
+
+def rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def live(seconds: float) -> None:
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        sock = tmp / "z.sock"
+        devices = [DeviceSpec("imu", "wit"), DeviceSpec("uwb", "nlink")]
+        with Emulator(devices, CircleScenario(seed=1), None, tmp) as emu:
+            cfg = tmp / "cfg.toml"
+            cfg.write_text(config_text(emu.ports["imu"].path, emu.ports["uwb"].path, sock))
+            daemon = subprocess.Popen(
+                [sys.executable, "-m", "uwbd", "run", "-c", str(cfg), "--log-dir",
+                 str(tmp / "logs")], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+            latencies: list[int] = []
+            session = None
+            try:
+                while not sock.exists():
+                    time.sleep(0.05)
+                session = zenoh.open(zenoh.Config.from_json5(json.dumps({
+                    "mode": "peer", "connect": {"endpoints": [f"unixsock-stream/{sock}"]},
+                    "scouting": {"multicast": {"enabled": False}}})))
+
+                def on_pose(sample: zenoh.Sample) -> None:
+                    now = time.time_ns()
+                    latencies.append(now - json.loads(sample.payload.to_bytes())["t_ns"])
+
+                sub = session.declare_subscriber("uwbd/bench/pose", on_pose)
+                emu.start()
+                time.sleep(3.0)  # start-up (imports, first fix) is not the steady state
+                latencies.clear()
+                cpu0, t0 = cpu_seconds(daemon.pid), time.monotonic()
+                time.sleep(seconds)
+                cpu1, t1 = cpu_seconds(daemon.pid), time.monotonic()
+                rss = rss_mb(daemon.pid)
+                sub.undeclare()
+            finally:
+                if session is not None:
+                    session.close()
+                daemon.send_signal(signal.SIGTERM)
+                daemon.communicate(timeout=30)
+        lat_ms = np.array(latencies) / 1e6
+        print(f"live, {seconds:.0f} s steady state, 200 Hz IMU + 10 Hz UWB (6 anchors) on ptys:")
+        print(f"  serial read -> Zenoh receive: p50 {np.percentile(lat_ms, 50):.2f} ms, "
+              f"p99 {np.percentile(lat_ms, 99):.2f} ms, max {lat_ms.max():.2f} ms "
+              f"over {len(lat_ms)} poses")
+        print(f"  daemon CPU {100 * (cpu1 - cpu0) / (t1 - t0):.1f} % of one core, "
+              f"RSS {rss:.0f} MB")
+
+
+def replay_speed() -> None:
+    sim = simulate(SimConfig(seed=1))
+    duration_s = (sim.truth_t_ns[-1] - sim.truth_t_ns[0]) / 1e9
+    with tempfile.TemporaryDirectory() as tmp_name:
+        path = Path(tmp_name) / "sim.mcap"
+        write_simulation(sim, path)
+        contents = read_log(path)
+        output = Path(tmp_name) / "o.mcap"
+        for label, out in (("poses only", None), ("writing the output log", output)):
+            t0 = time.perf_counter()
+            pipeline, _ = replay(contents, str(path), out)
+            elapsed = time.perf_counter() - t0
+            print(f"replay, {duration_s:.0f} s simulated log, {label}: "
+                  f"{duration_s / elapsed:.0f} x real time ({pipeline.poses} poses)")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=15.0, help="steady-state window")
+    args = ap.parse_args()
+    live(args.seconds)
+    replay_speed()
+
+
+if __name__ == "__main__":
+    main()
