@@ -17,7 +17,9 @@ import zenoh
 
 from drivers.emulator import DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
+from uwbd.config import parse
 from uwbd.mcaplog import read_log
+from uwbd.pipeline import McapSink, Pipeline, PoseList
 from uwbd.replay import replay
 
 UWBD = [sys.executable, "-m", "uwbd"]
@@ -240,3 +242,38 @@ def test_shipped_configs_are_valid(path: Path) -> None:
                             timeout=30, check=False)
     assert result.returncode == 0, result.stderr
     assert ": ok (" in result.stdout
+
+
+def test_unwritable_log_directory_stops_the_log_not_the_fusion(tmp_path: Path) -> None:
+    """The log directory cannot be created (its parent is a file): poses keep flowing and
+    the status says why nothing is logged."""
+    sim_log = tmp_path / "s.mcap"
+    subprocess.run([*UWBD, "simulate", "-o", str(sim_log), "--seed", "4"], check=True,
+                   capture_output=True, timeout=60)
+    contents = read_log(sim_log)
+    blocker = tmp_path / "not-a-dir"
+    blocker.write_text("")
+    config = parse(contents.metadata["config_toml"])
+    sink = McapSink(config, directory=blocker / "logs")
+    poses = PoseList()
+    pipeline = Pipeline(config, [sink, poses])
+    for m in contents.messages:
+        if m.topic.startswith("/raw/"):
+            pipeline.on_bytes(m.topic[5:], m.log_time_ns, m.data)
+    pipeline.finish()
+    pipeline.close()
+    assert len(poses.poses) > 1000
+    assert sink.error.startswith("logging stopped: cannot write log")
+    assert poses.statuses[-1]["sink_errors"] == [sink.error]
+
+
+def test_imported_log_replays_from_its_decoded_channels(tmp_path: Path) -> None:
+    data = Path(__file__).resolve().parents[2] / "shared" / "data" / "iasl-s1"
+    if not data.is_dir():
+        pytest.skip("shared/data not beside the repository")
+    subprocess.run([*UWBD, "import", "iasl", str(data), "-o", "f.mcap"], cwd=tmp_path,
+                   check=True, capture_output=True, timeout=60)
+    result = subprocess.run([*UWBD, "replay", "f.mcap", "-o", "r.mcap"], cwd=tmp_path,
+                            capture_output=True, text=True, timeout=120, check=False)
+    assert result.returncode == 0, result.stderr
+    assert len(poses_of(tmp_path / "r.mcap")) > 4000
