@@ -277,3 +277,24 @@ def test_imported_log_replays_from_its_decoded_channels(tmp_path: Path) -> None:
                             capture_output=True, text=True, timeout=120, check=False)
     assert result.returncode == 0, result.stderr
     assert len(poses_of(tmp_path / "r.mcap")) > 4000
+
+
+def test_dwm1001_tlv_source_polls_loc_get(tmp_path: Path) -> None:
+    """A DWM1001 in TLV mode answers requests only: the source asks at 10 Hz."""
+    devices = [DeviceSpec("uwb", "dwm1001-tlv")]
+    with Emulator(devices, CircleScenario(seed=2), duration_s=3.0, link_dir=tmp_path) as emu:
+        ports = {"imu": str(tmp_path / "no-imu"), "uwb": emu.ports["uwb"].path}
+        cfg = write_config(tmp_path, ports)
+        cfg.write_text(cfg.read_text().replace('driver = "nlink"', 'driver = "dwm1001-tlv"'))
+        daemon = start_daemon(cfg, tmp_path / "logs")
+        time.sleep(0.8)
+        emu.start()
+        emu.finished.wait(10)
+        daemon.send_signal(signal.SIGTERM)
+        daemon.communicate(timeout=20)
+        requests = bytes(emu.received["uwb"])
+    assert daemon.returncode == 0
+    assert requests.count(b"\x0c\x00") >= 20  # ~10 Hz for the ~3 s the port was open
+    (log,) = sorted((tmp_path / "logs").glob("*.mcap"))
+    uwb = list(read_log(log).json("/uwb"))
+    assert len(uwb) > 20 and len(uwb[0]["ranges"]) == 6

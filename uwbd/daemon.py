@@ -22,12 +22,15 @@ from typing import Any
 import serial
 import zenoh
 
+from drivers.dwm1001_tlv import LOC_GET_REQUEST
 from uwbd.config import Config, SourceConfig
 from uwbd.notify import Notifier
 from uwbd.pipeline import McapSink, Pipeline, Sink
 from uwbd.zenohsink import ZenohSink
 
 READ_BYTES = 4096
+# drivers whose device speaks only when asked: (request bytes, period s)
+POLLED = {"dwm1001-tlv": (LOC_GET_REQUEST, 0.1)}
 BACKOFF_START_S = 0.1
 BACKOFF_MAX_S = 2.0
 
@@ -53,6 +56,7 @@ class SerialSource:
         self._fd = -1
         self._backoff_s = BACKOFF_START_S
         self._retry: asyncio.TimerHandle | None = None
+        self._poller: asyncio.TimerHandle | None = None
         self._closed = False
 
     def start(self) -> None:
@@ -72,6 +76,22 @@ class SerialSource:
         self.info.state = "open"
         self.info.opens += 1
         self._backoff_s = BACKOFF_START_S
+        if self.cfg.driver in POLLED:
+            self._poll()
+
+    def _poll(self) -> None:
+        """Request devices that only answer requests (DWM1001 TLV ``loc_get``) at 10 Hz."""
+        request, period_s = POLLED[self.cfg.driver]
+        if self._port is None or self._closed:
+            return
+        try:
+            os.write(self._fd, request)
+        except BlockingIOError:
+            pass  # output buffer full: the next period asks again
+        except OSError as err:
+            self._lost(err)
+            return
+        self._poller = self.loop.call_later(period_s, self._poll)
 
     def _schedule_retry(self, reason: str) -> None:
         self.info.state = "closed"
@@ -99,6 +119,9 @@ class SerialSource:
         self._schedule_retry(f"lost {self.cfg.port}: {err}")
 
     def _release(self) -> None:
+        if self._poller is not None:
+            self._poller.cancel()
+            self._poller = None
         if self._port is not None:
             self.loop.remove_reader(self._fd)
             with contextlib.suppress(OSError):  # the device is gone: nothing left to release
