@@ -29,7 +29,7 @@ from uwbd.echo import echo
 from uwbd.importer import DatasetError, load_iasl
 from uwbd.interrupt import shielded, wait_until
 from uwbd.logtools import load_recording, write_dataset, write_simulation
-from uwbd.mcaplog import read_log
+from uwbd.mcaplog import LogContents, read_log
 from uwbd.replay import replay
 from uwbd.simulator import Z_DOWN, SimConfig, simulate
 from uwbd.zenohsink import default_prefix
@@ -134,14 +134,20 @@ def cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_report(args: argparse.Namespace) -> int:
-    """Every method on one log, scored against its ground truth, with plots."""
-    path = Path(args.log)
+def _open_log(name: str, doing: str) -> tuple[Path, LogContents]:
+    """A log read for ``doing``; a log cut short by a crash is used up to its last chunk."""
+    path = Path(name)
     if not path.is_file():
         raise UsageError(f"cannot read {path}: no such file")
     contents = read_log(path)
     if contents.truncated:
-        print(f"warning: {contents.error}; reporting what was complete", file=sys.stderr)
+        print(f"warning: {contents.error}; {doing} what was complete", file=sys.stderr)
+    return path, contents
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    """Every method on one log, scored against its ground truth, with plots."""
+    path, contents = _open_log(args.log, "reporting")
     try:
         rec = load_recording(contents, str(path))
     except ConfigError as err:
@@ -157,12 +163,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     """A log's reads through the live pipeline; the poses to -o, a summary to stdout."""
-    path = Path(args.log)
-    if not path.is_file():
-        raise UsageError(f"cannot read {path}: no such file")
-    contents = read_log(path)
-    if contents.truncated:
-        print(f"warning: {contents.error}; replaying what was complete", file=sys.stderr)
+    path, contents = _open_log(args.log, "replaying")
     out = Path(args.output) if args.output else None
     try:
         pipeline, poses = replay(contents, str(path), out, args.realtime,
