@@ -298,3 +298,31 @@ def test_dwm1001_tlv_source_polls_loc_get(tmp_path: Path) -> None:
     (log,) = sorted((tmp_path / "logs").glob("*.mcap"))
     uwb = list(read_log(log).json("/uwb"))
     assert len(uwb) > 20 and len(uwb[0]["ranges"]) == 6
+
+
+def test_samples_of_one_read_get_their_own_times(tmp_path: Path) -> None:
+    """Two IMU cycles in one read (the port was read late) must both reach the filter."""
+    sim_log = tmp_path / "s.mcap"
+    subprocess.run([*UWBD, "simulate", "-o", str(sim_log), "--seed", "6"], check=True,
+                   capture_output=True, timeout=60)
+    contents = read_log(sim_log)
+    config = parse(contents.metadata["config_toml"])
+    raw = [m for m in contents.messages if m.topic.startswith("/raw/")]
+    poses = PoseList()
+    pipeline = Pipeline(config, [poses])
+    merged = 0
+    k = 0
+    while k < len(raw):  # every 10th pair of IMU reads arrives as one read
+        m = raw[k]
+        nxt = raw[k + 1] if k + 1 < len(raw) else None
+        if m.topic == "/raw/imu" and nxt is not None and nxt.topic == "/raw/imu" and k % 10 == 0:
+            pipeline.on_bytes("imu", nxt.log_time_ns, m.data + nxt.data)
+            merged += 1
+            k += 2
+            continue
+        pipeline.on_bytes(m.topic[5:], m.log_time_ns, m.data)
+        k += 1
+    pipeline.finish()
+    assert merged > 100
+    assert pipeline.filter.counters["imu_out_of_order"] == 0
+    assert len(poses.poses) > 1000

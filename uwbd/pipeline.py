@@ -12,6 +12,7 @@ everything (raw bytes, frames, poses, status); one that fails does not stop the 
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Sequence
 from datetime import datetime, timezone
@@ -52,6 +53,8 @@ class Pipeline:
         self.unknown_sources = 0
         self.extra_status: dict[str, Any] = {}  # e.g. port states, set by the runner
         self._last_pose_ns = -(2**63)
+        self._period_ns: dict[str, int] = {}  # per source, learned sample period
+        self._last_frame_ns: dict[str, int] = {}
         self._last_status_ns: int | None = None
 
     def on_bytes(self, source: str, t_ns: int, data: bytes) -> None:
@@ -62,8 +65,39 @@ class Pipeline:
             return
         for sink in self.sinks:
             sink.raw(source, t_ns, data)
-        self._frames(parser.feed(data, t_ns))
+        self._frames(self._spread(source, parser.feed(data, t_ns)))
         self._tick(t_ns)
+
+    def _spread(self, source: str, frames: Sequence[Frame]) -> Sequence[Frame]:
+        """Give the samples of one read their own times.
+
+        A read's receive time is exact only for its last frame; when one read holds several
+        frames of a source (the port was read late), the earlier ones arrived about one
+        sample period apart before it. Without this they share one time and the filter
+        must drop all but one. The period is learned per source from successive reads that
+        hold one frame each; spread times never fall back to or before the source's previous
+        frame. Deterministic: replay spreads the logged reads the same way.
+        """
+        previous = self._last_frame_ns.get(source)
+        if len(frames) == 1:
+            t = frames[0].t_ns
+            if previous is not None and t > previous:
+                old = self._period_ns.get(source)
+                delta = t - previous
+                self._period_ns[source] = delta if old is None else (7 * old + delta) // 8
+        elif frames and source in self._period_ns:
+            period, n, floor = self._period_ns[source], len(frames), previous
+            spread = []
+            for k, f in enumerate(frames):
+                t = f.t_ns - (n - 1 - k) * period
+                if floor is not None and t <= floor:
+                    t = floor + 1
+                floor = t
+                spread.append(dataclasses.replace(f, t_ns=min(t, f.t_ns)))
+            frames = spread
+        if frames:
+            self._last_frame_ns[source] = frames[-1].t_ns
+        return frames
 
     def on_frame(self, frame: Frame) -> None:
         """A decoded frame (logs without raw channels)."""
