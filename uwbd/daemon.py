@@ -2,7 +2,9 @@
 
 Each source is a serial port read without blocking: pyserial opens it (non-blocking, with an
 exclusive lock), its file descriptor goes into the event loop with ``add_reader``, and every
-read is stamped with ``time.time_ns()`` as it completes. A port that is absent at start or
+read is stamped as it completes with :class:`EpochClock`: Unix-epoch nanoseconds that
+advance with the monotonic clock, so an NTP step (a robot without a real-time clock, just
+after boot) cannot make the aligner drop frames as late or the filter see a leap. A port that is absent at start or
 vanishes (unplugged) is retried with a backoff of 0.1 s doubling to 2 s; its state shows in
 the status. SIGINT and SIGTERM stop the loop and finish the log.
 """
@@ -45,10 +47,21 @@ class SourceState:
     fields: dict[str, Any] = field(default_factory=dict)
 
 
+class EpochClock:
+    """``time.time_ns()`` read once, then advanced by ``time.monotonic_ns()``."""
+
+    def __init__(self) -> None:
+        self._offset_ns = time.time_ns() - time.monotonic_ns()
+
+    def now_ns(self) -> int:
+        return self._offset_ns + time.monotonic_ns()
+
+
 class SerialSource:
     def __init__(self, cfg: SourceConfig, pipeline: Pipeline,
-                 loop: asyncio.AbstractEventLoop) -> None:
+                 loop: asyncio.AbstractEventLoop, clock: EpochClock) -> None:
         self.cfg = cfg
+        self.clock = clock
         self.pipeline = pipeline
         self.loop = loop
         self.info = SourceState()
@@ -109,7 +122,7 @@ class SerialSource:
         except OSError as err:
             self._lost(err)
             return
-        t_ns = time.time_ns()
+        t_ns = self.clock.now_ns()
         self.info.bytes_read += len(data)
         self.pipeline.on_bytes(self.cfg.name, t_ns, data)
 
@@ -150,7 +163,8 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
         except zenoh.ZError as err:  # e.g. listen port taken: fusion and logging go on
             print(f"uwbd run: zenoh disabled: {err}", file=sys.stderr)
     pipeline = Pipeline(config, sinks)
-    sources = [SerialSource(s, pipeline, loop) for s in config.sources]
+    clock = EpochClock()
+    sources = [SerialSource(s, pipeline, loop, clock) for s in config.sources]
     stop = asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
