@@ -4,9 +4,9 @@ Each source is a serial port read without blocking: pyserial opens it (non-block
 exclusive lock), its file descriptor goes into the event loop with ``add_reader``, and every
 read is stamped as it completes with :class:`EpochClock`: Unix-epoch nanoseconds that
 advance with the monotonic clock, so an NTP step (a robot without a real-time clock, just
-after boot) cannot make the aligner drop frames as late or the filter see a leap. A port that is absent at start or
-vanishes (unplugged) is retried with a backoff of 0.1 s doubling to 2 s; its state shows in
-the status. SIGINT and SIGTERM stop the loop and finish the log.
+after boot) cannot make the aligner drop frames as late or the filter see a leap. A port
+that is absent at start or vanishes (unplugged) is retried with a backoff of 0.1 s doubling
+to 2 s; its state shows in the status. SIGINT and SIGTERM stop the loop and finish the log.
 """
 
 from __future__ import annotations
