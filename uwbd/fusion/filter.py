@@ -31,6 +31,7 @@ from statistics import NormalDist
 import numpy as np
 
 from drivers.frames import ImuSample, UwbRanges
+from uwbd.fusion.alignment import HeadingAligner
 from uwbd.fusion.eskf import GRAVITY_MPS2, N_CORE, P_, TH_, V_, Eskf, ImuNoise
 from uwbd.fusion.gating import GatingCounters, GatingPolicy, gate
 from uwbd.fusion.lsq import LsqFix, coplanar, multilaterate
@@ -39,7 +40,6 @@ from uwbd.fusion.types import FusionReport, Pose
 
 Vec3 = tuple[float, float, float]
 HELD_YAW_SIGMA_RAD = 1e-3  # the heading's σ while it is held, before the coarse alignment
-ALIGN_SAMPLE_NS = 95_000_000  # fixes for the alignment: about 10 Hz
 IDENTITY3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 
@@ -101,14 +101,11 @@ class Filter:
         self._last_imu: tuple[Vec3, Vec3] | None = None
         self._window: collections.deque[tuple[int, Vec3, Vec3]] = collections.deque()
         self._fixes: collections.deque[tuple[int, Array]] = collections.deque(maxlen=100)
-        self._align_fixes: collections.deque[tuple[int, Array]] = collections.deque()
         self._first_t_ns: int | None = None
         self._bad_epochs = 0
-        # coarse heading alignment: cumulative INS-only horizontal Δv, and fixes, over time
-        self._ins_dv: collections.deque[tuple[int, float, float]] = collections.deque()
-        self._dv_xy = [0.0, 0.0]
+        self._aligner = HeadingAligner(config.align_window_s, config.align_min_dv_mps,
+                                       config.range_sigma_m)
         self._aligned = False
-        self._align_sigma_m = config.range_sigma_m
         self._bias_index: dict[int, int] = {}
         if config.range_bias_states and config.mode is Mode.TIGHT:  # unobservable in loose
             self._bias_index = {a: N_CORE + i for i, a in enumerate(sorted(config.anchors_m))}
@@ -174,8 +171,7 @@ class Filter:
             return reports
         self._predict_to(uwb.t_ns)
         dv = self.ekf.interval_dv_n()
-        self._dv_xy[0] += dv[0]
-        self._dv_xy[1] += dv[1]
+        self._aligner.add_ins_dv(dv)
         self.ekf.propagate()
         if not self._aligned:
             # the heading is unknown: the INS's horizontal Δv may point anywhere; for a heading
@@ -184,7 +180,6 @@ class Filter:
             extra = 2.0 * (dv[0] ** 2 + dv[1] ** 2)
             self.ekf.P[3, 3] += extra
             self.ekf.P[4, 4] += extra
-        if not self._aligned:
             self._align_heading(uwb.t_ns, fix, anchors, ranges)
         H, y, R, keys = self._measurement_rows(ids, anchors, ranges, fix)
         self._constraints(H, y, R, keys)
@@ -303,71 +298,20 @@ class Filter:
 
     def _align_heading(self, t_ns: int, fix: LsqFix | None, anchors: Array,
                        ranges: Array) -> None:
-        """Coarse heading alignment (module doc, step 2).
-
-        A yaw error ψ turns every velocity change the INS integrates by ψ about the vertical.
-        Until aligned, the heading is held (the EKF linearised about a large yaw error turns
-        falsely confident within a second of motion) and velocity absorbs the difference.
-        Each epoch, over windows of 2, 4 and 6 s back, the UWB fixes' horizontal velocity
-        change (line fits over the last second at both ends) is compared with the INS's own;
-        once both exceed ``align_min_dv_mps``, the angle between them is the yaw error: the
-        attitude is turned by it and the EKF takes over with a heading σ from the fit.
-        """
+        """Until aligned the heading is held (an EKF linearised about a large yaw error
+        turns falsely confident within a second of motion); then :class:`HeadingAligner`
+        tells the yaw error and the EKF takes over with its σ."""
         ekf = self.ekf
         assert ekf is not None
-        ekf.rotate_heading(0.0, HELD_YAW_SIGMA_RAD)  # hold the heading until aligned
-        if self._align_fixes and t_ns - self._align_fixes[-1][0] < ALIGN_SAMPLE_NS:
-            return  # fixes at 10 Hz are plenty for line fits over a second
+        ekf.rotate_heading(0.0, HELD_YAW_SIGMA_RAD)
+        if not self._aligner.wants_fix(t_ns):
+            return
         fix = fix or self._lsq(anchors, ranges)
-        if fix is None:
-            return
-        self._align_fixes.append((t_ns, fix.position_m))
-        self._align_sigma_m = float(np.sqrt(max(np.trace(fix.covariance[:2, :2]) / 2, 1e-4)))
-        self._ins_dv.append((t_ns, self._dv_xy[0], self._dv_xy[1]))
-        horizon_ns = int(3 * self.cfg.align_window_s * 1e9) + 2_000_000_000
-        for history in (self._ins_dv, self._align_fixes):
-            while history and history[0][0] < t_ns - horizon_ns:
-                history.popleft()
-        result = self._heading_error(t_ns)
-        if result is None:
-            return
-        dpsi, sigma = result
-        ekf.rotate_heading(dpsi, sigma)
-        self._aligned = True
-        self.counters["heading_alignments"] += 1
-
-    def _heading_error(self, t_ns: int) -> tuple[float, float] | None:
-        """(yaw error, its σ) from the first window with enough velocity change, or None."""
-        fit_ns = 1_000_000_000
-        end = [(t, p) for t, p in self._align_fixes if t >= t_ns - fit_ns]
-        if len(end) < 5 or not self._ins_dv:
-            return None
-        v1, t1 = _velocity_fit(end)
-        times = np.array([t for t, _, _ in self._ins_dv], dtype=float)
-        cum = np.array([(x, y) for _, x, y in self._ins_dv])
-        for k in (1, 2, 3):
-            w_ns = int(k * self.cfg.align_window_s * 1e9)
-            if times[0] > t_ns - w_ns:
-                return None  # not that much history yet
-            start = [(t, p) for t, p in self._align_fixes
-                     if t_ns - w_ns <= t < t_ns - w_ns + fit_ns]
-            if len(start) < 5:
-                continue
-            v0, t0 = _velocity_fit(start)
-            dv_uwb = v1 - v0
-            dv_ins = np.array([np.interp(t1, times, cum[:, i]) - np.interp(t0, times, cum[:, i])
-                               for i in range(2)])
-            size = min(float(np.linalg.norm(dv_uwb)), float(np.linalg.norm(dv_ins)))
-            if size < self.cfg.align_min_dv_mps:
-                continue
-            dpsi = math.atan2(dv_ins[0] * dv_uwb[1] - dv_ins[1] * dv_uwb[0],
-                              dv_ins[0] * dv_uwb[0] + dv_ins[1] * dv_uwb[1])
-            # the angle error is the Δv error across the Δv over its length; that error is a
-            # line-fit velocity's (one second of fixes with their own horizontal σ) at each end
-            sigma_v = self._align_sigma_m * math.sqrt(12 / len(end)) * math.sqrt(2)
-            sigma = min(max(math.atan2(sigma_v, size), math.radians(3)), math.radians(45))
-            return dpsi, sigma
-        return None
+        result = None if fix is None else self._aligner.add_fix(t_ns, fix)
+        if result is not None:
+            ekf.rotate_heading(*result)
+            self._aligned = True
+            self.counters["heading_alignments"] += 1
 
     def _predict_to(self, t_ns: int) -> None:
         """Bring the state to the measurement time: hold the last IMU sample while it is fresh
@@ -537,15 +481,6 @@ class Filter:
         d[TH_] = attitude_rad**2
         ekf.P[np.diag_indices(ekf.n)] += d
 
-
-def _velocity_fit(fixes: list[tuple[int, Array]]) -> tuple[Array, float]:
-    """Horizontal velocity (m/s) of a straight-line fit through fixes, and its mid time (ns)."""
-    t = np.array([t for t, _ in fixes], dtype=float)
-    p = np.array([p[:2] for _, p in fixes])
-    tm = float(t.mean())
-    dt = (t - tm) / 1e9
-    v = (dt @ (p - p.mean(axis=0))) / max(float(dt @ dt), 1e-9)
-    return v, tm
 
 
 def chi2_quantile(p: float, dof: int) -> float:
