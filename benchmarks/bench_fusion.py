@@ -23,7 +23,6 @@ from drivers.frames import Frame, ImuSample, UwbRanges
 from uwbd.evaluate import (
     HEADER,
     Accuracy,
-    Method,
     Times,
     merge,
     run_filter,
@@ -32,7 +31,7 @@ from uwbd.evaluate import (
     score_poses,
     truth_spikes,
 )
-from uwbd.fusion.baselines import Kf4, PureIns, UwbLeastSquares
+from uwbd.fusion.baselines import comparison_methods
 from uwbd.fusion.filter import FilterConfig, Mode
 from uwbd.fusion.rotation import Array
 from uwbd.importer import load_iasl
@@ -46,10 +45,8 @@ DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "iasl-s
 def baselines(cfg: FilterConfig, imu: list[ImuSample], uwb: list[UwbRanges]
               ) -> dict[str, tuple[Times, Array]]:
     """Positions of the comparison methods over one recording."""
-    methods: dict[str, Method] = {
-        "pure INS": PureIns(cfg), "uwb least squares": UwbLeastSquares(cfg),
-        "4-state KF (thesis)": Kf4(cfg)}
-    return {name: run_method(m, merge(imu, uwb)) for name, m in methods.items()}
+    return {name: run_method(m, merge(imu, uwb))
+            for name, m in comparison_methods(cfg).items()}
 
 
 def speed(modes: list[Mode]) -> None:

@@ -21,7 +21,7 @@ from drivers.emulator import ENCODERS, DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import CircleScenario
 from uwbd import __version__
 from uwbd.codec import frame_to_dict
-from uwbd.config import ConfigError
+from uwbd.config import Config, ConfigError
 from uwbd.config import load as load_config
 from uwbd.daemon import run as run_daemon
 from uwbd.demo import run_demo
@@ -178,12 +178,17 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_check_config(args: argparse.Namespace) -> int:
-    """Validate a configuration file: one line per problem-free file, or the problem."""
+def _load(path: str) -> Config:
+    """A configuration file, or the one-line problem with file and key (exit 2)."""
     try:
-        config = load_config(Path(args.config))
+        return load_config(Path(path))
     except ConfigError as err:
         raise UsageError(str(err)) from err
+
+
+def cmd_check_config(args: argparse.Namespace) -> int:
+    """Validate a configuration file: one line per problem-free file, or the problem."""
+    config = _load(args.config)
     ports = ", ".join(f"{s.name}={s.driver}@{s.port}" for s in config.sources) or "no sources"
     mode = config.filter_config().mode.value
     print(f"{args.config}: ok ({ports}; {len(config.anchors_m)} anchors; {mode} fusion)")
@@ -192,10 +197,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """The daemon: serial ports → fusion → MCAP logs, until SIGINT/SIGTERM."""
-    try:
-        config = load_config(Path(args.config))
-    except ConfigError as err:
-        raise UsageError(str(err)) from err
+    config = _load(args.config)
     if not config.sources:
         raise UsageError(f"{args.config}: sources: at least one [[sources]] is needed")
     log_dir = Path(args.log_dir or config.log.get("directory", "logs"))
@@ -212,10 +214,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
     if args.connect:
         zcfg["connect"] = args.connect
     if args.config:
-        try:
-            zcfg.update(load_config(Path(args.config)).zenoh)
-        except ConfigError as err:
-            raise UsageError(str(err)) from err
+        zcfg.update(_load(args.config).zenoh)
         zcfg["listen"] = []  # a subscriber dials; it does not take the daemon's listen port
     prefix = args.prefix or str(zcfg.get("prefix") or default_prefix())
     echo(zcfg, prefix, args.status, args.count, args.timeout)

@@ -17,9 +17,8 @@ import os
 import signal
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import serial
 import zenoh
@@ -44,7 +43,6 @@ class SourceState:
     losses: int = 0
     last_error: str = ""
     bytes_read: int = 0
-    fields: dict[str, Any] = field(default_factory=dict)
 
 
 class EpochClock:

@@ -20,14 +20,13 @@ import numpy as np
 
 from uwbd.evaluate import (
     HEADER,
-    Method,
     Times,
     run_filter,
     run_method,
     score,
     truth_spikes,
 )
-from uwbd.fusion.baselines import Kf4, PureIns, UwbLeastSquares
+from uwbd.fusion.baselines import comparison_methods
 from uwbd.fusion.filter import Mode
 from uwbd.fusion.rotation import Array
 from uwbd.logtools import Recording
@@ -39,10 +38,7 @@ def run_all(rec: Recording) -> tuple[dict[str, Track], dict[str, float]]:
     """Positions (and covariances) of every method; consistency figures of the filters."""
     cfg = rec.config.filter_config()
     tracks: dict[str, Track] = {}
-    baselines: dict[str, Method] = {
-        "pure INS": PureIns(cfg), "uwb least squares": UwbLeastSquares(cfg),
-        "4-state KF (thesis)": Kf4(cfg)}
-    for name, method in baselines.items():
+    for name, method in comparison_methods(cfg).items():
         t, p = run_method(method, rec.frames)
         tracks[name] = (t, p, None)
     extra: dict[str, float] = {}

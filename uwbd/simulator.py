@@ -22,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
-from uwbd.fusion.rotation import Array, quat_from_euler
+from uwbd.fusion.rotation import Array
 
 GRAVITY_MPS2 = 9.80665
 DEFAULT_ANCHORS_M: tuple[tuple[float, float, float], ...] = (
@@ -87,8 +87,6 @@ class Simulation:
     gyro_bias_rps: Array = field(default_factory=lambda: np.zeros(3))
     range_bias_m: Array = field(default_factory=lambda: np.zeros(0))
 
-    def truth_quaternions(self) -> Array:
-        return np.array([quat_from_euler(0.0, 0.0, y) for y in self.truth_yaw_rad])
 
 
 def _commands(cfg: SimConfig, t: Array) -> tuple[Array, Array]:

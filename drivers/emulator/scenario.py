@@ -67,10 +67,6 @@ class CircleScenario:
         a = theta - math.pi / 2
         return (cx + self.radius_m * math.cos(a), cy + self.radius_m * math.sin(a), cz)
 
-    def yaw_rad(self, t_s: float) -> float:
-        """True heading: along the tangent, east at the start."""
-        return self._motion(t_s)[0]
-
     def imu(self, duration_s: float | None = None) -> Iterator[tuple[int, ImuSample]]:
         """(time offset ns, sample) pairs; endless when ``duration_s`` is None."""
         rng = np.random.default_rng([self.seed, 1])

@@ -166,3 +166,9 @@ class Kf4:
         if self.kf is None or fix is None:
             return None
         return np.array([self.kf.x[0], self.kf.x[1], fix.position_m[2]])
+
+
+def comparison_methods(config: FilterConfig) -> dict[str, PureIns | UwbLeastSquares | Kf4]:
+    """The baselines every report and benchmark compares uwbd's filters against."""
+    return {"pure INS": PureIns(config), "uwb least squares": UwbLeastSquares(config),
+            "4-state KF (thesis)": Kf4(config)}

@@ -170,10 +170,10 @@ class Filter:
             self.counters["uwb_late"] += 1  # older than the state: the aligner's job
             return reports
         self._predict_to(uwb.t_ns)
-        dv = self.ekf.interval_dv_n()
-        self._aligner.add_ins_dv(dv)
+        dv = self.ekf.interval_dv_n()  # read before propagate() starts a new interval
         self.ekf.propagate()
         if not self._aligned:
+            self._aligner.add_ins_dv(dv)
             # the heading is unknown: the INS's horizontal Δv may point anywhere; for a heading
             # error uniform over ±180° the RMS error of a turned Δv is √2 |Δv|, so the fixes
             # must be free to say where it went

@@ -72,6 +72,3 @@ def euler_from_quat(q: Array) -> tuple[float, float, float]:
     yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
     return roll, pitch, yaw
 
-
-def wrap_pi(angle: float) -> float:
-    return (angle + math.pi) % (2 * math.pi) - math.pi
