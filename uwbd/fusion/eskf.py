@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from uwbd.fusion.rotation import Array, quat_from_rotvec, quat_mul, quat_to_matrix, skew
+from uwbd.fusion.rotation import Array, quat_mul, quat_to_matrix, skew
 
 GRAVITY_MPS2 = 9.80665
 Vector = Sequence[float] | Array
@@ -56,6 +56,19 @@ class Eskf:
         self.P = P0.astype(float).copy()
         self.noise = noise
         self._reset_interval()
+        # constants of propagate() and update()
+        self._I = np.eye(self.n)
+        self._I_core = np.eye(N_CORE)
+        self._diag = np.diag_indices(self.n)
+        self._F_template = np.zeros((N_CORE, N_CORE))
+        self._F_template[P_, V_] = np.eye(3)
+        self._F_template[TH_, BG_] = -np.eye(3)
+        self._q_rate = np.zeros(self.n)  # diagonal of Q per second
+        self._q_rate[V_] = noise.acc**2
+        self._q_rate[TH_] = noise.gyro**2
+        self._q_rate[BG_] = noise.gyro_bias**2
+        self._q_rate[BA_] = noise.acc_bias**2
+        self._q_rate[N_CORE:] = noise.range_bias**2
 
     # -- nominal propagation: every IMU sample -------------------------------------------
     def predict(self, acc_b: Vector, gyro_b: Vector, dt: float) -> None:
@@ -86,19 +99,7 @@ class Eskf:
         v[0] += ax * dt
         v[1] += ay * dt
         v[2] += az * dt
-        # q ← q ⊗ Exp(ω dt)
-        angle = math.sqrt(wx * wx + wy * wy + wz * wz)
-        if angle < 1e-9:
-            dw, s = 1.0, 0.5
-        else:
-            dw, s = math.cos(0.5 * angle), math.sin(0.5 * angle) / angle
-        dx, dy, dz = s * wx, s * wy, s * wz
-        nw = qw * dw - qx * dx - qy * dy - qz * dz
-        nx = qw * dx + qx * dw + qy * dz - qz * dy
-        ny = qw * dy - qx * dz + qy * dw + qz * dx
-        nz = qw * dz + qx * dy - qy * dx + qz * dw
-        norm = math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
-        self.q = [nw / norm, nx / norm, ny / norm, nz / norm]
+        self.q = _turned(self.q, wx, wy, wz)
 
     # -- covariance propagation: once per update interval --------------------------------
     def _reset_interval(self) -> None:
@@ -118,9 +119,9 @@ class Eskf:
         fixes kept it right while the heading was wrong."""
         q = quat_mul(np.array([math.cos(dpsi / 2), 0.0, 0.0, math.sin(dpsi / 2)]),
                      np.array(self.q))
-        self.q = list(q / np.linalg.norm(q))
+        self.q = (q / np.linalg.norm(q)).tolist()
         R = self.R
-        T = np.eye(self.n)  # body-frame attitude error -> nav-frame attitude error
+        T = self._I.copy()  # body-frame attitude error -> nav-frame attitude error
         T[TH_, TH_] = R
         P = T @ self.P @ T.T
         k = TH_.start + 2  # nav-frame yaw error
@@ -130,31 +131,26 @@ class Eskf:
         self.P = T.T @ P @ T
 
     def propagate(self) -> None:
-        """``P ← Φ P Φᵀ + Q_d`` over the interval accumulated by :meth:`predict` (§3)."""
+        """``P ← Φ P Φᵀ + Q_d`` over the interval accumulated by :meth:`predict` (§3).
+
+        Only the 15 core states have dynamics (range biases are random walks, Φ = I there),
+        so Φ is built and applied on the core rows and columns alone."""
         T = self._T
         if T <= 0.0:
             return
         R = self.R
         f_n = np.array(self._sum_fn) / T
         w = np.array(self._sum_w) / T
-        n = self.n
-        F = np.zeros((n, n))
-        F[P_, V_] = np.eye(3)
+        F = self._F_template.copy()
         F[V_, TH_] = -skew(f_n) @ R  # −R [f]× = −[R f]× R
         F[V_, BA_] = -R
         F[TH_, TH_] = -skew(w)
-        F[TH_, BG_] = -np.eye(3)
         A = F * T
-        Phi = np.eye(n) + A + 0.5 * (A @ A)
-        q = np.zeros(n)
-        nz = self.noise
-        q[V_] = nz.acc**2 * T
-        q[TH_] = nz.gyro**2 * T
-        q[BG_] = nz.gyro_bias**2 * T
-        q[BA_] = nz.acc_bias**2 * T
-        q[N_CORE:] = nz.range_bias**2 * T
-        P = Phi @ self.P @ Phi.T
-        P[np.diag_indices(n)] += q
+        Phi = self._I_core + A + 0.5 * (A @ A)
+        P = self.P
+        P[:N_CORE, :] = Phi @ P[:N_CORE, :]
+        P[:, :N_CORE] = P[:, :N_CORE] @ Phi.T
+        P[self._diag] += self._q_rate * T
         self.P = 0.5 * (P + P.T)
         self._reset_interval()
 
@@ -174,7 +170,7 @@ class Eskf:
         S = H @ PHt + np.diag(R)
         K = np.linalg.solve(S, PHt.T).T  # S is symmetric
         dx = K @ y
-        I_KH = np.eye(self.n) - K @ H
+        I_KH = self._I - K @ H
         P = I_KH @ P @ I_KH.T + (K * R) @ K.T
         self.P = 0.5 * (P + P.T)
         self.inject(dx)
@@ -182,18 +178,20 @@ class Eskf:
 
     def inject(self, dx: Array) -> None:
         """Closed-loop correction of the nominal state, then the error reset ``P ← G P Gᵀ``."""
+        d = dx.tolist()  # plain floats: numpy scalars would slow every later predict() ~3×
+        p, v, b_g, b_a = self.p, self.v, self.b_g, self.b_a
         for i in range(3):
-            self.p[i] += dx[i]
-            self.v[i] += dx[3 + i]
-            self.b_g[i] += dx[9 + i]
-            self.b_a[i] += dx[12 + i]
+            p[i] += d[i]
+            v[i] += d[3 + i]
+            b_g[i] += d[9 + i]
+            b_a[i] += d[12 + i]
         self.b_r += dx[N_CORE:]
-        dq = quat_from_rotvec(dx[TH_])
-        q = quat_mul(np.array(self.q), dq)
-        self.q = list(q / np.linalg.norm(q))
-        G = np.eye(self.n)
-        G[TH_, TH_] -= 0.5 * skew(dx[TH_])
-        self.P = G @ self.P @ G.T
+        self.q = _turned(self.q, d[6], d[7], d[8])
+        # G = I except its attitude block I − ½[δθ]×: only those rows and columns change
+        G_th = np.eye(3) - 0.5 * skew(dx[TH_])
+        P = self.P
+        P[TH_, :] = G_th @ P[TH_, :]
+        P[:, TH_] = P[:, TH_] @ G_th.T
 
     # -- views ----------------------------------------------------------------------------
     @property
@@ -206,5 +204,23 @@ class Eskf:
 
     def yaw_sigma_rad(self) -> float:
         """Standard deviation of the heading error: the nav-z component of ``R δθ``."""
-        r = self.R[2]
-        return float(math.sqrt(max(r @ self.P[TH_, TH_] @ r, 0.0)))
+        w, x, y, z = self.q
+        r = np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
+        return math.sqrt(max(float(r @ self.P[TH_, TH_] @ r), 0.0))
+
+
+def _turned(q: list[float], tx: float, ty: float, tz: float) -> list[float]:
+    """``q ⊗ Exp(θ)`` normalised, in plain floats (the per-IMU-sample attitude step)."""
+    angle = math.sqrt(tx * tx + ty * ty + tz * tz)
+    if angle < 1e-9:
+        dw, s = 1.0, 0.5
+    else:
+        dw, s = math.cos(0.5 * angle), math.sin(0.5 * angle) / angle
+    dx, dy, dz = s * tx, s * ty, s * tz
+    qw, qx, qy, qz = q
+    nw = qw * dw - qx * dx - qy * dy - qz * dz
+    nx = qw * dx + qx * dw + qy * dz - qz * dy
+    ny = qw * dy - qx * dz + qy * dw + qz * dx
+    nz = qw * dz + qx * dy - qy * dx + qz * dw
+    norm = math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+    return [nw / norm, nx / norm, ny / norm, nz / norm]

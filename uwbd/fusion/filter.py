@@ -27,6 +27,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum
 from statistics import NormalDist
+from typing import NamedTuple
 
 import numpy as np
 
@@ -41,6 +42,30 @@ from uwbd.fusion.types import FusionReport, Pose
 Vec3 = tuple[float, float, float]
 HELD_YAW_SIGMA_RAD = 1e-3  # the heading's σ while it is held, before the coarse alignment
 IDENTITY3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+
+class Rows(NamedTuple):
+    """Measurement rows of one update: ``H`` (m×n), residuals ``y``, noise variances ``R``,
+    and what each row is (kind, key) for its report."""
+
+    H: Array
+    y: Array
+    R: Array
+    keys: list[tuple[str, str]]
+
+    @staticmethod
+    def empty(n: int) -> Rows:
+        return Rows(np.zeros((0, n)), np.zeros(0), np.zeros(0), [])
+
+    @staticmethod
+    def stack(parts: list[Rows]) -> Rows:
+        parts = [r for r in parts if r.keys]
+        if len(parts) == 1:
+            return parts[0]
+        if not parts:
+            return Rows(np.zeros((0, 0)), np.zeros(0), np.zeros(0), [])
+        return Rows(np.vstack([r.H for r in parts]), np.concatenate([r.y for r in parts]),
+                    np.concatenate([r.R for r in parts]), [k for r in parts for k in r.keys])
 
 
 class Mode(str, Enum):
@@ -99,7 +124,9 @@ class Filter:
         self.t_ns: int | None = None  # time of the nominal state
         self._imu_t_ns: int | None = None
         self._last_imu: tuple[Vec3, Vec3] | None = None
-        self._window: collections.deque[tuple[int, Vec3, Vec3]] = collections.deque()
+        # (t_ns, acc xyz, gyro xyz) in body axes over the last window_ns: rest detection
+        self._window: collections.deque[tuple[float, ...]] = collections.deque()
+        self._window_ns = int(max(config.static_window_s, config.init_static_s) * 1e9)
         self._fixes: collections.deque[tuple[int, Array]] = collections.deque(maxlen=100)
         self._first_t_ns: int | None = None
         self._bad_epochs = 0
@@ -118,10 +145,11 @@ class Filter:
     # -- inputs ---------------------------------------------------------------------------
     def predict(self, imu: ImuSample) -> None:
         """Integrate one IMU sample (sensor axes); bad samples are counted, never used."""
-        if not all(map(math.isfinite, (*imu.acc_mps2, *imu.gyro_rps))):
+        a, g = imu.acc_mps2, imu.gyro_rps
+        if not math.isfinite(a[0] + a[1] + a[2] + g[0] + g[1] + g[2]):  # NaN and inf propagate
             self.counters["imu_not_finite"] += 1
             return
-        acc, gyro = self._to_body(imu.acc_mps2), self._to_body(imu.gyro_rps)
+        acc, gyro = self._to_body(a), self._to_body(g)
         if self._first_t_ns is None:
             self._first_t_ns = imu.t_ns
         prev = self._imu_t_ns
@@ -181,9 +209,9 @@ class Filter:
             self.ekf.P[3, 3] += extra
             self.ekf.P[4, 4] += extra
             self._align_heading(uwb.t_ns, fix, anchors, ranges)
-        H, y, R, keys = self._measurement_rows(ids, anchors, ranges, fix)
-        self._constraints(H, y, R, keys)
-        reports += self._fuse(uwb.t_ns, H, y, R, keys)
+        rows = Rows.stack([self._measurement_rows(ids, anchors, ranges, fix),
+                           *self._constraints()])
+        reports += self._fuse(uwb.t_ns, rows)
         if self._needs_recovery(reports):
             self._recover(fix or self._lsq(anchors, ranges))
         self._update_status()
@@ -204,7 +232,7 @@ class Filter:
         return Pose(
             t_ns=self.t_ns, position_m=(ekf.p[0], ekf.p[1], ekf.p[2]),
             velocity_mps=(ekf.v[0], ekf.v[1], ekf.v[2]), orientation_xyzw=(x, y, z, w),
-            covariance=tuple(float(c) for c in cov.ravel()), status=self.status,
+            covariance=tuple(cov.ravel().tolist()), status=self.status,
             heading_observable=self._aligned and ekf.yaw_sigma_rad() < math.radians(10),
         )
 
@@ -216,21 +244,24 @@ class Filter:
         return (a * x + b * y + c * z, d * x + e * y + f * z, g * x + h * y + i * z)
 
     def _remember(self, t_ns: int, acc: Vec3, gyro: Vec3) -> None:
-        window_ns = int(max(self.cfg.static_window_s, self.cfg.init_static_s) * 1e9)
-        self._window.append((t_ns, acc, gyro))
-        while self._window and self._window[0][0] < t_ns - window_ns:
-            self._window.popleft()
+        window = self._window
+        window.append((t_ns, *acc, *gyro))
+        oldest_ns = t_ns - self._window_ns
+        while window[0][0] < oldest_ns:
+            window.popleft()
 
     def _static(self, span_s: float) -> bool:
         """At rest over the last ``span_s``: specific force steady and rotation small."""
         if not self._window:
             return False
         t_end = self._window[-1][0]
-        recent = [(a, g) for t, a, g in self._window if t >= t_end - span_s * 1e9]
-        if len(recent) < 3 or (t_end - self._window[0][0]) < 0.9 * span_s * 1e9:
+        if (t_end - self._window[0][0]) < 0.9 * span_s * 1e9:
             return False
-        acc = np.array([a for a, _ in recent])
-        gyro = np.array([g for _, g in recent])
+        samples = np.array(self._window)
+        recent = samples[samples[:, 0] >= t_end - span_s * 1e9]
+        if len(recent) < 3:
+            return False
+        acc, gyro = recent[:, 1:4], recent[:, 4:7]
         return bool(np.linalg.norm(acc.std(axis=0)) < self.cfg.static_acc_std_mps2
                     and np.linalg.norm(gyro.mean(axis=0)) < self.cfg.static_gyro_rps
                     and np.linalg.norm(gyro.std(axis=0)) < self.cfg.static_gyro_rps)
@@ -264,8 +295,8 @@ class Filter:
             return
         cfg = self.cfg
         waited_s = (t_ns - (self._first_t_ns or t_ns)) / 1e9
-        acc = np.mean([a for _, a, _ in self._window], axis=0)
-        gyro = np.mean([g for _, _, g in self._window], axis=0)
+        means = np.mean(self._window, axis=0)
+        acc, gyro = means[1:4], means[4:7]
         recent = [p for t, p in self._fixes if t >= t_ns - cfg.init_static_s * 1e9]
         roll = math.atan2(acc[1], acc[2])
         pitch = math.atan2(-acc[0], math.hypot(acc[1], acc[2]))
@@ -333,108 +364,98 @@ class Filter:
         self.t_ns = t_ns
 
     def _measurement_rows(self, ids: list[int], anchors: Array, ranges: Array,
-                          fix: LsqFix | None) -> tuple[list[Array], list[float], list[float],
-                                                       list[tuple[str, str]]]:
+                          fix: LsqFix | None) -> Rows:
         """Tight: one row per range (§4, range); loose: the fix's axes (§4, position)."""
         ekf = self.ekf
         assert ekf is not None
-        n = ekf.n
         R = ekf.R
         p_ant = np.array(ekf.p) + R @ self.lever
         H_th_lever = -R @ skew(self.lever)
-        H: list[Array] = []
-        y: list[float] = []
-        var: list[float] = []
-        keys: list[tuple[str, str]] = []
         if self.cfg.mode is Mode.TIGHT:
-            for anchor_id, a, d in zip(ids, anchors, ranges, strict=True):
-                diff = p_ant - a
-                dist = float(np.linalg.norm(diff))
-                if dist < 1e-3:
-                    continue
-                u = diff / dist
-                row = np.zeros(n)
-                row[P_] = u
-                row[TH_] = u @ H_th_lever
-                h = dist
+            diff = p_ant - anchors
+            dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+            keep = dist >= 1e-3  # the antenna on an anchor: no line of sight to linearise
+            if not keep.all():
+                ids = [a for a, k in zip(ids, keep, strict=True) if k]
+                diff, dist, ranges = diff[keep], dist[keep], ranges[keep]
+            U = diff / dist[:, None]
+            H = np.zeros((len(ids), ekf.n))
+            H[:, P_] = U
+            H[:, TH_] = U @ H_th_lever
+            h = dist
+            for i, anchor_id in enumerate(ids):
                 k = self._bias_index.get(anchor_id)
                 if k is not None:
-                    row[k] = 1.0
-                    h += ekf.b_r[k - N_CORE]
-                H.append(row)
-                y.append(float(d - h))
-                var.append(self.cfg.range_sigma_m**2)
-                keys.append(("range", str(anchor_id)))
-        elif fix is not None:
-            for axis in range(3 if self._fixed_z is None else 2):
-                row = np.zeros(n)
-                row[axis] = 1.0
-                row[TH_] = H_th_lever[axis]
-                H.append(row)
-                y.append(float(fix.position_m[axis] - p_ant[axis]))
-                var.append(float(max(fix.covariance[axis, axis], 0.02**2)))
-                keys.append(("position", "xyz"[axis]))
-        return H, y, var, keys
+                    H[i, k] = 1.0
+                    h[i] += ekf.b_r[k - N_CORE]
+            var = np.full(len(ids), self.cfg.range_sigma_m**2)
+            return Rows(H, ranges - h, var, [("range", str(a)) for a in ids])
+        if fix is None:
+            return Rows.empty(ekf.n)
+        axes = 3 if self._fixed_z is None else 2
+        H = np.zeros((axes, ekf.n))
+        H[:, P_] = np.eye(3)[:axes]
+        H[:, TH_] = H_th_lever[:axes]
+        var = np.maximum(np.diag(fix.covariance)[:axes], 0.02**2)
+        return Rows(H, fix.position_m[:axes] - p_ant[:axes], var,
+                    [("position", "xyz"[axis]) for axis in range(axes)])
 
-    def _constraints(self, H: list[Array], y: list[float], var: list[float],
-                     keys: list[tuple[str, str]]) -> None:
+    def _constraints(self) -> list[Rows]:
         ekf = self.ekf
         assert ekf is not None
         n = ekf.n
+        cfg = self.cfg
+        rows = []
         # constant velocity looks like rest to an IMU: require a slow estimate as well
-        slow = math.hypot(*ekf.v) < self.cfg.zupt_max_speed_mps
-        if self.cfg.zupt and slow and self._static(self.cfg.static_window_s):
+        slow = math.hypot(*ekf.v) < cfg.zupt_max_speed_mps
+        if cfg.zupt and slow and self._static(cfg.static_window_s):
             self.counters["zupt"] += 1
-            for i in range(3):
-                row = np.zeros(n)
-                row[3 + i] = 1.0
-                H.append(row)
-                y.append(-ekf.v[i])
-                var.append(self.cfg.zupt_sigma_mps**2)
-                keys.append(("zupt", "xyz"[i]))
-        if self.cfg.nhc:
+            H = np.zeros((3, n))
+            H[:, V_] = np.eye(3)
+            rows.append(Rows(H, -np.array(ekf.v), np.full(3, cfg.zupt_sigma_mps**2),
+                             [("zupt", axis) for axis in "xyz"]))
+        if cfg.nhc:
             Rt = ekf.R.T
             v_b = Rt @ np.array(ekf.v)
-            for i in (1, 2):
-                row = np.zeros(n)
-                row[V_] = Rt[i]
-                row[TH_] = skew(v_b)[i]
-                H.append(row)
-                y.append(-float(v_b[i]))
-                var.append(self.cfg.nhc_sigma_mps**2)
-                keys.append(("nhc", "yz"[i - 1]))
-        if self.cfg.known_height_m is not None:
-            row = np.zeros(n)
-            row[2] = 1.0
-            H.append(row)
-            y.append(self.cfg.known_height_m - ekf.p[2])
-            var.append(self.cfg.height_sigma_m**2)
-            keys.append(("height", "z"))
+            H = np.zeros((2, n))
+            H[:, V_] = Rt[1:]
+            H[:, TH_] = skew(v_b)[1:]
+            rows.append(Rows(H, -v_b[1:], np.full(2, cfg.nhc_sigma_mps**2),
+                             [("nhc", "y"), ("nhc", "z")]))
+        if cfg.known_height_m is not None:
+            H = np.zeros((1, n))
+            H[0, 2] = 1.0
+            rows.append(Rows(H, np.array([cfg.known_height_m - ekf.p[2]]),
+                             np.array([cfg.height_sigma_m**2]), [("height", "z")]))
+        return rows
 
-    def _fuse(self, t_ns: int, H_rows: list[Array], y_list: list[float], var: list[float],
-              keys: list[tuple[str, str]]) -> list[FusionReport]:
+    def _fuse(self, t_ns: int, rows: Rows) -> list[FusionReport]:
         ekf = self.ekf
         assert ekf is not None
-        if not H_rows:
+        H, y, R, keys = rows
+        if not keys:
             return []
-        H, y, R = np.array(H_rows), np.array(y_list), np.array(var)
         S = ekf.innovation_variances(H, R)
         nis = y * y / S
         accept = nis <= self._gate_1
-        loose = np.array([k[0] == "position" for k in keys])
-        if loose.any():  # a position fix is one 3-D measurement: gate it as one
-            idx = np.flatnonzero(loose)
+        if keys[0][0] == "position":  # a position fix is one 3-D measurement: gate it as one
+            idx = np.array([k[0] == "position" for k in keys])
             Hl = H[idx]
             Sl = Hl @ ekf.P @ Hl.T + np.diag(R[idx])
             nis_l = float(y[idx] @ np.linalg.solve(Sl, y[idx]))
             accept[idx] = nis_l <= self._gate_3
-        reports = [FusionReport(t_ns, kind, key, float(y[i]), float(S[i]),
-                                float(nis[i] / self._gate_1), bool(accept[i]),
-                                "" if accept[i] else "innovation_gate")
-                   for i, (kind, key) in enumerate(keys)]
+        ratio = nis / self._gate_1
+        reports = [FusionReport(t_ns, kind, key, y_i, s_i, r_i, ok, "" if ok else
+                                "innovation_gate")
+                   for (kind, key), y_i, s_i, r_i, ok in zip(
+                       keys, y.tolist(), S.tolist(), ratio.tolist(), accept.tolist(),
+                       strict=True)]
+        counters = self.counters
         for r in reports:
-            self.counters[f"{r.kind}_{'accepted' if r.accepted else 'rejected'}"] += 1
-        if accept.any():
+            counters[f"{r.kind}_{'accepted' if r.accepted else 'rejected'}"] += 1
+        if accept.all():
+            ekf.update(H, y, R)
+        elif accept.any():
             ekf.update(H[accept], y[accept], R[accept])
         return reports
 
@@ -445,7 +466,7 @@ class Filter:
         uwb = [r for r in reports if r.kind in ("range", "position") and not math.isnan(r.nis)]
         bad = sum(not r.accepted for r in uwb)
         self._bad_epochs = self._bad_epochs + 1 if uwb and bad > len(uwb) / 2 else 0
-        diverged = not (np.all(np.isfinite(ekf.P)) and all(map(math.isfinite, ekf.p))
+        diverged = not (math.isfinite(ekf.P.sum() + sum(ekf.p))  # NaN and inf propagate
                         and ekf.position_sigma_m().max() < 100.0)
         return diverged or self._bad_epochs >= self.cfg.reinit_after_bad_epochs
 
@@ -458,7 +479,7 @@ class Filter:
         self.counters["reinitialisations"] += 1
         self.status = "running (re-initialised from UWB after rejected ranges)"
         self._bad_epochs = 0
-        ekf.p = list(fix.position_m - ekf.R @ self.lever)
+        ekf.p = (fix.position_m - ekf.R @ self.lever).tolist()
         ekf.v = [0.0, 0.0, 0.0]
         self._inflate(velocity_mps=1.0, attitude_rad=0.0, position_m=0.5)
 
