@@ -7,6 +7,7 @@ so the output is strict JSON.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from typing import Any
 
@@ -14,18 +15,29 @@ from drivers.frames import AnchorRange, Frame, ImuSample, UwbRanges
 
 
 def frame_to_dict(frame: Frame) -> dict[str, Any]:
-    """``{"type": "ImuSample", "t_ns": …, …}`` for any frame.
+    """``{"type": "ImuSample", "t_ns": …, …}`` for any frame."""
+    return _plain(_fields(frame))  # type: ignore[no-any-return]
 
-    Built field by field (frames are flat but for ``ranges``): ``dataclasses.asdict`` deep-copies
-    recursively and was a third of the daemon's per-read cost.
-    """
+
+def frame_to_json(frame: Frame) -> bytes:
+    """``frame_to_dict`` as JSON bytes; the decoded log channels take one per frame, so the
+    common case (every number finite) skips the walk that replaces NaN with ``null``."""
+    fields = _fields(frame)
+    try:
+        return json.dumps(fields, allow_nan=False).encode()
+    except ValueError:
+        return json.dumps(_plain(fields)).encode()
+
+
+def _fields(frame: Frame) -> dict[str, Any]:
+    # field by field (frames are flat but for ``ranges``): dataclasses.asdict deep-copies
     out: dict[str, Any] = {"type": type(frame).__name__}
     for f in _FIELDS[type(frame)]:
         value = getattr(frame, f)
         if f == "ranges":
             value = [{g: getattr(r, g) for g in _RANGE_FIELDS} for r in value]
         out[f] = value
-    return _plain(out)  # type: ignore[no-any-return]
+    return out
 
 
 _FIELDS = {cls: tuple(f.name for f in dataclasses.fields(cls)) for cls in (ImuSample, UwbRanges)}

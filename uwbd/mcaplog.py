@@ -32,7 +32,7 @@ from mcap.writer import CompressionType, Writer
 
 from drivers.frames import Frame, ImuSample
 from uwbd import __version__
-from uwbd.codec import frame_to_dict
+from uwbd.codec import frame_to_json
 from uwbd.fusion.types import Pose
 
 RAW_ENCODING = "uwbd.raw"
@@ -124,7 +124,7 @@ class LogWriter:
     def frame(self, frame: Frame) -> None:
         topic = "/imu" if isinstance(frame, ImuSample) else "/uwb"
         channel = self._channel(topic, "json", f"uwbd.{type(frame).__name__}", FRAME_SCHEMA)
-        self._add(channel, frame.t_ns, json.dumps(frame_to_dict(frame)).encode())
+        self._add(channel, frame.t_ns, frame_to_json(frame))
 
     def pose(self, pose: Pose, topic: str = "/pose") -> None:
         self.json(topic, pose.t_ns, pose_to_message(pose), "foxglove.PoseInFrame", POSE_SCHEMA)
