@@ -77,9 +77,11 @@ baud = 921600
 
 [imu]
 mounting = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]
+gyro_noise_rps_rthz = 0.0002
 
 [fusion]
 mode = "loose"
+range_sigma_m = 0.1
 """
 
 
@@ -88,10 +90,12 @@ def test_config_parses_into_typed_objects() -> None:
     assert c.sources[0] == cfgmod.SourceConfig("imu", "wit", "/dev/uwbd-imu", 921600)
     assert c.anchors_m == {0: (0.0, 0.0, 0.0), 0x1151: (8.0, 0.0, 2.2)}
     assert c.filter_config().mode.value == "loose"
+    assert c.filter_config().imu_noise.gyro == 0.0002  # from the datasheet ...
+    assert c.filter_config().imu_noise.acc == 0.01  # ... or the default
     again = cfgmod.parse(cfgmod.to_toml(c.sources, c.anchors_m, c.mounting, c.lever_arm_m,
-                                        c.fusion))
-    assert (again.sources, again.anchors_m, again.mounting, again.fusion) == (
-        c.sources, c.anchors_m, c.mounting, c.fusion)
+                                        c.fusion, c.imu_noise))
+    assert (again.sources, again.anchors_m, again.mounting, again.fusion, again.imu_noise) == (
+        c.sources, c.anchors_m, c.mounting, c.fusion, c.imu_noise)
 
 
 @pytest.mark.parametrize(("change", "message"), [
@@ -101,6 +105,8 @@ def test_config_parses_into_typed_objects() -> None:
     ('"0" = [0.0, 0.0, 0.0]', 'anchors.0: expected [x, y, z]'),
     ('mounting = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]', 'mounting_rotation'),
     ('baud = 921600', 'sources[0].baud'),
+    ('gyro_noise_rps_rthz = 0.0002', 'imu.gyro_noise_rps_rthz: expected a positive number'),
+    ('range_sigma_m = 0.1', 'fusion.range_sigma_m: must be positive'),
 ])
 def test_config_errors_name_file_and_key(change: str, message: str) -> None:
     bad = {
@@ -111,6 +117,8 @@ def test_config_errors_name_file_and_key(change: str, message: str) -> None:
         'mounting = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]':
             'mounting = [[1, 0, 0], [0, 1, 0], [0, 0, -1]]',
         'baud = 921600': 'baud = "fast"',
+        'gyro_noise_rps_rthz = 0.0002': 'gyro_noise_rps_rthz = -0.0002',
+        'range_sigma_m = 0.1': 'range_sigma_m = 0',
     }[change]
     with pytest.raises(cfgmod.ConfigError, match=r"cfg\.toml") as err:
         cfgmod.parse(CONFIG.replace(change, bad), "cfg.toml")

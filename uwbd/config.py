@@ -6,9 +6,14 @@ option that is silently ignored is worse than none. Sections::
 
     [[sources]]          name, driver, port, baud
     [anchors]            "<id>" = [x, y, z]            (m, navigation frame ENU)
-    [imu]                mounting = 3x3 rows (sensor -> body FLU), lever_arm_m = [x, y, z]
-    [fusion]             mode, range_sigma_m, range_bias_states, zupt, nhc, known_height_m,
-                         gate_probability, min_anchors, max_range_m
+    [imu]                mounting = 3x3 rows (sensor -> body FLU), lever_arm_m = [x, y, z],
+                         noise densities from the IMU's datasheet (defaults: a consumer MEMS
+                         part with margin for vibration): acc_noise_mps2_rthz (0.01),
+                         gyro_noise_rps_rthz (0.001), acc_bias_walk_mps3_rthz (0.001),
+                         gyro_bias_walk_rps2_rthz (0.0001)
+    [fusion]             mode, range_sigma_m, range_bias_states, range_bias_sigma_m (0.1:
+                         each anchor's antenna delay), tag_delay_sigma_m (0.2: the tag's),
+                         zupt, nhc, known_height_m, gate_probability, min_anchors, max_range_m
     [pipeline]           aligner_wait_ms (0), pose_rate_hz (50), status_period_s (1)
     [log]                directory ("logs"), rotate_mb (256), rotate_minutes (60)
     [zenoh]              enabled (true), mode ("peer"), connect [], listen [], prefix
@@ -25,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from drivers import PARSERS
+from uwbd.fusion.eskf import ImuNoise
 from uwbd.fusion.filter import IDENTITY3, Filter, FilterConfig, Mode
 from uwbd.fusion.gating import GatingPolicy
 
@@ -54,6 +60,7 @@ class Config:
     anchors_m: dict[int, Vec3] = field(default_factory=dict)
     mounting: tuple[Vec3, Vec3, Vec3] = IDENTITY3
     lever_arm_m: Vec3 = (0.0, 0.0, 0.0)
+    imu_noise: dict[str, float] = field(default_factory=dict)  # [imu] noise keys given
     fusion: dict[str, Any] = field(default_factory=dict)
     pipeline: dict[str, Any] = field(default_factory=dict)
     log: dict[str, Any] = field(default_factory=dict)
@@ -78,7 +85,11 @@ class Config:
             mode=Mode(f.get("mode", "tight")), anchors_m=self.anchors_m,
             mounting_rotation=self.mounting, lever_arm_m=self.lever_arm_m,
             range_sigma_m=f.get("range_sigma_m", 0.10),
-            range_bias_states=f.get("range_bias_states", True), zupt=f.get("zupt", True),
+            range_bias_states=f.get("range_bias_states", True),
+            range_bias_sigma_m=f.get("range_bias_sigma_m", 0.1),
+            tag_delay_sigma_m=f.get("tag_delay_sigma_m", 0.2),
+            imu_noise=ImuNoise(**{IMU_NOISE_KEYS[k]: v for k, v in self.imu_noise.items()}),
+            zupt=f.get("zupt", True),
             nhc=f.get("nhc", False), known_height_m=f.get("known_height_m"),
             gate_probability=f.get("gate_probability", 0.997),
             gating=GatingPolicy(min_anchors=f.get("min_anchors", 1),
@@ -94,8 +105,12 @@ _LOG_KEYS: dict[str, type | tuple[type, ...]] = {
 _ZENOH_KEYS: dict[str, type | tuple[type, ...]] = {
     "enabled": bool, "mode": str, "connect": list, "listen": list, "prefix": str,
     "multicast_scouting": bool}
+# [imu] key -> ImuNoise field
+IMU_NOISE_KEYS = {"acc_noise_mps2_rthz": "acc", "gyro_noise_rps_rthz": "gyro",
+                  "acc_bias_walk_mps3_rthz": "acc_bias", "gyro_bias_walk_rps2_rthz": "gyro_bias"}
 _FUSION_KEYS: dict[str, type | tuple[type, ...]] = {
-    "mode": str, "range_sigma_m": (int, float), "range_bias_states": bool, "zupt": bool,
+    "mode": str, "range_sigma_m": (int, float), "range_bias_states": bool,
+    "range_bias_sigma_m": (int, float), "tag_delay_sigma_m": (int, float), "zupt": bool,
     "nhc": bool, "known_height_m": (int, float), "gate_probability": (int, float),
     "min_anchors": int, "max_range_m": (int, float),
 }
@@ -127,7 +142,16 @@ def parse(text: str, where: str = "<config>") -> Config:
             raise ConfigError(f"{where}: anchors.{key}: not an integer id") from err
         anchors[anchor_id] = _vec(value, where, f"anchors.{key}")
     imu = _table(doc, "imu", where)
-    _only(imu, {"mounting", "lever_arm_m"}, where, "imu.")
+    _only(imu, {"mounting", "lever_arm_m", *IMU_NOISE_KEYS}, where, "imu.")
+    imu_noise = {}
+    for key in IMU_NOISE_KEYS:
+        if key in imu:
+            value = imu[key]
+            if (isinstance(value, bool) or not isinstance(value, (int, float))
+                    or not math.isfinite(value) or value <= 0):
+                raise ConfigError(f"{where}: imu.{key}: expected a positive number, "
+                                  f"got {value!r}")
+            imu_noise[key] = float(value)
     mounting = IDENTITY3
     if "mounting" in imu:
         rows = imu["mounting"]
@@ -152,10 +176,17 @@ def parse(text: str, where: str = "<config>") -> Config:
             zero_ok = key == "aligner_wait_ms"
             if not isinstance(value, str) and not (value > 0 or (zero_ok and value == 0)):
                 raise ConfigError(f"{where}: {section}.{key}: must be positive, got {value}")
+    for key, zero_ok in (("range_sigma_m", False), ("range_bias_sigma_m", True),
+                         ("tag_delay_sigma_m", True)):
+        value = fusion.get(key, 1.0)
+        if not (math.isfinite(value) and (value > 0 or (zero_ok and value == 0))):
+            raise ConfigError(f"{where}: fusion.{key}: must be "
+                              f"{'zero or more' if zero_ok else 'positive'}, got {value}")
     if "mode" in fusion and fusion["mode"] not in {m.value for m in Mode}:
         raise ConfigError(f"{where}: fusion.mode: expected one of "
                           f"{', '.join(m.value for m in Mode)}, got {fusion['mode']!r}")
-    config = Config(sources, anchors, mounting, lever, fusion, pipeline, log, zenoh, text)
+    config = Config(sources, anchors, mounting, lever, imu_noise, fusion, pipeline, log, zenoh,
+                    text)
     try:
         Filter(config.filter_config())  # the filter checks what only it understands
     except ValueError as err:
@@ -222,7 +253,8 @@ def _source(s: Any, where: str, index: int) -> SourceConfig:
 
 def to_toml(sources: Sequence[SourceConfig], anchors_m: Mapping[int, Sequence[float]],
             mounting: Sequence[Sequence[float]], lever_arm_m: Sequence[float],
-            fusion: dict[str, Any] | None = None) -> str:
+            fusion: Mapping[str, Any] | None = None,
+            imu: Mapping[str, float] | None = None) -> str:
     """A config file for these settings (what ``uwbd simulate`` and ``import`` store)."""
     def num(v: float) -> str:
         return repr(float(v))
@@ -237,7 +269,9 @@ def to_toml(sources: Sequence[SourceConfig], anchors_m: Mapping[int, Sequence[fl
     lines.append("[anchors]")
     lines += [f'"{k}" = {vec(v)}' for k, v in sorted(anchors_m.items())]
     lines += ["", "[imu]", "mounting = [" + ", ".join(vec(r) for r in mounting) + "]",
-              f"lever_arm_m = {vec(lever_arm_m)}", "", "[fusion]"]
+              f"lever_arm_m = {vec(lever_arm_m)}"]
+    lines += [f"{key} = {num(value)}" for key, value in (imu or {}).items()]
+    lines += ["", "[fusion]"]
     for key, value in (fusion or {}).items():
         lines.append(f"{key} = " + (f'"{value}"' if isinstance(value, str)
                                     else str(value).lower() if isinstance(value, bool)

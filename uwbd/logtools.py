@@ -25,17 +25,28 @@ from uwbd.evaluate import merge
 from uwbd.fusion.rotation import Array, quat_from_euler, quat_from_matrix
 from uwbd.importer import Dataset
 from uwbd.mcaplog import LogContents, LogWriter, SourceInfo, pose_message
-from uwbd.simulator import Simulation
+from uwbd.simulator import Simulation, sensor_settings
 
 FLUSH_EVERY_NS = 1_000_000_000
 TRUTH_EVERY = 4  # of the simulator's IMU-rate truth: 50 Hz
 
 
-def write_simulation(sim: Simulation, path: Path, uwb_driver: str = "nlink") -> None:
+def simulation_sources(uwb_driver: str = "nlink") -> tuple[cfgmod.SourceConfig, ...]:
+    return (cfgmod.SourceConfig("imu", "wit", "simulated", 921600),
+            cfgmod.SourceConfig("uwb", uwb_driver, "simulated", 921600))
+
+
+def simulation_toml(sim: Simulation, uwb_driver: str = "nlink") -> str:
+    """The config of a simulated run: its anchors, mounting, lever arm and sensor specs."""
     c = sim.config
-    sources = (cfgmod.SourceConfig("imu", "wit", "simulated", 921600),
-               cfgmod.SourceConfig("uwb", uwb_driver, "simulated", 921600))
-    toml = cfgmod.to_toml(sources, dict(enumerate(c.anchors_m)), c.mounting, c.lever_arm_m)
+    imu, fusion = sensor_settings(c)
+    return cfgmod.to_toml(simulation_sources(uwb_driver), dict(enumerate(c.anchors_m)),
+                          c.mounting, c.lever_arm_m, fusion, imu)
+
+
+def write_simulation(sim: Simulation, path: Path, uwb_driver: str = "nlink") -> None:
+    sources = simulation_sources(uwb_driver)
+    toml = simulation_toml(sim, uwb_driver)
     infos = tuple(SourceInfo(s.name, s.driver, s.port) for s in sources)
     encode_uwb = ENCODERS[uwb_driver]
     encode_imu = ENCODERS["wit"]

@@ -72,6 +72,16 @@ class SimConfig:
     seed: int = 0
 
 
+def sensor_settings(cfg: SimConfig) -> tuple[dict[str, float], dict[str, float]]:
+    """The simulated sensors' specs as config keys (``[imu]``, ``[fusion]``), as a user
+    would enter them from the datasheets and the anchors' calibration: white-noise
+    densities (σ per sample / √rate) and the spread of the anchors' range offsets. The
+    biases are constant here, so the bias walks keep the defaults."""
+    imu = {"acc_noise_mps2_rthz": cfg.acc_noise_mps2 / math.sqrt(cfg.imu_rate_hz),
+           "gyro_noise_rps_rthz": cfg.gyro_noise_rps / math.sqrt(cfg.imu_rate_hz)}
+    return imu, {"range_sigma_m": cfg.range_noise_m, "range_bias_sigma_m": cfg.range_bias_sigma_m}
+
+
 @dataclass
 class Simulation:
     """Frames (time-ordered per stream) and truth sampled at the IMU times."""

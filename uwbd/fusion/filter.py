@@ -87,7 +87,8 @@ class FilterConfig:
     gate_probability: float = 0.997  # per-measurement χ² gate (3 σ for a scalar)
     gating: GatingPolicy = field(default_factory=lambda: GatingPolicy(min_anchors=1))
     range_bias_states: bool = True  # self-calibrate each anchor's antenna delay
-    range_bias_sigma_m: float = 0.2
+    range_bias_sigma_m: float = 0.1  # each anchor's own antenna delay, as a range offset
+    tag_delay_sigma_m: float = 0.2  # the tag's antenna delay: one offset common to all ranges
     zupt: bool = True
     zupt_sigma_mps: float = 0.02
     zupt_max_speed_mps: float = 0.3
@@ -324,6 +325,8 @@ class Filter:
             [math.radians(2) ** 2, math.radians(2) ** 2, math.pi**2],
             np.full(3, sig_bg**2), np.full(3, cfg.acc_bias_sigma_mps2**2),
             np.full(len(self._bias_index), cfg.range_bias_sigma_m**2)]))
+        # a range's offset is the tag's delay plus its anchor's: correlated a priori
+        P0[N_CORE:, N_CORE:] += cfg.tag_delay_sigma_m**2
         self.ekf = Eskf(p, v, q, P0, cfg.imu_noise, len(self._bias_index), b_g=bg, b_a=ba)
         self.t_ns = t_ns
 
