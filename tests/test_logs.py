@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
 
 from drivers.frames import ImuSample, UwbRanges
 from uwbd import config as cfgmod
@@ -62,6 +63,19 @@ def test_a_log_cut_short_by_a_crash_still_reads(tmp_path: Path) -> None:
     assert 1000 <= len(contents.messages) < 2000
     assert [m.log_time_ns for m in contents.messages] == [
         k * 10**7 for k in range(len(contents.messages))]
+    # `uwbd recover` writes what survived as a finished file that a seeking reader opens
+    fixed = tmp_path / "fixed.mcap"
+    result = uwbd("recover", str(cut), "-o", str(fixed))
+    assert result.returncode == 0, result.stderr
+    assert f"{len(contents.messages)} messages recovered" in result.stdout
+    assert "ends mid-record" in result.stdout
+    with fixed.open("rb") as f:
+        reader = make_reader(f)
+        assert reader.get_summary() is not None
+        times = [m.log_time for _, _, m in reader.iter_messages()]
+        assert times == [m.log_time_ns for m in contents.messages]
+        assert "uwbd" in {r.name for r in reader.iter_metadata()}
+    assert not read_log(fixed).truncated
 
 
 CONFIG = """
@@ -155,3 +169,5 @@ def test_fusion_commands_fail_clearly(tmp_path: Path) -> None:
     assert missing.returncode == 2 and "nope.mcap" in missing.stderr
     bad = uwbd("import", "iasl", str(tmp_path), cwd=tmp_path)
     assert bad.returncode == 2 and "imu.csv" in bad.stderr
+    gone = uwbd("recover", "nope.mcap", "-o", "out.mcap", cwd=tmp_path)
+    assert gone.returncode == 2 and "nope.mcap" in gone.stderr

@@ -29,7 +29,7 @@ from uwbd.echo import echo
 from uwbd.importer import DatasetError, load_iasl
 from uwbd.interrupt import shielded, wait_until
 from uwbd.logtools import load_recording, write_dataset, write_simulation
-from uwbd.mcaplog import LogContents, read_log
+from uwbd.mcaplog import LogContents, read_log, recover
 from uwbd.replay import replay
 from uwbd.simulator import Z_DOWN, SimConfig, simulate
 from uwbd.zenohsink import default_prefix
@@ -178,6 +178,23 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_recover(args: argparse.Namespace) -> int:
+    """Rewrite a log cut short by a crash (no footer) as a valid MCAP file."""
+    source, target = Path(args.log), Path(args.output)
+    if not source.is_file():
+        raise UsageError(f"cannot read {source}: no such file")
+    if target.resolve() == source.resolve():
+        raise UsageError(f"{target}: give another file to write, not the log itself")
+    try:
+        result = recover(source, target)
+    except OSError as err:
+        raise UsageError(f"cannot write {target}: {err.strerror or err}") from err
+    print(f"{target}: {result.messages} messages recovered from {source}"
+          + (f" (it ends mid-record: {result.error})" if result.truncated else
+             " (it was complete)"))
+    return 0
+
+
 def _load(path: str) -> Config:
     """A configuration file, or the one-line problem with file and key (exit 2)."""
     try:
@@ -276,6 +293,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", help="write the replayed run (raw, frames, poses) here")
     p.add_argument("--realtime", action="store_true", help="pace by the log's times")
     p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser("recover", help="rewrite a log cut short by a crash as a valid MCAP file")
+    p.add_argument("log")
+    p.add_argument("-o", "--output", required=True, help="the MCAP file to write")
+    p.set_defaults(func=cmd_recover)
 
     p = sub.add_parser("simulate", help="simulate a run and write its MCAP log")
     p.add_argument("-o", "--output", default="sim.mcap", help="log to write (default sim.mcap)")

@@ -12,7 +12,7 @@ version, the config TOML as used, and the sources (name, driver, port) as JSON.
 
 Reading is a linear scan of the records, so a log cut short by a crash (no footer, which
 the seeking reader refuses) reads up to its last complete chunk; ``LogContents.truncated``
-says so.
+says so. :func:`recover` rewrites such a file, any MCAP file, as a valid one.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from types import TracebackType
 from typing import IO, Any
 
 from mcap.exceptions import McapError
-from mcap.records import Channel, Message, Metadata
+from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
@@ -194,3 +194,44 @@ def read_log(path: Path) -> LogContents:
             out.truncated = True
             out.error = f"{path}: {type(err).__name__}: {err}"
     return out
+
+
+@dataclass(frozen=True)
+class Recovered:
+    messages: int
+    truncated: bool  # the source ended mid-record
+    error: str
+
+
+def recover(source: Path, target: Path) -> Recovered:
+    """Copy every complete record of ``source`` (schemas, channels, messages, metadata,
+    attachments) into a new, finished MCAP file ``target`` that seeking readers (Foxglove,
+    ``mcap`` tools) open. ``source`` may be any MCAP file, typically one a crash cut short."""
+    schemas: dict[int, int] = {0: 0}
+    channels: dict[int, int] = {}
+    count, error = 0, ""
+    with source.open("rb") as f, target.open("wb") as out:
+        w = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        w.start(profile="", library=f"uwbd {__version__} (recover)")
+        try:
+            for record in StreamReader(f).records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = w.register_schema(record.name, record.encoding,
+                                                           record.data)
+                elif isinstance(record, Channel):
+                    channels[record.id] = w.register_channel(
+                        record.topic, record.message_encoding,
+                        schemas.get(record.schema_id, 0), dict(record.metadata))
+                elif isinstance(record, Message) and record.channel_id in channels:
+                    w.add_message(channels[record.channel_id], record.log_time, record.data,
+                                  record.publish_time, record.sequence)
+                    count += 1
+                elif isinstance(record, Metadata):
+                    w.add_metadata(record.name, dict(record.metadata))
+                elif isinstance(record, Attachment):
+                    w.add_attachment(record.create_time, record.log_time, record.name,
+                                     record.media_type, record.data)
+        except (McapError, EOFError, ValueError, struct.error) as err:
+            error = f"{source}: {type(err).__name__}: {err}"
+        w.finish()  # type: ignore[no-untyped-call]
+    return Recovered(count, bool(error), error)
