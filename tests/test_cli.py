@@ -13,6 +13,7 @@ from pathlib import Path
 import serial
 
 from drivers import PARSERS
+from uwbd.mcaplog import read_log
 
 DATA = Path(__file__).parent / "data"
 UWBD = [sys.executable, "-m", "uwbd"]
@@ -101,6 +102,10 @@ def test_demo_runs_and_prints_a_summary() -> None:
     assert "imu" in out and "summary:" in out
     assert "pose (" in out  # a live fused pose line
     assert "fused pose vs scenario truth: XY RMSE" in out
+    # the log carries the truth, so `uwbd report` scores it as the summary suggests
+    log = Path(out.split("try: uwbd report ")[1].split(")")[0])
+    truth = list(read_log(log).json("/truth"))
+    assert len(truth) > 20 and truth[0]["pose"]["position"]["z"] == 0.5
 
 
 def test_demo_survives_ctrl_c_twice() -> None:

@@ -187,13 +187,17 @@ class SerialSource:
 
 
 async def run(config: Config, log_dir: Path, duration_s: float | None = None,
-              extra_sinks: tuple[Sink, ...] = ()) -> Pipeline:
-    """Run until SIGINT/SIGTERM (or ``duration_s``); returns the finished pipeline."""
+              extra_sinks: tuple[Sink, ...] = (),
+              on_log: Callable[[McapSink], None] | None = None) -> Pipeline:
+    """Run until SIGINT/SIGTERM (or ``duration_s``); returns the finished pipeline.
+    ``on_log`` is handed the log sink first, for callers with more to log (the demo: truth)."""
     loop = asyncio.get_running_loop()
     rotate_mb = config.log.get("rotate_mb", 256)
     rotate_min = config.log.get("rotate_minutes", 60)
     mcap = McapSink(config, directory=log_dir, rotate_bytes=int(rotate_mb * 1e6),
                     rotate_ns=int(rotate_min * 60e9), paced=True)
+    if on_log is not None:
+        on_log(mcap)
     sinks: list[Sink] = [*extra_sinks]
     if config.zenoh.get("enabled", True):
         try:

@@ -25,16 +25,20 @@ from uwbd.config import SourceConfig, parse, to_toml
 from uwbd.daemon import run
 from uwbd.fusion.types import Pose
 from uwbd.interrupt import shielded
+from uwbd.mcaplog import pose_message
+from uwbd.pipeline import McapSink
 
 DEMO_FAULTS = Faults(garbage_rate_hz=0.5, split=True, corrupt_prob=0.01)
 PREFIX = "uwbd/demo"
 
 
 class LiveView:
-    """A sink that prints a pose line a second and scores poses against the truth."""
+    """A sink that prints a pose line a second, scores poses against the truth, and puts the
+    truth in the log (``/truth`` at each pose) so ``uwbd report`` can score the log too."""
 
     def __init__(self, scenario: CircleScenario) -> None:
         self.scenario = scenario
+        self.log: McapSink | None = None
         self.start_ns = time.time_ns()
         self.errors_m: list[float] = []
         self.last: Pose | None = None
@@ -48,7 +52,13 @@ class LiveView:
 
     def pose(self, pose: Pose) -> None:
         self.last = pose
-        truth = self.scenario.position_m((pose.t_ns - self.start_ns) / 1e9)
+        t_s = (pose.t_ns - self.start_ns) / 1e9
+        truth = self.scenario.position_m(t_s)
+        if self.log is not None:
+            yaw = self.scenario.heading_rad(t_s)
+            self.log.json("/truth", pose.t_ns, pose_message(
+                pose.t_ns, truth, (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))),
+                "foxglove.PoseInFrame")
         self.errors_m.append(math.dist(pose.position_m[:2], truth[:2]))
         if pose.t_ns - self._printed_ns >= 1_000_000_000:
             self._printed_ns = pose.t_ns
@@ -59,6 +69,9 @@ class LiveView:
             print(f"{(pose.t_ns - self.start_ns) / 1e9:6.1f} s  pose ({x:6.2f}, {y:6.2f}, "
                   f"{z:5.2f}) m ±({sx:.2f}, {sy:.2f})  {speed:4.2f} m/s  {heading}  "
                   f"error {self.errors_m[-1]:.3f} m", flush=True)
+
+    def attach_log(self, log: McapSink) -> None:
+        self.log = log
 
     def status(self, t_ns: int, status: dict[str, Any]) -> None:
         """The summary reads the final status from the pipeline."""
@@ -75,8 +88,14 @@ def run_demo(workdir: Path, duration_s: float | None, seed: int) -> int:
     sock = workdir / "zenoh.sock"
     emu = Emulator(devices, scenario, None, workdir)
     sources = [SourceConfig(d.name, d.driver, emu.ports[d.name].path, 921600) for d in devices]
+    # the emulated sensors' specs, as a user would take them from the datasheets (their
+    # antenna delays are exact: no range offsets to estimate)
+    rate = math.sqrt(scenario.imu_rate_hz)
+    imu = {"acc_noise_mps2_rthz": scenario.acc_noise_mps2 / rate,
+           "gyro_noise_rps_rthz": scenario.gyro_noise_rps / rate}
     text = to_toml(sources, dict(enumerate(scenario.anchors_m)),
-                   ((1, 0, 0), (0, 1, 0), (0, 0, 1)), (0.0, 0.0, 0.0))
+                   ((1, 0, 0), (0, 1, 0), (0, 0, 1)), (0.0, 0.0, 0.0),
+                   {"range_sigma_m": scenario.range_noise_m, "range_bias_states": False}, imu)
     text += (f'\n[zenoh]\nprefix = "{PREFIX}"\nlisten = ["unixsock-stream/{sock}"]\n'
              "multicast_scouting = false\n")
     config = parse(text, "demo config")
@@ -86,7 +105,8 @@ def run_demo(workdir: Path, duration_s: float | None, seed: int) -> int:
     try:
         emu.start()
         view.start_ns = time.time_ns()
-        pipeline = asyncio.run(run(config, log_dir, duration_s, extra_sinks=(view,)))
+        pipeline = asyncio.run(run(config, log_dir, duration_s, extra_sinks=(view,),
+                                   on_log=view.attach_log))
     finally:
         with shielded():
             emu.close()

@@ -297,6 +297,10 @@ class McapSink:
     def status(self, t_ns: int, status: dict[str, Any]) -> None:
         self._write(t_ns, "json", "/status", t_ns, status)
 
+    def json(self, topic: str, t_ns: int, obj: dict[str, Any], schema_name: str = "") -> None:
+        """Any other JSON record (e.g. ``/truth`` when the truth is known)."""
+        self._write(t_ns, "json", topic, t_ns, obj, schema_name)
+
     def _close_current(self) -> None:
         if self._log is not None:
             try:

@@ -60,6 +60,10 @@ class CircleScenario:
             theta += w * (t_s - self.rest_s - self.ramp_s)
         return theta, v, v_dot
 
+    def heading_rad(self, t_s: float) -> float:
+        """True heading (yaw from east, counter-clockwise): along the circle's tangent."""
+        return self._motion(t_s)[0]
+
     def position_m(self, t_s: float) -> tuple[float, float, float]:
         """True position (ENU, m): the circle starts at the point due south of the centre."""
         theta, _, _ = self._motion(t_s)
