@@ -29,6 +29,7 @@ from uwbd.evaluate import (
     merge,
     run_filter,
     run_method,
+    run_smoother,
     score,
     score_poses,
     truth_spikes,
@@ -89,6 +90,9 @@ def accuracy_sim(seeds: int) -> None:
             poses, _, _ = run_filter(cfg, merge(sim.imu, sim.uwb))
             rows.setdefault(name, []).append(
                 score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=8))
+        t, p, cov = run_smoother(configs["tight ESKF"], merge(sim.imu, sim.uwb))
+        rows.setdefault("tight + RTS smoother", []).append(
+            score(t, p, sim.truth_t_ns, sim.truth_p_m, cov, skip_s=8))
     print(f"\naccuracy: simulator, 6 anchors, sigma_range 0.10 m, mean of {seeds} seeds")
     print(HEADER)
     for name, accs in rows.items():
@@ -117,6 +121,8 @@ def accuracy_real(directory: Path) -> None:
             np.array([q.t_ns for q in poses], dtype=np.int64),
             np.array([q.position_m for q in poses]),
             np.array([np.array(q.covariance).reshape(6, 6)[:3, :3] for q in poses]))
+    results["tight + RTS smoother"] = run_smoother(
+        FilterConfig(anchors_m=ds.anchors_m, mounting_rotation=Z_DOWN), merge(ds.imu, ds.uwb))
     for label, mask in (("all truth samples", np.ones_like(clean)),
                         (f"truth without its {int((~clean).sum())} mocap spike(s)", clean)):
         print(f"\naccuracy: real flight {directory.name}, {label}")

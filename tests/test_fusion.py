@@ -10,12 +10,21 @@ import pytest
 from scipy.stats import chi2
 
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
-from uwbd.evaluate import merge, run_filter, run_method, score, score_poses, truth_spikes
+from uwbd.evaluate import (
+    merge,
+    run_filter,
+    run_method,
+    run_smoother,
+    score,
+    score_poses,
+    truth_spikes,
+)
 from uwbd.fusion.baselines import ComplementaryAttitude, Kf4, PureIns, UwbLeastSquares
 from uwbd.fusion.eskf import N_CORE, Eskf, ImuNoise
 from uwbd.fusion.filter import Filter, FilterConfig, Mode, chi2_quantile
 from uwbd.fusion.lsq import coplanar, multilaterate
 from uwbd.fusion.rotation import euler_from_quat, quat_from_euler, quat_to_matrix
+from uwbd.fusion.smoother import smooth
 from uwbd.simulator import SimConfig, Simulation, simulate
 
 SHORT = ((4.0, 0.0, 0.0, 0.0), (5.0, 1.5, 0.0, 0.0), (5.2, 1.5, 0.3, 0.0),
@@ -268,3 +277,42 @@ def test_complementary_filter_finds_roll_and_pitch_at_rest() -> None:
 @pytest.mark.parametrize("dof", [1, 3])
 def test_chi2_gate_quantiles_match_scipy(p: float, dof: int) -> None:
     assert chi2_quantile(p, dof) == pytest.approx(chi2.ppf(p, dof), rel=1e-12)
+
+
+# -- the smoother -----------------------------------------------------------------------
+def test_smoother_beats_the_filter_and_stays_consistent(sim: Simulation) -> None:
+    cfg = config_for(sim)
+    frames = list(merge(sim.imu, sim.uwb))
+    poses, _, _ = run_filter(cfg, frames)
+    filtered = score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=8)
+    t, p, cov = run_smoother(cfg, frames)
+    smoothed = score(t, p, sim.truth_t_ns, sim.truth_p_m, cov, skip_s=8)
+    assert smoothed.rmse_xy_m < 0.8 * filtered.rmse_xy_m
+    assert smoothed.rmse_3d_m < filtered.rmse_3d_m
+    assert 0.1 < smoothed.nees_mean < 3  # not overconfident (a short run: conservative)
+    # the filter's epochs (but the one it started at), and never less certain than the filter
+    assert list(t) == [q.t_ns for q in poses[1:]]
+    sigma_f = np.array([np.trace(np.array(q.covariance).reshape(6, 6)[:3, :3])
+                        for q in poses[1:]])
+    assert np.all(np.trace(cov, axis1=1, axis2=2) <= sigma_f * (1 + 1e-9))
+
+
+def test_smoother_does_not_reach_across_a_break(sim: Simulation) -> None:
+    """Before the heading is aligned and at an IMU gap the state is changed outside the
+    Kalman model: those epochs start a new stretch and keep their filtered estimate."""
+    imu = [f for f in sim.imu if not 12e9 <= f.t_ns - sim.imu[0].t_ns < 13e9]
+    flt = Filter(config_for(sim), record=True)
+    for frame in merge(imu, sim.uwb):
+        flt.predict(frame) if isinstance(frame, ImuSample) else flt.update(frame)
+    assert flt.records is not None and flt.counters["imu_gaps"] == 1
+    breaks = [k for k, r in enumerate(flt.records) if r.Phi is None]
+    assert breaks[0] == 0 and len(breaks) > 1
+    gap = [r.Phi is None for r in flt.records if 12e9 <= r.t_ns - sim.imu[0].t_ns < 13.5e9]
+    assert any(gap)  # the gap's epochs are breaks
+    smoothed = smooth(flt.records)
+    changed = [not np.array_equal(x.p, r.post.p) for (_, x, _), r in zip(
+        smoothed, flt.records, strict=True)]
+    for k in range(len(flt.records) - 1):
+        if flt.records[k + 1].Phi is None:  # no successor to learn from: filtered estimate
+            assert not changed[k]
+    assert sum(changed) > len(changed) / 2

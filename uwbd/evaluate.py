@@ -11,8 +11,10 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.frames import Frame, ImuSample, UwbRanges
+from uwbd.fusion.eskf import P_
 from uwbd.fusion.filter import Filter, FilterConfig
 from uwbd.fusion.rotation import Array
+from uwbd.fusion.smoother import smooth
 from uwbd.fusion.types import FusionReport, Pose
 
 
@@ -39,6 +41,23 @@ def run_filter(config: FilterConfig, frames: Iterable[Frame]
             if pose is not None:
                 poses.append(pose)
     return poses, reports, flt
+
+
+def run_smoother(config: FilterConfig, frames: Iterable[Frame]
+                 ) -> tuple[npt.NDArray[np.int64], Array, Array]:
+    """The filter over ``frames``, then RTS-smoothed: times, IMU positions and their
+    covariances at every UWB epoch."""
+    flt = Filter(config, record=True)
+    for frame in frames:
+        if isinstance(frame, ImuSample):
+            flt.predict(frame)
+        else:
+            flt.update(frame)
+    assert flt.records is not None
+    smoothed = smooth(flt.records)
+    return (np.array([t for t, _, _ in smoothed], dtype=np.int64),
+            np.array([x.p for _, x, _ in smoothed]).reshape(-1, 3),
+            np.array([P[P_, P_] for _, _, P in smoothed]).reshape(-1, 3, 3))
 
 
 @dataclass(frozen=True)

@@ -56,6 +56,7 @@ class Eskf:
         self.P = P0.astype(float).copy()
         self.noise = noise
         self._reset_interval()
+        self.last_Phi = np.eye(N_CORE)  # the core's Φ of the last propagate() (smoothing)
         # constants of propagate() and update()
         self._I = np.eye(self.n)
         self._I_core = np.eye(N_CORE)
@@ -137,6 +138,7 @@ class Eskf:
         so Φ is built and applied on the core rows and columns alone."""
         T = self._T
         if T <= 0.0:
+            self.last_Phi = self._I_core
             return
         R = self.R
         f_n = np.array(self._sum_fn) / T
@@ -147,6 +149,7 @@ class Eskf:
         F[TH_, TH_] = -skew(w)
         A = F * T
         Phi = self._I_core + A + 0.5 * (A @ A)
+        self.last_Phi = Phi
         P = self.P
         P[:N_CORE, :] = Phi @ P[:N_CORE, :]
         P[:, :N_CORE] = P[:, :N_CORE] @ Phi.T

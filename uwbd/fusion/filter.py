@@ -37,6 +37,7 @@ from uwbd.fusion.eskf import GRAVITY_MPS2, N_CORE, P_, TH_, V_, Eskf, ImuNoise
 from uwbd.fusion.gating import GatingCounters, GatingPolicy, gate
 from uwbd.fusion.lsq import LsqFix, coplanar, multilaterate
 from uwbd.fusion.rotation import Array, quat_from_euler, quat_to_matrix, skew
+from uwbd.fusion.smoother import EpochRecord, Nominal
 from uwbd.fusion.types import FusionReport, Pose
 
 Vec3 = tuple[float, float, float]
@@ -110,8 +111,12 @@ class FilterConfig:
 class Filter:
     """Loosely or tightly coupled UWB/INS error-state EKF (see module doc)."""
 
-    def __init__(self, config: FilterConfig) -> None:
+    def __init__(self, config: FilterConfig, record: bool = False) -> None:
+        """``record``: keep every epoch's prior and posterior for :mod:`.smoother` (offline;
+        about 13 kB an epoch with 8 anchors)."""
         self.cfg = config
+        self.records: list[EpochRecord] | None = [] if record else None
+        self._coasted = False
         self.C_bs = np.array(config.mounting_rotation, dtype=float)
         if not np.allclose(self.C_bs @ self.C_bs.T, np.eye(3), atol=1e-6) or \
                 np.linalg.det(self.C_bs) < 0:
@@ -167,6 +172,7 @@ class Filter:
         dt = (imu.t_ns - self.t_ns) / 1e9
         if gap:
             self.counters["imu_gaps"] += 1  # coasted through by _predict_to; resume here
+            self._coasted = True
         elif dt > 0:
             self.ekf.predict(acc, gyro, dt)
         self.t_ns = imu.t_ns
@@ -201,6 +207,9 @@ class Filter:
         self._predict_to(uwb.t_ns)
         dv = self.ekf.interval_dv_n()  # read before propagate() starts a new interval
         self.ekf.propagate()
+        # the smoother can step back from this epoch over a plain Kalman prediction only
+        linked = self._aligned and not self._coasted
+        self._coasted = False
         if not self._aligned:
             self._aligner.add_ins_dv(dv)
             # the heading is unknown: the INS's horizontal Δv may point anywhere; for a heading
@@ -212,9 +221,16 @@ class Filter:
             self._align_heading(uwb.t_ns, fix, anchors, ranges)
         rows = Rows.stack([self._measurement_rows(ids, anchors, ranges, fix),
                            *self._constraints()])
+        prior = self._snapshot() if self.records is not None else None
         reports += self._fuse(uwb.t_ns, rows)
         if self._needs_recovery(reports):
             self._recover(fix or self._lsq(anchors, ranges))
+            linked = False
+        if self.records is not None and prior is not None:
+            Phi = np.eye(self.ekf.n)
+            Phi[:N_CORE, :N_CORE] = self.ekf.last_Phi
+            self.records.append(EpochRecord(uwb.t_ns, *prior, *self._snapshot(),
+                                            Phi if linked else None))
         self._update_status()
         return reports
 
@@ -238,6 +254,12 @@ class Filter:
         )
 
     # -- internals ------------------------------------------------------------------------
+    def _snapshot(self) -> tuple[Nominal, Array]:
+        ekf = self.ekf
+        assert ekf is not None
+        return (Nominal(np.array(ekf.p), np.array(ekf.v), np.array(ekf.q), np.array(ekf.b_g),
+                        np.array(ekf.b_a), ekf.b_r.copy()), ekf.P.copy())
+
     def _to_body(self, v: tuple[float, float, float]) -> Vec3:
         """``C_bs v`` in plain floats: this runs for every IMU sample."""
         (a, b, c), (d, e, f), (g, h, i) = self._C
@@ -361,6 +383,7 @@ class Filter:
         if fresh and self._last_imu is not None:
             ekf.predict(self._last_imu[0], self._last_imu[1], dt)
         else:
+            self._coasted = True
             ekf.p = [p + v * dt for p, v in zip(ekf.p, ekf.v, strict=True)]
             self._inflate(velocity_mps=1.0 * dt, attitude_rad=0.01 * dt,
                           position_m=0.5 * dt)
