@@ -56,11 +56,6 @@ def encode(frame: UwbRanges) -> bytes:
             + bytes((T_TAG_DISTANCES, length, len(frame.ranges))) + entries)
 
 
-def encode_error(code: int) -> bytes:
-    """A status-only reply carrying error ``code``."""
-    return bytes((T_STATUS, 1, code))
-
-
 class Dwm1001TlvParser(BufferedParser):
     """Incremental parser of ``loc_get`` responses into :class:`UwbRanges`."""
 

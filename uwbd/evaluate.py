@@ -26,10 +26,10 @@ def merge(imu: Iterable[ImuSample], uwb: Iterable[UwbRanges]) -> Iterator[Frame]
     return (f for _, _, f in tagged)
 
 
-def run_filter(config: FilterConfig, frames: Iterable[Frame]
+def run_filter(config: FilterConfig, frames: Iterable[Frame], record: bool = False
                ) -> tuple[list[Pose], list[FusionReport], Filter]:
-    """The filter over ``frames``; a pose after every UWB epoch."""
-    flt = Filter(config)
+    """The filter over ``frames``; a pose after every UWB epoch (``record``: for smoothing)."""
+    flt = Filter(config, record)
     poses: list[Pose] = []
     reports: list[FusionReport] = []
     for frame in frames:
@@ -47,12 +47,7 @@ def run_smoother(config: FilterConfig, frames: Iterable[Frame]
                  ) -> tuple[npt.NDArray[np.int64], Array, Array]:
     """The filter over ``frames``, then RTS-smoothed: times, IMU positions and their
     covariances at every UWB epoch."""
-    flt = Filter(config, record=True)
-    for frame in frames:
-        if isinstance(frame, ImuSample):
-            flt.predict(frame)
-        else:
-            flt.update(frame)
+    _, _, flt = run_filter(config, frames, record=True)
     assert flt.records is not None
     smoothed = smooth(flt.records)
     return (np.array([t for t, _, _ in smoothed], dtype=np.int64),

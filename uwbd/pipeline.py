@@ -257,6 +257,8 @@ class McapSink:
         return path
 
     def _write(self, t_ns: int, action: str, *args: Any) -> None:
+        if self.error:
+            return  # logging has stopped: keep nothing
         behind = self._behind
         behind.append((t_ns, action, args))
         if t_ns - behind[0][0] >= self._max_behind_ns:
@@ -295,7 +297,7 @@ class McapSink:
         self._write(pose.t_ns, "pose", pose)
 
     def status(self, t_ns: int, status: dict[str, Any]) -> None:
-        self._write(t_ns, "json", "/status", t_ns, status)
+        self.json("/status", t_ns, status)
 
     def json(self, topic: str, t_ns: int, obj: dict[str, Any], schema_name: str = "") -> None:
         """Any other JSON record (e.g. ``/truth`` when the truth is known)."""

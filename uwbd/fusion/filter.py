@@ -61,10 +61,8 @@ class Rows(NamedTuple):
     @staticmethod
     def stack(parts: list[Rows]) -> Rows:
         parts = [r for r in parts if r.keys]
-        if len(parts) == 1:
-            return parts[0]
-        if not parts:
-            return Rows(np.zeros((0, 0)), np.zeros(0), np.zeros(0), [])
+        if len(parts) <= 1:
+            return parts[0] if parts else Rows.empty(0)
         return Rows(np.vstack([r.H for r in parts]), np.concatenate([r.y for r in parts]),
                     np.concatenate([r.R for r in parts]), [k for r in parts for k in r.keys])
 
@@ -226,7 +224,7 @@ class Filter:
         if self._needs_recovery(reports):
             self._recover(fix or self._lsq(anchors, ranges))
             linked = False
-        if self.records is not None and prior is not None:
+        if prior is not None and self.records is not None:
             Phi = np.eye(self.ekf.n)
             Phi[:N_CORE, :N_CORE] = self.ekf.last_Phi
             self.records.append(EpochRecord(uwb.t_ns, *prior, *self._snapshot(),
@@ -464,8 +462,8 @@ class Filter:
         S = ekf.innovation_variances(H, R)
         nis = y * y / S
         accept = nis <= self._gate_1
-        if keys[0][0] == "position":  # a position fix is one 3-D measurement: gate it as one
-            idx = np.array([k[0] == "position" for k in keys])
+        idx = np.array([k[0] == "position" for k in keys])
+        if idx.any():  # a position fix is one 3-D measurement: gate it as one
             Hl = H[idx]
             Sl = Hl @ ekf.P @ Hl.T + np.diag(R[idx])
             nis_l = float(y[idx] @ np.linalg.solve(Sl, y[idx]))
@@ -479,9 +477,7 @@ class Filter:
         counters = self.counters
         for r in reports:
             counters[f"{r.kind}_{'accepted' if r.accepted else 'rejected'}"] += 1
-        if accept.all():
-            ekf.update(H, y, R)
-        elif accept.any():
+        if accept.any():
             ekf.update(H[accept], y[accept], R[accept])
         return reports
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from uwbd.fusion.eskf import N_CORE, P_, TH_
+from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, V_
 from uwbd.fusion.rotation import Array, quat_from_rotvec, quat_mul
 
 
@@ -46,8 +46,8 @@ class Nominal:
     def plus(self, dx: Array) -> Nominal:
         """``self ⊕ δx`` (the filter's own injection)."""
         q = quat_mul(self.q, quat_from_rotvec(dx[TH_]))
-        return Nominal(self.p + dx[P_], self.v + dx[3:6], q / np.linalg.norm(q),
-                       self.b_g + dx[9:12], self.b_a + dx[12:15], self.b_r + dx[N_CORE:])
+        return Nominal(self.p + dx[P_], self.v + dx[V_], q / np.linalg.norm(q),
+                       self.b_g + dx[BG_], self.b_a + dx[BA_], self.b_r + dx[N_CORE:])
 
 
 @dataclass(frozen=True)
