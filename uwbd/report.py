@@ -11,6 +11,7 @@ truth has motion-capture spikes, the same table without them. Written: ``traject
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
 import matplotlib
@@ -51,7 +52,8 @@ def run_all(rec: Recording) -> tuple[dict[str, Track], dict[str, float]]:
             np.array([q.position_m for q in poses]).reshape(-1, 3),
             np.array([np.array(q.covariance).reshape(6, 6)[:3, :3] for q in poses]))
         nis = [r.nis for r in reports if r.accepted and r.kind in ("range", "position")]
-        extra[f"{mode.value} ESKF mean NIS (accepted UWB)"] = float(np.mean(nis)) if nis else 0.0
+        mean_nis = float(np.mean(nis)) if nis else math.nan  # nan: nothing was accepted
+        extra[f"{mode.value} ESKF mean NIS (accepted UWB)"] = mean_nis
     tracks["tight + RTS smoother"] = run_smoother(dataclasses.replace(cfg, mode=Mode.TIGHT),
                                                   rec.frames)
     return tracks, extra
