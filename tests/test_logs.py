@@ -12,11 +12,13 @@ from mcap.reader import make_reader
 
 from drivers.frames import ImuSample, UwbRanges
 from uwbd import config as cfgmod
+from uwbd.importer import INROL_EPOCH_NS
 from uwbd.logtools import load_recording, write_simulation
 from uwbd.mcaplog import LogWriter, SourceInfo, read_log
-from uwbd.simulator import SimConfig, simulate
+from uwbd.simulator import EPOCH_NS, SimConfig, simulate
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "iasl-s1"
+INROL = DATA.parent / "inrol-env1"
 UWBD = [sys.executable, "-m", "uwbd"]
 SHORT = ((3.0, 0.0, 0.0, 0.0), (4.0, 1.0, 0.2, 0.0), (2.0, 0.0, 0.0, 0.0))
 
@@ -171,3 +173,104 @@ def test_fusion_commands_fail_clearly(tmp_path: Path) -> None:
     assert bad.returncode == 2 and "imu.csv" in bad.stderr
     gone = uwbd("recover", "nope.mcap", "-o", "out.mcap", cwd=tmp_path)
     assert gone.returncode == 2 and "nope.mcap" in gone.stderr
+
+
+INROL_FILES = {
+    "anchor.txt": """# anchor_id tx ty tz qx qy qz qw
+1 0.0 0.0 0.3 0.5 0.5 0.5 -0.5
+3 4.0 0.0 2.3 0.5 -0.5 0.5 0.5
+2 0.0 4.0 0.3 0.0 0.0 0.0 1.0
+""",
+    "imu.txt": """# index timestamp wx wy wz ax ay az
+0 0.005000000000 0.01 0.02 0.03 0.1 0.2 9.8
+1 0.015000000000 0.01 0.02 0.03 0.1 0.2 9.8
+2 0.025000000000 0.01 0.02 0.03 0.1 0.2 9.8
+""",
+    # two ranges share a stamp; one line is out of time order, as in the real run
+    "uwb.txt": """# index timestamp anchor_id r
+0 0.100000000000 1 2.0
+1 0.100000000000 2 3.0
+2 0.110000000000 3 4.0
+3 0.123456789123 1 2.1
+4 0.120000000000 2 3.1
+""",
+    "imu_pose.txt": """# timestamp tx ty tz qx qy qz qw
+0.000000000000 1.0 2.0 0.5 0.0 0.0 0.0 1.0
+0.010000000000 1.0 2.0 0.5 0.0 0.0 0.707106781187 0.707106781187
+""",
+}
+
+
+def inrol_dir(root: Path, **replace: str) -> Path:
+    """A tiny dataset in the inrol layout; ``replace`` swaps a file's text (``""``: none)."""
+    root.mkdir()
+    for name, text in {**INROL_FILES, **replace}.items():
+        if text:
+            (root / name).write_text(text)
+    return root
+
+
+def test_import_inrol_layout_as_a_command(tmp_path: Path) -> None:
+    imp = uwbd("import", "inrol", str(inrol_dir(tmp_path / "run")), "-o", "i.mcap",
+               cwd=tmp_path)
+    assert imp.returncode == 0, imp.stderr
+    assert "3 IMU samples, 4 UWB messages (5 ranges), 2 truth samples" in imp.stdout
+    contents = read_log(tmp_path / "i.mcap")
+    rec = load_recording(contents, "i.mcap")
+    imu = [f for f in rec.frames if isinstance(f, ImuSample)]
+    uwb = [f for f in rec.frames if isinstance(f, UwbRanges)]
+    assert INROL_EPOCH_NS == EPOCH_NS  # the simulator's epoch
+    assert [f.t_ns - INROL_EPOCH_NS for f in imu] == [5_000_000, 15_000_000, 25_000_000]
+    assert imu[0].acc_mps2 == (0.1, 0.2, 9.8) and imu[0].gyro_rps == (0.01, 0.02, 0.03)
+    # equal stamps make one message, others one each, in time order; exact nanoseconds
+    assert [(m.t_ns - INROL_EPOCH_NS, [(r.anchor_id, r.range_m) for r in m.ranges])
+            for m in uwb] == [(100_000_000, [(1, 2.0), (2, 3.0)]), (110_000_000, [(3, 4.0)]),
+                              (120_000_000, [(2, 3.1)]), (123_456_789, [(1, 2.1)])]
+    assert rec.config.anchors_m == {1: (0.0, 0.0, 0.3), 2: (0.0, 4.0, 0.3),
+                                    3: (4.0, 0.0, 2.3)}
+    assert rec.config.mounting == ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    assert rec.config.lever_arm_m == (0.0, 0.0, 0.01)
+    assert rec.config.fusion == {}  # the filter's defaults: tight, one range at a time
+    truth = list(contents.json("/truth"))
+    assert [d["t_ns"] - INROL_EPOCH_NS for d in truth] == [0, 10_000_000]
+    assert truth[1]["pose"]["position"] == {"x": 1.0, "y": 2.0, "z": 0.5}
+    q = truth[1]["pose"]["orientation"]
+    assert [q[k] for k in "xyzw"] == pytest.approx([0.0, 0.0, 0.7071067812, 0.7071067812])
+
+
+@pytest.mark.parametrize(("name", "text", "message"), [
+    ("uwb.txt", INROL_FILES["uwb.txt"].replace(" 3.0\n", " 3.o\n"),
+     "uwb.txt: line 3: r: not a number: '3.o'"),
+    ("imu.txt", INROL_FILES["imu.txt"].replace(" 0.03 0.1 0.2 9.8\n2", " 0.03 0.1 0.2\n2", 1),
+     "imu.txt: line 3: expected 8 values, got 7"),
+    ("uwb.txt", INROL_FILES["uwb.txt"].replace("0.110000000000 3", "0.11s 3"),
+     "uwb.txt: line 4: timestamp: not a number: '0.11s'"),
+    ("imu_pose.txt", "", "imu_pose.txt: No such file or directory"),
+])
+def test_import_inrol_errors_are_one_line(tmp_path: Path, name: str, text: str,
+                                          message: str) -> None:
+    bad = uwbd("import", "inrol", str(inrol_dir(tmp_path / "run", **{name: text})),
+               cwd=tmp_path)
+    assert bad.returncode == 2
+    (line,) = bad.stderr.splitlines()
+    assert line.startswith("uwbd import: ") and str(tmp_path / "run" / name) in line
+    assert message in line and "Traceback" not in bad.stderr
+    assert not (tmp_path / "import.mcap").exists()
+
+
+@pytest.mark.skipif(not INROL.is_dir(), reason="shared/data not beside the repository")
+def test_import_real_inrol_run(tmp_path: Path) -> None:
+    imp = uwbd("import", "inrol", str(INROL), "-o", "r.mcap", cwd=tmp_path)
+    assert imp.returncode == 0, imp.stderr
+    rows = {name: [line.split() for line in (INROL / name).read_text().splitlines()[1:]]
+            for name in ("imu.txt", "uwb.txt", "imu_pose.txt")}
+    contents = read_log(tmp_path / "r.mcap")
+    rec = load_recording(contents, "r.mcap")
+    imu = [f for f in rec.frames if isinstance(f, ImuSample)]
+    uwb = [f for f in rec.frames if isinstance(f, UwbRanges)]
+    assert len(imu) == len(rows["imu.txt"])
+    assert sum(len(m.ranges) for m in uwb) == len(rows["uwb.txt"])
+    assert len(uwb) == len({r[1] for r in rows["uwb.txt"]})
+    assert len(rec.truth_t_ns) == len(rows["imu_pose.txt"])
+    assert set(rec.config.anchors_m) == set(range(1, 9))
+    assert rec.frames[0].t_ns - INROL_EPOCH_NS < 100_000_000  # the files' clock starts at 0

@@ -12,7 +12,7 @@ import asyncio
 import json
 import sys
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import BinaryIO
 
@@ -26,7 +26,14 @@ from uwbd.config import load as load_config
 from uwbd.daemon import run as run_daemon
 from uwbd.demo import run_demo
 from uwbd.echo import echo
-from uwbd.importer import DatasetError, load_iasl
+from uwbd.importer import (
+    INROL_LEVER_ARM_M,
+    INROL_MOUNTING,
+    Dataset,
+    DatasetError,
+    load_iasl,
+    load_inrol,
+)
 from uwbd.interrupt import shielded, wait_until
 from uwbd.logtools import load_recording, write_dataset, write_simulation
 from uwbd.mcaplog import LogContents, read_log, recover
@@ -121,16 +128,32 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+# dataset layout -> (loader, IMU mounting sensor -> body, IMU -> antenna lever arm m)
+IMPORTERS: dict[str, tuple[Callable[[Path], Dataset], Sequence[Sequence[float]],
+                           Sequence[float]]] = {
+    "iasl": (load_iasl, Z_DOWN, (0.0, 0.0, 0.0)),
+    "inrol": (load_inrol, INROL_MOUNTING, INROL_LEVER_ARM_M),
+}
+
+
 def cmd_import(args: argparse.Namespace) -> int:
     """Turn a recorded dataset into a replayable log with its ground truth."""
     directory, out = Path(args.directory), Path(args.output)
+    load, mounting, lever_arm_m = IMPORTERS[args.format]
     try:
-        ds = load_iasl(directory)
+        ds = load(directory)
     except DatasetError as err:
         raise UsageError(str(err)) from err
-    write_dataset(ds, out, Z_DOWN)
-    print(f"{out}: {len(ds.imu)} IMU samples, {len(ds.uwb)} UWB epochs, "
-          f"{len(ds.truth_t_ns)} truth samples from {directory}")
+    try:
+        write_dataset(ds, out, mounting, lever_arm_m)
+    except OSError as err:
+        raise UsageError(f"cannot write {out}: {err.strerror or err}") from err
+    # the loaders return every stream non-empty and in time order
+    start = min(ds.imu[0].t_ns, ds.uwb[0].t_ns, int(ds.truth_t_ns[0]))
+    end = max(ds.imu[-1].t_ns, ds.uwb[-1].t_ns, int(ds.truth_t_ns[-1]))
+    print(f"{out}: {len(ds.imu)} IMU samples, {len(ds.uwb)} UWB messages "
+          f"({sum(len(m.ranges) for m in ds.uwb)} ranges), {len(ds.truth_t_ns)} truth samples, "
+          f"{(end - start) / 1e9:.1f} s from {directory}")
     return 0
 
 
@@ -306,8 +329,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser("import", help="turn a recorded dataset into an MCAP log")
-    p.add_argument("format", choices=["iasl"], help="dataset layout")
-    p.add_argument("directory", help="dataset folder (imu.csv, uwb.csv, gt.csv)")
+    p.add_argument("format", choices=list(IMPORTERS), help="dataset layout")
+    p.add_argument("directory", help="dataset folder (iasl: imu.csv, uwb.csv, gt.csv; "
+                   "inrol: anchor.txt, imu.txt, uwb.txt, imu_pose.txt)")
     p.add_argument("-o", "--output", default="import.mcap")
     p.set_defaults(func=cmd_import)
 

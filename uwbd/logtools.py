@@ -69,8 +69,11 @@ def write_simulation(sim: Simulation, path: Path, uwb_driver: str = "nlink") -> 
                 next_flush += FLUSH_EVERY_NS
 
 
-def write_dataset(ds: Dataset, path: Path, mounting: Sequence[Sequence[float]]) -> None:
-    toml = cfgmod.to_toml((), ds.anchors_m, mounting, (0.0, 0.0, 0.0))
+def write_dataset(ds: Dataset, path: Path, mounting: Sequence[Sequence[float]],
+                  lever_arm_m: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
+    """The dataset as a log of decoded frames and truth; its config holds the anchors, the
+    IMU mounting (sensor -> body) and the IMU-to-antenna lever arm, fusion at defaults."""
+    toml = cfgmod.to_toml((), ds.anchors_m, mounting, lever_arm_m)
     with LogWriter(path, toml) as log:
         for frame in merge(ds.imu, ds.uwb):
             log.frame(frame)

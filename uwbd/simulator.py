@@ -7,15 +7,31 @@ integrated at 1 kHz; the IMU is derived from the same analytic accelerations, so
 truth agree to integration error (< 1 mm over a run).
 
 Sensors: IMU at ``imu_rate_hz`` in the sensor axes of ``mounting`` (default z-down: x
-forward, y right, z down), with constant biases and white noise; ranges from the antenna
-(lever arm) to each anchor at ``uwb_rate_hz`` with white noise, a constant per-anchor bias,
-NLOS bursts (a positive extra delay for a while) and random dropouts. Everything is drawn
-from one seeded generator.
+forward, y right, z down), with constant biases and white noise, clipped at the full scale;
+ranges from the antenna (lever arm) to each anchor with white noise, a constant per-anchor
+bias, NLOS bursts (a positive extra delay for a while) and random dropouts. Everything is
+drawn from one seeded generator.
+
+UWB schedules: ``"epoch"`` (default) sends all anchors' ranges in one message at
+``uwb_rate_hz``; ``"round_robin"`` sends one range per message, the anchors polled in turn,
+``uwb_rate_hz`` being the total range rate, each time jittered by up to ``uwb_jitter_s``.
+
+Faults, all off by default, windows as (start s, duration s) from the run's start, a window
+covering start <= t < start + duration: ``anchor_outages_s`` (one anchor sends nothing),
+``uwb_outages_s`` (no UWB message), ``imu_gaps_s`` (no IMU sample), ``imu_saturations_s``
+(every sample pinned at +full scale on every sensor axis), and ``imu_spikes_s`` (the IMU
+sample nearest each time gets ``imu_spike_acc_mps2`` / ``imu_spike_gyro_rps`` added). The
+faults take no draws from the generator, so a run with faults is the run without them,
+with the faulted parts changed or removed. Truth stays at the nominal IMU times throughout.
+
+Presets (functions of the seed returning a :class:`SimConfig`): :func:`seed_layout`,
+:func:`ceiling_room`, :func:`handheld_async`; all in ``PRESETS``.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -70,6 +86,21 @@ class SimConfig:
     nlos_extra_m: tuple[float, float] = (0.3, 1.0)
     dropout_prob: float = 0.02
     seed: int = 0
+    # UWB schedule: "epoch" (all anchors in one message at uwb_rate_hz) or "round_robin"
+    # (one range a message, anchors in turn, uwb_rate_hz the total rate, times jittered)
+    uwb_schedule: str = "epoch"
+    uwb_jitter_s: float = 0.001  # round_robin: each time moved by U(-j, +j)
+    anchor_nlos_rate_hz: tuple[float, ...] = ()  # per anchor; empty: nlos_rate_hz for all
+    # faults, windows (start s, duration s) from the run's start
+    anchor_outages_s: tuple[tuple[int, float, float], ...] = ()  # (anchor index, start, dur)
+    uwb_outages_s: tuple[tuple[float, float], ...] = ()
+    imu_gaps_s: tuple[tuple[float, float], ...] = ()
+    imu_saturations_s: tuple[tuple[float, float], ...] = ()
+    imu_spikes_s: tuple[float, ...] = ()  # the sample nearest each time is corrupted
+    imu_spike_acc_mps2: tuple[float, float, float] = (100.0, 0.0, 0.0)  # added, sensor axes
+    imu_spike_gyro_rps: tuple[float, float, float] = (0.0, 0.0, 20.0)
+    acc_full_scale_mps2: float = 16 * GRAVITY_MPS2
+    gyro_full_scale_rps: float = math.radians(2000)
 
 
 def sensor_settings(cfg: SimConfig) -> tuple[dict[str, float], dict[str, float]]:
@@ -84,7 +115,8 @@ def sensor_settings(cfg: SimConfig) -> tuple[dict[str, float], dict[str, float]]
 
 @dataclass
 class Simulation:
-    """Frames (time-ordered per stream) and truth sampled at the IMU times."""
+    """Frames (time-ordered per stream) and truth sampled at the nominal IMU times (also
+    through IMU gaps)."""
 
     config: SimConfig
     imu: list[ImuSample] = field(default_factory=list)
@@ -117,11 +149,39 @@ def _commands(cfg: SimConfig, t: Array) -> tuple[Array, Array]:
     return values, rates
 
 
+def _in_windows(t: Array, windows: tuple[tuple[float, float], ...]) -> npt.NDArray[np.bool_]:
+    """Which times lie in one of the (start, duration) windows: start <= t < start + duration."""
+    inside = np.zeros(np.shape(t), dtype=bool)
+    for start, duration in windows:
+        inside |= (t >= start) & (t < start + duration)
+    return inside
+
+
+def _check(cfg: SimConfig, total_s: float) -> None:
+    if cfg.uwb_schedule not in ("epoch", "round_robin"):
+        raise ValueError(f"uwb_schedule must be 'epoch' or 'round_robin', "
+                         f"got {cfg.uwb_schedule!r}")
+    n = len(cfg.anchors_m)
+    if cfg.anchor_nlos_rate_hz and len(cfg.anchor_nlos_rate_hz) != n:
+        raise ValueError(f"anchor_nlos_rate_hz: {len(cfg.anchor_nlos_rate_hz)} rates "
+                         f"for {n} anchors")
+    for i, _, _ in cfg.anchor_outages_s:
+        if not 0 <= i < n:
+            raise ValueError(f"anchor_outages_s: no anchor {i} (there are {n})")
+    if cfg.uwb_schedule == "round_robin" and not 0 <= 2 * cfg.uwb_jitter_s < 1 / cfg.uwb_rate_hz:
+        raise ValueError(f"uwb_jitter_s {cfg.uwb_jitter_s} must be under half the "
+                         f"{1 / cfg.uwb_rate_hz:.4f} s between ranges")
+    for ts in cfg.imu_spikes_s:
+        if not 0 <= ts <= total_s:
+            raise ValueError(f"imu_spikes_s: {ts} s is outside the {total_s} s run")
+
+
 def simulate(cfg: SimConfig | None = None) -> Simulation:
     """Run the simulator (deterministic for a given config and seed)."""
     cfg = cfg or SimConfig()
     rng = np.random.default_rng(cfg.seed)
     total_s = sum(seg[0] for seg in cfg.segments)
+    _check(cfg, total_s)
     fine_hz = 1000.0
     t = np.arange(0.0, total_s, 1.0 / fine_hz)
     (cmd, dcmd) = _commands(cfg, t)
@@ -153,27 +213,203 @@ def simulate(cfg: SimConfig | None = None) -> Simulation:
     w_b = np.column_stack([np.zeros(len(idx)), np.zeros(len(idx)), yaw_rate[idx]])
     acc_s = (f_b @ C_sb.T) + sim.acc_bias_mps2 + rng.normal(0, cfg.acc_noise_mps2, f_b.shape)
     gyro_s = (w_b @ C_sb.T) + sim.gyro_bias_rps + rng.normal(0, cfg.gyro_noise_rps, w_b.shape)
+    kept = _imu_faults(cfg, t[idx], acc_s, gyro_s)
     sim.imu = [ImuSample(int(tn), (float(f[0]), float(f[1]), float(f[2])),
                          (float(g[0]), float(g[1]), float(g[2])), 25.0)
-               for tn, f, g in zip(sim.truth_t_ns, acc_s, gyro_s, strict=True)]
+               for tn, f, g in zip(sim.truth_t_ns[kept], acc_s[kept], gyro_s[kept],
+                                   strict=True)]
+    if cfg.uwb_schedule == "round_robin":
+        sim.uwb = _round_robin(cfg, rng, t, p, yaw, sim.range_bias_m)
+    else:
+        sim.uwb = _epochs(cfg, rng, t, p, yaw, sim.range_bias_m)
+    return sim
 
-    anchors = np.array(cfg.anchors_m)
+
+def _imu_faults(cfg: SimConfig, t_s: Array, acc: Array, gyro: Array
+                ) -> npt.NDArray[np.bool_]:
+    """Apply the IMU faults in place (spikes, then saturations, then the full-scale clip);
+    return which samples are sent (not in a gap)."""
+    kept = ~_in_windows(t_s, cfg.imu_gaps_s)
+    if cfg.imu_spikes_s:
+        sent = np.flatnonzero(kept)
+        nearest = [sent[np.argmin(np.abs(t_s[sent] - ts))] for ts in cfg.imu_spikes_s]
+        for k in np.unique(nearest):
+            acc[k] += cfg.imu_spike_acc_mps2
+            gyro[k] += cfg.imu_spike_gyro_rps
+    saturated = _in_windows(t_s, cfg.imu_saturations_s)
+    acc[saturated] = cfg.acc_full_scale_mps2
+    gyro[saturated] = cfg.gyro_full_scale_rps
+    np.clip(acc, -cfg.acc_full_scale_mps2, cfg.acc_full_scale_mps2, out=acc)
+    np.clip(gyro, -cfg.gyro_full_scale_rps, cfg.gyro_full_scale_rps, out=gyro)
+    return kept
+
+
+def _antenna(cfg: SimConfig, p: Array, yaw: float) -> Array:
     lever = np.array(cfg.lever_arm_m)
-    uwb_step = round(fine_hz / cfg.uwb_rate_hz)
+    p_ant: Array = p + np.array([[math.cos(yaw), -math.sin(yaw), 0],
+                                 [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]]) @ lever
+    return p_ant
+
+
+def _nlos_rates(cfg: SimConfig) -> Array:
+    if cfg.anchor_nlos_rate_hz:
+        return np.array(cfg.anchor_nlos_rate_hz, dtype=float)
+    return np.full(len(cfg.anchors_m), cfg.nlos_rate_hz)
+
+
+def _anchor_out(cfg: SimConfig, i: int, tk: float) -> bool:
+    return any(j == i and start <= tk < start + duration
+               for j, start, duration in cfg.anchor_outages_s)
+
+
+def _epochs(cfg: SimConfig, rng: np.random.Generator, t: Array, p: Array, yaw: Array,
+            range_bias_m: Array) -> list[UwbRanges]:
+    """All anchors' ranges in one message at ``uwb_rate_hz``, on the 1 kHz truth grid."""
+    anchors = np.array(cfg.anchors_m)
+    uwb_step = round(1000.0 / cfg.uwb_rate_hz)
     nlos_until = np.full(len(anchors), -1.0)
     nlos_extra = np.zeros(len(anchors))
+    start_prob = (cfg.nlos_rate_hz / cfg.uwb_rate_hz if not cfg.anchor_nlos_rate_hz
+                  else _nlos_rates(cfg) / cfg.uwb_rate_hz)
+    out: list[UwbRanges] = []
     for k in range(0, len(t), uwb_step):
         tk = t[k]
-        started = rng.random(len(anchors)) < cfg.nlos_rate_hz / cfg.uwb_rate_hz
+        started = rng.random(len(anchors)) < start_prob
         for i in np.flatnonzero(started & (nlos_until < tk)):
             nlos_until[i] = tk + cfg.nlos_duration_s
             nlos_extra[i] = rng.uniform(*cfg.nlos_extra_m)
-        p_ant = p[k] + np.array([[math.cos(yaw[k]), -math.sin(yaw[k]), 0],
-                                 [math.sin(yaw[k]), math.cos(yaw[k]), 0], [0, 0, 1]]) @ lever
-        d = np.linalg.norm(anchors - p_ant, axis=1) + sim.range_bias_m
+        p_ant = _antenna(cfg, p[k], yaw[k])
+        d = np.linalg.norm(anchors - p_ant, axis=1) + range_bias_m
         d += rng.normal(0, cfg.range_noise_m, len(anchors))
         d += np.where(nlos_until >= tk, nlos_extra, 0.0)
         keep = rng.random(len(anchors)) >= cfg.dropout_prob
-        ranges = tuple(AnchorRange(int(i), float(d[i])) for i in np.flatnonzero(keep))
-        sim.uwb.append(UwbRanges(EPOCH_NS + round(tk * 1e9), ranges))
-    return sim
+        if cfg.uwb_outages_s and _in_windows(np.array([tk]), cfg.uwb_outages_s)[0]:
+            continue  # after the draws: an outage changes nothing else in the run
+        ranges = tuple(AnchorRange(int(i), float(d[i])) for i in np.flatnonzero(keep)
+                       if not _anchor_out(cfg, int(i), tk))
+        out.append(UwbRanges(EPOCH_NS + round(tk * 1e9), ranges))
+    return out
+
+
+def _round_robin(cfg: SimConfig, rng: np.random.Generator, t: Array, p: Array, yaw: Array,
+                 range_bias_m: Array) -> list[UwbRanges]:
+    """One range a message, the anchors polled in turn at ``uwb_rate_hz`` in total, each
+    time jittered; the range is the one at its (jittered) time. A dropped or outaged range
+    sends no message."""
+    anchors = np.array(cfg.anchors_m)
+    n = len(anchors)
+    period_s = 1.0 / cfg.uwb_rate_hz
+    slots = np.arange(int(t[-1] / period_s))
+    t_s = (slots + 0.5) * period_s + rng.uniform(-cfg.uwb_jitter_s, cfg.uwb_jitter_s,
+                                                 len(slots))
+    t_s = t_s[t_s <= t[-1]]
+    ids = np.arange(len(t_s)) % n
+    start_prob = _nlos_rates(cfg) * n / cfg.uwb_rate_hz  # per poll of that anchor
+    started = rng.random(len(t_s)) < start_prob[ids]
+    noise = rng.normal(0, cfg.range_noise_m, len(t_s))
+    keep = rng.random(len(t_s)) >= cfg.dropout_prob
+    nlos_until = np.full(n, -1.0)
+    nlos_extra = np.zeros(n)
+    extra = np.zeros(len(t_s))
+    for j, (tj, a) in enumerate(zip(t_s, ids, strict=True)):
+        if started[j] and nlos_until[a] < tj:
+            nlos_until[a] = tj + cfg.nlos_duration_s
+            nlos_extra[a] = rng.uniform(*cfg.nlos_extra_m)
+        if nlos_until[a] >= tj:
+            extra[j] = nlos_extra[a]
+    p_t = np.column_stack([np.interp(t_s, t, p[:, k]) for k in range(3)])
+    yaw_t = np.interp(t_s, t, yaw)
+    keep &= ~_in_windows(t_s, cfg.uwb_outages_s)
+    out: list[UwbRanges] = []
+    for j in np.flatnonzero(keep).tolist():
+        i = int(ids[j])
+        if _anchor_out(cfg, i, float(t_s[j])):
+            continue
+        d = float(np.linalg.norm(anchors[i] - _antenna(cfg, p_t[j], float(yaw_t[j])))
+                  + range_bias_m[i] + noise[j] + extra[j])
+        out.append(UwbRanges(EPOCH_NS + round(float(t_s[j]) * 1e9), (AnchorRange(i, d),)))
+    return out
+
+
+# -- presets ------------------------------------------------------------------------------
+_QUARTER = math.pi / 2  # a 90 deg turn lasts _QUARTER / yaw rate
+
+ROOM_ANCHORS_M: tuple[tuple[float, float, float], ...] = (
+    (0.3, 0.3, 2.40), (7.7, 0.3, 2.55), (7.7, 5.7, 2.35), (0.3, 5.7, 2.50),
+)
+# a ground robot in the 8 x 6 m room: x 1.5..6.7, y 1.2..4.4, z 0.35..0.57 m; 76 s
+ROOM_SEGMENTS: tuple[tuple[float, float, float, float], ...] = (
+    (5.0, 0.0, 0.0, 0.0),  # still start
+    (7.0, 0.6, 0.0, 0.0),  # east
+    (_QUARTER / 0.5, 0.5, 0.5, 0.0),  # left turn -> north
+    (4.0, 0.5, 0.0, 0.03),  # up a ramp
+    (3.0, 0.0, 0.0, 0.0),  # stop
+    (_QUARTER / 0.6, 0.0, 0.6, 0.0),  # spin on the spot -> west
+    (6.0, 0.7, 0.0, 0.0),
+    (_QUARTER / 0.5, 0.4, 0.5, 0.0),  # left turn -> south
+    (2.0, 0.3, 0.0, -0.05),  # down a ramp
+    (3.0, 0.0, 0.0, 0.0),  # stop
+    (_QUARTER / 0.5, 0.0, 0.5, 0.0),  # spin on the spot -> east
+    (5.0, 0.8, 0.0, 0.0),
+    (2 * _QUARTER / 0.5, 0.4, 0.5, 0.0),  # U-turn -> west
+    (4.0, 0.6, 0.0, -0.03),  # down a ramp
+    (2.5, 0.0, 0.0, 0.0),  # stop
+    (_QUARTER / 0.5, 0.4, 0.5, 0.0),  # left turn -> south
+    (2.0, 0.5, 0.0, 0.03),  # up a ramp
+    (_QUARTER / 0.5, 0.4, 0.5, 0.0),  # left turn -> east
+    (3.0, 0.4, 0.0, 0.0),
+    (5.0, 0.0, 0.0, 0.0),  # still end
+)
+
+HANDHELD_ANCHORS_M: tuple[tuple[float, float, float], ...] = (
+    (0.2, 0.2, 0.30), (5.8, 0.2, 0.28), (5.8, 4.8, 0.32), (0.2, 4.8, 0.31),  # low
+    (0.2, 0.2, 2.30), (5.8, 0.2, 2.33), (5.8, 4.8, 2.28), (0.2, 4.8, 2.31),  # high
+)
+# carried through the 6 x 5 m room: x 1.1..4.6, y 0.8..3.4, z 1.01..1.22 m; 59 s
+HANDHELD_SEGMENTS: tuple[tuple[float, float, float, float], ...] = (
+    (4.0, 0.0, 0.0, 0.0),  # held still
+    (5.0, 0.4, 0.0, 0.0),  # walk east
+    (_QUARTER / 0.3, 0.3, 0.3, 0.0),  # gentle left -> north
+    (3.0, 0.3, 0.0, 0.04),  # lifted a little
+    (3.0, 0.0, 0.0, 0.0),  # pause
+    (_QUARTER / 0.3, 0.0, 0.3, -0.02),  # turn on the spot -> west, lowered
+    (5.0, 0.4, 0.0, 0.0),
+    (_QUARTER / 0.25, 0.3, 0.25, 0.0),  # gentle left -> south
+    (2.0, 0.2, 0.0, 0.0),
+    (4.0, 0.0, 0.0, 0.0),  # pause
+    (_QUARTER / 0.3, 0.3, 0.3, -0.02),  # gentle left -> east
+    (4.0, 0.4, 0.0, 0.02),
+    (4.0, 0.25, 0.2, 0.0),  # gentle left
+    (3.0, 0.0, 0.0, 0.0),  # pause
+)
+
+
+def seed_layout(seed: int = 0) -> SimConfig:
+    """The default run: 6 anchors over a 25 x 60 m area, 10 Hz epochs, 200 Hz IMU."""
+    return SimConfig(seed=seed)
+
+
+def ceiling_room(seed: int = 0) -> SimConfig:
+    """A ground robot driving slowly (0.3-0.8 m/s, turns, spins, stops, small ramps) in an
+    8 x 6 m room, tag at 0.35-0.57 m, 4 anchors near the corners at 2.35-2.55 m (nearly
+    coplanar: height poorly observed), lever arm 0.27 m up, NLOS bursts, anchor 2 out
+    from 28 s for 20 s; 76 s."""
+    return SimConfig(segments=ROOM_SEGMENTS, start_m=(1.5, 1.2, 0.45), anchors_m=ROOM_ANCHORS_M,
+                     lever_arm_m=(0.0, 0.0, 0.27), anchor_outages_s=((2, 28.0, 20.0),),
+                     seed=seed)
+
+
+def handheld_async(seed: int = 0) -> SimConfig:
+    """Carried slowly (0.2-0.5 m/s, pauses, gentle turns) through a 6 x 5 m room at ~1.1 m,
+    8 anchors (4 at ~0.3 m, 4 at ~2.3 m, at the corners), one range per message
+    round-robin at 170 Hz in total, IMU at 100 Hz, NLOS five times as often on the low
+    anchors; 59 s."""
+    return SimConfig(segments=HANDHELD_SEGMENTS, start_m=(1.3, 1.5, 1.1),
+                     anchors_m=HANDHELD_ANCHORS_M, imu_rate_hz=100.0, uwb_rate_hz=170.0,
+                     uwb_schedule="round_robin", range_noise_m=0.10,
+                     anchor_nlos_rate_hz=(0.05,) * 4 + (0.01,) * 4, seed=seed)
+
+
+PRESETS: dict[str, Callable[[int], SimConfig]] = {
+    "seed_layout": seed_layout, "ceiling_room": ceiling_room, "handheld_async": handheld_async,
+}

@@ -1,7 +1,7 @@
 """The methods uwbd is measured against, kept as code paths (see docs/ekf.md for the main one).
 
 * :class:`PureIns`: the filter's start-up, then the strapdown alone (no UWB after that).
-* :class:`UwbLeastSquares`: one Gauss-Newton fix per epoch.
+* :class:`UwbLeastSquares`: one Gauss-Newton fix per epoch, or per 0.1 s of single ranges.
 * :class:`ComplementaryAttitude`: Mahony-style attitude from gyro, pulled towards the gravity
   direction of the accelerometer, whose signal first passes a 2nd-order Butterworth low-pass
   (fs 200 Hz, fc 2 Hz by default, designed by scipy).
@@ -24,7 +24,9 @@ from scipy.signal import butter, sosfilt, sosfilt_zi
 from drivers.frames import ImuSample, UwbRanges
 from uwbd.fusion.eskf import GRAVITY_MPS2
 from uwbd.fusion.filter import Filter, FilterConfig
-from uwbd.fusion.lsq import LsqFix, multilaterate
+from uwbd.fusion.fixes import RangeWindow
+from uwbd.fusion.lsq import LsqFix
+from uwbd.fusion.mirror import MirrorSide
 from uwbd.fusion.rotation import Array, quat_from_rotvec, quat_mul, quat_to_matrix
 
 
@@ -46,26 +48,36 @@ class PureIns:
 
 
 class UwbLeastSquares:
-    """Per-epoch multilateration; anchors from the config, else as the device sends them."""
+    """Multilateration per epoch, or over a 0.1 s window of single ranges (one fix each
+    0.1 s); anchors from the config, else as the device sends them."""
 
     def __init__(self, config: FilterConfig) -> None:
         self.anchors = dict(config.anchors_m)
         self.sigma_m = config.range_sigma_m
-        self.fix: LsqFix | None = None
+        known = np.array(list(self.anchors.values()), dtype=float).reshape(-1, 3)
+        self.window = RangeWindow(0.1, 0.1, self.sigma_m,
+                                  MirrorSide(known, config.tag_side, config.height_range_m),
+                                  None)
+        self.fix: LsqFix | None = None  # the fix of the latest message, if it made one
+        self._last: Array | None = None
 
     def predict(self, imu: ImuSample) -> None:
         """UWB only: the IMU is not used."""
 
     def update(self, uwb: UwbRanges) -> None:
-        pairs = [(self.anchors.get(r.anchor_id, r.anchor_position_m), r.range_m)
+        known = [(r.anchor_id, self.anchors.get(r.anchor_id, r.anchor_position_m), r.range_m)
                  for r in uwb.ranges if math.isfinite(r.range_m)]
-        known = [(a, d) for a, d in pairs if a is not None]
-        if len(known) < 3:
-            self.fix = None
+        known = [(i, a, d) for i, a, d in known if a is not None]
+        self.fix = None
+        if not known:
             return
-        x0 = self.fix.position_m if self.fix is not None else None
-        self.fix = multilaterate(np.array([a for a, _ in known]), np.array([d for _, d in known]),
-                                 self.sigma_m, x0)
+        ids = [i for i, _, _ in known]
+        anchors = np.array([a for _, a, _ in known], dtype=float)
+        ranges = np.array([d for _, _, d in known])
+        self.window.add(uwb.t_ns, ids, anchors, ranges)
+        self.fix = self.window.fix(uwb.t_ns, ids, anchors, ranges, self._last)
+        if self.fix is not None:
+            self._last = self.fix.position_m
 
     def position(self) -> Array | None:
         return None if self.fix is None else self.fix.position_m

@@ -8,8 +8,9 @@ covariance is propagated once per update interval (:meth:`Eskf.propagate`).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -40,6 +41,16 @@ class ImuNoise:
     range_bias: float = 1e-4
 
 
+class Row(NamedTuple):
+    """One scalar of a sequential update: innovation, its variance, the weight it was fused
+    with (0: not fused), and whether it was skipped as numerically impossible."""
+
+    innovation: float
+    variance: float
+    weight: float
+    numerical: bool
+
+
 class Eskf:
     """The filter's state and the algebra on it; policy (gating, modes) lives in ``Filter``."""
 
@@ -56,7 +67,11 @@ class Eskf:
         self.P = P0.astype(float).copy()
         self.noise = noise
         self._reset_interval()
-        self.last_Phi = np.eye(N_CORE)  # the core's Φ of the last propagate() (smoothing)
+        self.last_dx = np.zeros(self.n)
+        # since the last take_epoch(): the core's Φ (smoothing) and the INS's own Δv (heading
+        # alignment), over however many propagate() calls
+        self._Phi_epoch = np.eye(N_CORE)
+        self._dv_epoch = [0.0, 0.0, 0.0]
         # constants of propagate() and update()
         self._I = np.eye(self.n)
         self._I_core = np.eye(N_CORE)
@@ -108,10 +123,18 @@ class Eskf:
         self._sum_fn = [0.0, 0.0, 0.0]
         self._sum_w = [0.0, 0.0, 0.0]
 
-    def interval_dv_n(self) -> tuple[float, float, float]:
-        """``Σ R f Δt`` since the last :meth:`propagate`: the INS's own velocity change
-        (gravity aside) in the navigation frame, untouched by any measurement."""
-        return (self._sum_fn[0], self._sum_fn[1], self._sum_fn[2])
+    @property
+    def interval_s(self) -> float:
+        """Time integrated since the last :meth:`propagate`."""
+        return self._T
+
+    def take_epoch(self) -> tuple[Array, tuple[float, float, float]]:
+        """Since the last call: the core's state transition ``Φ`` (the product over every
+        :meth:`propagate`) and ``Σ R f Δt``, the INS's own velocity change (gravity aside)
+        in the navigation frame, untouched by any measurement. Call after propagate()."""
+        Phi, dv = self._Phi_epoch, self._dv_epoch
+        self._Phi_epoch, self._dv_epoch = np.eye(N_CORE), [0.0, 0.0, 0.0]
+        return Phi, (dv[0], dv[1], dv[2])
 
     def rotate_heading(self, dpsi: float, yaw_sigma_rad: float) -> None:
         """Turn the nominal attitude by ``dpsi`` about the navigation z axis (a coarse heading
@@ -138,7 +161,6 @@ class Eskf:
         so Φ is built and applied on the core rows and columns alone."""
         T = self._T
         if T <= 0.0:
-            self.last_Phi = self._I_core
             return
         R = self.R
         f_n = np.array(self._sum_fn) / T
@@ -149,7 +171,9 @@ class Eskf:
         F[TH_, TH_] = -skew(w)
         A = F * T
         Phi = self._I_core + A + 0.5 * (A @ A)
-        self.last_Phi = Phi
+        self._Phi_epoch = Phi @ self._Phi_epoch
+        for i in range(3):
+            self._dv_epoch[i] += self._sum_fn[i]
         P = self.P
         P[:N_CORE, :] = Phi @ P[:N_CORE, :]
         P[:, :N_CORE] = P[:, :N_CORE] @ Phi.T
@@ -159,28 +183,58 @@ class Eskf:
 
     # -- measurement update --------------------------------------------------------------
     def innovation_variances(self, H: Array, R: Array) -> Array:
-        """``S_ii = H_i P H_iᵀ + R_i`` for each row, at the current prior (for gating)."""
+        """``S_ii = H_i P H_iᵀ + R_i`` for each row, at the current prior."""
         return np.einsum("ij,jk,ik->i", H, self.P, H) + R
 
-    def update(self, H: Array, y: Array, R: Array) -> Array:
-        """Fuse rows ``H`` (m×n) with residuals ``y`` and independent noise variances ``R``.
+    def sequential_update(self, H: Array, y: Array, R: Array,
+                          decide: Callable[[int, float, float], float]) -> list[Row]:
+        """Fuse rows ``H`` (m×n), residuals ``y`` at the prior, noise variances ``R``, one
+        scalar at a time (docs/ekf.md §5), then inject and reset.
 
-        ``K = P Hᵀ S⁻¹``; Joseph form ``P ← (I−KH) P (I−KH)ᵀ + K R Kᵀ``; then inject and
-        reset (§5). Returns the injected ``δx``.
+        For row ``i``, at the state the rows before it left: innovation ``ν = y_i − H_i δx``
+        with variance ``S = H_i P H_iᵀ + R_i``; ``decide(i, ν, S)`` returns the weight ``w``
+        (0 skips the row, 1 is the plain Kalman update, ``0 < w < 1`` de-weights it: the gain
+        is computed with ``R_i / w``). The covariance always follows the Joseph form with the
+        nominal ``R_i``, which is right for any gain::
+
+            P ← (I − k h) P (I − k h)ᵀ + R_i k kᵀ = P − k uᵀ − u kᵀ + S k kᵀ,  u = P hᵀ
+
+        A row whose ``S`` is not finite or falls below ``R_i`` (``P`` lost its positive
+        semi-definiteness along ``h``) is skipped and marked ``numerical``.
         """
         P = self.P
-        PHt = P @ H.T
-        S = H @ PHt + np.diag(R)
-        K = np.linalg.solve(S, PHt.T).T  # S is symmetric
-        dx = K @ y
-        I_KH = self._I - K @ H
-        P = I_KH @ P @ I_KH.T + (K * R) @ K.T
-        self.P = 0.5 * (P + P.T)
-        self.inject(dx)
-        return dx
+        dx = np.zeros(self.n)
+        rows = []
+        for i in range(len(y)):
+            h = H[i]
+            u = P @ h
+            r = float(R[i])
+            s = float(h @ u) + r
+            nu = float(y[i] - h @ dx)
+            if not (math.isfinite(s) and math.isfinite(nu)) or s < r * (1 - 1e-9):
+                rows.append(Row(nu, s, 0.0, True))
+                continue
+            w = decide(i, nu, s)
+            rows.append(Row(nu, s, w, False))
+            if w <= 0.0:
+                continue
+            k = u / (s + r * (1.0 / w - 1.0))  # s − r + r/w
+            dx += k * nu
+            P = P - np.outer(k, u) - np.outer(u, k) + s * np.outer(k, k)
+        if any(row.weight > 0.0 for row in rows):
+            self.P = 0.5 * (P + P.T)
+            self.inject(dx)
+        return rows
+
+    def update(self, H: Array, y: Array, R: Array) -> Array:
+        """Every row fused with full weight: returns the injected ``δx``."""
+        self.last_dx = np.zeros(self.n)
+        self.sequential_update(H, y, R, _full_weight)
+        return self.last_dx
 
     def inject(self, dx: Array) -> None:
         """Closed-loop correction of the nominal state, then the error reset ``P ← G P Gᵀ``."""
+        self.last_dx = dx
         d = dx.tolist()  # plain floats: numpy scalars would slow every later predict() ~3×
         p, v, b_g, b_a = self.p, self.v, self.b_g, self.b_a
         for i in range(3):
@@ -210,6 +264,10 @@ class Eskf:
         w, x, y, z = self.q
         r = np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
         return math.sqrt(max(float(r @ self.P[TH_, TH_] @ r), 0.0))
+
+
+def _full_weight(i: int, nu: float, s: float) -> float:
+    return 1.0
 
 
 def _turned(q: list[float], tx: float, ty: float, tz: float) -> list[float]:

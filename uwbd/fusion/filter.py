@@ -1,22 +1,26 @@
 """The fusion filter: frames in, poses and per-measurement reports out.
 
 ``Filter.predict(imu)``, ``Filter.update(uwb)``, ``Filter.pose()`` — pure and deterministic
-(same frames in, same poses out). Policy lives here; the algebra in :mod:`uwbd.fusion.eskf`.
+(same frames in, same poses out); no exception leaves them. The top level below reads as
+the sequence it runs; each step's policy has a module of its own:
 
-Life cycle:
+* :mod:`.imu_check` — which IMU samples can be real (non-finite, clipped, impossible jumps);
+* :mod:`.rest` — the recent IMU window and the rest test (start, ZUPT);
+* :mod:`.fixes` and :mod:`.mirror` — UWB-only fixes from epochs or a window of single
+  ranges, on the right side of a plane of anchors;
+* :mod:`.initialise` — the state at start (at rest, or while moving) and after a restart;
+* :mod:`.alignment` — the coarse heading from INS against UWB velocity changes;
+* :mod:`.robust` — de-weighting NLOS ranges, per-anchor statistics;
+* :mod:`.health` — the health record, and the evidence for restarts;
+* :mod:`.eskf` — the algebra (docs/ekf.md).
 
-1. **Waiting**: IMU samples (turned into body axes) and UWB least-squares fixes are collected.
-   When the IMU has been at rest for ``init_static_s`` and fixes exist for that time, the
-   filter starts from rest: gyro bias = mean gyro, roll and pitch from the mean specific
-   force, position = mean fix, velocity 0. If the vehicle never rests within
-   ``init_max_wait_s``, it starts **moving**: position from the latest fix, velocity from
-   the fixes' slope, roll/pitch from the mean specific force, a larger gyro-bias variance,
-   and the status says so.
-2. **Running**: heading starts unknown (yaw σ = 180°) and is aligned by the ranges once the
-   vehicle moves; ``heading_observable`` turns true when its σ falls below 10°.
-3. **Recovery**: when most ranges keep failing the gate (NLOS, or a diverged state) for
-   ``reinit_after_bad_epochs`` epochs, position and velocity are re-initialised from UWB
-   least squares and the event is counted and reported.
+Life cycle: **waiting** (collect IMU and fixes), start at rest or while moving, **aligning**
+(heading held until the vehicle has moved enough), **tracking**. A rejected IMU burst or an
+IMU gap widens the covariance for what was not seen; one longer than
+``attitude_lost_after_s`` restarts the attitude and heading (position and velocity kept).
+Non-finite numbers restart everything. Innovations inconsistent for a while move the
+position to a UWB fix, but only to one that is consistent itself (NLOS does not pull the
+state away). Without ranges the state coasts and its covariance grows.
 """
 
 from __future__ import annotations
@@ -27,22 +31,34 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum
 from statistics import NormalDist
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from drivers.frames import ImuSample, UwbRanges
 from uwbd.fusion.alignment import HeadingAligner
-from uwbd.fusion.eskf import GRAVITY_MPS2, N_CORE, P_, TH_, V_, Eskf, ImuNoise
+from uwbd.fusion.eskf import N_CORE, P_, TH_, V_, Eskf, ImuNoise
+from uwbd.fusion.fixes import RangeWindow
 from uwbd.fusion.gating import GatingCounters, GatingPolicy, gate
-from uwbd.fusion.lsq import LsqFix, coplanar, multilaterate
-from uwbd.fusion.rotation import Array, quat_from_euler, quat_to_matrix, skew
+from uwbd.fusion.health import WAITING, Health, HealthLimits, HealthMonitor
+from uwbd.fusion.imu_check import ImuCheck, ImuLimits
+from uwbd.fusion.initialise import Start, start_state
+from uwbd.fusion.lsq import LsqFix, coplanar
+from uwbd.fusion.mirror import MirrorSide
+from uwbd.fusion.rest import ImuWindow, RestLimits
+from uwbd.fusion.robust import AnchorStats, RobustPolicy, quality_scale
+from uwbd.fusion.rotation import Array, skew
 from uwbd.fusion.smoother import EpochRecord, Nominal
 from uwbd.fusion.types import FusionReport, Pose
 
 Vec3 = tuple[float, float, float]
 HELD_YAW_SIGMA_RAD = 1e-3  # the heading's σ while it is held, before the coarse alignment
 IDENTITY3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+NS = 1_000_000_000
+PROPAGATE_EVERY_S = 0.1  # the covariance follows the state at least this often (coasting)
+# the covariance is kept finite: no error state may be less certain than this (σ per state)
+MAX_SIGMA = np.array([1e3] * 3 + [1e2] * 3 + [math.pi] * 3 + [0.5] * 3 + [5.0] * 3)
+MAX_RANGE_BIAS_SIGMA_M = 5.0
 
 
 class Rows(NamedTuple):
@@ -81,13 +97,17 @@ class FilterConfig:
     mounting_rotation: tuple[Vec3, Vec3, Vec3] = IDENTITY3  # C_bs: sensor axes -> body FLU
     lever_arm_m: Vec3 = (0.0, 0.0, 0.0)  # IMU -> UWB antenna, body axes
     imu_noise: ImuNoise = field(default_factory=ImuNoise)
+    imu_limits: ImuLimits = field(default_factory=ImuLimits)
     range_sigma_m: float = 0.10
     acc_bias_sigma_mps2: float = 0.1  # initial; the vertical part is set from |f| - g at rest
     gate_probability: float = 0.997  # per-measurement χ² gate (3 σ for a scalar)
     gating: GatingPolicy = field(default_factory=lambda: GatingPolicy(min_anchors=1))
+    robust: RobustPolicy = field(default_factory=RobustPolicy)
     range_bias_states: bool = True  # self-calibrate each anchor's antenna delay
     range_bias_sigma_m: float = 0.1  # each anchor's own antenna delay, as a range offset
     tag_delay_sigma_m: float = 0.2  # the tag's antenna delay: one offset common to all ranges
+    tag_side: str = "auto"  # of a plane of anchors: auto | below | above (see .mirror)
+    height_range_m: tuple[float, float] | None = None  # where the tag can be (a hint)
     zupt: bool = True
     zupt_sigma_mps: float = 0.02
     zupt_max_speed_mps: float = 0.3
@@ -96,12 +116,14 @@ class FilterConfig:
     known_height_m: float | None = None
     height_sigma_m: float = 0.05
     static_window_s: float = 0.5
-    static_acc_std_mps2: float = 0.15
-    static_gyro_rps: float = 0.03
+    rest: RestLimits = field(default_factory=RestLimits)
     init_static_s: float = 1.0
     init_max_wait_s: float = 3.0
+    range_window_s: float = 0.2  # single ranges solved together for a fix (see .fixes)
+    fix_interval_s: float = 0.1
     max_imu_gap_s: float = 0.5
-    reinit_after_bad_epochs: int = 20
+    attitude_lost_after_s: float = 3.0  # an IMU gap or rejected burst this long: re-level
+    health: HealthLimits = field(default_factory=HealthLimits)
     align_window_s: float = 2.0  # coarse heading alignment: window of UWB fixes compared
     align_min_dv_mps: float = 0.8  # ... with this much horizontal velocity change at least
 
@@ -114,26 +136,32 @@ class Filter:
         about 13 kB an epoch with 8 anchors)."""
         self.cfg = config
         self.records: list[EpochRecord] | None = [] if record else None
-        self._coasted = False
-        self.C_bs = np.array(config.mounting_rotation, dtype=float)
-        if not np.allclose(self.C_bs @ self.C_bs.T, np.eye(3), atol=1e-6) or \
-                np.linalg.det(self.C_bs) < 0:
+        C_bs = np.array(config.mounting_rotation, dtype=float)
+        if not np.allclose(C_bs @ C_bs.T, np.eye(3), atol=1e-6) or np.linalg.det(C_bs) < 0:
             raise ValueError("mounting_rotation must be a proper rotation matrix")
-        self._C = tuple(tuple(float(x) for x in row) for row in self.C_bs)
+        self._C = tuple(tuple(float(x) for x in row) for row in C_bs)
         self.lever = np.array(config.lever_arm_m, dtype=float)
         self.ekf: Eskf | None = None
         self.counters: collections.Counter[str] = collections.Counter()
         self.gating = GatingCounters()
-        self.status = "waiting for data"
+        self.anchor_stats: dict[int, AnchorStats] = {}
+        self.monitor = HealthMonitor(config.health)
+        self.imu_check = ImuCheck(config.imu_limits)
+        self.window = ImuWindow(max(config.static_window_s, config.init_static_s), config.rest)
+        anchors = np.array(list(config.anchors_m.values()), dtype=float).reshape(-1, 3)
+        self.mirror = MirrorSide(anchors, config.tag_side, config.height_range_m)
+        self._fixed_z = (config.known_height_m if len(anchors) and coplanar(anchors)
+                         else None)
+        self.ranges = RangeWindow(config.range_window_s, config.fix_interval_s,
+                                  config.range_sigma_m, self.mirror, self._fixed_z)
         self.t_ns: int | None = None  # time of the nominal state
         self._imu_t_ns: int | None = None
-        self._last_imu: tuple[Vec3, Vec3] | None = None
-        # (t_ns, acc xyz, gyro xyz) in body axes over the last window_ns: rest detection
-        self._window: collections.deque[tuple[float, ...]] = collections.deque()
-        self._window_ns = int(max(config.static_window_s, config.init_static_s) * 1e9)
+        self._last_imu: tuple[Vec3, Vec3] | None = None  # body axes, the last one used
         self._fixes: collections.deque[tuple[int, Array]] = collections.deque(maxlen=100)
         self._first_t_ns: int | None = None
-        self._bad_epochs = 0
+        self._start_started_ns: int | None = None  # a restart waits for fresh IMU data
+        self._carry: Start | None = None  # what a restart keeps of the estimate before it
+        self._coasted = False
         self._aligner = HeadingAligner(config.align_window_s, config.align_min_dv_mps,
                                        config.range_sigma_m)
         self._aligned = False
@@ -142,42 +170,58 @@ class Filter:
             self._bias_index = {a: N_CORE + i for i, a in enumerate(sorted(config.anchors_m))}
         self._gate_1 = chi2_quantile(config.gate_probability, 1)
         self._gate_3 = chi2_quantile(config.gate_probability, 3)
-        anchors = np.array(list(config.anchors_m.values())) if config.anchors_m else None
-        self._fixed_z = (config.known_height_m if anchors is not None and coplanar(anchors)
-                         else None)
 
     # -- inputs ---------------------------------------------------------------------------
     def predict(self, imu: ImuSample) -> None:
         """Integrate one IMU sample (sensor axes); bad samples are counted, never used."""
-        a, g = imu.acc_mps2, imu.gyro_rps
-        if not math.isfinite(a[0] + a[1] + a[2] + g[0] + g[1] + g[2]):  # NaN and inf propagate
-            self.counters["imu_not_finite"] += 1
-            return
-        acc, gyro = self._to_body(a), self._to_body(g)
-        if self._first_t_ns is None:
-            self._first_t_ns = imu.t_ns
+        t_ns = imu.t_ns
         prev = self._imu_t_ns
-        if prev is not None and imu.t_ns <= prev:
-            self.counters["imu_out_of_order"] += 1
+        reason = self.imu_check.judge(t_ns, imu.acc_mps2, imu.gyro_rps)
+        if reason:
+            self.counters[reason] += 1
+            self.monitor.imu_rejected(t_ns)
+        if prev is not None and t_ns <= prev:
+            if not reason:
+                self.counters["imu_out_of_order"] += 1
             return
-        gap = prev is not None and (imu.t_ns - prev) / 1e9 > self.cfg.max_imu_gap_s
-        self._imu_t_ns = imu.t_ns
-        self._remember(imu.t_ns, acc, gyro)
-        if self.ekf is None:
-            self._last_imu = (acc, gyro)
+        if self._first_t_ns is None:
+            self._first_t_ns = t_ns
+        self._imu_t_ns = t_ns
+        gap_s = 0.0 if prev is None else (t_ns - prev) / NS
+        if reason:
+            used = self._last_imu  # integrate over it with the last good sample
+        else:
+            acc, gyro = self._to_body(imu.acc_mps2), self._to_body(imu.gyro_rps)
+            used = (acc, gyro)
+            self.window.add(t_ns, acc, gyro)
+        ekf = self.ekf
+        if ekf is None or used is None:
+            self._last_imu = used
             return
         assert self.t_ns is not None
-        dt = (imu.t_ns - self.t_ns) / 1e9
-        if gap:
+        dt = (t_ns - self.t_ns) / NS
+        burst_s = self.imu_check.burst_s(t_ns)
+        if gap_s > self.cfg.max_imu_gap_s:
             self.counters["imu_gaps"] += 1  # coasted through by _predict_to; resume here
             self._coasted = True
+            self.monitor.imu_gap = False
+            if gap_s > self.cfg.attitude_lost_after_s:
+                self._restart(t_ns, "IMU gap", keep_motion=True)
+                return
         elif dt > 0:
-            self.ekf.predict(acc, gyro, dt)
-        self.t_ns = imu.t_ns
-        self._last_imu = (acc, gyro)
+            ekf.predict(used[0], used[1], dt)
+            if reason:
+                self._widen_for_unseen(dt)
+                if burst_s > self.cfg.attitude_lost_after_s:
+                    self._restart(t_ns, "IMU samples rejected", keep_motion=True)
+                    return
+            if ekf.interval_s >= PROPAGATE_EVERY_S:
+                ekf.propagate()
+        self.t_ns = t_ns
+        self._last_imu = used
 
     def update(self, uwb: UwbRanges) -> list[FusionReport]:
-        """Fuse one ranging epoch; returns one report per measurement (accepted or not)."""
+        """Fuse one UWB message (an epoch, or a single range); one report per measurement."""
         if self._first_t_ns is None:
             self._first_t_ns = uwb.t_ns
         result = gate(uwb, self.cfg.gating, self.gating)
@@ -185,55 +229,71 @@ class Filter:
                                 math.nan, False, why.value) for r, why in result.rejected]
         if result.epoch is None:
             return reports
-        ids, anchors, ranges = self._resolve(result.epoch, reports)
+        ids, anchors, ranges, r_scale = self._resolve(result.epoch, reports)
         if len(ids) == 0:
             return reports
-        # the least-squares fix is needed to start, in loose mode, and to recover
+        self.ranges.add(uwb.t_ns, ids, anchors, ranges)
         fix = None
-        if self.ekf is None or self.cfg.mode is Mode.LOOSE:
-            fix = self._lsq(anchors, ranges)
+        if self.ekf is None or self.cfg.mode is Mode.LOOSE or not self._aligned:
+            fix = self.ranges.fix(uwb.t_ns, ids, anchors, ranges, self._antenna())
             if fix is not None:
                 self._fixes.append((uwb.t_ns, fix.position_m))
+        if self.mirror.take_flip():
+            self._restart(uwb.t_ns, "mirror side flipped by the ranges", keep_motion=False)
+        self.monitor.mirror_unresolved = self.mirror.unresolved
         if self.ekf is None:
-            self._try_initialise(uwb.t_ns, fix)
-            if self.ekf is not None:
-                self._update_status()
+            self._try_start(uwb.t_ns, fix)
             return reports
         if self.t_ns is not None and uwb.t_ns < self.t_ns:
             self.counters["uwb_late"] += 1  # older than the state: the aligner's job
             return reports
         self._predict_to(uwb.t_ns)
-        dv = self.ekf.interval_dv_n()  # read before propagate() starts a new interval
-        self.ekf.propagate()
+        ekf = self.ekf
+        ekf.propagate()
+        Phi_core, dv = ekf.take_epoch()
         # the smoother can step back from this epoch over a plain Kalman prediction only
         linked = self._aligned and not self._coasted
         self._coasted = False
         if not self._aligned:
-            self._aligner.add_ins_dv(dv)
-            # the heading is unknown: the INS's horizontal Δv may point anywhere; for a heading
-            # error uniform over ±180° the RMS error of a turned Δv is √2 |Δv|, so the fixes
-            # must be free to say where it went
-            extra = 2.0 * (dv[0] ** 2 + dv[1] ** 2)
-            self.ekf.P[3, 3] += extra
-            self.ekf.P[4, 4] += extra
-            self._align_heading(uwb.t_ns, fix, anchors, ranges)
-        rows = Rows.stack([self._measurement_rows(ids, anchors, ranges, fix),
+            self._hold_heading(uwb.t_ns, dv, fix)
+        rows = Rows.stack([self._measurement_rows(ids, anchors, ranges, r_scale, fix),
                            *self._constraints()])
         prior = self._snapshot() if self.records is not None else None
         reports += self._fuse(uwb.t_ns, rows)
-        if self._needs_recovery(reports):
-            self._recover(fix or self._lsq(anchors, ranges))
+        if self._check_divergence(uwb.t_ns, ids, anchors, ranges):
             linked = False
-        if prior is not None and self.records is not None:
+        if prior is not None and self.records is not None and self.ekf is not None:
             Phi = np.eye(self.ekf.n)
-            Phi[:N_CORE, :N_CORE] = self.ekf.last_Phi
+            Phi[:N_CORE, :N_CORE] = Phi_core
             self.records.append(EpochRecord(uwb.t_ns, *prior, *self._snapshot(),
                                             Phi if linked else None))
-        self._update_status()
         return reports
 
     # -- outputs --------------------------------------------------------------------------
+    def health(self) -> Health:
+        """The health record, rebuilt from the evidence now."""
+        ekf = self.ekf
+        t_ns = self.t_ns if self.t_ns is not None else self._imu_t_ns
+        if t_ns is None:
+            return WAITING
+        if ekf is None:
+            return self.monitor.assess(t_ns, False, False, None, True)
+        P = ekf.P
+        sigma_xy = math.sqrt(max(P[0, 0] + P[1, 1], 0.0))
+        finite = math.isfinite(sigma_xy + sum(ekf.p) + sum(ekf.v) + sum(ekf.q))
+        return self.monitor.assess(t_ns, True, self.heading_observable(), sigma_xy, finite)
+
+    @property
+    def status(self) -> str:
+        return self.health().summary()
+
+    def heading_observable(self) -> bool:
+        ekf = self.ekf
+        return ekf is not None and self._aligned and ekf.yaw_sigma_rad() < math.radians(10)
+
     def pose(self) -> Pose | None:
+        """The pose now, or ``None`` before the start, while restarting, or when any of
+        its numbers is not finite (which also restarts the filter)."""
         ekf = self.ekf
         if ekf is None or self.t_ns is None:
             return None
@@ -243,13 +303,69 @@ class Filter:
         cov[:3, 3:] = ekf.P[P_, TH_] @ R.T
         cov[3:, :3] = cov[:3, 3:].T
         cov[3:, 3:] = R @ ekf.P[TH_, TH_] @ R.T
+        covariance = tuple(cov.ravel().tolist())
         w, x, y, z = ekf.q
+        if not math.isfinite(sum(ekf.p) + sum(ekf.v) + w + x + y + z + sum(covariance)):
+            self._restart(self.t_ns, "state not finite", keep_motion=False)
+            return None
+        health = self.health()
         return Pose(
             t_ns=self.t_ns, position_m=(ekf.p[0], ekf.p[1], ekf.p[2]),
             velocity_mps=(ekf.v[0], ekf.v[1], ekf.v[2]), orientation_xyzw=(x, y, z, w),
-            covariance=tuple(cov.ravel().tolist()), status=self.status,
-            heading_observable=self._aligned and ekf.yaw_sigma_rad() < math.radians(10),
+            covariance=covariance, status=health.summary(),
+            heading_observable=self.heading_observable(), health=health,
         )
+
+    def diagnostics(self) -> dict[str, Any]:
+        """For the status: the health record, the mirror side, per-anchor range statistics."""
+        m = self.mirror
+        return {"health": self.health().as_dict(),
+                "mirror": {"ambiguous": m.ambiguous, "side": "above" if m.sign > 0 else "below",
+                           "decided_by": m.decided_by, "resolved": m.resolved},
+                "anchors": {str(a): s.as_dict() for a, s in sorted(self.anchor_stats.items())}}
+
+    # -- starting and restarting ----------------------------------------------------------
+    def _try_start(self, t_ns: int, fix: LsqFix | None) -> None:
+        cfg = self.cfg
+        if fix is None or self.window.means() is None:
+            return
+        if self._start_started_ns is not None:  # a restart: fresh IMU data first
+            if self.window.span_s() < 0.9 * cfg.static_window_s:
+                return
+            waited_long = True
+        else:
+            waited_long = (t_ns - (self._first_t_ns or t_ns)) / NS >= cfg.init_max_wait_s
+        recent = [(t, p) for t, p in self._fixes if t >= t_ns - cfg.init_static_s * NS]
+        start = start_state(cfg, self.window, fix, recent, list(self._fixes), waited_long,
+                            self._carry, len(self._bias_index), self.lever)
+        if start is None:
+            return
+        self.ekf, how = start
+        self.t_ns = t_ns
+        self._carry = None
+        self._start_started_ns = None
+        self.counters["initialisations"] += 1
+        self.counters[f"started_{how}"] += 1
+
+    def _restart(self, t_ns: int, reason: str, keep_motion: bool) -> None:
+        """Drop the estimate and start again: attitude from gravity over fresh IMU samples,
+        heading aligned anew; with ``keep_motion`` the position and velocity (and gyro
+        bias) carry over with wider σ, else everything comes from UWB."""
+        ekf = self.ekf
+        self.counters["restarts"] += 1
+        self.counters[f"restart_{reason.replace(' ', '_')}"] += 1
+        carry = None
+        if keep_motion and ekf is not None and math.isfinite(sum(ekf.p) + sum(ekf.v)):
+            sig = float(np.sqrt(np.clip(np.diag(ekf.P)[P_].max(), 0.0, 1e6)))
+            carry = Start(np.array(ekf.p), np.array(ekf.v), np.array(ekf.b_g), ekf.b_r.copy(), sig)
+        self.ekf = None
+        self._carry = carry
+        self._start_started_ns = t_ns
+        self.window.clear()
+        self._aligner = HeadingAligner(self.cfg.align_window_s, self.cfg.align_min_dv_mps,
+                                       self.cfg.range_sigma_m)
+        self._aligned = False
+        self.monitor.reset(t_ns, reason, None)
 
     # -- internals ------------------------------------------------------------------------
     def _snapshot(self) -> tuple[Nominal, Array]:
@@ -264,33 +380,17 @@ class Filter:
         x, y, z = v
         return (a * x + b * y + c * z, d * x + e * y + f * z, g * x + h * y + i * z)
 
-    def _remember(self, t_ns: int, acc: Vec3, gyro: Vec3) -> None:
-        window = self._window
-        window.append((t_ns, *acc, *gyro))
-        oldest_ns = t_ns - self._window_ns
-        while window[0][0] < oldest_ns:
-            window.popleft()
-
-    def _static(self, span_s: float) -> bool:
-        """At rest over the last ``span_s``: specific force steady and rotation small."""
-        if not self._window:
-            return False
-        t_end = self._window[-1][0]
-        if (t_end - self._window[0][0]) < 0.9 * span_s * 1e9:
-            return False
-        samples = np.array(self._window)
-        recent = samples[samples[:, 0] >= t_end - span_s * 1e9]
-        if len(recent) < 3:
-            return False
-        acc, gyro = recent[:, 1:4], recent[:, 4:7]
-        return bool(np.linalg.norm(acc.std(axis=0)) < self.cfg.static_acc_std_mps2
-                    and np.linalg.norm(gyro.mean(axis=0)) < self.cfg.static_gyro_rps
-                    and np.linalg.norm(gyro.std(axis=0)) < self.cfg.static_gyro_rps)
+    def _antenna(self) -> Array | None:
+        """The antenna's position by the estimate (a start point for least squares)."""
+        if self.ekf is not None:
+            return np.array(self.ekf.p) + self.ekf.R @ self.lever
+        return self._fixes[-1][1] if self._fixes else None
 
     def _resolve(self, epoch: UwbRanges, reports: list[FusionReport]
-                 ) -> tuple[list[int], Array, Array]:
-        """Anchor positions for each range: configured first, else as the device sends."""
-        ids, anchors, ranges = [], [], []
+                 ) -> tuple[list[int], Array, Array, Array]:
+        """Anchor positions for each range (configured first, else as the device sends),
+        and the factor on each range's variance from the device's quality."""
+        ids, anchors, ranges, scale = [], [], [], []
         for r in epoch.ranges:
             pos = self.cfg.anchors_m.get(r.anchor_id, r.anchor_position_m)
             if pos is None:
@@ -301,67 +401,27 @@ class Filter:
             ids.append(r.anchor_id)
             anchors.append(pos)
             ranges.append(r.range_m)
-        return ids, np.array(anchors, dtype=float).reshape(-1, 3), np.array(ranges)
+            scale.append(quality_scale(r.quality))
+        return (ids, np.array(anchors, dtype=float).reshape(-1, 3), np.array(ranges),
+                np.array(scale))
 
-    def _lsq(self, anchors: Array, ranges: Array) -> LsqFix | None:
-        x0 = None
-        if self.ekf is not None:
-            x0 = np.array(self.ekf.p) + self.ekf.R @ self.lever
-        elif self._fixes:
-            x0 = self._fixes[-1][1]
-        return multilaterate(anchors, ranges, self.cfg.range_sigma_m, x0, self._fixed_z)
-
-    def _try_initialise(self, t_ns: int, fix: LsqFix | None) -> None:
-        if fix is None or not self._window:
-            return
-        cfg = self.cfg
-        waited_s = (t_ns - (self._first_t_ns or t_ns)) / 1e9
-        means = np.mean(self._window, axis=0)
-        acc, gyro = means[1:4], means[4:7]
-        recent = [p for t, p in self._fixes if t >= t_ns - cfg.init_static_s * 1e9]
-        roll = math.atan2(acc[1], acc[2])
-        pitch = math.atan2(-acc[0], math.hypot(acc[1], acc[2]))
-        q = quat_from_euler(roll, pitch, 0.0)
-        P0 = np.zeros((N_CORE + len(self._bias_index),) * 2)
-        f_norm = float(np.linalg.norm(acc))
-        ba = np.zeros(3)
-        if self._static(cfg.init_static_s) and len(recent) >= 3:
-            p_ant, v, bg = np.mean(recent, axis=0), np.zeros(3), np.asarray(gyro)
-            # at rest |f| = g: what is left over lies along the vertical, as an accel bias
-            ba = (f_norm - GRAVITY_MPS2) * np.asarray(acc) / f_norm
-            sig_v, sig_bg, self.status = 0.05, 0.005, "running (started at rest)"
-        elif waited_s >= cfg.init_max_wait_s and len(self._fixes) >= 2:
-            (t0, p0), (t1, p1) = self._fixes[-2], self._fixes[-1]
-            p_ant, v, bg = p1, (p1 - p0) / max((t1 - t0) / 1e9, 1e-3), np.zeros(3)
-            sig_v, sig_bg, self.status = 1.0, 0.02, "running (started while moving)"
-        else:
-            return
-        self.counters["initialisations"] += 1
-        R0 = quat_to_matrix(q)
-        p = p_ant - R0 @ self.lever
-        sig_p = float(np.sqrt(max(np.trace(fix.covariance) / 3, 0.05**2)))
-        np.fill_diagonal(P0, np.concatenate([
-            np.full(3, sig_p**2), np.full(3, sig_v**2),
-            [math.radians(2) ** 2, math.radians(2) ** 2, math.pi**2],
-            np.full(3, sig_bg**2), np.full(3, cfg.acc_bias_sigma_mps2**2),
-            np.full(len(self._bias_index), cfg.range_bias_sigma_m**2)]))
-        # a range's offset is the tag's delay plus its anchor's: correlated a priori
-        P0[N_CORE:, N_CORE:] += cfg.tag_delay_sigma_m**2
-        self.ekf = Eskf(p, v, q, P0, cfg.imu_noise, len(self._bias_index), b_g=bg, b_a=ba)
-        self.t_ns = t_ns
-
-    def _align_heading(self, t_ns: int, fix: LsqFix | None, anchors: Array,
-                       ranges: Array) -> None:
+    def _hold_heading(self, t_ns: int, dv: Vec3, fix: LsqFix | None) -> None:
         """Until aligned the heading is held (an EKF linearised about a large yaw error
         turns falsely confident within a second of motion); then :class:`HeadingAligner`
         tells the yaw error and the EKF takes over with its σ."""
         ekf = self.ekf
         assert ekf is not None
+        self._aligner.add_ins_dv(dv)
+        # the heading is unknown: the INS's horizontal Δv may point anywhere; for a heading
+        # error uniform over ±180° the RMS error of a turned Δv is √2 |Δv|, so the fixes
+        # must be free to say where it went
+        extra = 2.0 * (dv[0] ** 2 + dv[1] ** 2)
+        ekf.P[3, 3] += extra
+        ekf.P[4, 4] += extra
         ekf.rotate_heading(0.0, HELD_YAW_SIGMA_RAD)
-        if not self._aligner.wants_fix(t_ns):
+        if fix is None or not self._aligner.wants_fix(t_ns):
             return
-        fix = fix or self._lsq(anchors, ranges)
-        result = None if fix is None else self._aligner.add_fix(t_ns, fix)
+        result = self._aligner.add_fix(t_ns, fix)
         if result is not None:
             ekf.rotate_heading(*result)
             self._aligned = True
@@ -373,22 +433,23 @@ class Filter:
         growing uncertainty, so the ranges keep the position while the IMU is away."""
         ekf = self.ekf
         assert ekf is not None and self.t_ns is not None
-        dt = (t_ns - self.t_ns) / 1e9
+        dt = (t_ns - self.t_ns) / NS
         if dt <= 0:
             return
         fresh = self._imu_t_ns is not None and \
-            (t_ns - self._imu_t_ns) / 1e9 <= self.cfg.max_imu_gap_s
+            (t_ns - self._imu_t_ns) / NS <= self.cfg.max_imu_gap_s
         if fresh and self._last_imu is not None:
             ekf.predict(self._last_imu[0], self._last_imu[1], dt)
         else:
             self._coasted = True
+            self.monitor.imu_gap = True
             ekf.p = [p + v * dt for p, v in zip(ekf.p, ekf.v, strict=True)]
-            self._inflate(velocity_mps=1.0 * dt, attitude_rad=0.01 * dt,
-                          position_m=0.5 * dt)
+            self._inflate(velocity_mps=1.0 * dt, attitude_rad=0.0, position_m=0.5 * dt)
+            self._widen_for_unseen(dt)
         self.t_ns = t_ns
 
     def _measurement_rows(self, ids: list[int], anchors: Array, ranges: Array,
-                          fix: LsqFix | None) -> Rows:
+                          r_scale: Array, fix: LsqFix | None) -> Rows:
         """Tight: one row per range (§4, range); loose: the fix's axes (§4, position)."""
         ekf = self.ekf
         assert ekf is not None
@@ -401,7 +462,7 @@ class Filter:
             keep = dist >= 1e-3  # the antenna on an anchor: no line of sight to linearise
             if not keep.all():
                 ids = [a for a, k in zip(ids, keep, strict=True) if k]
-                diff, dist, ranges = diff[keep], dist[keep], ranges[keep]
+                diff, dist, ranges, r_scale = diff[keep], dist[keep], ranges[keep], r_scale[keep]
             U = diff / dist[:, None]
             H = np.zeros((len(ids), ekf.n))
             H[:, P_] = U
@@ -412,7 +473,7 @@ class Filter:
                 if k is not None:
                     H[i, k] = 1.0
                     h[i] += ekf.b_r[k - N_CORE]
-            var = np.full(len(ids), self.cfg.range_sigma_m**2)
+            var = self.cfg.range_sigma_m**2 * r_scale
             return Rows(H, ranges - h, var, [("range", str(a)) for a in ids])
         if fix is None:
             return Rows.empty(ekf.n)
@@ -432,7 +493,7 @@ class Filter:
         rows = []
         # constant velocity looks like rest to an IMU: require a slow estimate as well
         slow = math.hypot(*ekf.v) < cfg.zupt_max_speed_mps
-        if cfg.zupt and slow and self._static(cfg.static_window_s):
+        if cfg.zupt and slow and self.window.static(cfg.static_window_s):
             self.counters["zupt"] += 1
             H = np.zeros((3, n))
             H[:, V_] = np.eye(3)
@@ -454,66 +515,107 @@ class Filter:
         return rows
 
     def _fuse(self, t_ns: int, rows: Rows) -> list[FusionReport]:
+        """Sequential scalar updates; each range gated (χ²) and weighted (robust); a loose
+        fix gated as one 3-D measurement."""
         ekf = self.ekf
         assert ekf is not None
         H, y, R, keys = rows
         if not keys:
             return []
-        S = ekf.innovation_variances(H, R)
-        nis = y * y / S
-        accept = nis <= self._gate_1
+        fix_ok = True
         idx = np.array([k[0] == "position" for k in keys])
         if idx.any():  # a position fix is one 3-D measurement: gate it as one
             Hl = H[idx]
             Sl = Hl @ ekf.P @ Hl.T + np.diag(R[idx])
-            nis_l = float(y[idx] @ np.linalg.solve(Sl, y[idx]))
-            accept[idx] = nis_l <= self._gate_3
-        ratio = nis / self._gate_1
-        reports = [FusionReport(t_ns, kind, key, y_i, s_i, r_i, ok, "" if ok else
-                                "innovation_gate")
-                   for (kind, key), y_i, s_i, r_i, ok in zip(
-                       keys, y.tolist(), S.tolist(), ratio.tolist(), accept.tolist(),
-                       strict=True)]
-        counters = self.counters
-        for r in reports:
-            counters[f"{r.kind}_{'accepted' if r.accepted else 'rejected'}"] += 1
-        if accept.any():
-            ekf.update(H[accept], y[accept], R[accept])
+            try:
+                fix_ok = float(y[idx] @ np.linalg.solve(Sl, y[idx])) <= self._gate_3
+            except np.linalg.LinAlgError:
+                fix_ok = False
+        gate_1, robust = self._gate_1, self.cfg.robust
+
+        def decide(i: int, nu: float, s: float) -> float:
+            kind = keys[i][0]
+            if kind == "position":
+                return 1.0 if fix_ok else 0.0
+            e2 = nu * nu / s
+            if e2 > gate_1:
+                return 0.0
+            return robust.weight(nu / math.sqrt(s)) if kind == "range" else 1.0
+
+        outcome = ekf.sequential_update(H, y, R, decide)
+        reports = []
+        counters, monitor = self.counters, self.monitor
+        for (kind, key), row in zip(keys, outcome, strict=True):
+            ok = row.weight > 0.0
+            reason = "" if ok else ("numerical" if row.numerical else "innovation_gate")
+            ratio = row.innovation**2 / row.variance / gate_1 if row.variance > 0 else math.nan
+            reports.append(FusionReport(t_ns, kind, key, row.innovation, row.variance, ratio,
+                                        ok, reason))
+            counters[f"{kind}_{'accepted' if ok else 'rejected'}"] += 1
+            if row.numerical:
+                counters["numerical_skips"] += 1
+                monitor.numerical_fault(t_ns)
+            if kind in ("range", "position"):
+                monitor.uwb_outcome(t_ns, ok, ratio * gate_1)
+            if kind == "range":
+                stats = self.anchor_stats.get(int(key))
+                if stats is None:
+                    stats = self.anchor_stats[int(key)] = AnchorStats()
+                stats.add(row.innovation / math.sqrt(row.variance) if row.variance > 0
+                          else math.nan, row.weight)
+        self._keep_covariance_sane()
         return reports
 
-    def _needs_recovery(self, reports: list[FusionReport]) -> bool:
-        """Most ranges failing the gate for a while (NLOS, or a wrong state), or divergence."""
+    def _check_divergence(self, t_ns: int, ids: list[int], anchors: Array,
+                          ranges: Array) -> bool:
+        """Restart or move the state when the evidence says it is wrong; True if it did."""
         ekf = self.ekf
         assert ekf is not None
-        uwb = [r for r in reports if r.kind in ("range", "position") and not math.isnan(r.nis)]
-        bad = sum(not r.accepted for r in uwb)
-        self._bad_epochs = self._bad_epochs + 1 if uwb and bad > len(uwb) / 2 else 0
-        diverged = not (math.isfinite(ekf.P.sum() + sum(ekf.p))  # NaN and inf propagate
-                        and ekf.position_sigma_m().max() < 100.0)
-        return diverged or self._bad_epochs >= self.cfg.reinit_after_bad_epochs
-
-    def _recover(self, fix: LsqFix | None) -> None:
-        """Restart position (and velocity) from UWB least squares, keeping the attitude."""
-        ekf = self.ekf
-        assert ekf is not None
-        if fix is None:
-            return
-        self.counters["reinitialisations"] += 1
-        self.status = "running (re-initialised from UWB after rejected ranges)"
-        self._bad_epochs = 0
-        ekf.p = (fix.position_m - ekf.R @ self.lever).tolist()
+        if not math.isfinite(float(ekf.P.sum()) + sum(ekf.p) + sum(ekf.v) + sum(ekf.q)):
+            self._restart(t_ns, "state not finite", keep_motion=False)
+            return True
+        if not self.monitor.diverged(t_ns):
+            return False
+        # the ranges disagree with the state: believe them only if they agree with each other
+        fix = self.ranges.fix(t_ns, ids, anchors, ranges, None, force=True)
+        if fix is None or not self._consistent(fix):
+            self.counters["divergence_without_consistent_fix"] += 1
+            return False
+        p_ant = np.array(ekf.p) + ekf.R @ self.lever
+        jump = float(np.linalg.norm(fix.position_m - p_ant))
+        self.counters["position_resets"] += 1
+        ekf.p = (np.array(ekf.p) + fix.position_m - p_ant).tolist()
         ekf.v = [0.0, 0.0, 0.0]
-        self._inflate(velocity_mps=1.0, attitude_rad=0.0, position_m=0.5)
+        self._inflate(velocity_mps=1.0, attitude_rad=0.0,
+                      position_m=math.sqrt(max(np.trace(fix.covariance) / 3, 0.05**2)))
+        self.monitor.reset(t_ns, "innovations inconsistent: position from a UWB fix", jump)
+        return True
 
-    def _update_status(self) -> None:
+    def _consistent(self, fix: LsqFix) -> bool:
+        """A fix whose ranges agree: all used, residual RMS within 2 σ, enough anchors."""
+        sigma = self.cfg.range_sigma_m
+        return bool(fix.used.all() and fix.rms_m <= 2.0 * sigma
+                    and int(fix.used.sum()) >= self.ranges.needed)
+
+    def _keep_covariance_sane(self) -> None:
+        """``P`` finite, symmetric, its variances within bounds (clamping scales a row and
+        column, which keeps it positive semi-definite)."""
         ekf = self.ekf
         assert ekf is not None
-        unknown = not self._aligned or ekf.yaw_sigma_rad() >= math.radians(10)
-        note = "; heading not yet observable"
-        if unknown and note not in self.status:
-            self.status = self.status.replace(")", note + ")")
-        elif not unknown and note in self.status:
-            self.status = self.status.replace(note, "")
+        d = np.diag(ekf.P)
+        limit = np.concatenate([MAX_SIGMA, np.full(ekf.n - N_CORE, MAX_RANGE_BIAS_SIGMA_M)])**2
+        if (d > limit).any() or (d < 0).any():
+            self.counters["covariance_clamped"] += 1
+            scale = np.sqrt(np.minimum(1.0, limit / np.maximum(d, 1e-300)))
+            ekf.P = ekf.P * scale[:, None] * scale[None, :]
+            negative = np.diag(ekf.P) < 0
+            if negative.any():
+                ekf.P[np.diag_indices(ekf.n)] = np.where(negative, 1e-9, np.diag(ekf.P))
+
+    def _widen_for_unseen(self, dt: float) -> None:
+        """A rejected IMU sample hid ``dt`` of motion: widen velocity and attitude for it
+        (the body may have turned by up to ~0.3 rad and sped up by ~2 m/s in a second)."""
+        self._inflate(velocity_mps=2.0 * math.sqrt(dt), attitude_rad=0.3 * math.sqrt(dt))
 
     def _inflate(self, velocity_mps: float, attitude_rad: float, position_m: float = 0.0) -> None:
         ekf = self.ekf
@@ -523,7 +625,6 @@ class Filter:
         d[V_] = velocity_mps**2
         d[TH_] = attitude_rad**2
         ekf.P[np.diag_indices(ekf.n)] += d
-
 
 
 def chi2_quantile(p: float, dof: int) -> float:

@@ -52,11 +52,13 @@ def coplanar(anchors_m: Array, tolerance_m: float = 0.3) -> bool:
 
 def multilaterate(anchors_m: Array, ranges_m: Array, sigma_m: float = 0.1,
                   x0: Array | None = None, fixed_z: float | None = None,
-                  outlier_sigma: float = 5.0) -> LsqFix | None:
-    """Solve for the tag position; ``None`` when there are too few ranges or no convergence."""
+                  outlier_sigma: float = 5.0, side: int = 1) -> LsqFix | None:
+    """Solve for the tag position; ``None`` when there are too few ranges or no convergence.
+    ``side`` (+1 above, −1 below) is where to start when the anchors are coplanar and no
+    ``x0`` is given (:mod:`uwbd.fusion.mirror` decides it)."""
     dims = 2 if fixed_z is not None else 3
     used = np.ones(len(ranges_m), dtype=bool)
-    fix = _solve(anchors_m, ranges_m, used, sigma_m, x0, fixed_z)
+    fix = _solve(anchors_m, ranges_m, used, sigma_m, x0, fixed_z, side)
     if fix is None or used.sum() <= dims + 1:
         return fix
     # studentised residuals: r_i / (σ √(1 − h_ii)), h_ii the leverage of range i
@@ -67,7 +69,7 @@ def multilaterate(anchors_m: Array, ranges_m: Array, sigma_m: float = 0.1,
     if student[worst] <= outlier_sigma:
         return fix
     used[np.flatnonzero(used)[worst]] = False
-    return _solve(anchors_m, ranges_m, used, sigma_m, fix.position_m, fixed_z) or fix
+    return _solve(anchors_m, ranges_m, used, sigma_m, fix.position_m, fixed_z, side) or fix
 
 
 def _jacobian(anchors: Array, x: Array, dims: int) -> Array:
@@ -75,7 +77,7 @@ def _jacobian(anchors: Array, x: Array, dims: int) -> Array:
     return (diff / np.linalg.norm(diff, axis=1, keepdims=True))[:, :dims]
 
 
-def _initial_guess(anchors: Array, ranges: Array, fixed_z: float | None) -> Array:
+def _initial_guess(anchors: Array, ranges: Array, fixed_z: float | None, side: int) -> Array:
     """Linear solution of the differenced range equations, else the anchors' centroid."""
     centroid = anchors.mean(axis=0)
     if fixed_z is None and len(anchors) >= 4 and not coplanar(anchors):
@@ -88,18 +90,18 @@ def _initial_guess(anchors: Array, ranges: Array, fixed_z: float | None) -> Arra
     if fixed_z is not None:
         guess[2] = fixed_z
     else:
-        guess[2] += 1.0  # above a plane of anchors, not in it
+        guess[2] += 1.0 * side  # on the chosen side of a plane of anchors, not in it
     return guess
 
 
 def _solve(anchors_all: Array, ranges_all: Array, used: Array, sigma_m: float,
-           x0: Array | None, fixed_z: float | None) -> LsqFix | None:
+           x0: Array | None, fixed_z: float | None, side: int) -> LsqFix | None:
     dims = 2 if fixed_z is not None else 3
     anchors, ranges = anchors_all[used], ranges_all[used]
     if len(ranges) < dims:
         return None
     x = (np.array(x0, dtype=float) if x0 is not None
-         else _initial_guess(anchors, ranges, fixed_z))
+         else _initial_guess(anchors, ranges, fixed_z, side))
     if fixed_z is not None:
         x[2] = fixed_z
     iteration = 0

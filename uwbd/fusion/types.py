@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+from uwbd.fusion.health import WAITING, Health
 
 
 @dataclass(frozen=True, slots=True)
@@ -18,8 +20,9 @@ class Pose:
     velocity_mps: tuple[float, float, float]
     orientation_xyzw: tuple[float, float, float, float]
     covariance: tuple[float, ...]
-    status: str
+    status: str  # the health record's one-line summary
     heading_observable: bool
+    health: Health = field(default=WAITING)
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,0 +1,201 @@
+"""The filter's health: what state the estimate is in, rebuilt from evidence at every step.
+
+:class:`HealthMonitor` keeps the evidence (when a UWB measurement was last accepted, the
+recent innovations, IMU samples rejected, numerical faults, resets); :meth:`assess` turns
+it into a :class:`Health` record, which the pose, the status and the terminal carry. The
+record is never patched: each step builds a new one from the monitor and the covariance.
+
+Phases (one at a time, in this order of precedence):
+
+``waiting``     no estimate yet (collecting IMU samples and ranges to start)
+``recovering``  re-initialised less than ``recover_hold_s`` ago, or waiting to restart
+                after a reset
+``coasting``    no accepted UWB measurement for ``coast_after_s``: IMU only, σ growing
+``degraded``    running with a fault (below)
+``aligning``    running, heading not yet observable
+``tracking``    running, nothing wrong: the only phase in which :attr:`Health.healthy`
+
+Faults: ``state_not_finite``, ``innovation_below_noise`` (``S < R``: ``P`` lost its
+positive definiteness along a measurement), ``innovations_inconsistent`` (most recent UWB
+measurements fail the gate, or their NIS is far above 1), ``imu_rejected`` (a sample was
+rejected within the last second), ``imu_gap``, ``range_timeout`` (no accepted range for
+``range_timeout_s``), ``position_uncertain`` (horizontal σ above ``max_sigma_m``).
+Notes do not make the estimate unhealthy: ``mirror_unresolved`` (coplanar anchors, side
+not yet told by the data, the configured or default side in use).
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from dataclasses import dataclass
+from enum import Enum
+from typing import Any
+
+NS = 1_000_000_000
+
+
+class Phase(str, Enum):
+    WAITING = "waiting"
+    RECOVERING = "recovering"
+    COASTING = "coasting"
+    DEGRADED = "degraded"
+    ALIGNING = "aligning"
+    TRACKING = "tracking"
+
+
+@dataclass(frozen=True, slots=True)
+class Health:
+    """One step's verdict. Times are seconds; ``None`` where there is nothing to tell."""
+
+    phase: Phase
+    faults: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()
+    since_range_s: float | None = None  # since the last accepted UWB measurement
+    position_sigma_m: float | None = None  # horizontal, √(σx² + σy²)
+    resets: int = 0
+    last_reset_t_ns: int | None = None
+    last_reset_reason: str = ""
+    last_reset_jump_m: float | None = None  # how far the position moved at that reset
+
+    @property
+    def healthy(self) -> bool:
+        return self.phase is Phase.TRACKING
+
+    def summary(self) -> str:
+        """One line for a terminal or ``systemctl status``."""
+        text = self.phase.value
+        if self.phase is Phase.COASTING and self.since_range_s is not None:
+            text += f" ({self.since_range_s:.1f} s without an accepted range)"
+        if self.faults:
+            text += ": " + ", ".join(self.faults)
+        if self.phase is Phase.RECOVERING and self.last_reset_reason:
+            text += f" (reset: {self.last_reset_reason})"
+        if self.notes:
+            text += "; " + ", ".join(self.notes)
+        return text
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready (non-finite numbers as ``None``)."""
+        def num(x: float | None) -> float | None:
+            return None if x is None or not math.isfinite(x) else round(x, 4)
+        return {"phase": self.phase.value, "healthy": self.healthy,
+                "faults": list(self.faults), "notes": list(self.notes),
+                "since_range_s": num(self.since_range_s),
+                "position_sigma_m": num(self.position_sigma_m), "resets": self.resets,
+                "last_reset_t_ns": self.last_reset_t_ns,
+                "last_reset_reason": self.last_reset_reason,
+                "last_reset_jump_m": num(self.last_reset_jump_m)}
+
+
+WAITING = Health(Phase.WAITING)
+
+
+@dataclass(frozen=True)
+class HealthLimits:
+    coast_after_s: float = 1.0
+    range_timeout_s: float = 5.0
+    max_sigma_m: float = 0.3  # horizontal σ above this is not a trustworthy fix
+    window_s: float = 2.0  # innovations judged over this long
+    min_window_count: int = 10
+    max_rejected_fraction: float = 0.5
+    max_mean_nis: float = 6.0  # of the window's NIS, each clipped at 25
+    diverged_after_s: float = 2.0  # inconsistent this long: the state is wrong
+    recover_hold_s: float = 3.0
+    imu_fault_hold_s: float = 1.0
+
+
+class HealthMonitor:
+    """Evidence about the estimate, fed by the filter as it runs."""
+
+    def __init__(self, limits: HealthLimits) -> None:
+        self.limits = limits
+        self.last_range_ns: int | None = None
+        self._outcomes: collections.deque[tuple[int, bool, float]] = collections.deque()
+        self._inconsistent_since_ns: int | None = None
+        self._imu_fault_ns: int | None = None
+        self._numerical_ns: int | None = None
+        self.imu_gap = False
+        self.resets = 0
+        self.last_reset: tuple[int, str, float | None] | None = None
+        self.mirror_unresolved = False
+
+    # -- evidence -------------------------------------------------------------------------
+    def uwb_outcome(self, t_ns: int, accepted: bool, nis: float) -> None:
+        """One UWB measurement (range or position axis) after the innovation test."""
+        if accepted:
+            self.last_range_ns = t_ns
+        out = self._outcomes
+        out.append((t_ns, accepted, min(nis, 25.0) if math.isfinite(nis) else 25.0))
+        while out and out[0][0] < t_ns - self.limits.window_s * NS:
+            out.popleft()
+        if self._window_inconsistent():
+            if self._inconsistent_since_ns is None:
+                self._inconsistent_since_ns = t_ns
+        else:
+            self._inconsistent_since_ns = None
+
+    def imu_rejected(self, t_ns: int) -> None:
+        self._imu_fault_ns = t_ns
+
+    def numerical_fault(self, t_ns: int) -> None:
+        self._numerical_ns = t_ns
+
+    def reset(self, t_ns: int, reason: str, jump_m: float | None) -> None:
+        """A re-initialisation: the evidence about the old estimate no longer applies."""
+        self.resets += 1
+        self.last_reset = (t_ns, reason, jump_m)
+        self._outcomes.clear()
+        self._inconsistent_since_ns = None
+
+    # -- judgements -----------------------------------------------------------------------
+    def _window_inconsistent(self) -> bool:
+        out, lim = self._outcomes, self.limits
+        if len(out) < lim.min_window_count:
+            return False
+        rejected = sum(not a for _, a, _ in out)
+        mean_nis = sum(n for _, _, n in out) / len(out)
+        return rejected > lim.max_rejected_fraction * len(out) or mean_nis > lim.max_mean_nis
+
+    def diverged(self, t_ns: int) -> bool:
+        """Innovations inconsistent for ``diverged_after_s``: the state, not the ranges, is
+        likely wrong (the caller checks that a consistent fix says so too)."""
+        since = self._inconsistent_since_ns
+        return since is not None and t_ns - since >= self.limits.diverged_after_s * NS
+
+    def assess(self, t_ns: int, running: bool, heading_observable: bool,
+               position_sigma_m: float | None, finite: bool) -> Health:
+        lim = self.limits
+        since = None if self.last_range_ns is None else (t_ns - self.last_range_ns) / NS
+        faults = []
+        if not finite:
+            faults.append("state_not_finite")
+        if self._numerical_ns is not None and t_ns - self._numerical_ns < lim.imu_fault_hold_s * NS:
+            faults.append("innovation_below_noise")
+        if self._inconsistent_since_ns is not None:
+            faults.append("innovations_inconsistent")
+        if self._imu_fault_ns is not None and t_ns - self._imu_fault_ns < lim.imu_fault_hold_s * NS:
+            faults.append("imu_rejected")
+        if self.imu_gap:
+            faults.append("imu_gap")
+        if running and since is not None and since > lim.range_timeout_s:
+            faults.append("range_timeout")
+        if running and (position_sigma_m is None or not position_sigma_m <= lim.max_sigma_m):
+            faults.append("position_uncertain")
+        notes = ("mirror_unresolved",) if self.mirror_unresolved else ()
+        reset_t, reason, jump = self.last_reset or (None, "", None)
+        recent_reset = reset_t is not None and t_ns - reset_t < lim.recover_hold_s * NS
+        if not running:
+            phase = Phase.RECOVERING if self.resets else Phase.WAITING
+        elif recent_reset and faults:
+            phase = Phase.RECOVERING
+        elif since is None or since > lim.coast_after_s:
+            phase = Phase.COASTING
+        elif faults:
+            phase = Phase.DEGRADED
+        elif not heading_observable:
+            phase = Phase.ALIGNING
+        else:
+            phase = Phase.TRACKING
+        return Health(phase, tuple(faults), notes, since, position_sigma_m, self.resets,
+                      reset_t, reason, jump)

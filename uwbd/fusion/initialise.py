@@ -1,0 +1,99 @@
+"""The filter's state at the start, and after a restart.
+
+* **At rest** (the IMU still for ``init_static_s`` and at least 3 fixes over that time):
+  gyro bias = mean rate, roll and pitch from the mean specific force, the vertical excess
+  of ``|f|`` over ``g`` as an accelerometer bias, position = mean fix, velocity 0.
+* **While moving** (no rest within ``init_max_wait_s``, or at once after a restart):
+  roll and pitch from the mean specific force, position from the latest fix, velocity
+  from a line fit through the last second of fixes, wider σ for velocity and gyro bias.
+* **Carried over** (a restart that keeps the motion: an IMU gap or a rejected burst): the
+  position, velocity and gyro bias of the estimate before, with its position σ, and the
+  attitude from gravity over the fresh IMU samples.
+
+The heading always starts unknown (σ 180°): :mod:`.alignment` finds it once the vehicle
+moves.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
+
+from uwbd.fusion.alignment import velocity_fit
+from uwbd.fusion.eskf import GRAVITY_MPS2, N_CORE, Eskf
+from uwbd.fusion.lsq import LsqFix
+from uwbd.fusion.rest import ImuWindow
+from uwbd.fusion.rotation import Array, quat_from_euler, quat_to_matrix
+
+if TYPE_CHECKING:
+    from uwbd.fusion.filter import FilterConfig
+
+NS = 1_000_000_000
+
+
+class Start(NamedTuple):
+    """What a restart keeps of the estimate before it (navigation frame, IMU point)."""
+
+    p_m: Array
+    v_mps: Array
+    b_g_rps: Array
+    b_r_m: Array
+    sigma_p_m: float
+
+
+def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
+                recent: list[tuple[int, Array]], fixes: list[tuple[int, Array]],
+                waited_long: bool, carry: Start | None, n_bias: int,
+                lever_m: Array) -> tuple[Eskf, str] | None:
+    """The new filter state and how it started (``rest``, ``moving``, ``carried``), or
+    ``None`` while the evidence is not enough yet. ``recent``: fixes of the last
+    ``init_static_s``; ``fixes``: all kept ones (time-ordered)."""
+    means = window.means()
+    if means is None:
+        return None
+    acc, gyro = means
+    roll = math.atan2(acc[1], acc[2])
+    pitch = math.atan2(-acc[0], math.hypot(acc[1], acc[2]))
+    q = quat_from_euler(roll, pitch, 0.0)
+    R0 = quat_to_matrix(q)
+    f_norm = float(np.linalg.norm(acc))
+    ba = np.zeros(3)
+    sig_fix = float(np.sqrt(max(np.trace(fix.covariance) / 3, 0.05**2)))
+    if carry is not None:
+        p, v, bg = carry.p_m, carry.v_mps, carry.b_g_rps
+        sig_p, sig_v, sig_bg, how = max(carry.sigma_p_m, sig_fix), 1.0, 0.01, "carried"
+    elif window.static(cfg.init_static_s) and len(recent) >= 3:
+        p = np.mean([x for _, x in recent], axis=0) - R0 @ lever_m
+        v, bg = np.zeros(3), np.asarray(gyro)
+        # at rest |f| = g: what is left over lies along the vertical, as an accel bias
+        ba = (f_norm - GRAVITY_MPS2) * np.asarray(acc) / f_norm
+        sig_p, sig_v, sig_bg, how = sig_fix, 0.05, 0.005, "rest"
+    elif waited_long and len(fixes) >= 2:
+        last = [(t, x) for t, x in fixes if t >= fixes[-1][0] - NS]
+        if len(last) >= 5:
+            v_xy, _ = velocity_fit(last)
+            t_span = (last[-1][0] - last[0][0]) / NS
+            v_z = (last[-1][1][2] - last[0][1][2]) / max(t_span, 1e-3)
+            v = np.array([v_xy[0], v_xy[1], v_z])
+            sig_v = 0.5
+        else:
+            (t0, p0), (t1, p1) = fixes[-2], fixes[-1]
+            v, sig_v = (p1 - p0) / max((t1 - t0) / NS, 1e-3), 1.0
+        p, bg = fix.position_m - R0 @ lever_m, np.zeros(3)
+        sig_p, sig_bg, how = sig_fix, 0.02, "moving"
+    else:
+        return None
+    P0 = np.zeros((N_CORE + n_bias,) * 2)
+    np.fill_diagonal(P0, np.concatenate([
+        np.full(3, sig_p**2), np.full(3, sig_v**2),
+        [math.radians(2) ** 2, math.radians(2) ** 2, math.pi**2],
+        np.full(3, sig_bg**2), np.full(3, cfg.acc_bias_sigma_mps2**2),
+        np.full(n_bias, cfg.range_bias_sigma_m**2)]))
+    # a range's offset is the tag's delay plus its anchor's: correlated a priori
+    P0[N_CORE:, N_CORE:] += cfg.tag_delay_sigma_m**2
+    ekf = Eskf(p, v, q, P0, cfg.imu_noise, n_bias, b_g=bg, b_a=ba)
+    if carry is not None and len(carry.b_r_m) == n_bias:
+        ekf.b_r = carry.b_r_m.copy()
+    return ekf, how

@@ -1,0 +1,72 @@
+"""The recent IMU samples (body axes) and the rest test on them.
+
+At rest the specific force is steady (its spread is the sensor's noise plus a little
+vibration) and close to ``g`` in size, and the rotation rate is small and steady. Slow
+handheld motion has small accelerations too, but not the stillness of a sample set down:
+the test asks for all four over ``span_s`` (the ZUPT window, 0.5 s by default; the start
+asks for ``init_static_s``).
+"""
+
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass
+
+import numpy as np
+
+from uwbd.fusion.eskf import GRAVITY_MPS2
+from uwbd.fusion.rotation import Array
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class RestLimits:
+    acc_std_mps2: float = 0.15  # |std of the specific force| over the window
+    gyro_rps: float = 0.03  # |mean rate| and |std of the rate|
+    gravity_tolerance_mps2: float = 1.0  # | |mean f| − g |: scale errors of a few % only
+
+
+class ImuWindow:
+    def __init__(self, length_s: float, limits: RestLimits) -> None:
+        self.length_ns = int(length_s * 1e9)
+        self.limits = limits
+        self._samples: collections.deque[tuple[float, ...]] = collections.deque()
+
+    def add(self, t_ns: int, acc: Vec3, gyro: Vec3) -> None:
+        samples = self._samples
+        samples.append((t_ns, *acc, *gyro))
+        oldest_ns = t_ns - self.length_ns
+        while samples[0][0] < oldest_ns:
+            samples.popleft()
+
+    def clear(self) -> None:
+        self._samples.clear()
+
+    def span_s(self) -> float:
+        s = self._samples
+        return (s[-1][0] - s[0][0]) / 1e9 if s else 0.0
+
+    def means(self) -> tuple[Array, Array] | None:
+        """Mean specific force and mean rate over the window, ``None`` when empty."""
+        if not self._samples:
+            return None
+        m = np.mean(self._samples, axis=0)
+        return m[1:4], m[4:7]
+
+    def static(self, span_s: float) -> bool:
+        """At rest over the last ``span_s``."""
+        samples = self._samples
+        if not samples or (samples[-1][0] - samples[0][0]) < 0.9 * span_s * 1e9:
+            return False
+        a = np.array(samples)
+        recent = a[a[:, 0] >= a[-1, 0] - span_s * 1e9]
+        if len(recent) < 3:
+            return False
+        acc, gyro = recent[:, 1:4], recent[:, 4:7]
+        lim = self.limits
+        return bool(np.linalg.norm(acc.std(axis=0)) < lim.acc_std_mps2
+                    and abs(np.linalg.norm(acc.mean(axis=0)) - GRAVITY_MPS2)
+                    < lim.gravity_tolerance_mps2
+                    and np.linalg.norm(gyro.mean(axis=0)) < lim.gyro_rps
+                    and np.linalg.norm(gyro.std(axis=0)) < lim.gyro_rps)
