@@ -26,20 +26,27 @@ def merge(imu: Iterable[ImuSample], uwb: Iterable[UwbRanges]) -> Iterator[Frame]
     return (f for _, _, f in tagged)
 
 
-def run_filter(config: FilterConfig, frames: Iterable[Frame], record: bool = False
+def run_filter(config: FilterConfig, frames: Iterable[Frame], record: bool = False,
+               pose_period_ns: int | None = None
                ) -> tuple[list[Pose], list[FusionReport], Filter]:
-    """The filter over ``frames``; a pose after every UWB epoch (``record``: for smoothing)."""
+    """The filter over ``frames``; a pose after every UWB message and, with
+    ``pose_period_ns``, between them from the IMU as the daemon does (``record``: for
+    smoothing)."""
     flt = Filter(config, record)
     poses: list[Pose] = []
     reports: list[FusionReport] = []
+    last_ns = -(2**63)
     for frame in frames:
         if isinstance(frame, ImuSample):
             flt.predict(frame)
+            if pose_period_ns is None or frame.t_ns - last_ns < pose_period_ns:
+                continue
         else:
             reports += flt.update(frame)
-            pose = flt.pose()
-            if pose is not None:
-                poses.append(pose)
+        pose = flt.pose()
+        if pose is not None:
+            poses.append(pose)
+            last_ns = pose.t_ns
     return poses, reports, flt
 
 

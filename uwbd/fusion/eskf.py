@@ -57,7 +57,12 @@ class Eskf:
     def __init__(self, p: Vector, v: Vector, q: Vector,
                  P0: Array, noise: ImuNoise, n_range_bias: int = 0,
                  b_g: Vector = (0.0, 0.0, 0.0),
-                 b_a: Vector = (0.0, 0.0, 0.0)) -> None:
+                 b_a: Vector = (0.0, 0.0, 0.0), aux_tau_s: Array | None = None,
+                 aux_sigma: Array | None = None, aux_length_m: float = math.inf) -> None:
+        """``n_range_bias`` range-model states follow ``P0``: by default random walks
+        (``noise.range_bias``); where ``aux_tau_s`` is finite, first-order Gauss–Markov
+        processes with stationary σ ``aux_sigma`` that decorrelate with time (``τ``) and
+        with the distance travelled (``aux_length_m``), as multipath does (§3)."""
         self.n = N_CORE + n_range_bias
         if P0.shape != (self.n, self.n):
             raise ValueError(f"P0 must be {self.n}x{self.n}, got {P0.shape}")
@@ -85,6 +90,13 @@ class Eskf:
         self._q_rate[BG_] = noise.gyro_bias**2
         self._q_rate[BA_] = noise.acc_bias**2
         self._q_rate[N_CORE:] = noise.range_bias**2
+        self._tau = np.full(n_range_bias, np.inf) if aux_tau_s is None else np.asarray(aux_tau_s)
+        self._markov = np.flatnonzero(np.isfinite(self._tau))
+        self._q_rate[N_CORE + self._markov] = 0.0
+        self._markov_var = (np.zeros(0) if aux_sigma is None
+                            else np.asarray(aux_sigma)[self._markov] ** 2)
+        self._decay_epoch = np.ones(n_range_bias)
+        self._length_m = aux_length_m
 
     # -- nominal propagation: every IMU sample -------------------------------------------
     def predict(self, acc_b: Vector, gyro_b: Vector, dt: float) -> None:
@@ -129,11 +141,15 @@ class Eskf:
         return self._T
 
     def take_epoch(self) -> tuple[Array, tuple[float, float, float]]:
-        """Since the last call: the core's state transition ``Φ`` (the product over every
+        """Since the last call: the state transition ``Φ`` (the product over every
         :meth:`propagate`) and ``Σ R f Δt``, the INS's own velocity change (gravity aside)
         in the navigation frame, untouched by any measurement. Call after propagate()."""
-        Phi, dv = self._Phi_epoch, self._dv_epoch
+        Phi = np.eye(self.n)
+        Phi[:N_CORE, :N_CORE] = self._Phi_epoch
+        Phi[N_CORE:, N_CORE:] = np.diag(self._decay_epoch)
+        dv = self._dv_epoch
         self._Phi_epoch, self._dv_epoch = np.eye(N_CORE), [0.0, 0.0, 0.0]
+        self._decay_epoch = np.ones(self.n - N_CORE)
         return Phi, (dv[0], dv[1], dv[2])
 
     def rotate_heading(self, dpsi: float, yaw_sigma_rad: float) -> None:
@@ -157,8 +173,9 @@ class Eskf:
     def propagate(self) -> None:
         """``P ← Φ P Φᵀ + Q_d`` over the interval accumulated by :meth:`predict` (§3).
 
-        Only the 15 core states have dynamics (range biases are random walks, Φ = I there),
-        so Φ is built and applied on the core rows and columns alone."""
+        Only the 15 core states have coupled dynamics (range-model states are random walks,
+        Φ = I, or Gauss–Markov, Φ = e^(−T/τ) on the diagonal), so Φ is built and applied on
+        the core rows and columns, and the decays on their own."""
         T = self._T
         if T <= 0.0:
             return
@@ -178,6 +195,17 @@ class Eskf:
         P[:N_CORE, :] = Phi @ P[:N_CORE, :]
         P[:, :N_CORE] = P[:, :N_CORE] @ Phi.T
         P[self._diag] += self._q_rate * T
+        m = self._markov
+        if len(m):  # Gauss–Markov states decay towards 0; Q keeps their σ stationary
+            v = self.v
+            travelled = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) * T
+            phi = np.exp(-T / self._tau[m] - travelled / self._length_m)
+            k = N_CORE + m
+            P[k, :] *= phi[:, None]
+            P[:, k] *= phi[None, :]
+            P[k, k] += self._markov_var * (1.0 - phi * phi)
+            self.b_r[m] *= phi
+            self._decay_epoch[m] *= phi
         self.P = 0.5 * (P + P.T)
         self._reset_interval()
 

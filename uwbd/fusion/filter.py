@@ -43,7 +43,7 @@ from uwbd.fusion.gating import GatingCounters, GatingPolicy, gate
 from uwbd.fusion.health import WAITING, Health, HealthLimits, HealthMonitor
 from uwbd.fusion.imu_check import ImuCheck, ImuLimits
 from uwbd.fusion.initialise import Start, start_state
-from uwbd.fusion.lsq import LsqFix, coplanar
+from uwbd.fusion.lsq import LsqFix, common_offset, coplanar
 from uwbd.fusion.mirror import MirrorSide
 from uwbd.fusion.rest import ImuWindow, RestLimits
 from uwbd.fusion.robust import AnchorStats, RobustPolicy, quality_scale
@@ -106,6 +106,10 @@ class FilterConfig:
     range_bias_states: bool = True  # self-calibrate each anchor's antenna delay
     range_bias_sigma_m: float = 0.1  # each anchor's own antenna delay, as a range offset
     tag_delay_sigma_m: float = 0.2  # the tag's antenna delay: one offset common to all ranges
+    multipath_states: bool = False  # one Gauss–Markov range error per anchor (time-correlated)
+    multipath_sigma_m: float = 0.07
+    multipath_tau_s: float = 1.0
+    multipath_length_m: float = math.inf
     tag_side: str = "auto"  # of a plane of anchors: auto | below | above (see .mirror)
     height_range_m: tuple[float, float] | None = None  # where the tag can be (a hint)
     zupt: bool = True
@@ -168,6 +172,10 @@ class Filter:
         self._bias_index: dict[int, int] = {}
         if config.range_bias_states and config.mode is Mode.TIGHT:  # unobservable in loose
             self._bias_index = {a: N_CORE + i for i, a in enumerate(sorted(config.anchors_m))}
+        self._mp_index: dict[int, int] = {}
+        if config.multipath_states and config.mode is Mode.TIGHT:
+            first = N_CORE + len(self._bias_index)
+            self._mp_index = {a: first + i for i, a in enumerate(sorted(config.anchors_m))}
         self._gate_1 = chi2_quantile(config.gate_probability, 1)
         self._gate_3 = chi2_quantile(config.gate_probability, 3)
 
@@ -250,7 +258,7 @@ class Filter:
         self._predict_to(uwb.t_ns)
         ekf = self.ekf
         ekf.propagate()
-        Phi_core, dv = ekf.take_epoch()
+        Phi, dv = ekf.take_epoch()
         # the smoother can step back from this epoch over a plain Kalman prediction only
         linked = self._aligned and not self._coasted
         self._coasted = False
@@ -263,8 +271,6 @@ class Filter:
         if self._check_divergence(uwb.t_ns, ids, anchors, ranges):
             linked = False
         if prior is not None and self.records is not None and self.ekf is not None:
-            Phi = np.eye(self.ekf.n)
-            Phi[:N_CORE, :N_CORE] = Phi_core
             self.records.append(EpochRecord(uwb.t_ns, *prior, *self._snapshot(),
                                             Phi if linked else None))
         return reports
@@ -337,11 +343,12 @@ class Filter:
             waited_long = (t_ns - (self._first_t_ns or t_ns)) / NS >= cfg.init_max_wait_s
         recent = [(t, p) for t, p in self._fixes if t >= t_ns - cfg.init_static_s * NS]
         start = start_state(cfg, self.window, fix, recent, list(self._fixes), waited_long,
-                            self._carry, len(self._bias_index), self.lever)
+                            self._carry, len(self._bias_index), self.lever, len(self._mp_index))
         if start is None:
             return
         self.ekf, how = start
         self.t_ns = t_ns
+        self.monitor.last_range_ns = t_ns  # the start is a UWB fix
         self._carry = None
         self._start_started_ns = None
         self.counters["initialisations"] += 1
@@ -349,15 +356,23 @@ class Filter:
 
     def _restart(self, t_ns: int, reason: str, keep_motion: bool) -> None:
         """Drop the estimate and start again: attitude from gravity over fresh IMU samples,
-        heading aligned anew; with ``keep_motion`` the position and velocity (and gyro
-        bias) carry over with wider σ, else everything comes from UWB."""
+        heading aligned anew; the biases carry over when they are finite, and with
+        ``keep_motion`` the position and velocity too (with wider σ), else they come from
+        UWB."""
         ekf = self.ekf
         self.counters["restarts"] += 1
         self.counters[f"restart_{reason.replace(' ', '_')}"] += 1
         carry = None
-        if keep_motion and ekf is not None and math.isfinite(sum(ekf.p) + sum(ekf.v)):
-            sig = float(np.sqrt(np.clip(np.diag(ekf.P)[P_].max(), 0.0, 1e6)))
-            carry = Start(np.array(ekf.p), np.array(ekf.v), np.array(ekf.b_g), ekf.b_r.copy(), sig)
+        if ekf is not None:
+            biases = np.concatenate([ekf.b_g, ekf.b_a, ekf.b_r])
+            finite = np.isfinite(biases).all()
+            moving = keep_motion and math.isfinite(sum(ekf.p) + sum(ekf.v))
+            sig = float(np.sqrt(np.clip(np.nan_to_num(np.diag(ekf.P)[P_], nan=1e6).max(),
+                                        0.0, 1e6)))
+            if finite:
+                carry = Start(np.array(ekf.p) if moving else None,
+                              np.array(ekf.v) if moving else None, np.array(ekf.b_g),
+                              np.array(ekf.b_a), ekf.b_r.copy(), sig)
         self.ekf = None
         self._carry = carry
         self._start_started_ns = t_ns
@@ -469,10 +484,11 @@ class Filter:
             H[:, TH_] = U @ H_th_lever
             h = dist
             for i, anchor_id in enumerate(ids):
-                k = self._bias_index.get(anchor_id)
-                if k is not None:
-                    H[i, k] = 1.0
-                    h[i] += ekf.b_r[k - N_CORE]
+                for index in (self._bias_index, self._mp_index):
+                    k = index.get(anchor_id)
+                    if k is not None:
+                        H[i, k] = 1.0
+                        h[i] += ekf.b_r[k - N_CORE]
             var = self.cfg.range_sigma_m**2 * r_scale
             return Rows(H, ranges - h, var, [("range", str(a)) for a in ids])
         if fix is None:
@@ -578,11 +594,14 @@ class Filter:
             return False
         # the ranges disagree with the state: believe them only if they agree with each other
         fix = self.ranges.fix(t_ns, ids, anchors, ranges, None, force=True)
-        if fix is None or not self._consistent(fix):
+        if fix is None or not self._consistent(fix, anchors, ranges):
             self.counters["divergence_without_consistent_fix"] += 1
             return False
         p_ant = np.array(ekf.p) + ekf.R @ self.lever
         jump = float(np.linalg.norm(fix.position_m - p_ant))
+        spread = math.sqrt(max(float(np.trace(ekf.P[P_, P_]) + np.trace(fix.covariance)), 0.0))
+        if jump <= 3.0 * spread:
+            return False  # the fix agrees with the state after all: nothing to move
         self.counters["position_resets"] += 1
         ekf.p = (np.array(ekf.p) + fix.position_m - p_ant).tolist()
         ekf.v = [0.0, 0.0, 0.0]
@@ -591,11 +610,16 @@ class Filter:
         self.monitor.reset(t_ns, "innovations inconsistent: position from a UWB fix", jump)
         return True
 
-    def _consistent(self, fix: LsqFix) -> bool:
-        """A fix whose ranges agree: all used, residual RMS within 2 σ, enough anchors."""
-        sigma = self.cfg.range_sigma_m
-        return bool(fix.used.all() and fix.rms_m <= 2.0 * sigma
-                    and int(fix.used.sum()) >= self.ranges.needed)
+    def _consistent(self, fix: LsqFix, anchors: Array, ranges: Array) -> bool:
+        """A fix whose ranges agree: all used, residual RMS within 2 σ, enough anchors, and
+        (with 5 ranges or more, in one message) no common offset beyond the tag's delay."""
+        cfg = self.cfg
+        if not (fix.used.all() and fix.rms_m <= 2.0 * cfg.range_sigma_m
+                and int(fix.used.sum()) >= self.ranges.needed):
+            return False
+        solved = common_offset(anchors, ranges, fix.position_m) if len(ranges) >= 5 else None
+        limit = 3.0 * math.hypot(cfg.tag_delay_sigma_m, cfg.range_sigma_m)
+        return solved is None or abs(solved[0]) <= limit
 
     def _keep_covariance_sane(self) -> None:
         """``P`` finite, symmetric, its variances within bounds (clamping scales a row and

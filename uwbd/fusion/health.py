@@ -16,10 +16,11 @@ Phases (one at a time, in this order of precedence):
 ``tracking``    running, nothing wrong: the only phase in which :attr:`Health.healthy`
 
 Faults: ``state_not_finite``, ``innovation_below_noise`` (``S < R``: ``P`` lost its
-positive definiteness along a measurement), ``innovations_inconsistent`` (most recent UWB
-measurements fail the gate, or their NIS is far above 1), ``imu_rejected`` (a sample was
-rejected within the last second), ``imu_gap``, ``range_timeout`` (no accepted range for
-``range_timeout_s``), ``position_uncertain`` (horizontal σ above ``max_sigma_m``).
+positive definiteness along a measurement), ``innovations_inconsistent`` (most of the last
+``window_count`` UWB measurements, or the last four, fail the gate, or their NIS is far
+above 1), ``imu_rejected`` (a sample was rejected within the last second), ``imu_gap``,
+``range_timeout`` (no accepted range for ``range_timeout_s``), ``position_uncertain``
+(horizontal σ above ``max_sigma_m``).
 Notes do not make the estimate unhealthy: ``mirror_unresolved`` (coplanar anchors, side
 not yet told by the data, the configured or default side in use).
 """
@@ -96,11 +97,10 @@ class HealthLimits:
     coast_after_s: float = 1.0
     range_timeout_s: float = 5.0
     max_sigma_m: float = 0.3  # horizontal σ above this is not a trustworthy fix
-    window_s: float = 2.0  # innovations judged over this long
-    min_window_count: int = 10
+    window_count: int = 12  # innovations judged over the last this many UWB measurements
     max_rejected_fraction: float = 0.5
     max_mean_nis: float = 6.0  # of the window's NIS, each clipped at 25
-    diverged_after_s: float = 2.0  # inconsistent this long: the state is wrong
+    diverged_after_s: float = 2.0  # inconsistent this long: the state may be wrong
     recover_hold_s: float = 3.0
     imu_fault_hold_s: float = 1.0
 
@@ -127,7 +127,7 @@ class HealthMonitor:
             self.last_range_ns = t_ns
         out = self._outcomes
         out.append((t_ns, accepted, min(nis, 25.0) if math.isfinite(nis) else 25.0))
-        while out and out[0][0] < t_ns - self.limits.window_s * NS:
+        while len(out) > self.limits.window_count:
             out.popleft()
         if self._window_inconsistent():
             if self._inconsistent_since_ns is None:
@@ -151,7 +151,9 @@ class HealthMonitor:
     # -- judgements -----------------------------------------------------------------------
     def _window_inconsistent(self) -> bool:
         out, lim = self._outcomes, self.limits
-        if len(out) < lim.min_window_count:
+        if len(out) >= 4 and not any(a for _, a, _ in list(out)[-4:]):
+            return True  # the last four all failed: no need to wait for the window
+        if len(out) < lim.window_count:
             return False
         rejected = sum(not a for _, a, _ in out)
         mean_nis = sum(n for _, _, n in out) / len(out)

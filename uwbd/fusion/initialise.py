@@ -34,11 +34,13 @@ NS = 1_000_000_000
 
 
 class Start(NamedTuple):
-    """What a restart keeps of the estimate before it (navigation frame, IMU point)."""
+    """What a restart keeps of the estimate before it (navigation frame, IMU point): the
+    biases whenever they are finite, the position and velocity only if asked to."""
 
-    p_m: Array
-    v_mps: Array
+    p_m: Array | None
+    v_mps: Array | None
     b_g_rps: Array
+    b_a_mps2: Array
     b_r_m: Array
     sigma_p_m: float
 
@@ -46,7 +48,7 @@ class Start(NamedTuple):
 def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
                 recent: list[tuple[int, Array]], fixes: list[tuple[int, Array]],
                 waited_long: bool, carry: Start | None, n_bias: int,
-                lever_m: Array) -> tuple[Eskf, str] | None:
+                lever_m: Array, n_multipath: int = 0) -> tuple[Eskf, str] | None:
     """The new filter state and how it started (``rest``, ``moving``, ``carried``), or
     ``None`` while the evidence is not enough yet. ``recent``: fixes of the last
     ``init_static_s``; ``fixes``: all kept ones (time-ordered)."""
@@ -61,7 +63,7 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
     f_norm = float(np.linalg.norm(acc))
     ba = np.zeros(3)
     sig_fix = float(np.sqrt(max(np.trace(fix.covariance) / 3, 0.05**2)))
-    if carry is not None:
+    if carry is not None and carry.p_m is not None and carry.v_mps is not None:
         p, v, bg = carry.p_m, carry.v_mps, carry.b_g_rps
         sig_p, sig_v, sig_bg, how = max(carry.sigma_p_m, sig_fix), 1.0, 0.01, "carried"
     elif window.static(cfg.init_static_s) and len(recent) >= 3:
@@ -85,15 +87,24 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
         sig_p, sig_bg, how = sig_fix, 0.02, "moving"
     else:
         return None
-    P0 = np.zeros((N_CORE + n_bias,) * 2)
+    sig_ba = cfg.acc_bias_sigma_mps2
+    if carry is not None:  # the biases of the estimate before: better than none
+        bg, ba, sig_bg, sig_ba = carry.b_g_rps, carry.b_a_mps2, min(sig_bg, 0.01), sig_ba / 2
+    n_aux = n_bias + n_multipath
+    P0 = np.zeros((N_CORE + n_aux,) * 2)
     np.fill_diagonal(P0, np.concatenate([
         np.full(3, sig_p**2), np.full(3, sig_v**2),
         [math.radians(2) ** 2, math.radians(2) ** 2, math.pi**2],
-        np.full(3, sig_bg**2), np.full(3, cfg.acc_bias_sigma_mps2**2),
-        np.full(n_bias, cfg.range_bias_sigma_m**2)]))
+        np.full(3, sig_bg**2), np.full(3, sig_ba**2),
+        np.full(n_bias, cfg.range_bias_sigma_m**2),
+        np.full(n_multipath, cfg.multipath_sigma_m**2)]))
     # a range's offset is the tag's delay plus its anchor's: correlated a priori
-    P0[N_CORE:, N_CORE:] += cfg.tag_delay_sigma_m**2
-    ekf = Eskf(p, v, q, P0, cfg.imu_noise, n_bias, b_g=bg, b_a=ba)
-    if carry is not None and len(carry.b_r_m) == n_bias:
+    delays = slice(N_CORE, N_CORE + n_bias)
+    P0[delays, delays] += cfg.tag_delay_sigma_m**2
+    tau = np.concatenate([np.full(n_bias, np.inf), np.full(n_multipath, cfg.multipath_tau_s)])
+    sigma = np.concatenate([np.zeros(n_bias), np.full(n_multipath, cfg.multipath_sigma_m)])
+    ekf = Eskf(p, v, q, P0, cfg.imu_noise, n_aux, b_g=bg, b_a=ba, aux_tau_s=tau,
+               aux_sigma=sigma, aux_length_m=cfg.multipath_length_m)
+    if carry is not None and len(carry.b_r_m) == n_aux:
         ekf.b_r = carry.b_r_m.copy()
     return ekf, how

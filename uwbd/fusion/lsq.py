@@ -131,3 +131,27 @@ def _solve(anchors_all: Array, ranges_all: Array, used: Array, sigma_m: float,
     cov[:dims, :dims] = sigma_m**2 * np.linalg.inv(JtJ)
     rms = float(np.sqrt(np.mean(residuals[used] ** 2)))
     return LsqFix(x, cov, residuals, used.copy(), rms, iteration)
+
+
+def common_offset(anchors_m: Array, ranges_m: Array, x0: Array) -> tuple[float, Array] | None:
+    """The range offset common to all ranges, solved with the position (Gauss–Newton over
+    ``x, y, z, b`` from ``x0``): the offset and the position. A fix that only fits with a
+    large common offset is not a fix to trust (an NLOS detour on every anchor looks like
+    one). ``None`` with fewer than 5 ranges or no convergence."""
+    if len(ranges_m) < 5:
+        return None
+    x = np.append(np.array(x0, dtype=float), 0.0)
+    for _ in range(MAX_ITERATIONS):
+        diff = x[:3] - anchors_m
+        dist = np.linalg.norm(diff, axis=1)
+        if np.any(dist < 1e-6):
+            return None
+        J = np.column_stack([diff / dist[:, None], np.ones(len(dist))])
+        try:
+            step = np.linalg.solve(J.T @ J, -J.T @ (dist + x[3] - ranges_m))
+        except np.linalg.LinAlgError:
+            return None
+        x += step
+        if float(np.linalg.norm(step)) < CONVERGED_M:
+            return float(x[3]), x[:3]
+    return None
