@@ -209,13 +209,41 @@ class Eskf:
         self.P = 0.5 * (P + P.T)
         self._reset_interval()
 
+    def coast(self, dt: float, accel_sigma_mps2: float, yaw_rate_sigma_rps: float,
+              tilt_rate_sigma_rps: float) -> None:
+        """No IMU: constant velocity for ``dt`` (§3, coasting). ``Φ`` couples position to
+        velocity, so the ranges still correct the velocity; white acceleration of σ
+        ``accel_sigma_mps2`` and turns about the vertical of σ ``yaw_rate_sigma_rps`` (per
+        √s) widen ``P``; roll and pitch, which gravity bounds, by ``tilt_rate_sigma_rps``."""
+        p, v = self.p, self.v
+        for i in range(3):
+            p[i] += v[i] * dt
+        P = self.P
+        P[P_, :] += dt * P[V_, :]
+        P[:, P_] += dt * P[:, V_]
+        qa = accel_sigma_mps2**2
+        for i in range(3):
+            P[i, i] += qa * dt**3 / 3
+            P[3 + i, 3 + i] += qa * dt
+        up_b = self.R[2]  # the navigation z axis in body axes (Rᵀ e_z)
+        P[TH_, TH_] += (yaw_rate_sigma_rps**2 - tilt_rate_sigma_rps**2) * dt * np.outer(
+            up_b, up_b) + tilt_rate_sigma_rps**2 * dt * np.eye(3)
+        self.P = 0.5 * (P + P.T)
+
+    def tilt_sigma_rad(self) -> float:
+        """σ of the roll/pitch error: the attitude error about the horizontal nav axes."""
+        Rn = self.R
+        cov = Rn @ self.P[TH_, TH_] @ Rn.T
+        return math.sqrt(max((cov[0, 0] + cov[1, 1]) / 2, 0.0))
+
     # -- measurement update --------------------------------------------------------------
     def innovation_variances(self, H: Array, R: Array) -> Array:
         """``S_ii = H_i P H_iᵀ + R_i`` for each row, at the current prior."""
         return np.einsum("ij,jk,ik->i", H, self.P, H) + R
 
     def sequential_update(self, H: Array, y: Array, R: Array,
-                          decide: Callable[[int, float, float], float]) -> list[Row]:
+                          decide: Callable[[int, float, float], float],
+                          considered: slice | None = None) -> list[Row]:
         """Fuse rows ``H`` (m×n), residuals ``y`` at the prior, noise variances ``R``, one
         scalar at a time (docs/ekf.md §5), then inject and reset.
 
@@ -226,6 +254,9 @@ class Eskf:
         nominal ``R_i``, which is right for any gain::
 
             P ← (I − k h) P (I − k h)ᵀ + R_i k kᵀ = P − k uᵀ − u kᵀ + S k kᵀ,  u = P hᵀ
+
+        ``considered`` states are not corrected (their gain is zeroed, Schmidt's
+        consider filter); the Joseph form keeps their covariance right.
 
         A row whose ``S`` is not finite or falls below ``R_i`` (``P`` lost its positive
         semi-definiteness along ``h``) is skipped and marked ``numerical``.
@@ -247,6 +278,8 @@ class Eskf:
             if w <= 0.0:
                 continue
             k = u / (s + r * (1.0 / w - 1.0))  # s − r + r/w
+            if considered is not None:
+                k[considered] = 0.0
             dx += k * nu
             P = P - np.outer(k, u) - np.outer(u, k) + s * np.outer(k, k)
         if any(row.weight > 0.0 for row in rows):

@@ -37,7 +37,7 @@ import numpy as np
 
 from drivers.frames import ImuSample, UwbRanges
 from uwbd.fusion.alignment import HeadingAligner
-from uwbd.fusion.eskf import N_CORE, P_, TH_, V_, Eskf, ImuNoise
+from uwbd.fusion.eskf import BA_, BG_, GRAVITY_MPS2, N_CORE, P_, TH_, V_, Eskf, ImuNoise
 from uwbd.fusion.fixes import RangeWindow
 from uwbd.fusion.gating import GatingCounters, GatingPolicy, gate
 from uwbd.fusion.health import WAITING, Health, HealthLimits, HealthMonitor
@@ -55,10 +55,16 @@ Vec3 = tuple[float, float, float]
 HELD_YAW_SIGMA_RAD = 1e-3  # the heading's σ while it is held, before the coarse alignment
 IDENTITY3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 NS = 1_000_000_000
+ATTITUDE_AND_IMU_BIASES = slice(TH_.start, BA_.stop)
+ATTITUDE_AND_GYRO_BIAS = slice(TH_.start, BG_.stop)
 PROPAGATE_EVERY_S = 0.1  # the covariance follows the state at least this often (coasting)
 # the covariance is kept finite: no error state may be less certain than this (σ per state)
 MAX_SIGMA = np.array([1e3] * 3 + [1e2] * 3 + [math.pi] * 3 + [0.5] * 3 + [5.0] * 3)
 MAX_RANGE_BIAS_SIGMA_M = 5.0
+# what the IMU did not see (a gap, rejected samples): accelerations and turns of this σ per √s
+COAST_ACCEL_SIGMA_MPS2 = 2.0
+UNSEEN_RATE_SIGMA_RPS = 0.3
+UNSEEN_TILT_SIGMA_RPS = 0.003  # roll and pitch: bounded by gravity, they wander far less
 
 
 class Rows(NamedTuple):
@@ -129,7 +135,7 @@ class FilterConfig:
     attitude_lost_after_s: float = 3.0  # an IMU gap or rejected burst this long: re-level
     health: HealthLimits = field(default_factory=HealthLimits)
     align_window_s: float = 2.0  # coarse heading alignment: window of UWB fixes compared
-    align_min_dv_mps: float = 0.8  # ... with this much horizontal velocity change at least
+    align_min_dv_mps: float = 0.3  # ... with this much horizontal velocity change at least
 
 
 class Filter:
@@ -165,6 +171,7 @@ class Filter:
         self._first_t_ns: int | None = None
         self._start_started_ns: int | None = None  # a restart waits for fresh IMU data
         self._carry: Start | None = None  # what a restart keeps of the estimate before it
+        self._last_good_P: Array | None = None
         self._coasted = False
         self._aligner = HeadingAligner(config.align_window_s, config.align_min_dv_mps,
                                        config.range_sigma_m)
@@ -214,7 +221,7 @@ class Filter:
             self._coasted = True
             self.monitor.imu_gap = False
             if gap_s > self.cfg.attitude_lost_after_s:
-                self._restart(t_ns, "IMU gap", keep_motion=True)
+                self._restart(t_ns, "IMU gap", keep_motion=True, keep_attitude=True)
                 return
         elif dt > 0:
             ekf.predict(used[0], used[1], dt)
@@ -270,6 +277,8 @@ class Filter:
         reports += self._fuse(uwb.t_ns, rows)
         if self._check_divergence(uwb.t_ns, ids, anchors, ranges):
             linked = False
+        elif self.ekf is not None:
+            self._last_good_P = self.ekf.P.copy()
         if prior is not None and self.records is not None and self.ekf is not None:
             self.records.append(EpochRecord(uwb.t_ns, *prior, *self._snapshot(),
                                             Phi if linked else None))
@@ -312,7 +321,7 @@ class Filter:
         covariance = tuple(cov.ravel().tolist())
         w, x, y, z = ekf.q
         if not math.isfinite(sum(ekf.p) + sum(ekf.v) + w + x + y + z + sum(covariance)):
-            self._restart(self.t_ns, "state not finite", keep_motion=False)
+            self._restart_not_finite(self.t_ns)
             return None
         health = self.health()
         return Pose(
@@ -354,7 +363,8 @@ class Filter:
         self.counters["initialisations"] += 1
         self.counters[f"started_{how}"] += 1
 
-    def _restart(self, t_ns: int, reason: str, keep_motion: bool) -> None:
+    def _restart(self, t_ns: int, reason: str, keep_motion: bool,
+                 keep_attitude: bool = False) -> None:
         """Drop the estimate and start again: attitude from gravity over fresh IMU samples,
         heading aligned anew; the biases carry over when they are finite, and with
         ``keep_motion`` the position and velocity too (with wider σ), else they come from
@@ -367,12 +377,16 @@ class Filter:
             biases = np.concatenate([ekf.b_g, ekf.b_a, ekf.b_r])
             finite = np.isfinite(biases).all()
             moving = keep_motion and math.isfinite(sum(ekf.p) + sum(ekf.v))
-            sig = float(np.sqrt(np.clip(np.nan_to_num(np.diag(ekf.P)[P_], nan=1e6).max(),
+            # σ that a non-finite P cannot tell: 0 (the fix's own σ is used) and 2° of tilt
+            sig = float(np.sqrt(np.clip(np.nan_to_num(np.diag(ekf.P)[P_], nan=0.0).max(),
                                         0.0, 1e6)))
+            tilt = ekf.tilt_sigma_rad()
+            tilt = tilt if math.isfinite(tilt) else math.radians(2)
             if finite:
                 carry = Start(np.array(ekf.p) if moving else None,
                               np.array(ekf.v) if moving else None, np.array(ekf.b_g),
-                              np.array(ekf.b_a), ekf.b_r.copy(), sig)
+                              np.array(ekf.b_a), ekf.b_r.copy(), sig,
+                              np.array(ekf.q) if keep_attitude else None, tilt)
         self.ekf = None
         self._carry = carry
         self._start_started_ns = t_ns
@@ -381,6 +395,22 @@ class Filter:
                                        self.cfg.range_sigma_m)
         self._aligned = False
         self.monitor.reset(t_ns, reason, None)
+
+    def _restart_not_finite(self, t_ns: int) -> None:
+        """A non-finite covariance with a finite state: ``P`` goes back to the last finite
+        one, doubled in σ (the state itself was never touched by it: no row with a
+        non-finite variance is fused). A non-finite state restarts, keeping finite biases."""
+        ekf = self.ekf
+        assert ekf is not None
+        good = self._last_good_P
+        if math.isfinite(sum(ekf.p) + sum(ekf.v) + sum(ekf.q)) and good is not None \
+                and good.shape == ekf.P.shape:
+            ekf.P = 4.0 * good
+            self.counters["covariance_restored"] += 1
+            self.monitor.reset(t_ns, "covariance not finite: the last finite one, widened",
+                               0.0)
+        else:
+            self._restart(t_ns, "state not finite", keep_motion=False)
 
     # -- internals ------------------------------------------------------------------------
     def _snapshot(self) -> tuple[Nominal, Array]:
@@ -436,11 +466,29 @@ class Filter:
         ekf.rotate_heading(0.0, HELD_YAW_SIGMA_RAD)
         if fix is None or not self._aligner.wants_fix(t_ns):
             return
-        result = self._aligner.add_fix(t_ns, fix)
+        result = self._aligner.add_fix(t_ns, fix, self._horizontal_acc_sigma())
         if result is not None:
             ekf.rotate_heading(*result)
             self._aligned = True
             self.counters["heading_alignments"] += 1
+
+    def _horizontal_acc_sigma(self) -> float:
+        """σ of the INS's horizontal acceleration error from tilt and accelerometer bias:
+        ``δa = −[f]× R δθ − R δb_a`` with ``f`` = gravity's reaction (§3), from ``P``."""
+        ekf = self.ekf
+        assert ekf is not None
+        R = ekf.R
+        J = np.hstack([-skew(np.array([0.0, 0.0, GRAVITY_MPS2])) @ R, -R])[:2]
+        idx = np.r_[TH_.start:TH_.stop, BA_.start:BA_.stop]
+        cov = J @ ekf.P[np.ix_(idx, idx)] @ J.T
+        return math.sqrt(max(float(np.trace(cov)) / 2, 0.0))
+
+    def _imu_fresh(self, t_ns: int | None = None) -> bool:
+        """The last IMU sample is at most ``max_imu_gap_s`` older than ``t_ns`` (the
+        state's time by default)."""
+        now = self.t_ns if t_ns is None else t_ns
+        return self._imu_t_ns is not None and now is not None and \
+            (now - self._imu_t_ns) / NS <= self.cfg.max_imu_gap_s
 
     def _predict_to(self, t_ns: int) -> None:
         """Bring the state to the measurement time: hold the last IMU sample while it is fresh
@@ -451,16 +499,12 @@ class Filter:
         dt = (t_ns - self.t_ns) / NS
         if dt <= 0:
             return
-        fresh = self._imu_t_ns is not None and \
-            (t_ns - self._imu_t_ns) / NS <= self.cfg.max_imu_gap_s
-        if fresh and self._last_imu is not None:
+        if self._imu_fresh(t_ns) and self._last_imu is not None:
             ekf.predict(self._last_imu[0], self._last_imu[1], dt)
         else:
             self._coasted = True
             self.monitor.imu_gap = True
-            ekf.p = [p + v * dt for p, v in zip(ekf.p, ekf.v, strict=True)]
-            self._inflate(velocity_mps=1.0 * dt, attitude_rad=0.0, position_m=0.5 * dt)
-            self._widen_for_unseen(dt)
+            ekf.coast(dt, COAST_ACCEL_SIGMA_MPS2, UNSEEN_RATE_SIGMA_RPS, UNSEEN_TILT_SIGMA_RPS)
         self.t_ns = t_ns
 
     def _measurement_rows(self, ids: list[int], anchors: Array, ranges: Array,
@@ -509,7 +553,7 @@ class Filter:
         rows = []
         # constant velocity looks like rest to an IMU: require a slow estimate as well
         slow = math.hypot(*ekf.v) < cfg.zupt_max_speed_mps
-        if cfg.zupt and slow and self.window.static(cfg.static_window_s):
+        if cfg.zupt and slow and self._imu_fresh() and self.window.static(cfg.static_window_s):
             self.counters["zupt"] += 1
             H = np.zeros((3, n))
             H[:, V_] = np.eye(3)
@@ -558,7 +602,15 @@ class Filter:
                 return 0.0
             return robust.weight(nu / math.sqrt(s)) if kind == "range" else 1.0
 
-        outcome = ekf.sequential_update(H, y, R, decide)
+        # while the heading is held, moving, its linearisation is void: attitude and gyro
+        # biases must not soak up what the unknown heading does to the velocity; without the
+        # IMU (coasting through a gap) nothing observes the attitude and the IMU's biases
+        considered = None
+        if not self._imu_fresh():
+            considered = ATTITUDE_AND_IMU_BIASES
+        elif not self._aligned and not any(kind == "zupt" for kind, _ in keys):
+            considered = ATTITUDE_AND_GYRO_BIAS  # at rest the heading does not matter
+        outcome = ekf.sequential_update(H, y, R, decide, considered)
         reports = []
         counters, monitor = self.counters, self.monitor
         for (kind, key), row in zip(keys, outcome, strict=True):
@@ -588,7 +640,7 @@ class Filter:
         ekf = self.ekf
         assert ekf is not None
         if not math.isfinite(float(ekf.P.sum()) + sum(ekf.p) + sum(ekf.v) + sum(ekf.q)):
-            self._restart(t_ns, "state not finite", keep_motion=False)
+            self._restart_not_finite(t_ns)
             return True
         if not self.monitor.diverged(t_ns):
             return False
@@ -637,9 +689,9 @@ class Filter:
                 ekf.P[np.diag_indices(ekf.n)] = np.where(negative, 1e-9, np.diag(ekf.P))
 
     def _widen_for_unseen(self, dt: float) -> None:
-        """A rejected IMU sample hid ``dt`` of motion: widen velocity and attitude for it
-        (the body may have turned by up to ~0.3 rad and sped up by ~2 m/s in a second)."""
-        self._inflate(velocity_mps=2.0 * math.sqrt(dt), attitude_rad=0.3 * math.sqrt(dt))
+        """A rejected IMU sample hid ``dt`` of motion: widen velocity and attitude for it."""
+        self._inflate(velocity_mps=COAST_ACCEL_SIGMA_MPS2 * math.sqrt(dt),
+                      attitude_rad=UNSEEN_RATE_SIGMA_RPS * math.sqrt(dt))
 
     def _inflate(self, velocity_mps: float, attitude_rad: float, position_m: float = 0.0) -> None:
         ekf = self.ekf

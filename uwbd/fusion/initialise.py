@@ -7,8 +7,9 @@
   roll and pitch from the mean specific force, position from the latest fix, velocity
   from a line fit through the last second of fixes, wider σ for velocity and gyro bias.
 * **Carried over** (a restart that keeps the motion: an IMU gap or a rejected burst): the
-  position, velocity and gyro bias of the estimate before, with its position σ, and the
-  attitude from gravity over the fresh IMU samples.
+  position, velocity and biases of the estimate before, with its position σ; the tilt of
+  the attitude before (after a gap, when the IMU saw nothing to say otherwise) or from
+  gravity over the fresh IMU samples (after a rejected burst, when it may have changed).
 
 The heading always starts unknown (σ 180°): :mod:`.alignment` finds it once the vehicle
 moves.
@@ -43,6 +44,8 @@ class Start(NamedTuple):
     b_a_mps2: Array
     b_r_m: Array
     sigma_p_m: float
+    q: Array | None = None  # the attitude before (an IMU gap): its tilt beats a moving level
+    tilt_sigma_rad: float = math.radians(2)
 
 
 def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
@@ -63,7 +66,12 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
     f_norm = float(np.linalg.norm(acc))
     ba = np.zeros(3)
     sig_fix = float(np.sqrt(max(np.trace(fix.covariance) / 3, 0.05**2)))
+    sig_tilt = math.radians(2)
     if carry is not None and carry.p_m is not None and carry.v_mps is not None:
+        if carry.q is not None:
+            q = np.asarray(carry.q)
+            R0 = quat_to_matrix(q)
+            sig_tilt = max(carry.tilt_sigma_rad, math.radians(0.5))
         p, v, bg = carry.p_m, carry.v_mps, carry.b_g_rps
         sig_p, sig_v, sig_bg, how = max(carry.sigma_p_m, sig_fix), 1.0, 0.01, "carried"
     elif window.static(cfg.init_static_s) and len(recent) >= 3:
@@ -94,7 +102,7 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
     P0 = np.zeros((N_CORE + n_aux,) * 2)
     np.fill_diagonal(P0, np.concatenate([
         np.full(3, sig_p**2), np.full(3, sig_v**2),
-        [math.radians(2) ** 2, math.radians(2) ** 2, math.pi**2],
+        [sig_tilt**2, sig_tilt**2, math.pi**2],
         np.full(3, sig_bg**2), np.full(3, sig_ba**2),
         np.full(n_bias, cfg.range_bias_sigma_m**2),
         np.full(n_multipath, cfg.multipath_sigma_m**2)]))
