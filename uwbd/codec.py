@@ -22,11 +22,17 @@ def frame_to_dict(frame: Frame) -> dict[str, Any]:
 def frame_to_json(frame: Frame) -> bytes:
     """``frame_to_dict`` as JSON bytes; the decoded log channels take one per frame, so the
     common case (every number finite) skips the walk that replaces NaN with ``null``."""
-    fields = _fields(frame)
+    return strict_json(_fields(frame))
+
+
+def strict_json(obj: Any) -> bytes:
+    """Any JSON-ready object as strict JSON bytes: a non-finite float becomes ``null``
+    (``NaN`` is not JSON, and a Rust or JavaScript parser rejects it). The common case,
+    everything finite, skips the walk."""
     try:
-        return json.dumps(fields, allow_nan=False).encode()
+        return json.dumps(obj, allow_nan=False).encode()
     except ValueError:
-        return json.dumps(_plain(fields)).encode()
+        return json.dumps(_plain(obj)).encode()
 
 
 def _fields(frame: Frame) -> dict[str, Any]:

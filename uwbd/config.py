@@ -10,10 +10,15 @@ option that is silently ignored is worse than none. Sections::
                          noise densities from the IMU's datasheet (defaults: a consumer MEMS
                          part with margin for vibration): acc_noise_mps2_rthz (0.01),
                          gyro_noise_rps_rthz (0.001), acc_bias_walk_mps3_rthz (0.001),
-                         gyro_bias_walk_rps2_rthz (0.0001)
+                         gyro_bias_walk_rps2_rthz (0.0001); the full scale the sensor is set
+                         to: acc_full_scale_mps2 (16 g), gyro_full_scale_rps (2000 °/s)
     [fusion]             mode, range_sigma_m, range_bias_states, range_bias_sigma_m (0.1:
                          each anchor's antenna delay), tag_delay_sigma_m (0.2: the tag's),
-                         zupt, nhc, known_height_m, gate_probability, min_anchors, max_range_m
+                         zupt, nhc, known_height_m, gate_probability, min_anchors, max_range_m,
+                         robust (true: NLOS de-weighted), multipath_sigma_m (0: off) and
+                         multipath_tau_s (1): time-correlated range error per anchor,
+                         tag_side ("auto", "below", "above" a plane of anchors),
+                         height_range_m ([lo, hi]: where the tag can be, a mirror hint)
     [pipeline]           aligner_wait_ms (0), pose_rate_hz (50), status_period_s (1)
     [log]                directory ("logs"), rotate_mb (256), rotate_minutes (60)
     [zenoh]              enabled (true), mode ("peer"), connect [], listen [], prefix
@@ -33,6 +38,8 @@ from drivers import PARSERS
 from uwbd.fusion.eskf import ImuNoise
 from uwbd.fusion.filter import IDENTITY3, Filter, FilterConfig, Mode
 from uwbd.fusion.gating import GatingPolicy
+from uwbd.fusion.imu_check import ImuLimits
+from uwbd.fusion.robust import RobustPolicy
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -61,6 +68,7 @@ class Config:
     mounting: tuple[Vec3, Vec3, Vec3] = IDENTITY3
     lever_arm_m: Vec3 = (0.0, 0.0, 0.0)
     imu_noise: dict[str, float] = field(default_factory=dict)  # [imu] noise keys given
+    imu_limits: dict[str, float] = field(default_factory=dict)  # [imu] full-scale keys given
     fusion: dict[str, Any] = field(default_factory=dict)
     pipeline: dict[str, Any] = field(default_factory=dict)
     log: dict[str, Any] = field(default_factory=dict)
@@ -89,6 +97,18 @@ class Config:
             range_bias_sigma_m=f.get("range_bias_sigma_m", 0.1),
             tag_delay_sigma_m=f.get("tag_delay_sigma_m", 0.2),
             imu_noise=ImuNoise(**{IMU_NOISE_KEYS[k]: v for k, v in self.imu_noise.items()}),
+            imu_limits=ImuLimits(
+                acc_full_scale_mps2=self.imu_limits.get("acc_full_scale_mps2",
+                                                        ImuLimits.acc_full_scale_mps2),
+                gyro_full_scale_rps=self.imu_limits.get("gyro_full_scale_rps",
+                                                        ImuLimits.gyro_full_scale_rps)),
+            robust=RobustPolicy(enabled=f.get("robust", True)),
+            multipath_states=f.get("multipath_sigma_m", MULTIPATH_SIGMA_M) > 0,
+            multipath_sigma_m=f.get("multipath_sigma_m", MULTIPATH_SIGMA_M) or MULTIPATH_SIGMA_M,
+            multipath_tau_s=f.get("multipath_tau_s", 1.0),
+            tag_side=f.get("tag_side", "auto"),
+            height_range_m=((float(f["height_range_m"][0]), float(f["height_range_m"][1]))
+                            if "height_range_m" in f else None),
             zupt=f.get("zupt", True),
             nhc=f.get("nhc", False), known_height_m=f.get("known_height_m"),
             gate_probability=f.get("gate_probability", 0.997),
@@ -108,11 +128,15 @@ _ZENOH_KEYS: dict[str, type | tuple[type, ...]] = {
 # [imu] key -> ImuNoise field
 IMU_NOISE_KEYS = {"acc_noise_mps2_rthz": "acc", "gyro_noise_rps_rthz": "gyro",
                   "acc_bias_walk_mps3_rthz": "acc_bias", "gyro_bias_walk_rps2_rthz": "gyro_bias"}
+IMU_LIMIT_KEYS = ("acc_full_scale_mps2", "gyro_full_scale_rps")  # ImuLimits fields
+MULTIPATH_SIGMA_M = 0.0  # the default: no time-correlated range error modelled
 _FUSION_KEYS: dict[str, type | tuple[type, ...]] = {
     "mode": str, "range_sigma_m": (int, float), "range_bias_states": bool,
     "range_bias_sigma_m": (int, float), "tag_delay_sigma_m": (int, float), "zupt": bool,
     "nhc": bool, "known_height_m": (int, float), "gate_probability": (int, float),
-    "min_anchors": int, "max_range_m": (int, float),
+    "min_anchors": int, "max_range_m": (int, float), "robust": bool,
+    "multipath_sigma_m": (int, float), "multipath_tau_s": (int, float), "tag_side": str,
+    "height_range_m": list,
 }
 
 
@@ -142,16 +166,18 @@ def parse(text: str, where: str = "<config>") -> Config:
             raise ConfigError(f"{where}: anchors.{key}: not an integer id") from err
         anchors[anchor_id] = _vec(value, where, f"anchors.{key}")
     imu = _table(doc, "imu", where)
-    _only(imu, {"mounting", "lever_arm_m", *IMU_NOISE_KEYS}, where, "imu.")
-    imu_noise = {}
-    for key in IMU_NOISE_KEYS:
+    _only(imu, {"mounting", "lever_arm_m", *IMU_NOISE_KEYS, *IMU_LIMIT_KEYS}, where, "imu.")
+    numbers = {}
+    for key in (*IMU_NOISE_KEYS, *IMU_LIMIT_KEYS):
         if key in imu:
             value = imu[key]
             if (isinstance(value, bool) or not isinstance(value, (int, float))
                     or not math.isfinite(value) or value <= 0):
                 raise ConfigError(f"{where}: imu.{key}: expected a positive number, "
                                   f"got {value!r}")
-            imu_noise[key] = float(value)
+            numbers[key] = float(value)
+    imu_noise = {k: v for k, v in numbers.items() if k in IMU_NOISE_KEYS}
+    imu_limits = {k: v for k, v in numbers.items() if k in IMU_LIMIT_KEYS}
     mounting = IDENTITY3
     if "mounting" in imu:
         rows = imu["mounting"]
@@ -177,16 +203,26 @@ def parse(text: str, where: str = "<config>") -> Config:
             if not isinstance(value, str) and not (value > 0 or (zero_ok and value == 0)):
                 raise ConfigError(f"{where}: {section}.{key}: must be positive, got {value}")
     for key, zero_ok in (("range_sigma_m", False), ("range_bias_sigma_m", True),
-                         ("tag_delay_sigma_m", True)):
+                         ("tag_delay_sigma_m", True), ("multipath_sigma_m", True),
+                         ("multipath_tau_s", False)):
         value = fusion.get(key, 1.0)
         if not (math.isfinite(value) and (value > 0 or (zero_ok and value == 0))):
             raise ConfigError(f"{where}: fusion.{key}: must be "
                               f"{'zero or more' if zero_ok else 'positive'}, got {value}")
+    if fusion.get("tag_side", "auto") not in ("auto", "below", "above"):
+        raise ConfigError(f"{where}: fusion.tag_side: expected auto, below or above, "
+                          f"got {fusion['tag_side']!r}")
+    if "height_range_m" in fusion:
+        hr = fusion["height_range_m"]
+        if (len(hr) != 2 or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                    and math.isfinite(v) for v in hr) or not hr[0] < hr[1]):
+            raise ConfigError(f"{where}: fusion.height_range_m: expected [lowest, highest] "
+                              f"in m, lowest < highest, got {hr!r}")
     if "mode" in fusion and fusion["mode"] not in {m.value for m in Mode}:
         raise ConfigError(f"{where}: fusion.mode: expected one of "
                           f"{', '.join(m.value for m in Mode)}, got {fusion['mode']!r}")
-    config = Config(sources, anchors, mounting, lever, imu_noise, fusion, pipeline, log, zenoh,
-                    text)
+    config = Config(sources, anchors, mounting, lever, imu_noise, imu_limits, fusion, pipeline,
+                    log, zenoh, text)
     try:
         Filter(config.filter_config())  # the filter checks what only it understands
     except ValueError as err:

@@ -32,7 +32,7 @@ from mcap.writer import CompressionType, Writer
 
 from drivers.frames import Frame, ImuSample
 from uwbd import __version__
-from uwbd.codec import frame_to_json
+from uwbd.codec import frame_to_json, strict_json
 from uwbd.fusion.types import Pose
 
 RAW_ENCODING = "uwbd.raw"
@@ -75,7 +75,8 @@ def pose_message(t_ns: int, position_m: Sequence[float], orientation_xyzw: Seque
 def pose_to_message(pose: Pose) -> dict[str, Any]:
     return pose_message(pose.t_ns, pose.position_m, pose.orientation_xyzw, {
         "velocity_mps": list(pose.velocity_mps), "covariance": list(pose.covariance),
-        "status": pose.status, "heading_observable": pose.heading_observable})
+        "status": pose.status, "heading_observable": pose.heading_observable,
+        "health": pose.health.as_dict()})
 
 
 @dataclass(frozen=True)
@@ -132,7 +133,7 @@ class LogWriter:
     def json(self, topic: str, t_ns: int, obj: dict[str, Any], schema_name: str = "",
              schema: dict[str, Any] | None = None) -> None:
         channel = self._channel(topic, "json", schema_name, schema)
-        self._add(channel, t_ns, json.dumps(obj).encode())
+        self._add(channel, t_ns, strict_json(obj))
 
     def flush(self) -> None:
         """Close the open chunk and hand it to the OS (about once a second)."""

@@ -163,7 +163,7 @@ class Pipeline:
         flt = self.filter
         pose = flt.pose()
         out: dict[str, Any] = {
-            "t_ns": t_ns, "version": __version__, "filter": flt.status,
+            "t_ns": t_ns, "version": __version__, "filter": flt.status, **flt.diagnostics(),
             "heading_observable": bool(pose and pose.heading_observable),
             "poses": self.poses, "fusion_counters": dict(flt.counters),
             "gating_rejections": dict(flt.gating.rejections),

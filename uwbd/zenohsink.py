@@ -19,6 +19,7 @@ from typing import Any
 import zenoh
 
 from drivers.frames import Frame
+from uwbd.codec import strict_json
 from uwbd.fusion.types import Pose
 from uwbd.mcaplog import pose_to_message
 
@@ -63,10 +64,10 @@ class ZenohSink:
         """Frames stay in the log."""
 
     def pose(self, pose: Pose) -> None:
-        self._pose.put(json.dumps(pose_to_message(pose)).encode())
+        self._pose.put(strict_json(pose_to_message(pose)))
 
     def status(self, t_ns: int, status: dict[str, Any]) -> None:
-        self._status_bytes = json.dumps(status).encode()
+        self._status_bytes = strict_json(status)
         self._status.put(self._status_bytes)
 
     def close(self) -> None:

@@ -172,6 +172,7 @@ class Filter:
         self._start_started_ns: int | None = None  # a restart waits for fresh IMU data
         self._carry: Start | None = None  # what a restart keeps of the estimate before it
         self._last_good_P: Array | None = None
+        self._track: collections.deque[tuple[float, ...]] = collections.deque()
         self._coasted = False
         self._aligner = HeadingAligner(config.align_window_s, config.align_min_dv_mps,
                                        config.range_sigma_m)
@@ -271,6 +272,10 @@ class Filter:
         self._coasted = False
         if not self._aligned:
             self._hold_heading(uwb.t_ns, dv, fix)
+        track = self._track
+        track.append((uwb.t_ns, *ekf.p))
+        while track[0][0] < uwb.t_ns - int(self.cfg.static_window_s * NS):
+            track.popleft()
         rows = Rows.stack([self._measurement_rows(ids, anchors, ranges, r_scale, fix),
                            *self._constraints()])
         prior = self._snapshot() if self.records is not None else None
@@ -545,14 +550,25 @@ class Filter:
         return Rows(H, fix.position_m[:axes] - p_ant[:axes], var,
                     [("position", "xyz"[axis]) for axis in range(axes)])
 
+    def _still(self) -> bool:
+        """The estimate moved less than ``zupt_max_speed_mps`` would take it over the last
+        ``static_window_s`` (positions kept at each UWB update)."""
+        track = self._track
+        if len(track) < 2:
+            return True
+        (t0, *p0), (t1, *p1) = track[0], track[-1]
+        span_s = max((t1 - t0) / NS, self.cfg.static_window_s)
+        return math.dist(p0, p1) < self.cfg.zupt_max_speed_mps * span_s
+
     def _constraints(self) -> list[Rows]:
         ekf = self.ekf
         assert ekf is not None
         n = ekf.n
         cfg = self.cfg
         rows = []
-        # constant velocity looks like rest to an IMU: require a slow estimate as well
-        slow = math.hypot(*ekf.v) < cfg.zupt_max_speed_mps
+        # constant velocity looks like rest to an IMU: require a slow estimate, and a state
+        # that the ranges have not moved either (a ZUPT would otherwise pin v at 0 for good)
+        slow = math.hypot(*ekf.v) < cfg.zupt_max_speed_mps and self._still()
         if cfg.zupt and slow and self._imu_fresh() and self.window.static(cfg.static_window_s):
             self.counters["zupt"] += 1
             H = np.zeros((3, n))
