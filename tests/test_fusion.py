@@ -38,6 +38,8 @@ def short_sim(**kw: object) -> Simulation:
 
 
 def config_for(sim: Simulation, **kw: object) -> FilterConfig:
+    """Generic defaults, but for the simulator's white range noise (no multipath states)."""
+    kw.setdefault("multipath_states", False)
     return FilterConfig(anchors_m=dict(enumerate(sim.config.anchors_m)),
                         mounting_rotation=sim.config.mounting,  # type: ignore[arg-type]
                         lever_arm_m=sim.config.lever_arm_m, **kw)  # type: ignore[arg-type]

@@ -15,7 +15,7 @@ option that is silently ignored is worse than none. Sections::
     [fusion]             mode, range_sigma_m, range_bias_states, range_bias_sigma_m (0.1:
                          each anchor's antenna delay), tag_delay_sigma_m (0.2: the tag's),
                          zupt, nhc, known_height_m, gate_probability, min_anchors, max_range_m,
-                         robust (true: NLOS de-weighted), multipath_sigma_m (0: off) and
+                         robust (true: NLOS de-weighted), multipath_sigma_m (0.07; 0: off) and
                          multipath_tau_s (1): time-correlated range error per anchor,
                          tag_side ("auto", "below", "above" a plane of anchors),
                          height_range_m ([lo, hi]: where the tag can be, a mirror hint)
@@ -129,7 +129,7 @@ _ZENOH_KEYS: dict[str, type | tuple[type, ...]] = {
 IMU_NOISE_KEYS = {"acc_noise_mps2_rthz": "acc", "gyro_noise_rps_rthz": "gyro",
                   "acc_bias_walk_mps3_rthz": "acc_bias", "gyro_bias_walk_rps2_rthz": "gyro_bias"}
 IMU_LIMIT_KEYS = ("acc_full_scale_mps2", "gyro_full_scale_rps")  # ImuLimits fields
-MULTIPATH_SIGMA_M = 0.0  # the default: no time-correlated range error modelled
+MULTIPATH_SIGMA_M = 0.07  # the default time-correlated range error (real installations)
 _FUSION_KEYS: dict[str, type | tuple[type, ...]] = {
     "mode": str, "range_sigma_m": (int, float), "range_bias_states": bool,
     "range_bias_sigma_m": (int, float), "tag_delay_sigma_m": (int, float), "zupt": bool,

@@ -106,11 +106,13 @@ class SimConfig:
 def sensor_settings(cfg: SimConfig) -> tuple[dict[str, float], dict[str, float]]:
     """The simulated sensors' specs as config keys (``[imu]``, ``[fusion]``), as a user
     would enter them from the datasheets and the anchors' calibration: white-noise
-    densities (σ per sample / √rate) and the spread of the anchors' range offsets. The
-    biases are constant here, so the bias walks keep the defaults."""
+    densities (σ per sample / √rate), the spread of the anchors' range offsets, and no
+    time-correlated range error (the simulated range noise is white; NLOS bursts aside).
+    The biases are constant here, so the bias walks keep the defaults."""
     imu = {"acc_noise_mps2_rthz": cfg.acc_noise_mps2 / math.sqrt(cfg.imu_rate_hz),
            "gyro_noise_rps_rthz": cfg.gyro_noise_rps / math.sqrt(cfg.imu_rate_hz)}
-    return imu, {"range_sigma_m": cfg.range_noise_m, "range_bias_sigma_m": cfg.range_bias_sigma_m}
+    return imu, {"range_sigma_m": cfg.range_noise_m, "range_bias_sigma_m": cfg.range_bias_sigma_m,
+                 "multipath_sigma_m": 0.0}
 
 
 @dataclass

@@ -112,7 +112,9 @@ class FilterConfig:
     range_bias_states: bool = True  # self-calibrate each anchor's antenna delay
     range_bias_sigma_m: float = 0.1  # each anchor's own antenna delay, as a range offset
     tag_delay_sigma_m: float = 0.2  # the tag's antenna delay: one offset common to all ranges
-    multipath_states: bool = False  # one Gauss–Markov range error per anchor (time-correlated)
+    # one Gauss–Markov range error per anchor: multipath and antenna patterns make real range
+    # errors time-correlated (seconds); off for white range noise (a simulator's)
+    multipath_states: bool = True
     multipath_sigma_m: float = 0.07
     multipath_tau_s: float = 1.0
     multipath_length_m: float = math.inf
