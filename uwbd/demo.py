@@ -89,13 +89,15 @@ def run_demo(workdir: Path, duration_s: float | None, seed: int) -> int:
     emu = Emulator(devices, scenario, None, workdir)
     sources = [SourceConfig(d.name, d.driver, emu.ports[d.name].path, 921600) for d in devices]
     # the emulated sensors' specs, as a user would take them from the datasheets (their
-    # antenna delays are exact: no range offsets to estimate)
+    # antenna delays are exact and their range noise white: no range offsets or multipath
+    # to estimate)
     rate = math.sqrt(scenario.imu_rate_hz)
     imu = {"acc_noise_mps2_rthz": scenario.acc_noise_mps2 / rate,
            "gyro_noise_rps_rthz": scenario.gyro_noise_rps / rate}
     text = to_toml(sources, dict(enumerate(scenario.anchors_m)),
                    ((1, 0, 0), (0, 1, 0), (0, 0, 1)), (0.0, 0.0, 0.0),
-                   {"range_sigma_m": scenario.range_noise_m, "range_bias_states": False}, imu)
+                   {"range_sigma_m": scenario.range_noise_m, "range_bias_states": False,
+                    "multipath_sigma_m": 0.0}, imu)
     text += (f'\n[zenoh]\nprefix = "{PREFIX}"\nlisten = ["unixsock-stream/{sock}"]\n'
              "multicast_scouting = false\n")
     config = parse(text, "demo config")

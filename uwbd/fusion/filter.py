@@ -174,6 +174,8 @@ class Filter:
         self._start_started_ns: int | None = None  # a restart waits for fresh IMU data
         self._carry: Start | None = None  # what a restart keeps of the estimate before it
         self._last_good_P: Array | None = None
+        self._good_imu_ns: int | None = None  # the last IMU sample that passed the checks
+        self._relevel: bool | None = None  # attitude restart pending (keeping the tilt?)
         self._track: collections.deque[tuple[float, ...]] = collections.deque()
         self._coasted = False
         self._aligner = HeadingAligner(config.align_window_s, config.align_min_dv_mps,
@@ -205,38 +207,49 @@ class Filter:
         if self._first_t_ns is None:
             self._first_t_ns = t_ns
         self._imu_t_ns = t_ns
-        gap_s = 0.0 if prev is None else (t_ns - prev) / NS
-        if reason:
-            used = self._last_imu  # integrate over it with the last good sample
-        else:
-            acc, gyro = self._to_body(imu.acc_mps2), self._to_body(imu.gyro_rps)
-            used = (acc, gyro)
-            self.window.add(t_ns, acc, gyro)
+        since_good_s = 0.0
+        if not reason:
+            sample = (self._to_body(imu.acc_mps2), self._to_body(imu.gyro_rps))
+            self.window.add(t_ns, *sample)
+            if self._good_imu_ns is not None:
+                since_good_s = (t_ns - self._good_imu_ns) / NS
+            self._good_imu_ns = t_ns
         ekf = self.ekf
-        if ekf is None or used is None:
-            self._last_imu = used
+        if ekf is None:
+            if not reason:
+                self._last_imu = sample
             return
         assert self.t_ns is not None
+        cfg = self.cfg
+        if self._relevel is not None:  # the attitude restarts once fresh samples span a window
+            self._relevel_when_ready(t_ns)
+            return
         dt = (t_ns - self.t_ns) / NS
-        burst_s = self.imu_check.burst_s(t_ns)
-        if gap_s > self.cfg.max_imu_gap_s:
-            self.counters["imu_gaps"] += 1  # coasted through by _predict_to; resume here
+        if reason:
+            if self.imu_check.burst_s(t_ns) > cfg.attitude_lost_after_s or self._last_imu is None:
+                # held that long, the last good sample says nothing: coast on the ranges
+                self._lose_attitude(t_ns, "IMU samples rejected", keep_attitude=False)
+                return
+            sample = self._last_imu  # integrate over the rejected one with the last good one
+        elif since_good_s > cfg.max_imu_gap_s:
+            self.counters["imu_gaps"] += 1
             self._coasted = True
             self.monitor.imu_gap = False
-            if gap_s > self.cfg.attitude_lost_after_s:
-                self._restart(t_ns, "IMU gap", keep_motion=True, keep_attitude=True)
-                return
-        elif dt > 0:
-            ekf.predict(used[0], used[1], dt)
+            if dt > 0:  # coasted by the ranges up to their last update; on to this sample
+                ekf.coast(dt, COAST_ACCEL_SIGMA_MPS2, UNSEEN_RATE_SIGMA_RPS, UNSEEN_TILT_SIGMA_RPS)
+            self.t_ns = t_ns
+            self._last_imu = sample
+            if since_good_s > cfg.attitude_lost_after_s:
+                self._lose_attitude(t_ns, "IMU gap", keep_attitude=True)
+            return
+        if dt > 0:
+            ekf.predict(sample[0], sample[1], dt)
             if reason:
                 self._widen_for_unseen(dt)
-                if burst_s > self.cfg.attitude_lost_after_s:
-                    self._restart(t_ns, "IMU samples rejected", keep_motion=True)
-                    return
             if ekf.interval_s >= PROPAGATE_EVERY_S:
                 ekf.propagate()
         self.t_ns = t_ns
-        self._last_imu = used
+        self._last_imu = sample
 
     def update(self, uwb: UwbRanges) -> list[FusionReport]:
         """Fuse one UWB message (an epoch, or a single range); one report per measurement."""
@@ -257,7 +270,7 @@ class Filter:
             if fix is not None:
                 self._fixes.append((uwb.t_ns, fix.position_m))
         if self.mirror.take_flip():
-            self._restart(uwb.t_ns, "mirror side flipped by the ranges", keep_motion=False)
+            self._restart(uwb.t_ns, "mirror side flipped by the ranges")
         self.monitor.mirror_unresolved = self.mirror.unresolved
         if self.ekf is None:
             self._try_start(uwb.t_ns, fix)
@@ -370,33 +383,60 @@ class Filter:
         self.counters["initialisations"] += 1
         self.counters[f"started_{how}"] += 1
 
-    def _restart(self, t_ns: int, reason: str, keep_motion: bool,
-                 keep_attitude: bool = False) -> None:
-        """Drop the estimate and start again: attitude from gravity over fresh IMU samples,
-        heading aligned anew; the biases carry over when they are finite, and with
-        ``keep_motion`` the position and velocity too (with wider σ), else they come from
-        UWB."""
+    def _restart(self, t_ns: int, reason: str) -> None:
+        """Drop the estimate and start again from UWB and fresh IMU samples, keeping only
+        the biases, when they are finite."""
         ekf = self.ekf
+        self._count_restart(reason)
+        self._carry = None
+        if ekf is not None and np.isfinite(np.concatenate([ekf.b_g, ekf.b_a, ekf.b_r])).all():
+            self._carry = Start(None, None, np.array(ekf.b_g), np.array(ekf.b_a),
+                                ekf.b_r.copy(), 0.0)
+        self.ekf = None
+        self._relevel = None
+        self._start_started_ns = t_ns
+        self._forget_attitude(t_ns, reason)
+
+    def _lose_attitude(self, t_ns: int, reason: str, keep_attitude: bool) -> None:
+        """The IMU was unusable too long for the attitude to be trusted: coast on the ranges
+        (constant velocity, as through a gap) until fresh IMU samples span a window, then
+        restart attitude and heading there, keeping position, velocity and biases. After a
+        gap the tilt before it is kept (nothing says it changed); after rejected samples
+        (a shaken sensor) it comes from gravity anew."""
+        self._count_restart(reason)
+        self._relevel = keep_attitude
+        self._forget_attitude(t_ns, reason)
+
+    def _relevel_when_ready(self, t_ns: int) -> None:
+        ekf = self.ekf
+        assert ekf is not None and self.t_ns is not None and self._relevel is not None
+        if self.window.span_s() < 0.9 * self.cfg.static_window_s:
+            return
+        dt = (t_ns - self.t_ns) / NS
+        if dt > 0:
+            ekf.coast(dt, COAST_ACCEL_SIGMA_MPS2, UNSEEN_RATE_SIGMA_RPS, UNSEEN_TILT_SIGMA_RPS)
+        sig = float(np.sqrt(max(float(np.diag(ekf.P)[P_].max()), 0.0)))
+        carry = Start(np.array(ekf.p), np.array(ekf.v), np.array(ekf.b_g), np.array(ekf.b_a),
+                      ekf.b_r.copy(), sig, np.array(ekf.q) if self._relevel else None,
+                      ekf.tilt_sigma_rad())
+        antenna = np.array(ekf.p) + ekf.R @ self.lever
+        fix = LsqFix(antenna, np.diag(np.diag(ekf.P)[P_]), np.zeros(0), np.zeros(0, bool),
+                     0.0, 0)
+        start = start_state(self.cfg, self.window, fix, [], [], True, carry,
+                            len(self._bias_index), self.lever, len(self._mp_index))
+        if start is None:
+            return
+        self.ekf, how = start
+        self.t_ns = max(t_ns, self.t_ns)
+        self._relevel = None
+        self.counters["initialisations"] += 1
+        self.counters[f"started_{how}"] += 1
+
+    def _count_restart(self, reason: str) -> None:
         self.counters["restarts"] += 1
         self.counters[f"restart_{reason.replace(' ', '_')}"] += 1
-        carry = None
-        if ekf is not None:
-            biases = np.concatenate([ekf.b_g, ekf.b_a, ekf.b_r])
-            finite = np.isfinite(biases).all()
-            moving = keep_motion and math.isfinite(sum(ekf.p) + sum(ekf.v))
-            # σ that a non-finite P cannot tell: 0 (the fix's own σ is used) and 2° of tilt
-            sig = float(np.sqrt(np.clip(np.nan_to_num(np.diag(ekf.P)[P_], nan=0.0).max(),
-                                        0.0, 1e6)))
-            tilt = ekf.tilt_sigma_rad()
-            tilt = tilt if math.isfinite(tilt) else math.radians(2)
-            if finite:
-                carry = Start(np.array(ekf.p) if moving else None,
-                              np.array(ekf.v) if moving else None, np.array(ekf.b_g),
-                              np.array(ekf.b_a), ekf.b_r.copy(), sig,
-                              np.array(ekf.q) if keep_attitude else None, tilt)
-        self.ekf = None
-        self._carry = carry
-        self._start_started_ns = t_ns
+
+    def _forget_attitude(self, t_ns: int, reason: str) -> None:
         self.window.clear()
         self._aligner = HeadingAligner(self.cfg.align_window_s, self.cfg.align_min_dv_mps,
                                        self.cfg.range_sigma_m)
@@ -417,7 +457,7 @@ class Filter:
             self.monitor.reset(t_ns, "covariance not finite: the last finite one, widened",
                                0.0)
         else:
-            self._restart(t_ns, "state not finite", keep_motion=False)
+            self._restart(t_ns, "state not finite")
 
     # -- internals ------------------------------------------------------------------------
     def _snapshot(self) -> tuple[Nominal, Array]:
@@ -494,8 +534,8 @@ class Filter:
         """The last IMU sample is at most ``max_imu_gap_s`` older than ``t_ns`` (the
         state's time by default)."""
         now = self.t_ns if t_ns is None else t_ns
-        return self._imu_t_ns is not None and now is not None and \
-            (now - self._imu_t_ns) / NS <= self.cfg.max_imu_gap_s
+        return self._relevel is None and self._good_imu_ns is not None and now is not None \
+            and (now - self._good_imu_ns) / NS <= self.cfg.max_imu_gap_s
 
     def _predict_to(self, t_ns: int) -> None:
         """Bring the state to the measurement time: hold the last IMU sample while it is fresh

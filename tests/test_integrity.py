@@ -1,0 +1,290 @@
+"""Estimator integrity on short simulated scenarios: sensor faults, coasting, constraints,
+the mirror of coplanar anchors, asynchronous single ranges, robust updates, the algebra.
+
+Errors are bounded during a fault as well as after it, and health is checked against the
+truth: the filter must never say "tracking" while it is far off.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from drivers.frames import UwbRanges
+from uwbd.config import parse
+from uwbd.evaluate import merge, run_filter, run_method, score, score_poses
+from uwbd.fusion.baselines import UwbLeastSquares
+from uwbd.fusion.eskf import N_CORE, TH_, Eskf, ImuNoise
+from uwbd.fusion.filter import FilterConfig
+from uwbd.fusion.health import Phase
+from uwbd.fusion.lsq import multilaterate
+from uwbd.fusion.mirror import MirrorSide
+from uwbd.fusion.robust import RobustPolicy
+from uwbd.fusion.rotation import Array, quat_from_euler
+from uwbd.fusion.types import Pose
+from uwbd.logtools import simulation_toml
+from uwbd.simulator import SimConfig, Simulation, ceiling_room, handheld_async, simulate
+
+SHORT = ((4.0, 0.0, 0.0, 0.0), (5.0, 1.5, 0.0, 0.0), (5.2, 1.5, 0.3, 0.0),
+         (5.0, 1.2, 0.0, 0.2), (3.0, 0.0, 0.0, 0.0))
+NS = 1_000_000_000
+
+
+def short(**kw: object) -> Simulation:
+    return simulate(SimConfig(segments=SHORT, seed=3, **kw))  # type: ignore[arg-type]
+
+
+def datasheet(sim: Simulation, **kw: object) -> FilterConfig:
+    """The config ``uwbd simulate`` writes for this run, with changes."""
+    return dataclasses.replace(parse(simulation_toml(sim)).filter_config(), **kw)  # type: ignore[arg-type]
+
+
+def errors(poses: list[Pose], sim: Simulation) -> tuple[Array, Array, Array]:
+    """Seconds into the run, horizontal error and horizontal σ of each pose."""
+    t = np.array([p.t_ns for p in poses])
+    truth = np.column_stack([np.interp(t, sim.truth_t_ns, sim.truth_p_m[:, i]) for i in range(2)])
+    err = np.linalg.norm(np.array([p.position_m[:2] for p in poses]) - truth, axis=1)
+    sigma = np.array([math.sqrt(p.covariance[0] + p.covariance[7]) for p in poses])
+    return (t - sim.truth_t_ns[0]) / NS, err, sigma
+
+
+def never_tracking_when_far(poses: list[Pose], err: Array, far_m: float = 1.0) -> None:
+    assert not any(p.health.healthy for p, e in zip(poses, err, strict=True) if e > far_m)
+
+
+# -- IMU faults ------------------------------------------------------------------------------
+def test_imu_pinned_at_full_scale_is_rejected_and_survived() -> None:
+    sim = short(imu_saturations_s=((10.0, 0.5),))
+    poses, _, flt = run_filter(datasheet(sim), merge(sim.imu, sim.uwb), pose_period_ns=NS // 20)
+    assert flt.counters["imu_saturated"] >= 90  # 0.5 s at 200 Hz
+    s, err, _sigma = errors(poses, sim)
+    assert np.isfinite(err).all()
+    assert err[(s >= 10) & (s < 12)].max() < 0.5  # during and right after the burst
+    assert err[s >= 12].max() < 0.3
+    during = [p.health for p, t in zip(poses, s, strict=True) if 10.05 <= t < 10.5]
+    assert during and all("imu_rejected" in h.faults and not h.healthy for h in during)
+    never_tracking_when_far(poses, err)
+
+
+def test_one_corrupted_sample_changes_nothing_that_matters() -> None:
+    clean = short()
+    spiked = short(imu_spikes_s=(10.0,))
+    poses, _, flt = run_filter(datasheet(spiked), merge(spiked.imu, spiked.uwb))
+    reference, _, _ = run_filter(datasheet(clean), merge(clean.imu, clean.uwb))
+    assert flt.counters["imu_jump"] == 1
+    s, err, _ = errors(poses, spiked)
+    _, ref_err, _ = errors(reference, clean)
+    assert err[s >= 10].max() < ref_err[s >= 10].max() + 0.05
+
+
+def test_a_long_imu_burst_restarts_the_attitude_keeping_the_position() -> None:
+    sim = short(imu_saturations_s=((10.0, 4.0),))
+    poses, _, flt = run_filter(datasheet(sim), merge(sim.imu, sim.uwb), pose_period_ns=NS // 20)
+    assert flt.counters["restart_IMU_samples_rejected"] == 1
+    s, err, _ = errors(poses, sim)
+    assert err[(s >= 10) & (s < 15)].max() < 0.6
+    assert err[s >= 16].max() < 0.3
+    never_tracking_when_far(poses, err)
+
+
+# -- coasting --------------------------------------------------------------------------------
+def test_without_ranges_sigma_grows_and_covers_the_drift() -> None:
+    sim = short(uwb_outages_s=((9.0, 6.0),))
+    poses, _, _ = run_filter(datasheet(sim), merge(sim.imu, sim.uwb), pose_period_ns=NS // 10)
+    s, err, sigma = errors(poses, sim)
+    out = (s >= 9.2) & (s < 15)
+    assert sigma[out][-1] > 5 * sigma[out][0]  # not frozen
+    assert np.mean(err[out] <= 3 * sigma[out]) > 0.95
+    coasting = [p.health for p, t in zip(poses, s, strict=True) if 10.5 <= t < 15]
+    assert coasting and all(h.phase is Phase.COASTING for h in coasting)
+    assert coasting[-1].since_range_s is not None and coasting[-1].since_range_s > 4.5
+    assert "range_timeout" in coasting[-1].faults
+    assert err[s >= 17].max() < 0.3
+
+
+def test_through_an_imu_gap_the_ranges_keep_the_position_then_the_imu_restarts() -> None:
+    sim = short(imu_gaps_s=((8.0, 5.0),))
+    poses, _, flt = run_filter(datasheet(sim), merge(sim.imu, sim.uwb), pose_period_ns=NS // 10)
+    assert flt.counters["restart_IMU_gap"] == 1
+    s, err, sigma = errors(poses, sim)
+    gap = (s >= 8) & (s < 13)
+    assert err[gap].max() < 0.4 and np.mean(err[gap] <= 3 * sigma[gap]) > 0.9
+    assert err[s >= 14].max() < 0.3
+    never_tracking_when_far(poses, err)
+
+
+# -- constraints: each one pinned ------------------------------------------------------------
+def _velocity_sigma_at_the_end(cfg: FilterConfig, sim: Simulation) -> float:
+    _poses, _, flt = run_filter(cfg, merge(sim.imu, sim.uwb))
+    assert flt.ekf is not None
+    return float(np.sqrt(np.diag(flt.ekf.P)[3:6]).max())
+
+
+def test_zupt_holds_the_velocity_at_rest() -> None:
+    sim = short()  # ends with 3 s at rest
+    with_zupt = _velocity_sigma_at_the_end(datasheet(sim), sim)
+    without = _velocity_sigma_at_the_end(datasheet(sim, zupt=False), sim)
+    assert with_zupt < 0.025 and without > 2 * with_zupt
+
+
+def test_nhc_keeps_the_lateral_velocity_of_a_ground_vehicle_small() -> None:
+    sim = simulate(SimConfig(segments=SHORT[:3], seed=4, lever_arm_m=(0.0, 0.0, 0.0)))
+
+    def lateral_rms(nhc: bool) -> float:
+        poses, _, flt = run_filter(datasheet(sim, nhc=nhc), merge(sim.imu, sim.uwb))
+        assert (flt.counters["nhc_accepted"] > 0) == nhc
+        lateral = []
+        for p in poses[len(poses) // 2:]:
+            x, y, z, w = p.orientation_xyzw
+            yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+            lateral.append(-math.sin(yaw) * p.velocity_mps[0] + math.cos(yaw) * p.velocity_mps[1])
+        return float(np.sqrt(np.mean(np.square(lateral))))
+
+    assert lateral_rms(True) < 0.5 * lateral_rms(False)
+
+
+def test_known_height_is_held_over_coplanar_anchors() -> None:
+    anchors = ((0.0, 0.0, 2.5), (12.0, 0.0, 2.5), (12.0, -25.0, 2.5), (0.0, -25.0, 2.5))
+    sim = simulate(SimConfig(segments=SHORT[:3], seed=5, anchors_m=anchors,
+                             start_m=(3.0, -12.0, 0.5), lever_arm_m=(0.0, 0.0, 0.0)))
+    poses, _, flt = run_filter(datasheet(sim, known_height_m=0.5), merge(sim.imu, sim.uwb))
+    assert flt.counters["height_accepted"] > 0
+    z = np.array([p.position_m[2] for p in poses[len(poses) // 3:]])
+    assert np.abs(z - 0.5).max() < 0.05
+
+
+# -- the mirror of coplanar anchors ----------------------------------------------------------
+def test_ceiling_anchors_put_the_tag_below_them_by_default() -> None:
+    cfg = ceiling_room(0)
+    sim = simulate(dataclasses.replace(cfg, segments=cfg.segments[:4]))
+    poses, _, flt = run_filter(datasheet(sim), merge(sim.imu, sim.uwb))
+    assert flt.mirror.ambiguous and flt.mirror.sign == -1
+    acc = score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=4)
+    assert acc.rmse_z_m < 0.15  # the mirror image would be ~4 m off
+
+
+def test_a_wrong_side_hint_is_obeyed_and_the_data_overrule_a_wrong_default() -> None:
+    cfg = ceiling_room(0)
+    sim = simulate(dataclasses.replace(cfg, segments=cfg.segments[:4]))
+    poses, _, _ = run_filter(datasheet(sim, tag_side="above"), merge(sim.imu, sim.uwb))
+    z = np.array([p.position_m[2] for p in poses])
+    assert np.median(z) > 3.0  # configured: the hint wins, however wrong
+    # anchors at 1.2-1.45 m (default: tag below, as under a ceiling) with the tag above
+    anchors = np.array([[0, 0, 1.45], [8, 0, 1.2], [8, 6, 1.4], [0, 6, 1.25]], dtype=float)
+    side = MirrorSide(anchors)
+    assert side.ambiguous and side.sign == -1 and side.unresolved
+    rng = np.random.default_rng(1)
+    flipped = False
+    for _ in range(200):
+        tag = np.array([rng.uniform(1, 7), rng.uniform(1, 5), 2.6])
+        ranges = np.linalg.norm(anchors - tag, axis=1) + rng.normal(0, 0.05, 4)
+        fix = multilaterate(anchors, ranges, 0.05, None, None, side=side.sign)
+        assert fix is not None
+        side.weigh(anchors, ranges, fix, 0.05, None)
+        flipped |= side.take_flip()
+    assert flipped and side.sign == 1
+
+
+def test_floor_anchors_put_the_tag_above_them() -> None:
+    side = MirrorSide(np.array([[0, 0, 0.1], [8, 0, 0.0], [8, 6, 0.2], [0, 6, 0.0]], dtype=float))
+    assert side.ambiguous and side.sign == 1
+    assert MirrorSide(np.array([[0, 0, 0], [8, 0, 2.5], [8, 6, 0], [0, 6, 2.5]],
+                               dtype=float)).resolved  # not coplanar: no mirror
+
+
+# -- asynchronous single ranges --------------------------------------------------------------
+def test_single_asynchronous_ranges_start_the_filter_and_beat_least_squares() -> None:
+    cfg = handheld_async(1)
+    sim = simulate(dataclasses.replace(cfg, segments=cfg.segments[:6]))
+    assert all(len(e.ranges) == 1 for e in sim.uwb)
+    config = datasheet(sim)
+    poses, _, flt = run_filter(config, merge(sim.imu, sim.uwb))
+    assert flt.counters["initialisations"] == 1 and flt.counters["restarts"] == 0
+    acc = score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=5)
+    t, p = run_method(UwbLeastSquares(config), merge(sim.imu, sim.uwb))
+    lsq = score(t, p, sim.truth_t_ns, sim.truth_p_m, skip_s=5)
+    assert acc.rmse_xy_m < 0.6 * lsq.rmse_xy_m and acc.rmse_xy_m < 0.08
+
+
+# -- robust range updates --------------------------------------------------------------------
+def test_nlos_on_one_anchor_is_deweighted_and_shows_in_its_statistics() -> None:
+    sim = short()
+    t0 = sim.truth_t_ns[0]
+
+    def detour(e: UwbRanges) -> UwbRanges:
+        if not t0 + 8 * NS <= e.t_ns < t0 + 18 * NS:
+            return e
+        return dataclasses.replace(e, ranges=tuple(
+            dataclasses.replace(r, range_m=r.range_m + 0.6) if r.anchor_id == 2 else r
+            for r in e.ranges))
+
+    uwb = [detour(e) for e in sim.uwb]
+    robust, _, flt = run_filter(datasheet(sim), merge(sim.imu, uwb))
+    plain, _, _ = run_filter(datasheet(sim, robust=RobustPolicy(enabled=False),
+                                       gate_probability=0.99999), merge(sim.imu, uwb))
+    s, err, _ = errors(robust, sim)
+    _, err_plain, _ = errors(plain, sim)
+    window = (s >= 8) & (s < 18)
+    assert err[window].max() < 0.25
+    assert np.sqrt(np.mean(err[window] ** 2)) < np.sqrt(np.mean(err_plain[window] ** 2))
+    stats = flt.diagnostics()["anchors"]
+    nlos, others = stats["2"], [v for k, v in stats.items() if k != "2"]
+    assert nlos["rejected"] + nlos["deweighted"] > 3 * max(o["rejected"] + o["deweighted"]
+                                                           for o in others)
+
+
+# -- the algebra -----------------------------------------------------------------------------
+def _eskf(seed: int) -> Eskf:
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(N_CORE + 2, N_CORE + 2))
+    P0 = A @ A.T / 10 + np.eye(N_CORE + 2) * 0.01
+    return Eskf(rng.normal(size=3), rng.normal(size=3), quat_from_euler(0.1, -0.2, 1.0), P0,
+                ImuNoise(), n_range_bias=2)
+
+
+def test_joseph_form_is_right_for_a_de_weighted_non_optimal_gain() -> None:
+    """A robust weight w uses the gain of R/w; the covariance must be that gain's under the
+    nominal R: (I − KH) P (I − KH)ᵀ + K R Kᵀ, which (I − KH) P is not."""
+    ekf = _eskf(4)
+    rng = np.random.default_rng(5)
+    h, r, w = rng.normal(size=N_CORE + 2), 0.04, 0.3
+    P = ekf.P.copy()
+    K = P @ h / (h @ P @ h + r / w)
+    IKH = np.eye(len(h)) - np.outer(K, h)
+    expected = IKH @ P @ IKH.T + r * np.outer(K, K)
+    ekf.sequential_update(h[None, :], np.array([0.0]), np.array([r]), lambda i, nu, s: w)
+    # the reset after a zero correction leaves P alone
+    np.testing.assert_allclose(ekf.P, expected, atol=1e-12)
+    assert not np.allclose(ekf.P, IKH @ P, atol=1e-6)
+
+
+def test_a_row_whose_variance_is_below_its_noise_is_skipped_not_fused() -> None:
+    ekf = _eskf(6)
+    ekf.P[0, 0] = -1.0  # P no longer positive semi-definite along this row
+    h = np.zeros(N_CORE + 2)
+    h[0] = 1.0
+    before = ekf.p.copy()
+    rows = ekf.sequential_update(h[None, :], np.array([1.0]), np.array([0.01]),
+                                 lambda i, nu, s: 1.0)
+    assert rows[0].numerical and rows[0].weight == 0.0 and ekf.p == before
+
+
+def test_gyro_noise_grows_the_attitude_covariance() -> None:
+    """At rest with a certain start, one second adds σ_g² to each attitude variance."""
+    noise = ImuNoise()
+    ekf = Eskf((0, 0, 0), (0, 0, 0), (1.0, 0.0, 0.0, 0.0), np.eye(N_CORE) * 1e-12, noise)
+    for _ in range(200):
+        ekf.predict((0.0, 0.0, 9.80665), (0.0, 0.0, 0.0), 0.005)
+    ekf.propagate()
+    np.testing.assert_allclose(np.diag(ekf.P[TH_, TH_]), noise.gyro**2 * 1.0, rtol=0.01)
+
+
+@pytest.mark.parametrize("sigma", [0.0, 0.07])
+def test_multipath_states_are_configured_by_their_sigma(sigma: float) -> None:
+    sim = short()
+    text = simulation_toml(sim).replace("multipath_sigma_m = 0.0", f"multipath_sigma_m = {sigma}")
+    cfg = parse(text).filter_config()
+    assert cfg.multipath_states == (sigma > 0)
