@@ -7,7 +7,7 @@ horizontal Δv (``Σ R f Δt``, untouched by measurements). Over windows of 1, 2
 second at both ends) with the INS's; once both exceed ``min_dv_mps``, the angle between them
 is the yaw error, with σ = atan(σ_Δv / |Δv|), at least 3°. σ_Δv holds the fixes'
 line-fit error and what the INS's own acceleration error (tilt, accelerometer bias, from
-the filter's covariance) does to its Δv over the window. A window whose σ is above 20°
+the filter's covariance) does to its Δv over the window. A window whose σ is above 30°
 is not used: an EKF linearised about a heading that uncertain turns falsely confident.
 """
 
@@ -25,7 +25,7 @@ SAMPLE_NS = 95_000_000  # fixes for the alignment: about 10 Hz
 FIT_NS = 1_000_000_000  # each end's velocity: a line fit over one second of fixes
 MIN_FIT_FIXES = 5
 MIN_SIGMA_RAD = math.radians(3)
-MAX_SIGMA_RAD = math.radians(20)  # a less certain heading keeps waiting for more motion
+MAX_SIGMA_RAD = math.radians(30)  # a less certain heading waits for more motion
 
 
 class HeadingAligner:
