@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -20,7 +21,7 @@ from uwbd.evaluate import (
     truth_spikes,
 )
 from uwbd.fusion.baselines import ComplementaryAttitude, Kf4, PureIns, UwbLeastSquares
-from uwbd.fusion.eskf import N_CORE, Eskf, ImuNoise
+from uwbd.fusion.eskf import N_CORE, TH_, Eskf, ImuNoise
 from uwbd.fusion.filter import Filter, FilterConfig, Mode, chi2_quantile
 from uwbd.fusion.health import Phase
 from uwbd.fusion.lsq import coplanar, multilaterate
@@ -89,6 +90,44 @@ def test_joseph_update_keeps_p_symmetric_positive_definite() -> None:
         ekf.propagate()
     assert np.allclose(ekf.P, ekf.P.T)
     assert np.linalg.eigvalsh(ekf.P).min() > 0
+
+
+# -- the algebra -----------------------------------------------------------------------------
+def test_joseph_form_is_right_for_a_de_weighted_non_optimal_gain() -> None:
+    """A robust weight w uses the gain of R/w; the covariance must be that gain's under the
+    nominal R: (I − KH) P (I − KH)ᵀ + K R Kᵀ, which (I − KH) P is not."""
+    ekf = random_eskf(4)
+    rng = np.random.default_rng(5)
+    h, r, w = rng.normal(size=N_CORE + 2), 0.04, 0.3
+    P = ekf.P.copy()
+    K = P @ h / (h @ P @ h + r / w)
+    IKH = np.eye(len(h)) - np.outer(K, h)
+    expected = IKH @ P @ IKH.T + r * np.outer(K, K)
+    ekf.sequential_update(h[None, :], np.array([0.0]), np.array([r]), lambda i, nu, s: w)
+    # the reset after a zero correction leaves P alone
+    np.testing.assert_allclose(ekf.P, expected, atol=1e-12)
+    assert not np.allclose(ekf.P, IKH @ P, atol=1e-6)
+
+
+def test_a_row_whose_variance_is_below_its_noise_is_skipped_not_fused() -> None:
+    ekf = random_eskf(6)
+    ekf.P[0, 0] = -1.0  # P no longer positive semi-definite along this row
+    h = np.zeros(N_CORE + 2)
+    h[0] = 1.0
+    before = ekf.p.copy()
+    rows = ekf.sequential_update(h[None, :], np.array([1.0]), np.array([0.01]),
+                                 lambda i, nu, s: 1.0)
+    assert rows[0].numerical and rows[0].weight == 0.0 and ekf.p == before
+
+
+def test_gyro_noise_grows_the_attitude_covariance() -> None:
+    """At rest with a certain start, one second adds σ_g² to each attitude variance."""
+    noise = ImuNoise()
+    ekf = Eskf((0, 0, 0), (0, 0, 0), (1.0, 0.0, 0.0, 0.0), np.eye(N_CORE) * 1e-12, noise)
+    for _ in range(200):
+        ekf.predict((0.0, 0.0, 9.80665), (0.0, 0.0, 0.0), 0.005)
+    ekf.propagate()
+    np.testing.assert_allclose(np.diag(ekf.P[TH_, TH_]), noise.gyro**2 * 1.0, rtol=0.01)
 
 
 def test_strapdown_at_rest_stays_put() -> None:
@@ -247,25 +286,36 @@ def test_persistent_nlos_does_not_pull_the_state_away(sim: Simulation) -> None:
     assert {h.phase for h in late} <= {Phase.COASTING, Phase.DEGRADED}
 
 
-def test_a_wrong_state_is_moved_to_a_consistent_fix(sim: Simulation) -> None:
-    """The state is knocked 4 m off and made overconfident (a divergence): the ranges are
-    consistent with each other, so after a while the position is reset to their fix."""
+def _run_tampered(sim: Simulation, at_s: float, tamper: Callable[[Eskf], None]
+                  ) -> tuple[list[Pose], Filter]:
+    """The filter over ``sim``, its state tampered with once, before the first UWB update
+    at or after ``at_s``; every pose must be finite."""
     flt = Filter(config_for(sim))
-    t0 = sim.truth_t_ns[0]
     poses: list[Pose] = []
-    knocked = False
+    done = False
     for frame in merge(sim.imu, sim.uwb):
         if isinstance(frame, ImuSample):
             flt.predict(frame)
             continue
-        if not knocked and frame.t_ns >= t0 + 10e9 and flt.ekf is not None:
-            flt.ekf.p[0] += 4.0
-            flt.ekf.P[:3, :3] *= 1e-4
-            knocked = True
+        if not done and frame.t_ns >= sim.truth_t_ns[0] + at_s * 1e9 and flt.ekf is not None:
+            tamper(flt.ekf)
+            done = True
         flt.update(frame)
         pose = flt.pose()
         if pose is not None:
+            assert all(map(math.isfinite, pose.position_m + pose.velocity_mps + pose.covariance))
             poses.append(pose)
+    return poses, flt
+
+
+def test_a_wrong_state_is_moved_to_a_consistent_fix(sim: Simulation) -> None:
+    """The state is knocked 4 m off and made overconfident (a divergence): the ranges are
+    consistent with each other, so after a while the position is reset to their fix."""
+    def knock(ekf: Eskf) -> None:
+        ekf.p[0] += 4.0
+        ekf.P[:3, :3] *= 1e-4
+
+    poses, flt = _run_tampered(sim, 10.0, knock)
     s, err = _errors_xy(poses, sim)
     assert flt.counters["position_resets"] >= 1
     assert flt.health().last_reset_jump_m is not None
@@ -275,20 +325,10 @@ def test_a_wrong_state_is_moved_to_a_consistent_fix(sim: Simulation) -> None:
 
 
 def test_non_finite_state_restarts_and_no_pose_carries_it(sim: Simulation) -> None:
-    flt = Filter(config_for(sim))
-    t0 = sim.truth_t_ns[0]
-    poses: list[Pose] = []
-    for frame in merge(sim.imu, sim.uwb):
-        if isinstance(frame, ImuSample):
-            flt.predict(frame)
-        else:
-            if flt.counters["restarts"] == 0 and frame.t_ns >= t0 + 8e9 and flt.ekf is not None:
-                flt.ekf.v[1] = math.inf
-            flt.update(frame)
-        pose = flt.pose()
-        if pose is not None:
-            assert all(map(math.isfinite, pose.position_m + pose.velocity_mps + pose.covariance))
-            poses.append(pose)
+    def poison(ekf: Eskf) -> None:
+        ekf.v[1] = math.inf
+
+    poses, flt = _run_tampered(sim, 8.0, poison)
     assert flt.counters["restart_state_not_finite"] == 1
     s, err = _errors_xy(poses, sim)
     assert err[s >= 12].max() < 0.5 and poses[-1].health.resets == 1
@@ -296,23 +336,11 @@ def test_non_finite_state_restarts_and_no_pose_carries_it(sim: Simulation) -> No
 
 def test_non_finite_covariance_is_recovered_once(sim: Simulation) -> None:
     """One NaN in P: caught at once, P restored from the last finite one (the state never
-    saw the NaN), said in the health, and the filter goes on; no pose carries a NaN."""
-    flt = Filter(config_for(sim))
-    t0 = sim.truth_t_ns[0]
-    poses: list[Pose] = []
-    poisoned = False
-    for frame in merge(sim.imu, sim.uwb):
-        if isinstance(frame, ImuSample):
-            flt.predict(frame)
-            continue
-        if not poisoned and frame.t_ns >= t0 + 8e9 and flt.ekf is not None:
-            flt.ekf.P[4, 4] = math.nan
-            poisoned = True
-        flt.update(frame)
-        pose = flt.pose()
-        if pose is not None:
-            assert all(map(math.isfinite, pose.position_m + pose.covariance))
-            poses.append(pose)
+    saw the NaN), said in the health, and the filter goes on."""
+    def poison(ekf: Eskf) -> None:
+        ekf.P[4, 4] = math.nan
+
+    poses, flt = _run_tampered(sim, 8.0, poison)
     assert flt.counters["covariance_restored"] == 1 and flt.counters["restarts"] == 0
     s, err = _errors_xy(poses, sim)
     assert err[s >= 8].max() < 0.3

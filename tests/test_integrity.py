@@ -17,13 +17,12 @@ from drivers.frames import UwbRanges
 from uwbd.config import parse
 from uwbd.evaluate import merge, run_filter, run_method, score, score_poses
 from uwbd.fusion.baselines import UwbLeastSquares
-from uwbd.fusion.eskf import N_CORE, TH_, Eskf, ImuNoise
 from uwbd.fusion.filter import FilterConfig
 from uwbd.fusion.health import Phase
 from uwbd.fusion.lsq import multilaterate
 from uwbd.fusion.mirror import MirrorSide
 from uwbd.fusion.robust import RobustPolicy
-from uwbd.fusion.rotation import Array, quat_from_euler
+from uwbd.fusion.rotation import Array
 from uwbd.fusion.types import Pose
 from uwbd.logtools import simulation_toml
 from uwbd.simulator import SimConfig, Simulation, ceiling_room, handheld_async, simulate
@@ -234,52 +233,6 @@ def test_nlos_on_one_anchor_is_deweighted_and_shows_in_its_statistics() -> None:
     nlos, others = stats["2"], [v for k, v in stats.items() if k != "2"]
     assert nlos["rejected"] + nlos["deweighted"] > 3 * max(o["rejected"] + o["deweighted"]
                                                            for o in others)
-
-
-# -- the algebra -----------------------------------------------------------------------------
-def _eskf(seed: int) -> Eskf:
-    rng = np.random.default_rng(seed)
-    A = rng.normal(size=(N_CORE + 2, N_CORE + 2))
-    P0 = A @ A.T / 10 + np.eye(N_CORE + 2) * 0.01
-    return Eskf(rng.normal(size=3), rng.normal(size=3), quat_from_euler(0.1, -0.2, 1.0), P0,
-                ImuNoise(), n_range_bias=2)
-
-
-def test_joseph_form_is_right_for_a_de_weighted_non_optimal_gain() -> None:
-    """A robust weight w uses the gain of R/w; the covariance must be that gain's under the
-    nominal R: (I − KH) P (I − KH)ᵀ + K R Kᵀ, which (I − KH) P is not."""
-    ekf = _eskf(4)
-    rng = np.random.default_rng(5)
-    h, r, w = rng.normal(size=N_CORE + 2), 0.04, 0.3
-    P = ekf.P.copy()
-    K = P @ h / (h @ P @ h + r / w)
-    IKH = np.eye(len(h)) - np.outer(K, h)
-    expected = IKH @ P @ IKH.T + r * np.outer(K, K)
-    ekf.sequential_update(h[None, :], np.array([0.0]), np.array([r]), lambda i, nu, s: w)
-    # the reset after a zero correction leaves P alone
-    np.testing.assert_allclose(ekf.P, expected, atol=1e-12)
-    assert not np.allclose(ekf.P, IKH @ P, atol=1e-6)
-
-
-def test_a_row_whose_variance_is_below_its_noise_is_skipped_not_fused() -> None:
-    ekf = _eskf(6)
-    ekf.P[0, 0] = -1.0  # P no longer positive semi-definite along this row
-    h = np.zeros(N_CORE + 2)
-    h[0] = 1.0
-    before = ekf.p.copy()
-    rows = ekf.sequential_update(h[None, :], np.array([1.0]), np.array([0.01]),
-                                 lambda i, nu, s: 1.0)
-    assert rows[0].numerical and rows[0].weight == 0.0 and ekf.p == before
-
-
-def test_gyro_noise_grows_the_attitude_covariance() -> None:
-    """At rest with a certain start, one second adds σ_g² to each attitude variance."""
-    noise = ImuNoise()
-    ekf = Eskf((0, 0, 0), (0, 0, 0), (1.0, 0.0, 0.0, 0.0), np.eye(N_CORE) * 1e-12, noise)
-    for _ in range(200):
-        ekf.predict((0.0, 0.0, 9.80665), (0.0, 0.0, 0.0), 0.005)
-    ekf.propagate()
-    np.testing.assert_allclose(np.diag(ekf.P[TH_, TH_]), noise.gyro**2 * 1.0, rtol=0.01)
 
 
 @pytest.mark.parametrize("sigma", [0.0, 0.07])
