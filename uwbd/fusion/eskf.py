@@ -264,6 +264,7 @@ class Eskf:
         P = self.P
         dx = np.zeros(self.n)
         rows = []
+        fused = False
         for i in range(len(y)):
             h = H[i]
             u = P @ h
@@ -277,12 +278,14 @@ class Eskf:
             rows.append(Row(nu, s, w, False))
             if w <= 0.0:
                 continue
+            fused = True
             k = u / (s + r * (1.0 / w - 1.0))  # s − r + r/w
             if considered is not None:
                 k[considered] = 0.0
             dx += k * nu
-            P = P - np.outer(k, u) - np.outer(u, k) + s * np.outer(k, k)
-        if any(row.weight > 0.0 for row in rows):
+            M = np.outer(k, u - 0.5 * s * k)  # k uᵀ + u kᵀ − S k kᵀ = M + Mᵀ
+            P = P - M - M.T
+        if fused:
             self.P = 0.5 * (P + P.T)
             self.inject(dx)
         return rows

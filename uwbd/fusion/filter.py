@@ -174,6 +174,7 @@ class Filter:
         self._start_started_ns: int | None = None  # a restart waits for fresh IMU data
         self._carry: Start | None = None  # what a restart keeps of the estimate before it
         self._last_good_P: Array | None = None
+        self._at_rest = False  # ZUPT rows in this update
         self._good_imu_ns: int | None = None  # the last IMU sample that passed the checks
         self._relevel: bool | None = None  # attitude restart pending (keeping the tilt?)
         self._track: collections.deque[tuple[float, ...]] = collections.deque()
@@ -611,7 +612,9 @@ class Filter:
         # constant velocity looks like rest to an IMU: require a slow estimate, and a state
         # that the ranges have not moved either (a ZUPT would otherwise pin v at 0 for good)
         slow = math.hypot(*ekf.v) < cfg.zupt_max_speed_mps and self._still()
-        if cfg.zupt and slow and self._imu_fresh() and self.window.static(cfg.static_window_s):
+        self._at_rest = bool(cfg.zupt and slow and self._imu_fresh()
+                             and self.window.static(cfg.static_window_s))
+        if self._at_rest:
             self.counters["zupt"] += 1
             H = np.zeros((3, n))
             H[:, V_] = np.eye(3)
@@ -641,8 +644,9 @@ class Filter:
         if not keys:
             return []
         fix_ok = True
-        idx = np.array([k[0] == "position" for k in keys])
-        if idx.any():  # a position fix is one 3-D measurement: gate it as one
+        idx = np.array([k[0] == "position" for k in keys]) if self.cfg.mode is Mode.LOOSE \
+            else None
+        if idx is not None and idx.any():  # a position fix is one 3-D measurement: gate it as one
             Hl = H[idx]
             Sl = Hl @ ekf.P @ Hl.T + np.diag(R[idx])
             try:
@@ -666,7 +670,7 @@ class Filter:
         considered = None
         if not self._imu_fresh():
             considered = ATTITUDE_AND_IMU_BIASES
-        elif not self._aligned and not any(kind == "zupt" for kind, _ in keys):
+        elif not self._aligned and not self._at_rest:
             considered = ATTITUDE_AND_GYRO_BIAS  # at rest the heading does not matter
         outcome = ekf.sequential_update(H, y, R, decide, considered)
         reports = []

@@ -111,7 +111,10 @@ class HealthMonitor:
     def __init__(self, limits: HealthLimits) -> None:
         self.limits = limits
         self.last_range_ns: int | None = None
-        self._outcomes: collections.deque[tuple[int, bool, float]] = collections.deque()
+        self._outcomes: collections.deque[tuple[bool, float]] = collections.deque()
+        self._rejected = 0  # in the window
+        self._nis_sum = 0.0
+        self._rejected_run = 0
         self._inconsistent_since_ns: int | None = None
         self._imu_fault_ns: int | None = None
         self._numerical_ns: int | None = None
@@ -125,10 +128,18 @@ class HealthMonitor:
         """One UWB measurement (range or position axis) after the innovation test."""
         if accepted:
             self.last_range_ns = t_ns
+            self._rejected_run = 0
+        else:
+            self._rejected_run += 1
         out = self._outcomes
-        out.append((t_ns, accepted, min(nis, 25.0) if math.isfinite(nis) else 25.0))
-        while len(out) > self.limits.window_count:
-            out.popleft()
+        nis = min(nis, 25.0) if math.isfinite(nis) else 25.0
+        out.append((accepted, nis))
+        self._rejected += not accepted
+        self._nis_sum += nis
+        if len(out) > self.limits.window_count:
+            old_accepted, old_nis = out.popleft()
+            self._rejected -= not old_accepted
+            self._nis_sum -= old_nis
         if self._window_inconsistent():
             if self._inconsistent_since_ns is None:
                 self._inconsistent_since_ns = t_ns
@@ -146,18 +157,18 @@ class HealthMonitor:
         self.resets += 1
         self.last_reset = (t_ns, reason, jump_m)
         self._outcomes.clear()
+        self._rejected, self._nis_sum, self._rejected_run = 0, 0.0, 0
         self._inconsistent_since_ns = None
 
     # -- judgements -----------------------------------------------------------------------
     def _window_inconsistent(self) -> bool:
         out, lim = self._outcomes, self.limits
-        if len(out) >= 4 and not any(a for _, a, _ in list(out)[-4:]):
+        if self._rejected_run >= 4:
             return True  # the last four all failed: no need to wait for the window
         if len(out) < lim.window_count:
             return False
-        rejected = sum(not a for _, a, _ in out)
-        mean_nis = sum(n for _, _, n in out) / len(out)
-        return rejected > lim.max_rejected_fraction * len(out) or mean_nis > lim.max_mean_nis
+        return (self._rejected > lim.max_rejected_fraction * len(out)
+                or self._nis_sum / len(out) > lim.max_mean_nis)
 
     def diverged(self, t_ns: int) -> bool:
         """Innovations inconsistent for ``diverged_after_s``: the state, not the ranges, is
