@@ -81,6 +81,8 @@ class SimConfig:
     gyro_bias_sigma_rps: float = 0.005
     range_noise_m: float = 0.10
     range_bias_sigma_m: float = 0.03
+    tag_delay_sigma_m: float = 0.0  # one offset common to every range (the tag's delay)
+    ground_vehicle: bool = False  # no sideways or vertical body velocity: NHC holds
     nlos_rate_hz: float = 0.01  # per anchor: bursts start this often
     nlos_duration_s: float = 1.5
     nlos_extra_m: tuple[float, float] = (0.3, 1.0)
@@ -103,16 +105,21 @@ class SimConfig:
     gyro_full_scale_rps: float = math.radians(2000)
 
 
-def sensor_settings(cfg: SimConfig) -> tuple[dict[str, float], dict[str, float]]:
+def sensor_settings(cfg: SimConfig) -> tuple[dict[str, float], dict[str, float | bool]]:
     """The simulated sensors' specs as config keys (``[imu]``, ``[fusion]``), as a user
     would enter them from the datasheets and the anchors' calibration: white-noise
-    densities (σ per sample / √rate), the spread of the anchors' range offsets, and no
-    time-correlated range error (the simulated range noise is white; NLOS bursts aside).
+    densities (σ per sample / √rate), the spread of the anchors' range offsets and of the
+    tag's delay, no time-correlated range error (the simulated range noise is white; NLOS
+    bursts aside), and, for a ground vehicle, the non-holonomic constraint.
     The biases are constant here, so the bias walks keep the defaults."""
     imu = {"acc_noise_mps2_rthz": cfg.acc_noise_mps2 / math.sqrt(cfg.imu_rate_hz),
            "gyro_noise_rps_rthz": cfg.gyro_noise_rps / math.sqrt(cfg.imu_rate_hz)}
-    return imu, {"range_sigma_m": cfg.range_noise_m, "range_bias_sigma_m": cfg.range_bias_sigma_m,
-                 "multipath_sigma_m": 0.0}
+    fusion: dict[str, float | bool] = {
+        "range_sigma_m": cfg.range_noise_m, "range_bias_sigma_m": cfg.range_bias_sigma_m,
+        "tag_delay_sigma_m": cfg.tag_delay_sigma_m, "multipath_sigma_m": 0.0}
+    if cfg.ground_vehicle:
+        fusion["nhc"] = True
+    return imu, fusion
 
 
 @dataclass
@@ -202,6 +209,8 @@ def simulate(cfg: SimConfig | None = None) -> Simulation:
     sim.acc_bias_mps2 = rng.normal(0, cfg.acc_bias_sigma_mps2, 3)
     sim.gyro_bias_rps = rng.normal(0, cfg.gyro_bias_sigma_rps, 3)
     sim.range_bias_m = rng.normal(0, cfg.range_bias_sigma_m, len(cfg.anchors_m))
+    if cfg.tag_delay_sigma_m > 0:  # drawn only then: runs without one stay as they were
+        sim.range_bias_m += rng.normal(0, cfg.tag_delay_sigma_m)
     C_sb = np.array(cfg.mounting).T  # body -> sensor
 
     step = round(fine_hz / cfg.imu_rate_hz)
@@ -398,7 +407,7 @@ def ceiling_room(seed: int = 0) -> SimConfig:
     from 28 s for 20 s; 76 s."""
     return SimConfig(segments=ROOM_SEGMENTS, start_m=(1.5, 1.2, 0.45), anchors_m=ROOM_ANCHORS_M,
                      lever_arm_m=(0.0, 0.0, 0.27), anchor_outages_s=((2, 28.0, 20.0),),
-                     seed=seed)
+                     ground_vehicle=True, seed=seed)
 
 
 def handheld_async(seed: int = 0) -> SimConfig:
