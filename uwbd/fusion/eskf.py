@@ -140,13 +140,17 @@ class Eskf:
         """Time integrated since the last :meth:`propagate`."""
         return self._T
 
-    def take_epoch(self) -> tuple[Array, tuple[float, float, float]]:
+    def take_epoch(self, with_phi: bool = True
+                   ) -> tuple[Array | None, tuple[float, float, float]]:
         """Since the last call: the state transition ``Φ`` (the product over every
-        :meth:`propagate`) and ``Σ R f Δt``, the INS's own velocity change (gravity aside)
-        in the navigation frame, untouched by any measurement. Call after propagate()."""
-        Phi = np.eye(self.n)
-        Phi[:N_CORE, :N_CORE] = self._Phi_epoch
-        Phi[N_CORE:, N_CORE:] = np.diag(self._decay_epoch)
+        :meth:`propagate`; only ``with_phi``, for smoothing) and ``Σ R f Δt``, the INS's
+        own velocity change (gravity aside) in the navigation frame, untouched by any
+        measurement, over the propagated intervals."""
+        Phi = None
+        if with_phi:
+            Phi = np.eye(self.n)
+            Phi[:N_CORE, :N_CORE] = self._Phi_epoch
+            Phi[N_CORE:, N_CORE:] = np.diag(self._decay_epoch)
         dv = self._dv_epoch
         self._Phi_epoch, self._dv_epoch = np.eye(N_CORE), [0.0, 0.0, 0.0]
         self._decay_epoch = np.ones(self.n - N_CORE)

@@ -58,6 +58,7 @@ NS = 1_000_000_000
 ATTITUDE_AND_IMU_BIASES = slice(TH_.start, BA_.stop)
 ATTITUDE_AND_GYRO_BIAS = slice(TH_.start, BG_.stop)
 PROPAGATE_EVERY_S = 0.1  # the covariance follows the state at least this often (coasting)
+MIN_PROPAGATE_S = 0.02  # and at most this often: P grows little in 20 ms
 # the covariance is kept finite: no error state may be less certain than this (σ per state)
 MAX_SIGMA = np.array([1e3] * 3 + [1e2] * 3 + [math.pi] * 3 + [0.5] * 3 + [5.0] * 3)
 MAX_RANGE_BIAS_SIGMA_M = 5.0
@@ -281,8 +282,9 @@ class Filter:
             return reports
         self._predict_to(uwb.t_ns)
         ekf = self.ekf
-        ekf.propagate()
-        Phi, dv = ekf.take_epoch()
+        if ekf.interval_s >= MIN_PROPAGATE_S or self.records is not None or not self._aligned:
+            ekf.propagate()  # single ranges at 100+ Hz share one propagation per 20 ms
+        Phi, dv = ekf.take_epoch(self.records is not None)
         # the smoother can step back from this epoch over a plain Kalman prediction only
         linked = self._aligned and not self._coasted
         self._coasted = False
@@ -301,6 +303,7 @@ class Filter:
         elif self.ekf is not None:
             self._last_good_P = self.ekf.P.copy()
         if prior is not None and self.records is not None and self.ekf is not None:
+            assert Phi is not None
             self.records.append(EpochRecord(uwb.t_ns, *prior, *self._snapshot(),
                                             Phi if linked else None))
         return reports

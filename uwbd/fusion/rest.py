@@ -18,6 +18,7 @@ from uwbd.fusion.eskf import GRAVITY_MPS2
 from uwbd.fusion.rotation import Array
 
 Vec3 = tuple[float, float, float]
+JUDGE_EVERY_NS = 20_000_000
 
 
 @dataclass(frozen=True)
@@ -32,6 +33,9 @@ class ImuWindow:
         self.length_ns = int(length_s * 1e9)
         self.limits = limits
         self._samples: collections.deque[tuple[float, ...]] = collections.deque()
+        self._memo_key: tuple[object, ...] = ()
+        self._memo_ns = 0.0
+        self._memo = False
 
     def add(self, t_ns: int, acc: Vec3, gyro: Vec3) -> None:
         samples = self._samples
@@ -42,6 +46,7 @@ class ImuWindow:
 
     def clear(self) -> None:
         self._samples.clear()
+        self._memo_key = ()
 
     def span_s(self) -> float:
         s = self._samples
@@ -55,7 +60,19 @@ class ImuWindow:
         return m[1:4], m[4:7]
 
     def static(self, span_s: float) -> bool:
-        """At rest over the last ``span_s``."""
+        """At rest over the last ``span_s``, judged at most every ``JUDGE_EVERY_NS`` of
+        samples (single ranges ask at 100+ Hz; rest does not come and go faster)."""
+        samples = self._samples
+        if not samples:
+            return False
+        last_ns = samples[-1][0]
+        key = (span_s, len(samples) > 0)
+        if key == self._memo_key and 0 <= last_ns - self._memo_ns < JUDGE_EVERY_NS:
+            return self._memo
+        self._memo_key, self._memo_ns, self._memo = key, last_ns, self._judge(span_s)
+        return self._memo
+
+    def _judge(self, span_s: float) -> bool:
         samples = self._samples
         if not samples or (samples[-1][0] - samples[0][0]) < 0.9 * span_s * 1e9:
             return False
