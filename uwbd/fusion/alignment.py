@@ -5,10 +5,11 @@ aligner keeps, at about 10 Hz, the UWB least-squares fixes and the INS's own cum
 horizontal Δv (``Σ R f Δt``, untouched by measurements). Over windows of 1, 2 and 3 times
 ``window_s`` back, it compares the fixes' horizontal velocity change (line fits over one
 second at both ends) with the INS's; once both exceed ``min_dv_mps``, the angle between them
-is the yaw error, with σ = atan(σ_Δv / |Δv|), at least 3°. σ_Δv holds the fixes'
-line-fit error and what the INS's own acceleration error (tilt, accelerometer bias, from
-the filter's covariance) does to its Δv over the window. A window whose σ is above 30°
-is not used: an EKF linearised about a heading that uncertain turns falsely confident.
+is the yaw error, with σ = atan(σ_Δv / |Δv|) (σ_Δv: the fixes' line-fit error), at least
+3°. A window whose σ is above 30° is not used: an EKF linearised about a heading that
+uncertain turns falsely confident. (Adding what the INS's tilt and accelerometer-bias σ
+from the covariance do to its Δv was tried: that σ is pessimistic enough that a drone or
+a slow handheld run never aligned.)
 """
 
 from __future__ import annotations
@@ -36,7 +37,6 @@ class HeadingAligner:
         self._fixes: collections.deque[tuple[int, Array]] = collections.deque()
         self._ins_dv: collections.deque[tuple[int, float, float]] = collections.deque()
         self._dv_xy = [0.0, 0.0]
-        self._acc_sigma = 0.0
 
     def add_ins_dv(self, dv_n: tuple[float, float, float]) -> None:
         """The INS's velocity change over the last propagation interval (navigation frame)."""
@@ -46,12 +46,8 @@ class HeadingAligner:
     def wants_fix(self, t_ns: int) -> bool:
         return not self._fixes or t_ns - self._fixes[-1][0] >= SAMPLE_NS
 
-    def add_fix(self, t_ns: int, fix: LsqFix, acc_sigma_mps2: float = 0.0
-                ) -> tuple[float, float] | None:
-        """Record a fix; returns (yaw error, its σ) once the heading can be told, else None.
-        ``acc_sigma_mps2``: the σ of the INS's horizontal acceleration error (tilt and
-        accelerometer bias): over a window of ``T`` it adds ``σ T`` to the INS's Δv."""
-        self._acc_sigma = acc_sigma_mps2
+    def add_fix(self, t_ns: int, fix: LsqFix) -> tuple[float, float] | None:
+        """Record a fix; returns (yaw error, its σ) once the heading can be told, else None."""
         self._fixes.append((t_ns, fix.position_m))
         self._fix_sigma_m = float(np.sqrt(max(np.trace(fix.covariance[:2, :2]) / 2, 1e-4)))
         self._ins_dv.append((t_ns, self._dv_xy[0], self._dv_xy[1]))
@@ -86,8 +82,7 @@ class HeadingAligner:
                               dv_ins[0] * dv_uwb[0] + dv_ins[1] * dv_uwb[1])
             # the angle error is the Δv error across the Δv over its length; that error is a
             # line-fit velocity's (one second of fixes with their own horizontal σ) at each end
-            sigma_v = math.hypot(self._fix_sigma_m * math.sqrt(12 / len(end)) * math.sqrt(2),
-                                 self._acc_sigma * w_ns / 1e9)
+            sigma_v = self._fix_sigma_m * math.sqrt(12 / len(end)) * math.sqrt(2)
             sigma = max(math.atan2(sigma_v, size), MIN_SIGMA_RAD)
             if sigma <= MAX_SIGMA_RAD:  # else the EKF, linearised about it, would go astray
                 return dpsi, sigma

@@ -58,11 +58,10 @@ class Eskf:
                  P0: Array, noise: ImuNoise, n_range_bias: int = 0,
                  b_g: Vector = (0.0, 0.0, 0.0),
                  b_a: Vector = (0.0, 0.0, 0.0), aux_tau_s: Array | None = None,
-                 aux_sigma: Array | None = None, aux_length_m: float = math.inf) -> None:
+                 aux_sigma: Array | None = None) -> None:
         """``n_range_bias`` range-model states follow ``P0``: by default random walks
         (``noise.range_bias``); where ``aux_tau_s`` is finite, first-order Gauss–Markov
-        processes with stationary σ ``aux_sigma`` that decorrelate with time (``τ``) and
-        with the distance travelled (``aux_length_m``), as multipath does (§3)."""
+        processes with time constant ``τ`` and stationary σ ``aux_sigma`` (§3)."""
         self.n = N_CORE + n_range_bias
         if P0.shape != (self.n, self.n):
             raise ValueError(f"P0 must be {self.n}x{self.n}, got {P0.shape}")
@@ -96,7 +95,6 @@ class Eskf:
         self._markov_var = (np.zeros(0) if aux_sigma is None
                             else np.asarray(aux_sigma)[self._markov] ** 2)
         self._decay_epoch = np.ones(n_range_bias)
-        self._length_m = aux_length_m
 
     # -- nominal propagation: every IMU sample -------------------------------------------
     def predict(self, acc_b: Vector, gyro_b: Vector, dt: float) -> None:
@@ -199,19 +197,21 @@ class Eskf:
         P[:N_CORE, :] = Phi @ P[:N_CORE, :]
         P[:, :N_CORE] = P[:, :N_CORE] @ Phi.T
         P[self._diag] += self._q_rate * T
+        self._markov_step(P, T)
+        self.P = 0.5 * (P + P.T)
+        self._reset_interval()
+
+    def _markov_step(self, P: Array, T: float) -> None:
+        """Gauss–Markov states decay towards 0 over ``T``; Q keeps their σ stationary."""
         m = self._markov
-        if len(m):  # Gauss–Markov states decay towards 0; Q keeps their σ stationary
-            v = self.v
-            travelled = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) * T
-            phi = np.exp(-T / self._tau[m] - travelled / self._length_m)
+        if len(m):
+            phi = np.exp(-T / self._tau[m])
             k = N_CORE + m
             P[k, :] *= phi[:, None]
             P[:, k] *= phi[None, :]
             P[k, k] += self._markov_var * (1.0 - phi * phi)
             self.b_r[m] *= phi
             self._decay_epoch[m] *= phi
-        self.P = 0.5 * (P + P.T)
-        self._reset_interval()
 
     def coast(self, dt: float, accel_sigma_mps2: float, yaw_rate_sigma_rps: float,
               tilt_rate_sigma_rps: float) -> None:
@@ -228,7 +228,12 @@ class Eskf:
         qa = accel_sigma_mps2**2
         for i in range(3):
             P[i, i] += qa * dt**3 / 3
+            P[i, 3 + i] += qa * dt**2 / 2
+            P[3 + i, i] += qa * dt**2 / 2
             P[3 + i, 3 + i] += qa * dt
+        aux = self._diag[0][N_CORE:]
+        P[aux, aux] += self._q_rate[N_CORE:] * dt  # the range-model random walks
+        self._markov_step(P, dt)
         up_b = self.R[2]  # the navigation z axis in body axes (Rᵀ e_z)
         P[TH_, TH_] += (yaw_rate_sigma_rps**2 - tilt_rate_sigma_rps**2) * dt * np.outer(
             up_b, up_b) + tilt_rate_sigma_rps**2 * dt * np.eye(3)

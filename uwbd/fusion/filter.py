@@ -1,7 +1,8 @@
 """The fusion filter: frames in, poses and per-measurement reports out.
 
-``Filter.predict(imu)``, ``Filter.update(uwb)``, ``Filter.pose()`` — pure and deterministic
-(same frames in, same poses out); no exception leaves them. The top level below reads as
+``Filter.predict(imu)``, ``Filter.update(uwb)``, ``Filter.pose()`` — deterministic (same
+frames in, same poses out), no I/O; no exception leaves them (a numerical failure no check
+foresaw is counted as ``internal_errors`` and restarts the filter). The top level below reads as
 the sequence it runs; each step's policy has a module of its own:
 
 * :mod:`.imu_check` — which IMU samples can be real (non-finite, clipped, impossible jumps);
@@ -18,7 +19,8 @@ Life cycle: **waiting** (collect IMU and fixes), start at rest or while moving, 
 (heading held until the vehicle has moved enough), **tracking**. A rejected IMU burst or an
 IMU gap widens the covariance for what was not seen; one longer than
 ``attitude_lost_after_s`` restarts the attitude and heading (position and velocity kept).
-Non-finite numbers restart everything. Innovations inconsistent for a while move the
+A non-finite state restarts everything (a non-finite covariance with a finite state only
+restores the last finite covariance). Innovations inconsistent for a while move the
 position to a UWB fix, but only to one that is consistent itself (NLOS does not pull the
 state away). Without ranges the state coasts and its covariance grows.
 """
@@ -37,7 +39,7 @@ import numpy as np
 
 from drivers.frames import ImuSample, UwbRanges
 from uwbd.fusion.alignment import HeadingAligner
-from uwbd.fusion.eskf import BA_, BG_, GRAVITY_MPS2, N_CORE, P_, TH_, V_, Eskf, ImuNoise
+from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, V_, Eskf, ImuNoise
 from uwbd.fusion.fixes import RangeWindow
 from uwbd.fusion.gating import GatingCounters, GatingPolicy, gate
 from uwbd.fusion.health import WAITING, Health, HealthLimits, HealthMonitor
@@ -59,6 +61,8 @@ ATTITUDE_AND_IMU_BIASES = slice(TH_.start, BA_.stop)
 ATTITUDE_AND_GYRO_BIAS = slice(TH_.start, BG_.stop)
 PROPAGATE_EVERY_S = 0.1  # the covariance follows the state at least this often (coasting)
 MIN_PROPAGATE_S = 0.02  # and at most this often: P grows little in 20 ms
+CONSTRAINT_EVERY_NS = 95_000_000  # ZUPT, NHC, known height: about 10 Hz
+NUMERICAL_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError)
 # the covariance is kept finite: no error state may be less certain than this (σ per state)
 MAX_SIGMA = np.array([1e3] * 3 + [1e2] * 3 + [math.pi] * 3 + [0.5] * 3 + [5.0] * 3)
 MAX_RANGE_BIAS_SIGMA_M = 5.0
@@ -118,7 +122,6 @@ class FilterConfig:
     multipath_states: bool = True
     multipath_sigma_m: float = 0.07
     multipath_tau_s: float = 1.0
-    multipath_length_m: float = math.inf
     tag_side: str = "auto"  # of a plane of anchors: auto | below | above (see .mirror)
     height_range_m: tuple[float, float] | None = None  # where the tag can be (a hint)
     zupt: bool = True
@@ -138,7 +141,7 @@ class FilterConfig:
     attitude_lost_after_s: float = 3.0  # an IMU gap or rejected burst this long: re-level
     health: HealthLimits = field(default_factory=HealthLimits)
     align_window_s: float = 2.0  # coarse heading alignment: window of UWB fixes compared
-    align_min_dv_mps: float = 0.3  # ... with this much horizontal velocity change at least
+    align_min_dv_mps: float = 0.5  # ... with this much horizontal velocity change at least
 
 
 class Filter:
@@ -175,9 +178,11 @@ class Filter:
         self._start_started_ns: int | None = None  # a restart waits for fresh IMU data
         self._carry: Start | None = None  # what a restart keeps of the estimate before it
         self._last_good_P: Array | None = None
+        self.last_internal_error = ""
         self._at_rest = False  # ZUPT rows in this update
+        self._constraints_ns = -(2**63)  # when ZUPT, NHC and height rows were last added
         self._good_imu_ns: int | None = None  # the last IMU sample that passed the checks
-        self._relevel: bool | None = None  # attitude restart pending (keeping the tilt?)
+        self._relevel: bool | None = None  # attitude restart pending
         self._track: collections.deque[tuple[float, ...]] = collections.deque()
         self._coasted = False
         self._aligner = HeadingAligner(config.align_window_s, config.align_min_dv_mps,
@@ -196,25 +201,45 @@ class Filter:
     # -- inputs ---------------------------------------------------------------------------
     def predict(self, imu: ImuSample) -> None:
         """Integrate one IMU sample (sensor axes); bad samples are counted, never used."""
+        try:
+            self._predict(imu)
+        except NUMERICAL_ERRORS as err:
+            self._internal_error(imu.t_ns, err)
+
+    def update(self, uwb: UwbRanges) -> list[FusionReport]:
+        """Fuse one UWB message (an epoch, or a single range); one report per measurement."""
+        try:
+            return self._update(uwb)
+        except NUMERICAL_ERRORS as err:
+            self._internal_error(uwb.t_ns, err)
+            return []
+
+    def _internal_error(self, t_ns: int, err: Exception) -> None:
+        """A numerical failure no check foresaw: counted, said, and the filter restarts
+        rather than let the exception stop fusion."""
+        self.counters["internal_errors"] += 1
+        self.last_internal_error = f"{type(err).__name__}: {err}"
+        self._restart(t_ns, "internal error")
+
+    def _predict(self, imu: ImuSample) -> None:
         t_ns = imu.t_ns
         prev = self._imu_t_ns
+        if prev is not None and t_ns <= prev:  # judged no further: it changes nothing
+            a, g = imu.acc_mps2, imu.gyro_rps
+            finite = math.isfinite(a[0] + a[1] + a[2] + g[0] + g[1] + g[2])
+            self.counters["imu_out_of_order" if finite else "imu_not_finite"] += 1
+            return
         reason = self.imu_check.judge(t_ns, imu.acc_mps2, imu.gyro_rps)
         if reason:
             self.counters[reason] += 1
             self.monitor.imu_rejected(t_ns)
-        if prev is not None and t_ns <= prev:
-            if not reason:
-                self.counters["imu_out_of_order"] += 1
-            return
         if self._first_t_ns is None:
             self._first_t_ns = t_ns
         self._imu_t_ns = t_ns
-        since_good_s = 0.0
+        gap_s = 0.0 if prev is None else (t_ns - prev) / NS  # since the last sample of any kind
         if not reason:
             sample = (self._to_body(imu.acc_mps2), self._to_body(imu.gyro_rps))
             self.window.add(t_ns, *sample)
-            if self._good_imu_ns is not None:
-                since_good_s = (t_ns - self._good_imu_ns) / NS
             self._good_imu_ns = t_ns
         ekf = self.ekf
         if ekf is None:
@@ -230,19 +255,20 @@ class Filter:
         if reason:
             if self.imu_check.burst_s(t_ns) > cfg.attitude_lost_after_s or self._last_imu is None:
                 # held that long, the last good sample says nothing: coast on the ranges
-                self._lose_attitude(t_ns, "IMU samples rejected", keep_attitude=False)
+                self._lose_attitude(t_ns, "IMU samples rejected")
                 return
             sample = self._last_imu  # integrate over the rejected one with the last good one
-        elif since_good_s > cfg.max_imu_gap_s:
+        elif gap_s > cfg.max_imu_gap_s:
             self.counters["imu_gaps"] += 1
             self._coasted = True
-            self.monitor.imu_gap = False
             if dt > 0:  # coasted by the ranges up to their last update; on to this sample
-                ekf.coast(dt, COAST_ACCEL_SIGMA_MPS2, UNSEEN_RATE_SIGMA_RPS, UNSEEN_TILT_SIGMA_RPS)
+                self._coast(dt)
             self.t_ns = t_ns
             self._last_imu = sample
-            if since_good_s > cfg.attitude_lost_after_s:
-                self._lose_attitude(t_ns, "IMU gap", keep_attitude=True)
+            if gap_s > cfg.attitude_lost_after_s:
+                self._lose_attitude(t_ns, "IMU gap")
+            else:
+                self.monitor.imu_gap = False
             return
         if dt > 0:
             ekf.predict(sample[0], sample[1], dt)
@@ -253,8 +279,7 @@ class Filter:
         self.t_ns = t_ns
         self._last_imu = sample
 
-    def update(self, uwb: UwbRanges) -> list[FusionReport]:
-        """Fuse one UWB message (an epoch, or a single range); one report per measurement."""
+    def _update(self, uwb: UwbRanges) -> list[FusionReport]:
         if self._first_t_ns is None:
             self._first_t_ns = uwb.t_ns
         result = gate(uwb, self.cfg.gating, self.gating)
@@ -294,8 +319,14 @@ class Filter:
         track.append((uwb.t_ns, *ekf.p))
         while track[0][0] < uwb.t_ns - int(self.cfg.static_window_s * NS):
             track.popleft()
+        constraints: list[Rows] = []
+        if uwb.t_ns - self._constraints_ns >= CONSTRAINT_EVERY_NS:
+            # pseudo-measurements at a fixed rate: at 170 single ranges a second they would
+            # otherwise weigh 17 times what they do with 10 Hz epochs
+            self._constraints_ns = uwb.t_ns
+            constraints = self._constraints()
         rows = Rows.stack([self._measurement_rows(ids, anchors, ranges, r_scale, fix),
-                           *self._constraints()])
+                           *constraints])
         prior = self._snapshot() if self.records is not None else None
         reports += self._fuse(uwb.t_ns, rows)
         if self._check_divergence(uwb.t_ns, ids, anchors, ranges):
@@ -379,13 +410,8 @@ class Filter:
                             self._carry, len(self._bias_index), self.lever, len(self._mp_index))
         if start is None:
             return
-        self.ekf, how = start
-        self.t_ns = t_ns
+        self._begin(start, t_ns)
         self.monitor.last_range_ns = t_ns  # the start is a UWB fix
-        self._carry = None
-        self._start_started_ns = None
-        self.counters["initialisations"] += 1
-        self.counters[f"started_{how}"] += 1
 
     def _restart(self, t_ns: int, reason: str) -> None:
         """Drop the estimate and start again from UWB and fresh IMU samples, keeping only
@@ -399,16 +425,17 @@ class Filter:
         self.ekf = None
         self._relevel = None
         self._start_started_ns = t_ns
+        self._fixes.clear()  # from the old estimate's side of a mirror, perhaps
         self._forget_attitude(t_ns, reason)
 
-    def _lose_attitude(self, t_ns: int, reason: str, keep_attitude: bool) -> None:
+    def _lose_attitude(self, t_ns: int, reason: str) -> None:
         """The IMU was unusable too long for the attitude to be trusted: coast on the ranges
         (constant velocity, as through a gap) until fresh IMU samples span a window, then
-        restart attitude and heading there, keeping position, velocity and biases. After a
-        gap the tilt before it is kept (nothing says it changed); after rejected samples
-        (a shaken sensor) it comes from gravity anew."""
+        restart the heading there, keeping position, velocity, biases and the tilt from
+        before (the EKF refines a changed tilt; re-levelling from gravity while moving puts
+        the vehicle's acceleration into the tilt)."""
         self._count_restart(reason)
-        self._relevel = keep_attitude
+        self._relevel = True
         self._forget_attitude(t_ns, reason)
 
     def _relevel_when_ready(self, t_ns: int) -> None:
@@ -418,23 +445,34 @@ class Filter:
             return
         dt = (t_ns - self.t_ns) / NS
         if dt > 0:
-            ekf.coast(dt, COAST_ACCEL_SIGMA_MPS2, UNSEEN_RATE_SIGMA_RPS, UNSEEN_TILT_SIGMA_RPS)
+            self._coast(dt)
         sig = float(np.sqrt(max(float(np.diag(ekf.P)[P_].max()), 0.0)))
         carry = Start(np.array(ekf.p), np.array(ekf.v), np.array(ekf.b_g), np.array(ekf.b_a),
-                      ekf.b_r.copy(), sig, np.array(ekf.q) if self._relevel else None,
-                      ekf.tilt_sigma_rad())
+                      ekf.b_r.copy(), sig, np.array(ekf.q), ekf.tilt_sigma_rad())
         antenna = np.array(ekf.p) + ekf.R @ self.lever
         fix = LsqFix(antenna, np.diag(np.diag(ekf.P)[P_]), np.zeros(0), np.zeros(0, bool),
                      0.0, 0)
         start = start_state(self.cfg, self.window, fix, [], [], True, carry,
                             len(self._bias_index), self.lever, len(self._mp_index))
-        if start is None:
-            return
+        if start is not None:
+            self._relevel = None
+            self.monitor.imu_gap = False
+            self._begin(start, max(t_ns, self.t_ns))
+
+    def _begin(self, start: tuple[Eskf, str], t_ns: int) -> None:
         self.ekf, how = start
-        self.t_ns = max(t_ns, self.t_ns)
-        self._relevel = None
+        self.t_ns = t_ns
+        self._carry = None
+        self._start_started_ns = None
+        self._last_good_P = None
+        self._track.clear()
         self.counters["initialisations"] += 1
         self.counters[f"started_{how}"] += 1
+
+    def _coast(self, dt: float) -> None:
+        ekf = self.ekf
+        assert ekf is not None
+        ekf.coast(dt, COAST_ACCEL_SIGMA_MPS2, UNSEEN_RATE_SIGMA_RPS, UNSEEN_TILT_SIGMA_RPS)
 
     def _count_restart(self, reason: str) -> None:
         self.counters["restarts"] += 1
@@ -489,10 +527,12 @@ class Filter:
         ids, anchors, ranges, scale = [], [], [], []
         for r in epoch.ranges:
             pos = self.cfg.anchors_m.get(r.anchor_id, r.anchor_position_m)
-            if pos is None:
-                self.gating.rejections["unknown_anchor"] += 1
+            why = "unknown_anchor" if pos is None else (
+                "anchor_position_not_finite" if not math.isfinite(sum(pos)) else "")
+            if why:
+                self.gating.rejections[why] += 1
                 reports.append(FusionReport(epoch.t_ns, "range", str(r.anchor_id), math.nan,
-                                            math.nan, math.nan, False, "unknown_anchor"))
+                                            math.nan, math.nan, False, why))
                 continue
             ids.append(r.anchor_id)
             anchors.append(pos)
@@ -517,22 +557,11 @@ class Filter:
         ekf.rotate_heading(0.0, HELD_YAW_SIGMA_RAD)
         if fix is None or not self._aligner.wants_fix(t_ns):
             return
-        result = self._aligner.add_fix(t_ns, fix, self._horizontal_acc_sigma())
+        result = self._aligner.add_fix(t_ns, fix)
         if result is not None:
             ekf.rotate_heading(*result)
             self._aligned = True
             self.counters["heading_alignments"] += 1
-
-    def _horizontal_acc_sigma(self) -> float:
-        """σ of the INS's horizontal acceleration error from tilt and accelerometer bias:
-        ``δa = −[f]× R δθ − R δb_a`` with ``f`` = gravity's reaction (§3), from ``P``."""
-        ekf = self.ekf
-        assert ekf is not None
-        R = ekf.R
-        J = np.hstack([-skew(np.array([0.0, 0.0, GRAVITY_MPS2])) @ R, -R])[:2]
-        idx = np.r_[TH_.start:TH_.stop, BA_.start:BA_.stop]
-        cov = J @ ekf.P[np.ix_(idx, idx)] @ J.T
-        return math.sqrt(max(float(np.trace(cov)) / 2, 0.0))
 
     def _imu_fresh(self, t_ns: int | None = None) -> bool:
         """The last IMU sample is at most ``max_imu_gap_s`` older than ``t_ns`` (the
@@ -552,10 +581,11 @@ class Filter:
             return
         if self._imu_fresh(t_ns) and self._last_imu is not None:
             ekf.predict(self._last_imu[0], self._last_imu[1], dt)
+            self.monitor.imu_gap = False
         else:
             self._coasted = True
             self.monitor.imu_gap = True
-            ekf.coast(dt, COAST_ACCEL_SIGMA_MPS2, UNSEEN_RATE_SIGMA_RPS, UNSEEN_TILT_SIGMA_RPS)
+            self._coast(dt)
         self.t_ns = t_ns
 
     def _measurement_rows(self, ids: list[int], anchors: Array, ranges: Array,
@@ -616,6 +646,7 @@ class Filter:
         # that the ranges have not moved either (a ZUPT would otherwise pin v at 0 for good)
         slow = math.hypot(*ekf.v) < cfg.zupt_max_speed_mps and self._still()
         self._at_rest = bool(cfg.zupt and slow and self._imu_fresh()
+                             and self.imu_check.burst_s(self.t_ns or 0) == 0.0
                              and self.window.static(cfg.static_window_s))
         if self._at_rest:
             self.counters["zupt"] += 1
@@ -711,7 +742,7 @@ class Filter:
             return False
         # the ranges disagree with the state: believe them only if they agree with each other
         fix = self.ranges.fix(t_ns, ids, anchors, ranges, None, force=True)
-        if fix is None or not self._consistent(fix, anchors, ranges):
+        if fix is None or not self._consistent(fix, *self.ranges.last_inputs):
             self.counters["divergence_without_consistent_fix"] += 1
             return False
         p_ant = np.array(ekf.p) + ekf.R @ self.lever

@@ -31,6 +31,7 @@ class RangeWindow:
         self._latest: dict[int, tuple[int, Array, float]] = {}
         self._last_fix_ns: int | None = None
         self.needed = 3 if fixed_z is not None else 4
+        self.last_inputs: tuple[Array, Array] = (np.zeros((0, 3)), np.zeros(0))  # of the last fix
 
     def add(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array) -> None:
         for a, pos, r in zip(ids, anchors, ranges.tolist(), strict=True):
@@ -57,6 +58,7 @@ class RangeWindow:
                            x0)
 
     def _solve(self, anchors: Array, ranges: Array, x0: Array | None) -> LsqFix | None:
+        self.last_inputs = (anchors, ranges)
         fix = multilaterate(anchors, ranges, self.sigma_m, x0, self.fixed_z,
                             side=self.side.sign)
         if fix is not None:

@@ -112,7 +112,7 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
     tau = np.concatenate([np.full(n_bias, np.inf), np.full(n_multipath, cfg.multipath_tau_s)])
     sigma = np.concatenate([np.zeros(n_bias), np.full(n_multipath, cfg.multipath_sigma_m)])
     ekf = Eskf(p, v, q, P0, cfg.imu_noise, n_aux, b_g=bg, b_a=ba, aux_tau_s=tau,
-               aux_sigma=sigma, aux_length_m=cfg.multipath_length_m)
+               aux_sigma=sigma)
     if carry is not None and len(carry.b_r_m) == n_aux:
         ekf.b_r = carry.b_r_m.copy()
     return ekf, how

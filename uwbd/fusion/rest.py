@@ -66,7 +66,7 @@ class ImuWindow:
         if not samples:
             return False
         last_ns = samples[-1][0]
-        key = (span_s, len(samples) > 0)
+        key = (span_s,)
         if key == self._memo_key and 0 <= last_ns - self._memo_ns < JUDGE_EVERY_NS:
             return self._memo
         self._memo_key, self._memo_ns, self._memo = key, last_ns, self._judge(span_s)
