@@ -433,3 +433,34 @@ def test_smoother_does_not_reach_across_a_break(sim: Simulation) -> None:
         if flt.records[k + 1].Phi is None:  # no successor to learn from: filtered estimate
             assert not changed[k]
     assert sum(changed) > len(changed) / 2
+
+
+def test_considered_states_are_not_corrected_and_keep_a_joseph_covariance() -> None:
+    ekf = random_eskf(8)
+    rng = np.random.default_rng(9)
+    h, r = rng.normal(size=N_CORE + 2), 0.02
+    P = ekf.P.copy()
+    b_g = list(ekf.b_g)
+    K = P @ h / (h @ P @ h + r)
+    K[9:12] = 0.0  # the gyro biases, considered
+    IKH = np.eye(len(h)) - np.outer(K, h)
+    ekf.sequential_update(h[None, :], np.array([0.3]), np.array([r]), lambda i, nu, s: 1.0,
+                          considered=slice(9, 12))
+    assert ekf.b_g == b_g
+    keep = np.r_[0:6, 9:N_CORE + 2]  # the attitude rows also take the reset after injection
+    expected = IKH @ P @ IKH.T + r * np.outer(K, K)
+    np.testing.assert_allclose(ekf.P[np.ix_(keep, keep)], expected[np.ix_(keep, keep)],
+                               atol=1e-9)
+
+
+def test_gauss_markov_states_decay_to_their_stationary_sigma() -> None:
+    P0 = np.eye(N_CORE + 1) * 1e-6
+    ekf = Eskf((0, 0, 0), (0, 0, 0), (1.0, 0.0, 0.0, 0.0), P0, ImuNoise(), n_range_bias=1,
+               aux_tau_s=np.array([1.0]), aux_sigma=np.array([0.07]))
+    ekf.b_r[0] = 0.5
+    for _ in range(50):  # 5 s in 0.1 s intervals
+        for _ in range(20):
+            ekf.predict((0.0, 0.0, 9.80665), (0.0, 0.0, 0.0), 0.005)
+        ekf.propagate()
+    assert abs(ekf.b_r[0]) < 0.5 * math.exp(-4.5)
+    assert math.sqrt(ekf.P[N_CORE, N_CORE]) == pytest.approx(0.07, rel=0.01)

@@ -241,3 +241,25 @@ def test_multipath_states_are_configured_by_their_sigma(sigma: float) -> None:
     text = simulation_toml(sim).replace("multipath_sigma_m = 0.0", f"multipath_sigma_m = {sigma}")
     cfg = parse(text).filter_config()
     assert cfg.multipath_states == (sigma > 0)
+
+
+def test_the_ranges_flip_a_wrong_default_side_in_the_filter() -> None:
+    """Anchors at 1.2-1.45 m (taken for a ceiling: tag below by default), the tag flying at
+    about 2.6 m above them: the ranges flip the side and the filter ends up there."""
+    anchors = ((0.0, 0.0, 1.45), (8.0, 0.0, 1.2), (8.0, 6.0, 1.4), (0.0, 6.0, 1.25))
+    room = ((4.0, 0.0, 0.0, 0.0), (6.0, 0.6, 0.25, 0.0), (4.0, 0.6, -0.25, 0.0))
+    sim = simulate(SimConfig(segments=room, anchors_m=anchors, start_m=(2.0, 2.0, 2.6),
+                             range_noise_m=0.05, nlos_rate_hz=0.0, seed=2))
+    poses, _, flt = run_filter(datasheet(sim), merge(sim.imu, sim.uwb))
+    assert flt.mirror.sign == 1 and flt.counters["restart_mirror_side_flipped_by_the_ranges"] == 1
+    tail = [p for p in poses if p.t_ns > sim.truth_t_ns[0] + 8 * NS]
+    assert tail and all(abs(p.position_m[2] - 2.6) < 0.3 for p in tail)
+
+
+def test_health_is_tracking_again_after_the_imu_returns() -> None:
+    sim = short(imu_gaps_s=((8.0, 5.0),))
+    poses, _, _ = run_filter(datasheet(sim), merge(sim.imu, sim.uwb))
+    s = np.array([(p.t_ns - sim.truth_t_ns[0]) / NS for p in poses])
+    assert poses[-1].health.phase is Phase.TRACKING and poses[-1].health.resets == 1
+    assert any(p.health.phase is Phase.COASTING or "imu_gap" in p.health.faults
+               for p, t in zip(poses, s, strict=True) if 9 <= t < 13)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import subprocess
 import sys
@@ -12,6 +14,7 @@ from mcap.reader import make_reader
 
 from drivers.frames import ImuSample, UwbRanges
 from uwbd import config as cfgmod
+from uwbd.codec import strict_json
 from uwbd.importer import INROL_EPOCH_NS
 from uwbd.logtools import load_recording, write_simulation
 from uwbd.mcaplog import LogWriter, SourceInfo, read_log
@@ -274,3 +277,9 @@ def test_import_real_inrol_run(tmp_path: Path) -> None:
     assert len(rec.truth_t_ns) == len(rows["imu_pose.txt"])
     assert set(rec.config.anchors_m) == set(range(1, 9))
     assert rec.frames[0].t_ns - INROL_EPOCH_NS < 100_000_000  # the files' clock starts at 0
+
+
+def test_json_never_carries_nan() -> None:
+    assert json.loads(strict_json({"a": math.nan, "b": [1.0, math.inf], "c": {"d": -math.inf}})) \
+        == {"a": None, "b": [1.0, None], "c": {"d": None}}
+    assert b"NaN" not in strict_json({"x": [math.nan] * 3})
