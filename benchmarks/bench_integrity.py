@@ -16,8 +16,9 @@ simulated sensors' specs; imported runs carry anchors, mounting and lever arm on
 Faults on the seed layout: the IMU pinned at full scale for 0.5 s, one corrupted sample,
 a 30 s IMU gap, a 20 s UWB outage. Printed per fault: exceptions, non-finite poses, the
 largest error during and after it, how long after the data returned the error was back
-under 0.3 m for good, whether the filter said "tracking" while more than 1 m off, and how
-often σ covered the error (|e_xy| ≤ 3 σ_xy) during the fault.
+under 0.3 m for good, whether the filter said "tracking" while more than 1 m off, how
+often σ covered the error (|e_xy| ≤ 3 σ_xy) during the fault, and the largest heading
+error 15-20 s after the data returned.
 """
 
 from __future__ import annotations
@@ -136,10 +137,16 @@ def fault_case(name: str, cfg: SimConfig, start_s: float, end_s: float) -> None:
     covered = float(np.mean(err[during] <= 3 * sigma[during])) if during.any() else math.nan
     false_healthy = sum(1 for q, e in zip(poses, err, strict=True)
                         if e > 1.0 and q.health.healthy)
+    yaw_truth = np.interp(t, sim.truth_t_ns, np.unwrap(sim.truth_yaw_rad))
+    yaw = np.array([math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+                    for x, y, z, w in (q.orientation_xyzw for q in poses)])
+    yaw_err = np.degrees(np.abs(np.angle(np.exp(1j * (yaw - yaw_truth)))))
+    late = (s >= end_s + 15) & (s < end_s + 20)
+    heading = f"{yaw_err[late].max():5.1f}" if late.any() else "  n/a"
     print(f"  {name:<26} non-finite {int((~finite).sum())}  max err during {err[during].max():6.2f}"
           f" m  max after {err[after].max():6.2f} m  under 0.3 m for good after {back_s:5.1f} s"
           f"  'tracking' while >1 m off: {false_healthy}  sigma covers {covered:4.0%}"
-          f"  restarts {flt.counters['restarts']}")
+          f"  heading err 15-20 s after {heading} deg  restarts {flt.counters['restarts']}")
 
 
 def faults() -> None:

@@ -8,8 +8,8 @@ record is never patched: each step builds a new one from the monitor and the cov
 Phases (one at a time, in this order of precedence):
 
 ``waiting``     no estimate yet (collecting IMU samples and ranges to start)
-``recovering``  re-initialised less than ``recover_hold_s`` ago, or waiting to restart
-                after a reset
+``recovering``  re-initialised less than ``recover_hold_s`` ago and not yet free of faults,
+                or waiting to restart after a reset
 ``coasting``    no accepted UWB measurement for ``coast_after_s``: IMU only, σ growing
 ``degraded``    running with a fault (below)
 ``aligning``    running, heading not yet observable
