@@ -25,7 +25,7 @@ from uwbd.fusion.eskf import N_CORE, TH_, Eskf, ImuNoise
 from uwbd.fusion.filter import Filter, FilterConfig, Mode, chi2_quantile
 from uwbd.fusion.health import Phase
 from uwbd.fusion.lsq import coplanar, multilaterate
-from uwbd.fusion.rotation import Array, euler_from_quat, quat_from_euler, quat_to_matrix
+from uwbd.fusion.rotation import Array, euler_from_quat, quat_from_euler, quat_mul, quat_to_matrix
 from uwbd.fusion.smoother import smooth
 from uwbd.fusion.types import Pose
 from uwbd.simulator import SimConfig, Simulation, simulate
@@ -464,3 +464,20 @@ def test_gauss_markov_states_decay_to_their_stationary_sigma() -> None:
         ekf.propagate()
     assert abs(ekf.b_r[0]) < 0.5 * math.exp(-4.5)
     assert math.sqrt(ekf.P[N_CORE, N_CORE]) == pytest.approx(0.07, rel=0.01)
+
+
+def test_a_tilt_against_gravity_at_rest_is_levelled_anew(sim: Simulation) -> None:
+    """The attitude knocked 20° in roll and made confident, while at rest: gravity says
+    otherwise, the tilt is levelled anew and the heading kept."""
+    def tilt(ekf: Eskf) -> None:
+        ekf.q = quat_mul(np.array(ekf.q), quat_from_euler(math.radians(20), 0.0, 0.0)).tolist()
+        ekf.P[TH_, TH_] *= 1e-4
+
+    poses, flt = _run_tampered(sim, 2.0, tilt)
+    assert flt.counters["restart_attitude_against_gravity"] == 1
+    final = poses[-1]
+    roll, pitch, _ = euler_from_quat(np.array([final.orientation_xyzw[3],
+                                               *final.orientation_xyzw[:3]]))
+    assert abs(roll) < math.radians(2) and abs(pitch) < math.radians(2)
+    s, err = _errors_xy(poses, sim)
+    assert err[s >= 12].max() < 0.2

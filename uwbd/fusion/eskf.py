@@ -239,6 +239,10 @@ class Eskf:
             up_b, up_b) + tilt_rate_sigma_rps**2 * dt * np.eye(3)
         self.P = 0.5 * (P + P.T)
 
+    def yaw_rad(self) -> float:
+        w, x, y, z = self.q
+        return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
     def tilt_sigma_rad(self) -> float:
         """σ of the roll/pitch error: the attitude error about the horizontal nav axes."""
         Rn = self.R

@@ -22,7 +22,9 @@ IMU gap widens the covariance for what was not seen; one longer than
 A non-finite state restarts everything (a non-finite covariance with a finite state only
 restores the last finite covariance). Innovations inconsistent for a while move the
 position to a UWB fix, but only to one that is consistent itself (NLOS does not pull the
-state away). Without ranges the state coasts and its covariance grows.
+state away); diverging again within 10 s restarts everything from such a fix. At rest, an
+attitude that disagrees with gravity by more than 10° for a second is levelled anew.
+Without ranges the state coasts and its covariance grows.
 """
 
 from __future__ import annotations
@@ -62,6 +64,8 @@ ATTITUDE_AND_GYRO_BIAS = slice(TH_.start, BG_.stop)
 PROPAGATE_EVERY_S = 0.1  # the covariance follows the state at least this often (coasting)
 MIN_PROPAGATE_S = 0.02  # and at most this often: P grows little in 20 ms
 CONSTRAINT_EVERY_NS = 95_000_000  # ZUPT, NHC, known height: about 10 Hz
+MAX_TILT_ERROR_RAD = math.radians(10)  # at rest, attitude against gravity
+REPEATED_RESET_NS = 10 * NS  # a second divergence this soon after a position reset restarts
 NUMERICAL_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError)
 # the covariance is kept finite: no error state may be less certain than this (σ per state)
 MAX_SIGMA = np.array([1e3] * 3 + [1e2] * 3 + [math.pi] * 3 + [0.5] * 3 + [5.0] * 3)
@@ -179,10 +183,12 @@ class Filter:
         self._carry: Start | None = None  # what a restart keeps of the estimate before it
         self._last_good_P: Array | None = None
         self.last_internal_error = ""
+        self._position_reset_ns = -(2**63)
         self._at_rest = False  # ZUPT rows in this update
         self._constraints_ns = -(2**63)  # when ZUPT, NHC and height rows were last added
         self._good_imu_ns: int | None = None  # the last IMU sample that passed the checks
-        self._relevel: bool | None = None  # attitude restart pending
+        self._relevel: str | None = None  # attitude restart pending: "keep" or "level" the tilt
+        self._tilt_bad_ns: int | None = None  # since when, at rest, gravity disagrees
         self._track: collections.deque[tuple[float, ...]] = collections.deque()
         self._coasted = False
         self._aligner = HeadingAligner(config.align_window_s, config.align_min_dv_mps,
@@ -435,7 +441,7 @@ class Filter:
         before (the EKF refines a changed tilt; re-levelling from gravity while moving puts
         the vehicle's acceleration into the tilt)."""
         self._count_restart(reason)
-        self._relevel = True
+        self._relevel = "keep"
         self._forget_attitude(t_ns, reason)
 
     def _relevel_when_ready(self, t_ns: int) -> None:
@@ -447,8 +453,10 @@ class Filter:
         if dt > 0:
             self._coast(dt)
         sig = float(np.sqrt(max(float(np.diag(ekf.P)[P_].max()), 0.0)))
+        level = self._relevel == "level"
         carry = Start(np.array(ekf.p), np.array(ekf.v), np.array(ekf.b_g), np.array(ekf.b_a),
-                      ekf.b_r.copy(), sig, np.array(ekf.q), ekf.tilt_sigma_rad())
+                      ekf.b_r.copy(), sig, None if level else np.array(ekf.q),
+                      ekf.tilt_sigma_rad(), yaw_rad=ekf.yaw_rad())
         antenna = np.array(ekf.p) + ekf.R @ self.lever
         fix = LsqFix(antenna, np.diag(np.diag(ekf.P)[P_]), np.zeros(0), np.zeros(0, bool),
                      0.0, 0)
@@ -636,6 +644,28 @@ class Filter:
         span_s = max((t1 - t0) / NS, self.cfg.static_window_s)
         return math.dist(p0, p1) < self.cfg.zupt_max_speed_mps * span_s
 
+    def _check_tilt_against_gravity(self) -> None:
+        """At rest the mean specific force is gravity's reaction: an attitude more than 10°
+        from it for a second is wrong (the EKF can be confidently wrong about tilt after a
+        fault); level it anew from the samples of the rest."""
+        ekf, means = self.ekf, self.window.means()
+        assert ekf is not None and self.t_ns is not None
+        if means is None:
+            return
+        f_n = ekf.R @ means[0]
+        norm = float(np.linalg.norm(f_n))
+        tilt_err = math.acos(min(max(f_n[2] / norm, -1.0), 1.0)) if norm > 0 else 0.0
+        if tilt_err <= MAX_TILT_ERROR_RAD:
+            self._tilt_bad_ns = None
+            return
+        if self._tilt_bad_ns is None:
+            self._tilt_bad_ns = self.t_ns
+        elif self.t_ns - self._tilt_bad_ns >= NS:
+            self._tilt_bad_ns = None
+            self._count_restart("attitude against gravity")
+            self._relevel = "level"
+            self._forget_attitude(self.t_ns, "attitude against gravity")
+
     def _constraints(self) -> list[Rows]:
         ekf = self.ekf
         assert ekf is not None
@@ -645,9 +675,11 @@ class Filter:
         # constant velocity looks like rest to an IMU: require a slow estimate, and a state
         # that the ranges have not moved either (a ZUPT would otherwise pin v at 0 for good)
         slow = math.hypot(*ekf.v) < cfg.zupt_max_speed_mps and self._still()
-        self._at_rest = bool(cfg.zupt and slow and self._imu_fresh()
-                             and self.imu_check.burst_s(self.t_ns or 0) == 0.0
-                             and self.window.static(cfg.static_window_s))
+        still_imu = (self._imu_fresh() and self.imu_check.burst_s(self.t_ns or 0) == 0.0
+                     and self.window.static(cfg.static_window_s))
+        if still_imu:  # whatever the velocity estimate says: a wrong tilt makes it wrong too
+            self._check_tilt_against_gravity()
+        self._at_rest = bool(cfg.zupt and slow and still_imu and self._relevel is None)
         if self._at_rest:
             self.counters["zupt"] += 1
             H = np.zeros((3, n))
@@ -750,6 +782,12 @@ class Filter:
         spread = math.sqrt(max(float(np.trace(ekf.P[P_, P_]) + np.trace(fix.covariance)), 0.0))
         if jump <= 3.0 * spread:
             return False  # the fix agrees with the state after all: nothing to move
+        if t_ns - self._position_reset_ns < REPEATED_RESET_NS:
+            # moving the position did not make the ranges agree: the attitude, velocity or
+            # biases are wrong too; start again from this consistent fix
+            self._restart(t_ns, "diverged again after a position reset")
+            return True
+        self._position_reset_ns = t_ns
         self.counters["position_resets"] += 1
         ekf.p = (np.array(ekf.p) + fix.position_m - p_ant).tolist()
         ekf.v = [0.0, 0.0, 0.0]

@@ -46,6 +46,7 @@ class Start(NamedTuple):
     sigma_p_m: float
     q: Array | None = None  # the attitude before (an IMU gap): its tilt beats a moving level
     tilt_sigma_rad: float = math.radians(2)
+    yaw_rad: float = 0.0  # the heading to keep when the tilt is levelled anew
 
 
 def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
@@ -70,8 +71,10 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
     if carry is not None and carry.p_m is not None and carry.v_mps is not None:
         if carry.q is not None:
             q = np.asarray(carry.q)
-            R0 = quat_to_matrix(q)
             sig_tilt = max(carry.tilt_sigma_rad, math.radians(0.5))
+        else:
+            q = quat_from_euler(roll, pitch, carry.yaw_rad)
+        R0 = quat_to_matrix(q)
         p, v, bg = carry.p_m, carry.v_mps, carry.b_g_rps
         sig_p, sig_v, sig_bg, how = max(carry.sigma_p_m, sig_fix), 1.0, 0.01, "carried"
     elif window.static(cfg.init_static_s) and len(recent) >= 3:
