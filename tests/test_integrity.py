@@ -17,6 +17,7 @@ from drivers.frames import UwbRanges
 from uwbd.config import parse
 from uwbd.evaluate import merge, run_filter, run_method, score, score_poses
 from uwbd.fusion.baselines import UwbLeastSquares
+from uwbd.fusion.eskf import N_CORE
 from uwbd.fusion.filter import FilterConfig
 from uwbd.fusion.health import Phase
 from uwbd.fusion.lsq import multilaterate
@@ -263,3 +264,19 @@ def test_health_is_tracking_again_after_the_imu_returns() -> None:
     assert poses[-1].health.phase is Phase.TRACKING and poses[-1].health.resets == 1
     assert any(p.health.phase is Phase.COASTING or "imu_gap" in p.health.faults
                for p, t in zip(poses, s, strict=True) if 9 <= t < 13)
+
+
+def test_anchors_the_device_reports_get_the_mirror_side_and_the_range_states() -> None:
+    """A DWM1001-style tag sends the anchor positions itself ([anchors] empty): learnt
+    before the start, they still put the tag below ceiling anchors."""
+    cfg = ceiling_room(0)
+    sim = simulate(dataclasses.replace(cfg, segments=cfg.segments[:4]))
+    where = dict(enumerate(sim.config.anchors_m))
+    uwb = [dataclasses.replace(e, ranges=tuple(
+        dataclasses.replace(r, anchor_position_m=where[r.anchor_id]) for r in e.ranges))
+        for e in sim.uwb]
+    config = datasheet(sim, anchors_m={})
+    poses, _, flt = run_filter(config, merge(sim.imu, uwb))
+    assert flt.mirror.ambiguous and flt.mirror.sign == -1
+    assert flt.ekf is not None and flt.ekf.n == N_CORE + len(where)  # one delay state each
+    assert score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=4).rmse_z_m < 0.15

@@ -168,12 +168,16 @@ class Filter:
         self.monitor = HealthMonitor(config.health)
         self.imu_check = ImuCheck(config.imu_limits)
         self.window = ImuWindow(max(config.static_window_s, config.init_static_s), config.rest)
-        anchors = np.array(list(config.anchors_m.values()), dtype=float).reshape(-1, 3)
-        self.mirror = MirrorSide(anchors, config.tag_side, config.height_range_m)
-        self._fixed_z = (config.known_height_m if len(anchors) and coplanar(anchors)
-                         else None)
+        # the anchors known: configured, and those the device reports (learnt before the
+        # start, so that the mirror side and the range-model states cover them)
+        self._anchors: dict[int, Vec3] = dict(config.anchors_m)
+        self.mirror = MirrorSide(np.zeros((0, 3)))
+        self._fixed_z: float | None = None
         self.ranges = RangeWindow(config.range_window_s, config.fix_interval_s,
-                                  config.range_sigma_m, self.mirror, self._fixed_z)
+                                  config.range_sigma_m, self.mirror, None)
+        self._bias_index: dict[int, int] = {}
+        self._mp_index: dict[int, int] = {}
+        self._layout()
         self.t_ns: int | None = None  # time of the nominal state
         self._imu_t_ns: int | None = None
         self._last_imu: tuple[Vec3, Vec3] | None = None  # body axes, the last one used
@@ -194,15 +198,24 @@ class Filter:
         self._aligner = HeadingAligner(config.align_window_s, config.align_min_dv_mps,
                                        config.range_sigma_m)
         self._aligned = False
-        self._bias_index: dict[int, int] = {}
-        if config.range_bias_states and config.mode is Mode.TIGHT:  # unobservable in loose
-            self._bias_index = {a: N_CORE + i for i, a in enumerate(sorted(config.anchors_m))}
-        self._mp_index: dict[int, int] = {}
-        if config.multipath_states and config.mode is Mode.TIGHT:
-            first = N_CORE + len(self._bias_index)
-            self._mp_index = {a: first + i for i, a in enumerate(sorted(config.anchors_m))}
         self._gate_1 = chi2_quantile(config.gate_probability, 1)
         self._gate_3 = chi2_quantile(config.gate_probability, 3)
+
+    def _layout(self) -> None:
+        """What follows from the anchors: the mirror side of a plane of them, the height
+        held over coplanar ones, and one antenna-delay and one multipath state each."""
+        cfg = self.cfg
+        anchors = np.array(list(self._anchors.values()), dtype=float).reshape(-1, 3)
+        self.mirror = MirrorSide(anchors, cfg.tag_side, cfg.height_range_m)
+        self._fixed_z = (cfg.known_height_m if len(anchors) and coplanar(anchors) else None)
+        self.ranges.side, self.ranges.fixed_z = self.mirror, self._fixed_z
+        ids = sorted(self._anchors)
+        tight = cfg.mode is Mode.TIGHT  # the offsets are unobservable from loose fixes
+        self._bias_index = ({a: N_CORE + i for i, a in enumerate(ids)}
+                            if cfg.range_bias_states and tight else {})
+        first = N_CORE + len(self._bias_index)
+        self._mp_index = ({a: first + i for i, a in enumerate(ids)}
+                          if cfg.multipath_states and tight else {})
 
     # -- inputs ---------------------------------------------------------------------------
     def predict(self, imu: ImuSample) -> None:
@@ -535,13 +548,16 @@ class Filter:
         ids, anchors, ranges, scale = [], [], [], []
         for r in epoch.ranges:
             pos = self.cfg.anchors_m.get(r.anchor_id, r.anchor_position_m)
-            why = "unknown_anchor" if pos is None else (
-                "anchor_position_not_finite" if not math.isfinite(sum(pos)) else "")
-            if why:
+            if pos is None or not math.isfinite(sum(pos)):
+                why = "unknown_anchor" if pos is None else "anchor_position_not_finite"
                 self.gating.rejections[why] += 1
                 reports.append(FusionReport(epoch.t_ns, "range", str(r.anchor_id), math.nan,
                                             math.nan, math.nan, False, why))
                 continue
+            if r.anchor_id not in self._anchors:  # reported by the device
+                self._anchors[r.anchor_id] = pos
+                if self.ekf is None:  # the state's shape is fixed once started
+                    self._layout()
             ids.append(r.anchor_id)
             anchors.append(pos)
             ranges.append(r.range_m)

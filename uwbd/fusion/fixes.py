@@ -30,8 +30,12 @@ class RangeWindow:
         self.fixed_z = fixed_z
         self._latest: dict[int, tuple[int, Array, float]] = {}
         self._last_fix_ns: int | None = None
-        self.needed = 3 if fixed_z is not None else 4
         self.last_inputs: tuple[Array, Array] = (np.zeros((0, 3)), np.zeros(0))  # of the last fix
+
+    @property
+    def needed(self) -> int:
+        """Anchors a fix takes: 3 with the height held, else 4."""
+        return 3 if self.fixed_z is not None else 4
 
     def add(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array) -> None:
         for a, pos, r in zip(ids, anchors, ranges.tolist(), strict=True):
