@@ -280,3 +280,13 @@ def test_anchors_the_device_reports_get_the_mirror_side_and_the_range_states() -
     assert flt.mirror.ambiguous and flt.mirror.sign == -1
     assert flt.ekf is not None and flt.ekf.n == N_CORE + len(where)  # one delay state each
     assert score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=4).rmse_z_m < 0.15
+
+
+def test_an_optimistic_range_sigma_does_not_lock_the_ranges_out() -> None:
+    """Configured σ 0.07 m for ranges of σ 0.10: the covariance gets too small, the ranges
+    fail the gate; fading the covariance while they agree with each other lets them back
+    (without it this run ended 33 m off)."""
+    sim = simulate(ceiling_room(0))
+    poses, _, flt = run_filter(datasheet(sim, range_sigma_m=0.07), merge(sim.imu, sim.uwb))
+    assert flt.counters["covariance_faded"] > 0
+    assert score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=8).rmse_xy_m < 0.15

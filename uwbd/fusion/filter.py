@@ -65,6 +65,7 @@ PROPAGATE_EVERY_S = 0.1  # the covariance follows the state at least this often 
 MIN_PROPAGATE_S = 0.02  # and at most this often: P grows little in 20 ms
 CONSTRAINT_EVERY_NS = 95_000_000  # ZUPT, NHC, known height: about 10 Hz
 MAX_TILT_ERROR_RAD = math.radians(10)  # at rest, attitude against gravity
+FADE_PER_S = 1.0  # variance growth rate while the innovations are inconsistent
 REPEATED_RESET_NS = 10 * NS  # a second divergence this soon after a position reset restarts
 NUMERICAL_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError)
 # the covariance is kept finite: no error state may be less certain than this (σ per state)
@@ -188,6 +189,7 @@ class Filter:
         self._last_good_P: Array | None = None
         self.last_internal_error = ""
         self._position_reset_ns = -(2**63)
+        self._fade_ns: int | None = None
         self._at_rest = False  # ZUPT rows in this update
         self._constraints_ns = -(2**63)  # when ZUPT, NHC and height rows were last added
         self._good_imu_ns: int | None = None  # the last IMU sample that passed the checks
@@ -348,6 +350,7 @@ class Filter:
                            *constraints])
         prior = self._snapshot() if self.records is not None else None
         reports += self._fuse(uwb.t_ns, rows)
+        self._fade(uwb.t_ns, ids, anchors, ranges)
         if self._check_divergence(uwb.t_ns, ids, anchors, ranges):
             linked = False
         elif self.ekf is not None:
@@ -777,6 +780,26 @@ class Filter:
                           else math.nan, row.weight)
         self._keep_covariance_sane()
         return reports
+
+    def _fade(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array) -> None:
+        """While the innovations are inconsistent, the state's covariance was too small for
+        what happened: widen position and velocity e-fold per second (a fading memory) so
+        that the gate opens again to ranges that are right, rather than reject them for good
+        while the state drifts away."""
+        last, self._fade_ns = self._fade_ns, t_ns
+        ekf = self.ekf
+        if ekf is None or last is None or not self.monitor.inconsistent:
+            return
+        # only towards ranges that agree with each other: NLOS on every anchor must not
+        # widen the gate to itself
+        fix = self.ranges.fix(t_ns, ids, anchors, ranges, None, force=True)
+        if fix is None or not self._consistent(fix, *self.ranges.last_inputs):
+            return
+        scale = math.exp(0.5 * FADE_PER_S * max(t_ns - last, 0) / NS)  # on σ
+        d = np.ones(ekf.n)
+        d[:V_.stop] = scale
+        ekf.P = ekf.P * d[:, None] * d[None, :]
+        self.counters["covariance_faded"] += 1
 
     def _check_divergence(self, t_ns: int, ids: list[int], anchors: Array,
                           ranges: Array) -> bool:

@@ -170,6 +170,11 @@ class HealthMonitor:
         return (self._rejected > lim.max_rejected_fraction * len(out)
                 or self._nis_sum / len(out) > lim.max_mean_nis)
 
+    @property
+    def inconsistent(self) -> bool:
+        """The recent UWB innovations are inconsistent with the state's covariance."""
+        return self._inconsistent_since_ns is not None
+
     def diverged(self, t_ns: int) -> bool:
         """Innovations inconsistent for ``diverged_after_s``: the state, not the ranges, is
         likely wrong (the caller checks that a consistent fix says so too)."""
