@@ -290,3 +290,20 @@ def test_an_optimistic_range_sigma_does_not_lock_the_ranges_out() -> None:
     poses, _, flt = run_filter(datasheet(sim, range_sigma_m=0.07), merge(sim.imu, sim.uwb))
     assert flt.counters["covariance_faded"] > 0
     assert score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=8).rmse_xy_m < 0.15
+
+
+def test_anchors_on_one_wall_have_a_mirror_that_the_data_resolve() -> None:
+    """All anchors on the wall x ≈ 0 (within a few cm), the tag in the room at x < 0: the
+    default side (+x) is wrong, the ranges flip it."""
+    anchors = np.array([[0.0, 0, 0.5], [0.1, 6, 0.5], [-0.05, 6, 2.5], [0.08, 0, 2.5]])
+    side = MirrorSide(anchors)
+    assert side.ambiguous and side.sign == 1 and abs(side.normal[0]) > 0.9
+    rng = np.random.default_rng(3)
+    for _ in range(300):
+        tag = np.array([rng.uniform(-5, -2), rng.uniform(1, 5), rng.uniform(0.5, 2.0)])
+        ranges = np.linalg.norm(anchors - tag, axis=1) + rng.normal(0, 0.03, 4)
+        fix = multilaterate(anchors, ranges, 0.03, side.start_point(), None, side=side.sign)
+        if fix is not None:
+            side.weigh(anchors, ranges, fix, 0.03, None)
+        side.take_flip()
+    assert side.sign == -1 and side.side_of(np.array([-3.0, 3.0, 1.0])) * side.sign > 0

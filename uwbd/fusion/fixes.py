@@ -63,6 +63,8 @@ class RangeWindow:
 
     def _solve(self, anchors: Array, ranges: Array, x0: Array | None) -> LsqFix | None:
         self.last_inputs = (anchors, ranges)
+        if x0 is None and self.side.ambiguous and self.fixed_z is None:
+            x0 = self.side.start_point()
         fix = multilaterate(anchors, ranges, self.sigma_m, x0, self.fixed_z,
                             side=self.side.sign)
         if fix is not None:

@@ -17,7 +17,10 @@ starts from. :class:`MirrorSide` holds the two hypotheses:
    (said in the status). Over exactly coplanar anchors the two χ² are equal and the ratio
    stays at 0: the default or hint is kept, and the status says so.
 
-Anchors that are not coplanar have no mirror: nothing to decide.
+Anchors that are not coplanar have no mirror: nothing to decide. The plane may be tilted
+(anchors on one wall): its normal, oriented up (on a wall, towards +x or +y), tells the
+sides apart, and the default for a wall is the side the normal points to (said unresolved
+until the data decide).
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from uwbd.fusion.rotation import Array
 
 CEILING_MIN_M = 1.0  # anchors this high or higher: the tag is below them by default
 STEP_CLIP = 3.0
+WALL_NORMAL_Z = 0.5  # a plane whose normal is flatter than this is a wall: no floor rule
 
 
 class MirrorSide:
@@ -42,11 +46,20 @@ class MirrorSide:
         self.llr = 0.0
         self.flipped = False
         self.plane_z = float(np.mean(anchors_m[:, 2])) if len(anchors_m) else 0.0
+        # the plane through the anchors: centroid and unit normal, pointing up (for a wall,
+        # "above" is the side the normal points to)
+        self.centroid = anchors_m.mean(axis=0) if len(anchors_m) else np.zeros(3)
+        self.normal = np.array([0.0, 0.0, 1.0])
+        if len(anchors_m) >= 3:
+            n = np.linalg.svd(anchors_m - self.centroid)[2][-1]
+            largest = int(np.argmax(np.abs(n[:2]))) if abs(n[2]) < 1e-9 else 2
+            self.normal = -n if n[largest] < 0 else n
         self.decided_by = "no mirror" if not self.ambiguous else "default"
-        sign = -1 if self.plane_z >= CEILING_MIN_M else 1
+        wall = abs(self.normal[2]) < WALL_NORMAL_Z
+        sign = 1 if wall else (-1 if self.plane_z >= CEILING_MIN_M else 1)
         if hint != "auto":
             sign, self.decided_by = (-1 if hint == "below" else 1), "configured"
-        elif height_range_m is not None:
+        elif height_range_m is not None and not wall:
             lo, hi = height_range_m
             if hi < self.plane_z:
                 sign, self.decided_by = -1, "configured height range"
@@ -59,15 +72,26 @@ class MirrorSide:
     def unresolved(self) -> bool:
         return not self.resolved
 
+    def side_of(self, x: Array) -> float:
+        """Signed distance of ``x`` from the plane (+: above)."""
+        return float((x - self.centroid) @ self.normal)
+
+    def reflect(self, x: Array) -> Array:
+        return x - 2.0 * self.side_of(x) * self.normal
+
+    def start_point(self) -> Array:
+        """Where least squares starts without a better guess: 1 m off the plane on the
+        current side."""
+        return self.centroid + self.sign * self.normal
+
     def weigh(self, anchors: Array, ranges: Array, fix: LsqFix, sigma_m: float,
               fixed_z: float | None) -> None:
         """Add one fix's evidence (solved on the current side) for the side."""
         if self.resolved or fixed_z is not None or len(ranges) < 4:
             return
-        mirror_x0 = fix.position_m.copy()
-        mirror_x0[2] = 2 * self.plane_z - mirror_x0[2]
-        other = multilaterate(anchors, ranges, sigma_m, mirror_x0, None, side=-self.sign)
-        if other is None or (other.position_m[2] - self.plane_z) * self.sign > 0:
+        other = multilaterate(anchors, ranges, sigma_m, self.reflect(fix.position_m), None,
+                              side=-self.sign)
+        if other is None or self.side_of(other.position_m) * self.sign > 0:
             return  # it fell back to this side: this fix does not tell the two apart
         chi2_here = float(np.nansum(fix.residuals_m**2)) / sigma_m**2
         chi2_there = float(np.nansum(other.residuals_m**2)) / sigma_m**2
