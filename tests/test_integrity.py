@@ -12,13 +12,15 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
-from drivers.frames import UwbRanges
+from drivers.frames import AnchorRange, ImuSample, UwbRanges
 from uwbd.config import parse
 from uwbd.evaluate import merge, run_filter, run_method, score, score_poses
 from uwbd.fusion.baselines import UwbLeastSquares
 from uwbd.fusion.eskf import N_CORE
-from uwbd.fusion.filter import FilterConfig
+from uwbd.fusion.filter import Filter, FilterConfig
 from uwbd.fusion.health import Phase
 from uwbd.fusion.lsq import multilaterate
 from uwbd.fusion.mirror import MirrorSide
@@ -307,3 +309,56 @@ def test_anchors_on_one_wall_have_a_mirror_that_the_data_resolve() -> None:
             side.weigh(anchors, ranges, fix, 0.03, None)
         side.take_flip()
     assert side.sign == -1 and side.side_of(np.array([-3.0, 3.0, 1.0])) * side.sign > 0
+
+
+# -- any input -------------------------------------------------------------------------------
+_ANY_FLOAT = st.one_of(st.floats(allow_nan=True, allow_infinity=True),
+                       st.floats(-1e3, 1e3), st.sampled_from([0.0, -0.0, 1e-300, 1e300]))
+
+
+@st.composite
+def _hostile_frames(draw: st.DrawFn) -> list[tuple[int, ImuSample | UwbRanges]]:
+    """Hostile frames to mix into a clean run, each with the index it goes in at: any
+    floats, times out of order, duplicate and unknown anchors, device anchor positions
+    with NaN, empty messages."""
+    n = len(_HOSTILE_BASE.imu) + len(_HOSTILE_BASE.uwb)
+    t0 = int(_HOSTILE_BASE.truth_t_ns[0])
+    out: list[tuple[int, ImuSample | UwbRanges]] = []
+    for _ in range(draw(st.integers(1, 40))):
+        k = draw(st.integers(0, n - 1))
+        t = t0 + draw(st.integers(-10**9, 7 * 10**9))
+        if draw(st.booleans()):
+            vec = st.tuples(_ANY_FLOAT, _ANY_FLOAT, _ANY_FLOAT)
+            out.append((k, ImuSample(t, draw(vec), draw(vec))))
+        else:
+            ranges = tuple(AnchorRange(draw(st.integers(-1, 8)), draw(_ANY_FLOAT),
+                                       draw(st.one_of(st.none(), _ANY_FLOAT)),
+                                       draw(st.one_of(st.none(), st.tuples(
+                                           _ANY_FLOAT, _ANY_FLOAT, _ANY_FLOAT))))
+                           for _ in range(draw(st.integers(0, 4))))
+            out.append((k, UwbRanges(t, ranges)))
+    return out
+
+
+_HOSTILE_BASE = simulate(SimConfig(segments=((2.0, 0.0, 0.0, 0.0), (4.0, 1.0, 0.2, 0.0)),
+                                   seed=7))
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_hostile_frames())
+def test_no_input_makes_the_filter_raise_or_publish_a_non_finite_pose(
+        hostile: list[tuple[int, ImuSample | UwbRanges]]) -> None:
+    frames: list[ImuSample | UwbRanges] = list(merge(_HOSTILE_BASE.imu, _HOSTILE_BASE.uwb))
+    for k, frame in sorted(hostile, key=lambda x: -x[0]):
+        frames.insert(k, frame)
+    flt = Filter(datasheet(_HOSTILE_BASE))
+    for f in frames:
+        if isinstance(f, ImuSample):
+            flt.predict(f)
+        else:
+            flt.update(f)
+        pose = flt.pose()
+        if pose is not None:
+            assert all(map(math.isfinite, pose.position_m + pose.velocity_mps
+                           + pose.orientation_xyzw + pose.covariance))
+    assert flt.counters["internal_errors"] == 0  # every bad value met a check first

@@ -65,6 +65,7 @@ PROPAGATE_EVERY_S = 0.1  # the covariance follows the state at least this often 
 MIN_PROPAGATE_S = 0.02  # and at most this often: P grows little in 20 ms
 CONSTRAINT_EVERY_NS = 95_000_000  # ZUPT, NHC, known height: about 10 Hz
 MAX_TILT_ERROR_RAD = math.radians(10)  # at rest, attitude against gravity
+MAX_ANCHOR_COORD_M = 1e4  # a device-reported anchor farther out than this is garbage
 FADE_PER_S = 1.0  # variance growth rate while the innovations are inconsistent
 REPEATED_RESET_NS = 10 * NS  # a second divergence this soon after a position reset restarts
 NUMERICAL_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError)
@@ -551,8 +552,8 @@ class Filter:
         ids, anchors, ranges, scale = [], [], [], []
         for r in epoch.ranges:
             pos = self.cfg.anchors_m.get(r.anchor_id, r.anchor_position_m)
-            if pos is None or not math.isfinite(sum(pos)):
-                why = "unknown_anchor" if pos is None else "anchor_position_not_finite"
+            if pos is None or not max(map(abs, pos)) <= MAX_ANCHOR_COORD_M:  # NaN fails too
+                why = "unknown_anchor" if pos is None else "anchor_position_invalid"
                 self.gating.rejections[why] += 1
                 reports.append(FusionReport(epoch.t_ns, "range", str(r.anchor_id), math.nan,
                                             math.nan, math.nan, False, why))
