@@ -11,6 +11,7 @@ the sequence it runs; each step's policy has a module of its own:
   ranges, on the right side of a plane of anchors;
 * :mod:`.initialise` — the state at start (at rest, or while moving) and after a restart;
 * :mod:`.alignment` — the coarse heading from INS against UWB velocity changes;
+* :mod:`.measurements` — the rows of each measurement model (range, fix, ZUPT, NHC, height);
 * :mod:`.robust` — de-weighting NLOS ranges, per-anchor statistics;
 * :mod:`.health` — the health record, and the evidence for restarts;
 * :mod:`.eskf` — the algebra (docs/ekf.md).
@@ -34,8 +35,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum
-from statistics import NormalDist
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
@@ -43,15 +43,23 @@ from drivers.frames import ImuSample, UwbRanges
 from uwbd.fusion.alignment import HeadingAligner
 from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, V_, Eskf, ImuNoise
 from uwbd.fusion.fixes import RangeWindow
-from uwbd.fusion.gating import GatingCounters, GatingPolicy, gate
+from uwbd.fusion.gating import GatingCounters, GatingPolicy, chi2_quantile, gate
 from uwbd.fusion.health import WAITING, Health, HealthLimits, HealthMonitor
 from uwbd.fusion.imu_check import ImuCheck, ImuLimits
 from uwbd.fusion.initialise import Start, start_state
 from uwbd.fusion.lsq import LsqFix, common_offset, coplanar
+from uwbd.fusion.measurements import (
+    Rows,
+    height_rows,
+    nhc_rows,
+    position_rows,
+    range_rows,
+    zupt_rows,
+)
 from uwbd.fusion.mirror import MirrorSide
 from uwbd.fusion.rest import ImuWindow, RestLimits
 from uwbd.fusion.robust import AnchorStats, RobustPolicy, quality_scale
-from uwbd.fusion.rotation import Array, skew
+from uwbd.fusion.rotation import Array
 from uwbd.fusion.smoother import EpochRecord, Nominal
 from uwbd.fusion.types import FusionReport, Pose
 
@@ -76,28 +84,6 @@ MAX_RANGE_BIAS_SIGMA_M = 5.0
 COAST_ACCEL_SIGMA_MPS2 = 2.0
 UNSEEN_RATE_SIGMA_RPS = 0.3
 UNSEEN_TILT_SIGMA_RPS = 0.003  # roll and pitch: bounded by gravity, they wander far less
-
-
-class Rows(NamedTuple):
-    """Measurement rows of one update: ``H`` (m×n), residuals ``y``, noise variances ``R``,
-    and what each row is (kind, key) for its report."""
-
-    H: Array
-    y: Array
-    R: Array
-    keys: list[tuple[str, str]]
-
-    @staticmethod
-    def empty(n: int) -> Rows:
-        return Rows(np.zeros((0, n)), np.zeros(0), np.zeros(0), [])
-
-    @staticmethod
-    def stack(parts: list[Rows]) -> Rows:
-        parts = [r for r in parts if r.keys]
-        if len(parts) <= 1:
-            return parts[0] if parts else Rows.empty(0)
-        return Rows(np.vstack([r.H for r in parts]), np.concatenate([r.y for r in parts]),
-                    np.concatenate([r.R for r in parts]), [k for r in parts for k in r.keys])
 
 
 class Mode(str, Enum):
@@ -621,38 +607,13 @@ class Filter:
         """Tight: one row per range (§4, range); loose: the fix's axes (§4, position)."""
         ekf = self.ekf
         assert ekf is not None
-        R = ekf.R
-        p_ant = np.array(ekf.p) + R @ self.lever
-        H_th_lever = -R @ skew(self.lever)
         if self.cfg.mode is Mode.TIGHT:
-            diff = p_ant - anchors
-            dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
-            keep = dist >= 1e-3  # the antenna on an anchor: no line of sight to linearise
-            if not keep.all():
-                ids = [a for a, k in zip(ids, keep, strict=True) if k]
-                diff, dist, ranges, r_scale = diff[keep], dist[keep], ranges[keep], r_scale[keep]
-            U = diff / dist[:, None]
-            H = np.zeros((len(ids), ekf.n))
-            H[:, P_] = U
-            H[:, TH_] = U @ H_th_lever
-            h = dist
-            for i, anchor_id in enumerate(ids):
-                for index in (self._bias_index, self._mp_index):
-                    k = index.get(anchor_id)
-                    if k is not None:
-                        H[i, k] = 1.0
-                        h[i] += ekf.b_r[k - N_CORE]
-            var = self.cfg.range_sigma_m**2 * r_scale
-            return Rows(H, ranges - h, var, [("range", str(a)) for a in ids])
+            return range_rows(ekf, self.lever, ids, anchors, ranges,
+                              self.cfg.range_sigma_m**2 * r_scale,
+                              (self._bias_index, self._mp_index))
         if fix is None:
             return Rows.empty(ekf.n)
-        axes = 3 if self._fixed_z is None else 2
-        H = np.zeros((axes, ekf.n))
-        H[:, P_] = np.eye(3)[:axes]
-        H[:, TH_] = H_th_lever[:axes]
-        var = np.maximum(np.diag(fix.covariance)[:axes], 0.02**2)
-        return Rows(H, fix.position_m[:axes] - p_ant[:axes], var,
-                    [("position", "xyz"[axis]) for axis in range(axes)])
+        return position_rows(ekf, self.lever, fix, 3 if self._fixed_z is None else 2)
 
     def _still(self) -> bool:
         """The estimate moved less than ``zupt_max_speed_mps`` would take it over the last
@@ -689,7 +650,6 @@ class Filter:
     def _constraints(self) -> list[Rows]:
         ekf = self.ekf
         assert ekf is not None
-        n = ekf.n
         cfg = self.cfg
         rows = []
         # constant velocity looks like rest to an IMU: require a slow estimate, and a state
@@ -702,23 +662,11 @@ class Filter:
         self._at_rest = bool(cfg.zupt and slow and still_imu and self._relevel is None)
         if self._at_rest:
             self.counters["zupt"] += 1
-            H = np.zeros((3, n))
-            H[:, V_] = np.eye(3)
-            rows.append(Rows(H, -np.array(ekf.v), np.full(3, cfg.zupt_sigma_mps**2),
-                             [("zupt", axis) for axis in "xyz"]))
+            rows.append(zupt_rows(ekf, cfg.zupt_sigma_mps))
         if cfg.nhc:
-            Rt = ekf.R.T
-            v_b = Rt @ np.array(ekf.v)
-            H = np.zeros((2, n))
-            H[:, V_] = Rt[1:]
-            H[:, TH_] = skew(v_b)[1:]
-            rows.append(Rows(H, -v_b[1:], np.full(2, cfg.nhc_sigma_mps**2),
-                             [("nhc", "y"), ("nhc", "z")]))
+            rows.append(nhc_rows(ekf, cfg.nhc_sigma_mps))
         if cfg.known_height_m is not None:
-            H = np.zeros((1, n))
-            H[0, 2] = 1.0
-            rows.append(Rows(H, np.array([cfg.known_height_m - ekf.p[2]]),
-                             np.array([cfg.height_sigma_m**2]), [("height", "z")]))
+            rows.append(height_rows(ekf, cfg.known_height_m, cfg.height_sigma_m))
         return rows
 
     def _fuse(self, t_ns: int, rows: Rows) -> list[FusionReport]:
@@ -875,29 +823,3 @@ class Filter:
         d[V_] = velocity_mps**2
         d[TH_] = attitude_rad**2
         ekf.P[np.diag_indices(ekf.n)] += d
-
-
-def chi2_quantile(p: float, dof: int) -> float:
-    """The ``p`` quantile of χ² with 1 or 3 degrees of freedom, exactly.
-
-    Written out rather than taken from ``scipy.stats``, whose import alone costs the daemon
-    ~70 MB of its memory budget: χ²₁ is the square of a standard normal, and the χ²₃ CDF
-    ``erf(√(x/2)) − √(2x/π)·e^(−x/2)`` is inverted by bisection.
-    """
-    if not 0.0 < p < 1.0:
-        raise ValueError(f"gate probability must be within (0, 1), got {p}")
-    if dof == 1:
-        return NormalDist().inv_cdf((1.0 + p) / 2.0) ** 2
-    if dof != 3:
-        raise ValueError(f"only 1 or 3 degrees of freedom, got {dof}")
-
-    def cdf3(x: float) -> float:
-        return math.erf(math.sqrt(x / 2)) - math.sqrt(2 * x / math.pi) * math.exp(-x / 2)
-
-    lo, hi = 0.0, 1.0
-    while cdf3(hi) < p:
-        hi *= 2
-    for _ in range(100):
-        mid = (lo + hi) / 2
-        lo, hi = (mid, hi) if cdf3(mid) < p else (lo, mid)
-    return (lo + hi) / 2

@@ -3,7 +3,8 @@
 One function, :func:`gate`, applied in one place (between driver and filter), so every
 rejection is counted by reason and nothing downstream has to re-check NaN, sign or limits.
 It judges what a range *is* (finite, positive, within limits, of acceptable device quality,
-to a known anchor), never how it fits the state: that is the filter's innovation gate.
+to a known anchor), never how it fits the state: that is the filter's innovation gate, whose
+χ² thresholds :func:`chi2_quantile` gives.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 from enum import Enum
+from statistics import NormalDist
 
 from drivers.frames import AnchorRange, UwbRanges
 
@@ -111,3 +113,29 @@ def _judge(r: AnchorRange, policy: GatingPolicy, seen: set[int]) -> Rejection | 
     if r.anchor_id in seen:
         return Rejection.DUPLICATE_ANCHOR
     return None
+
+
+def chi2_quantile(p: float, dof: int) -> float:
+    """The ``p`` quantile of χ² with 1 or 3 degrees of freedom, exactly.
+
+    Written out rather than taken from ``scipy.stats``, whose import alone costs the daemon
+    ~70 MB of its memory budget: χ²₁ is the square of a standard normal, and the χ²₃ CDF
+    ``erf(√(x/2)) − √(2x/π)·e^(−x/2)`` is inverted by bisection.
+    """
+    if not 0.0 < p < 1.0:
+        raise ValueError(f"gate probability must be within (0, 1), got {p}")
+    if dof == 1:
+        return NormalDist().inv_cdf((1.0 + p) / 2.0) ** 2
+    if dof != 3:
+        raise ValueError(f"only 1 or 3 degrees of freedom, got {dof}")
+
+    def cdf3(x: float) -> float:
+        return math.erf(math.sqrt(x / 2)) - math.sqrt(2 * x / math.pi) * math.exp(-x / 2)
+
+    lo, hi = 0.0, 1.0
+    while cdf3(hi) < p:
+        hi *= 2
+    for _ in range(100):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if cdf3(mid) < p else (lo, mid)
+    return (lo + hi) / 2

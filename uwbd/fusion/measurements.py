@@ -1,0 +1,103 @@
+"""Measurement rows: the linearised models of docs/ekf.md §4, one function per kind.
+
+Each returns :class:`Rows` — ``H`` (m×n) at the current state, residuals ``y = z − h(x)``,
+noise variances ``R``, and what each row is — for :meth:`Eskf.sequential_update`. When to
+use which is the filter's policy, not theirs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import NamedTuple
+
+import numpy as np
+
+from uwbd.fusion.eskf import N_CORE, P_, TH_, V_, Eskf
+from uwbd.fusion.lsq import LsqFix
+from uwbd.fusion.rotation import Array, skew
+
+
+class Rows(NamedTuple):
+    """Measurement rows of one update: ``H`` (m×n), residuals ``y``, noise variances ``R``,
+    and what each row is (kind, key) for its report."""
+
+    H: Array
+    y: Array
+    R: Array
+    keys: list[tuple[str, str]]
+
+    @staticmethod
+    def empty(n: int) -> Rows:
+        return Rows(np.zeros((0, n)), np.zeros(0), np.zeros(0), [])
+
+    @staticmethod
+    def stack(parts: list[Rows]) -> Rows:
+        parts = [r for r in parts if r.keys]
+        if len(parts) <= 1:
+            return parts[0] if parts else Rows.empty(0)
+        return Rows(np.vstack([r.H for r in parts]), np.concatenate([r.y for r in parts]),
+                    np.concatenate([r.R for r in parts]), [k for r in parts for k in r.keys])
+
+
+def range_rows(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array, ranges: Array,
+               var: Array, state_index: tuple[Mapping[int, int], ...]) -> Rows:
+    """One row per range: ``h = |p + R l − a| + Σ b`` over the range-model states that
+    ``state_index`` gives the anchor (antenna delay, multipath)."""
+    R = ekf.R
+    p_ant = np.array(ekf.p) + R @ lever_m
+    diff = p_ant - anchors
+    dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+    keep = dist >= 1e-3  # the antenna on an anchor: no line of sight to linearise
+    if not keep.all():
+        ids = [a for a, k in zip(ids, keep, strict=True) if k]
+        diff, dist, ranges, var = diff[keep], dist[keep], ranges[keep], var[keep]
+    U = diff / dist[:, None]
+    H = np.zeros((len(ids), ekf.n))
+    H[:, P_] = U
+    H[:, TH_] = U @ (-R @ skew(lever_m))
+    h = dist
+    for i, anchor_id in enumerate(ids):
+        for index in state_index:
+            k = index.get(anchor_id)
+            if k is not None:
+                H[i, k] = 1.0
+                h[i] += ekf.b_r[k - N_CORE]
+    return Rows(H, ranges - h, var, [("range", str(a)) for a in ids])
+
+
+def position_rows(ekf: Eskf, lever_m: Array, fix: LsqFix, axes: int) -> Rows:
+    """A least-squares fix of the antenna (loose mode), ``axes`` 3, or 2 with the height
+    held; its own covariance, at least 2 cm per axis."""
+    R = ekf.R
+    p_ant = np.array(ekf.p) + R @ lever_m
+    H = np.zeros((axes, ekf.n))
+    H[:, P_] = np.eye(3)[:axes]
+    H[:, TH_] = (-R @ skew(lever_m))[:axes]
+    var = np.maximum(np.diag(fix.covariance)[:axes], 0.02**2)
+    return Rows(H, fix.position_m[:axes] - p_ant[:axes], var,
+                [("position", "xyz"[axis]) for axis in range(axes)])
+
+
+def zupt_rows(ekf: Eskf, sigma_mps: float) -> Rows:
+    """At rest: ``h = v``."""
+    H = np.zeros((3, ekf.n))
+    H[:, V_] = np.eye(3)
+    return Rows(H, -np.array(ekf.v), np.full(3, sigma_mps**2),
+                [("zupt", axis) for axis in "xyz"])
+
+
+def nhc_rows(ekf: Eskf, sigma_mps: float) -> Rows:
+    """A ground vehicle: no body lateral or vertical velocity, ``h = (v_b,y, v_b,z)``."""
+    Rt = ekf.R.T
+    v_b = Rt @ np.array(ekf.v)
+    H = np.zeros((2, ekf.n))
+    H[:, V_] = Rt[1:]
+    H[:, TH_] = skew(v_b)[1:]
+    return Rows(H, -v_b[1:], np.full(2, sigma_mps**2), [("nhc", "y"), ("nhc", "z")])
+
+
+def height_rows(ekf: Eskf, height_m: float, sigma_m: float) -> Rows:
+    """A known height: ``h = p_z``."""
+    H = np.zeros((1, ekf.n))
+    H[0, 2] = 1.0
+    return Rows(H, np.array([height_m - ekf.p[2]]), np.array([sigma_m**2]), [("height", "z")])
