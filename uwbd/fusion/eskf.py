@@ -239,6 +239,13 @@ class Eskf:
             up_b, up_b) + tilt_rate_sigma_rps**2 * dt * np.eye(3)
         self.P = 0.5 * (P + P.T)
 
+    def tilt_from_gravity_rad(self, f_body: Array) -> float:
+        """Angle between the vertical and a specific force measured at rest, turned into the
+        navigation frame by the attitude: 0 when the tilt is right."""
+        f_n = self.R @ f_body
+        norm = float(np.linalg.norm(f_n))
+        return math.acos(min(max(f_n[2] / norm, -1.0), 1.0)) if norm > 0 else 0.0
+
     def yaw_rad(self) -> float:
         w, x, y, z = self.q
         return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
@@ -326,6 +333,27 @@ class Eskf:
         P = self.P
         P[TH_, :] = G_th @ P[TH_, :]
         P[:, TH_] = P[:, TH_] @ G_th.T
+
+    # -- keeping P sane ----------------------------------------------------------------------
+    def clamp_covariance(self, max_core_sigma: Array, max_aux_sigma: float) -> bool:
+        """Variances within bounds and none negative; True if anything was clamped. Scaling
+        a row and its column keeps ``P`` positive semi-definite."""
+        d = np.diag(self.P)
+        limit = np.concatenate([max_core_sigma, np.full(self.n - N_CORE, max_aux_sigma)])**2
+        if not ((d > limit).any() or (d < 0).any()):
+            return False
+        scale = np.sqrt(np.minimum(1.0, limit / np.maximum(d, 1e-300)))
+        self.P = self.P * scale[:, None] * scale[None, :]
+        negative = np.diag(self.P) < 0
+        if negative.any():
+            self.P[self._diag] = np.where(negative, 1e-9, np.diag(self.P))
+        return True
+
+    def widen(self, states: slice, sigma_factor: float) -> None:
+        """Multiply the σ of ``states`` (and their correlations' share) by ``sigma_factor``."""
+        d = np.ones(self.n)
+        d[states] = sigma_factor
+        self.P = self.P * d[:, None] * d[None, :]
 
     # -- views ----------------------------------------------------------------------------
     @property

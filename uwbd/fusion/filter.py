@@ -42,12 +42,12 @@ import numpy as np
 from drivers.frames import ImuSample, UwbRanges
 from uwbd.fusion.alignment import HeadingAligner
 from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, V_, Eskf, ImuNoise
-from uwbd.fusion.fixes import RangeWindow
+from uwbd.fusion.fixes import RangeWindow, consistent
 from uwbd.fusion.gating import GatingCounters, GatingPolicy, chi2_quantile, gate
 from uwbd.fusion.health import WAITING, Health, HealthLimits, HealthMonitor
 from uwbd.fusion.imu_check import ImuCheck, ImuLimits
 from uwbd.fusion.initialise import Start, start_state
-from uwbd.fusion.lsq import LsqFix, common_offset, coplanar
+from uwbd.fusion.lsq import LsqFix, coplanar
 from uwbd.fusion.measurements import (
     Rows,
     height_rows,
@@ -73,6 +73,7 @@ PROPAGATE_EVERY_S = 0.1  # the covariance follows the state at least this often 
 MIN_PROPAGATE_S = 0.02  # and at most this often: P grows little in 20 ms
 CONSTRAINT_EVERY_NS = 95_000_000  # ZUPT, NHC, known height: about 10 Hz
 MAX_TILT_ERROR_RAD = math.radians(10)  # at rest, attitude against gravity
+TILT_CHECK_EVERY_NS = NS // 2
 MAX_ANCHOR_COORD_M = 1e4  # a device-reported anchor farther out than this is garbage
 FADE_PER_S = 1.0  # variance growth rate while the innovations are inconsistent
 REPEATED_RESET_NS = 10 * NS  # a second divergence this soon after a position reset restarts
@@ -182,6 +183,7 @@ class Filter:
         self._good_imu_ns: int | None = None  # the last IMU sample that passed the checks
         self._relevel: str | None = None  # attitude restart pending: "keep" or "level" the tilt
         self._tilt_bad_ns: int | None = None  # since when, at rest, gravity disagrees
+        self._tilt_check_ns = -(2**63)
         self._track: collections.deque[tuple[float, ...]] = collections.deque()
         self._coasted = False
         self._aligner = HeadingAligner(config.align_window_s, config.align_min_dv_mps,
@@ -633,10 +635,7 @@ class Filter:
         assert ekf is not None and self.t_ns is not None
         if means is None:
             return
-        f_n = ekf.R @ means[0]
-        norm = float(np.linalg.norm(f_n))
-        tilt_err = math.acos(min(max(f_n[2] / norm, -1.0), 1.0)) if norm > 0 else 0.0
-        if tilt_err <= MAX_TILT_ERROR_RAD:
+        if ekf.tilt_from_gravity_rad(means[0]) <= MAX_TILT_ERROR_RAD:
             self._tilt_bad_ns = None
             return
         if self._tilt_bad_ns is None:
@@ -655,9 +654,12 @@ class Filter:
         # constant velocity looks like rest to an IMU: require a slow estimate, and a state
         # that the ranges have not moved either (a ZUPT would otherwise pin v at 0 for good)
         slow = math.hypot(*ekf.v) < cfg.zupt_max_speed_mps and self._still()
-        still_imu = (self._imu_fresh() and self.imu_check.burst_s(self.t_ns or 0) == 0.0
-                     and self.window.static(cfg.static_window_s))
-        if still_imu:  # whatever the velocity estimate says: a wrong tilt makes it wrong too
+        t_ns = self.t_ns or 0
+        tilt_check_due = t_ns - self._tilt_check_ns >= TILT_CHECK_EVERY_NS
+        still_imu = ((slow and cfg.zupt) or tilt_check_due) and self._imu_fresh() \
+            and self.imu_check.burst_s(t_ns) == 0.0 and self.window.static(cfg.static_window_s)
+        if still_imu and tilt_check_due:  # whatever the velocity says: a wrong tilt makes it
+            self._tilt_check_ns = t_ns    # wrong too
             self._check_tilt_against_gravity()
         self._at_rest = bool(cfg.zupt and slow and still_imu and self._relevel is None)
         if self._at_rest:
@@ -744,10 +746,7 @@ class Filter:
         fix = self.ranges.fix(t_ns, ids, anchors, ranges, None, force=True)
         if fix is None or not self._consistent(fix, *self.ranges.last_inputs):
             return
-        scale = math.exp(0.5 * FADE_PER_S * max(t_ns - last, 0) / NS)  # on σ
-        d = np.ones(ekf.n)
-        d[:V_.stop] = scale
-        ekf.P = ekf.P * d[:, None] * d[None, :]
+        ekf.widen(slice(0, V_.stop), math.exp(0.5 * FADE_PER_S * max(t_ns - last, 0) / NS))
         self.counters["covariance_faded"] += 1
 
     def _check_divergence(self, t_ns: int, ids: list[int], anchors: Array,
@@ -785,30 +784,15 @@ class Filter:
         return True
 
     def _consistent(self, fix: LsqFix, anchors: Array, ranges: Array) -> bool:
-        """A fix whose ranges agree: all used, residual RMS within 2 σ, enough anchors, and
-        (with 5 ranges or more, in one message) no common offset beyond the tag's delay."""
         cfg = self.cfg
-        if not (fix.used.all() and fix.rms_m <= 2.0 * cfg.range_sigma_m
-                and int(fix.used.sum()) >= self.ranges.needed):
-            return False
-        solved = common_offset(anchors, ranges, fix.position_m) if len(ranges) >= 5 else None
-        limit = 3.0 * math.hypot(cfg.tag_delay_sigma_m, cfg.range_sigma_m)
-        return solved is None or abs(solved[0]) <= limit
+        return consistent(fix, anchors, ranges, cfg.range_sigma_m, cfg.tag_delay_sigma_m,
+                          self.ranges.needed)
 
     def _keep_covariance_sane(self) -> None:
-        """``P`` finite, symmetric, its variances within bounds (clamping scales a row and
-        column, which keeps it positive semi-definite)."""
         ekf = self.ekf
         assert ekf is not None
-        d = np.diag(ekf.P)
-        limit = np.concatenate([MAX_SIGMA, np.full(ekf.n - N_CORE, MAX_RANGE_BIAS_SIGMA_M)])**2
-        if (d > limit).any() or (d < 0).any():
+        if ekf.clamp_covariance(MAX_SIGMA, MAX_RANGE_BIAS_SIGMA_M):
             self.counters["covariance_clamped"] += 1
-            scale = np.sqrt(np.minimum(1.0, limit / np.maximum(d, 1e-300)))
-            ekf.P = ekf.P * scale[:, None] * scale[None, :]
-            negative = np.diag(ekf.P) < 0
-            if negative.any():
-                ekf.P[np.diag_indices(ekf.n)] = np.where(negative, 1e-9, np.diag(ekf.P))
 
     def _widen_for_unseen(self, dt: float) -> None:
         """A rejected IMU sample hid ``dt`` of motion: widen velocity and attitude for it."""

@@ -11,9 +11,11 @@ a window (consecutive window fixes share most of their ranges).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from uwbd.fusion.lsq import LsqFix, multilaterate
+from uwbd.fusion.lsq import LsqFix, common_offset, multilaterate
 from uwbd.fusion.mirror import MirrorSide
 from uwbd.fusion.rotation import Array
 
@@ -70,3 +72,14 @@ class RangeWindow:
         if fix is not None:
             self.side.weigh(anchors, ranges, fix, self.sigma_m, self.fixed_z)
         return fix
+
+
+def consistent(fix: LsqFix, anchors: Array, ranges: Array, sigma_m: float,
+               tag_delay_sigma_m: float, needed: int) -> bool:
+    """A fix whose ranges agree with each other: all used, residual RMS within 2σ, at least
+    ``needed`` anchors, and (with 5 ranges or more) no common offset beyond 3σ of the tag's
+    delay — an NLOS detour on every anchor looks like one."""
+    if not (fix.used.all() and fix.rms_m <= 2.0 * sigma_m and int(fix.used.sum()) >= needed):
+        return False
+    solved = common_offset(anchors, ranges, fix.position_m) if len(ranges) >= 5 else None
+    return solved is None or abs(solved[0]) <= 3.0 * math.hypot(tag_delay_sigma_m, sigma_m)

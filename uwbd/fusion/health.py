@@ -132,7 +132,7 @@ class HealthMonitor:
         else:
             self._rejected_run += 1
         out = self._outcomes
-        nis = min(nis, 25.0) if math.isfinite(nis) else 25.0
+        nis = nis if nis < 25.0 else 25.0  # NaN and inf too
         out.append((accepted, nis))
         self._rejected += not accepted
         self._nis_sum += nis
