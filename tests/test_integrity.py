@@ -362,3 +362,19 @@ def test_no_input_makes_the_filter_raise_or_publish_a_non_finite_pose(
             assert all(map(math.isfinite, pose.position_m + pose.velocity_mps
                            + pose.orientation_xyzw + pose.covariance))
     assert flt.counters["internal_errors"] == 0  # every bad value met a check first
+
+
+def test_rest_is_not_seen_in_slow_steady_motion() -> None:
+    """0.25 m/s straight and steady looks like rest to an IMU (handheld, slow robot): no
+    ZUPT may pin the velocity while the vehicle moves."""
+    room = handheld_async(6)
+    sim = simulate(dataclasses.replace(room, segments=((4.0, 0.0, 0.0, 0.0),
+                                                       (14.0, 0.25, 0.0, 0.0)),
+                                       uwb_schedule="epoch", uwb_rate_hz=10.0,
+                                       start_m=(1.0, 2.5, 1.0)))
+    _, reports, _ = run_filter(datasheet(sim), merge(sim.imu, sim.uwb))
+    zupt_s = np.array(sorted({(r.t_ns - sim.truth_t_ns[0]) / NS for r in reports
+                              if r.kind == "zupt" and r.accepted}))
+    assert len(zupt_s) and zupt_s.min() < 4.0  # rest is seen at rest
+    moving_epochs = sum(1 for e in sim.uwb if (e.t_ns - sim.truth_t_ns[0]) / NS > 6.0)
+    assert (zupt_s > 6.0).sum() < 0.05 * moving_epochs  # and hardly ever in steady motion

@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from drivers.frames import ImuSample, UwbRanges
-from uwbd.fusion.alignment import HeadingAligner
+from uwbd.fusion.alignment import HeadingAligner, velocity_fit
 from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, V_, Eskf, ImuNoise
 from uwbd.fusion.fixes import RangeWindow, consistent
 from uwbd.fusion.gating import GatingCounters, GatingPolicy, chi2_quantile, gate
@@ -72,10 +72,14 @@ ATTITUDE_AND_GYRO_BIAS = slice(TH_.start, BG_.stop)
 PROPAGATE_EVERY_S = 0.1  # the covariance follows the state at least this often (coasting)
 MIN_PROPAGATE_S = 0.02  # and at most this often: P grows little in 20 ms
 CONSTRAINT_EVERY_NS = 95_000_000  # ZUPT, NHC, known height: about 10 Hz
+STILL_S, STILL_MPS = 1, 0.15  # at rest the UWB fixes of this long move slower than this
+STILL_EVERY_NS, MIN_STILL_FIXES = 180_000_000, 5
 MAX_TILT_ERROR_RAD = math.radians(10)  # at rest, attitude against gravity
 TILT_CHECK_EVERY_NS = NS // 2
 MAX_ANCHOR_COORD_M = 1e4  # a device-reported anchor farther out than this is garbage
 FADE_PER_S = 1.0  # variance growth rate while the innovations are inconsistent
+SLOW_FADE_PER_S = 0.25
+MAX_FADE_STEP_NS = NS // 5
 REPEATED_RESET_NS = 10 * NS  # a second divergence this soon after a position reset restarts
 NUMERICAL_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError)
 # the covariance is kept finite: no error state may be less certain than this (σ per state)
@@ -119,7 +123,7 @@ class FilterConfig:
     height_range_m: tuple[float, float] | None = None  # where the tag can be (a hint)
     zupt: bool = True
     zupt_sigma_mps: float = 0.02
-    zupt_max_speed_mps: float = 0.3
+    zupt_max_speed_mps: float = 0.15
     nhc: bool = False
     nhc_sigma_mps: float = 0.1
     known_height_m: float | None = None
@@ -166,6 +170,7 @@ class Filter:
                                   config.range_sigma_m, self.mirror, None)
         self._bias_index: dict[int, int] = {}
         self._mp_index: dict[int, int] = {}
+        self._new_anchors = False
         self._layout()
         self.t_ns: int | None = None  # time of the nominal state
         self._imu_t_ns: int | None = None
@@ -184,7 +189,8 @@ class Filter:
         self._relevel: str | None = None  # attitude restart pending: "keep" or "level" the tilt
         self._tilt_bad_ns: int | None = None  # since when, at rest, gravity disagrees
         self._tilt_check_ns = -(2**63)
-        self._track: collections.deque[tuple[float, ...]] = collections.deque()
+        self._track: collections.deque[tuple[int, Array]] = collections.deque()
+        self._track_sigma_m = 0.0  # horizontal σ of the latest fix in it
         self._coasted = False
         self._aligner = HeadingAligner(config.align_window_s, config.align_min_dv_mps,
                                        config.range_sigma_m)
@@ -325,10 +331,7 @@ class Filter:
         self._coasted = False
         if not self._aligned:
             self._hold_heading(uwb.t_ns, dv, fix)
-        track = self._track
-        track.append((uwb.t_ns, *ekf.p))
-        while track[0][0] < uwb.t_ns - int(self.cfg.static_window_s * NS):
-            track.popleft()
+        self._track_fixes(uwb.t_ns, ids, anchors, ranges, fix)
         constraints: list[Rows] = []
         if uwb.t_ns - self._constraints_ns >= CONSTRAINT_EVERY_NS:
             # pseudo-measurements at a fixed rate: at 170 single ranges a second they would
@@ -408,6 +411,9 @@ class Filter:
     # -- starting and restarting ----------------------------------------------------------
     def _try_start(self, t_ns: int, fix: LsqFix | None) -> None:
         cfg = self.cfg
+        if self._new_anchors:
+            self._new_anchors = False
+            self._layout()
         if fix is None or self.window.means() is None:
             return
         if self._start_started_ns is not None:  # a restart: fresh IMU data first
@@ -424,13 +430,14 @@ class Filter:
         self._begin(start, t_ns)
         self.monitor.last_range_ns = t_ns  # the start is a UWB fix
 
-    def _restart(self, t_ns: int, reason: str) -> None:
+    def _restart(self, t_ns: int, reason: str, keep_biases: bool = True) -> None:
         """Drop the estimate and start again from UWB and fresh IMU samples, keeping only
-        the biases, when they are finite."""
+        the biases (when they are finite and ``keep_biases``)."""
         ekf = self.ekf
         self._count_restart(reason)
         self._carry = None
-        if ekf is not None and np.isfinite(np.concatenate([ekf.b_g, ekf.b_a, ekf.b_r])).all():
+        if keep_biases and ekf is not None and np.isfinite(
+                np.concatenate([ekf.b_g, ekf.b_a, ekf.b_r])).all():
             self._carry = Start(None, None, np.array(ekf.b_g), np.array(ekf.b_a),
                                 ekf.b_r.copy(), 0.0)
         self.ekf = None
@@ -452,8 +459,9 @@ class Filter:
     def _relevel_when_ready(self, t_ns: int) -> None:
         ekf = self.ekf
         assert ekf is not None and self.t_ns is not None and self._relevel is not None
-        if self.window.span_s() < 0.9 * self.cfg.static_window_s:
-            return
+        if self.window.span_s() < 0.9 * self.cfg.static_window_s or (
+                self._relevel == "level" and not self.window.static(self.cfg.static_window_s)):
+            return  # levelling from gravity needs the vehicle at rest
         dt = (t_ns - self.t_ns) / NS
         if dt > 0:
             self._coast(dt)
@@ -479,6 +487,8 @@ class Filter:
         self._start_started_ns = None
         self._last_good_P = None
         self._track.clear()
+        self._position_reset_ns = -(2**63)
+        self._tilt_bad_ns = None
         self.counters["initialisations"] += 1
         self.counters[f"started_{how}"] += 1
 
@@ -548,8 +558,11 @@ class Filter:
                 continue
             if r.anchor_id not in self._anchors:  # reported by the device
                 self._anchors[r.anchor_id] = pos
-                if self.ekf is None:  # the state's shape is fixed once started
+                if self.ekf is None:
                     self._layout()
+                    self._fixes.clear()  # solved without this anchor's plane, perhaps
+                else:  # the state's shape is fixed once started: at the next start
+                    self._new_anchors = True
             ids.append(r.anchor_id)
             anchors.append(pos)
             ranges.append(r.range_m)
@@ -617,21 +630,41 @@ class Filter:
             return Rows.empty(ekf.n)
         return position_rows(ekf, self.lever, fix, 3 if self._fixed_z is None else 2)
 
-    def _still(self) -> bool:
-        """The estimate moved less than ``zupt_max_speed_mps`` would take it over the last
-        ``static_window_s`` (positions kept at each UWB update)."""
+    def _track_fixes(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
+                     fix: LsqFix | None) -> None:
+        """UWB-only fixes, about 5 a second over the last ``STILL_S``: what the ranges alone
+        say about motion, whatever a ZUPT does to the state's velocity."""
         track = self._track
-        if len(track) < 2:
+        if not track or t_ns - track[-1][0] >= STILL_EVERY_NS:
+            fix = fix or self.ranges.fix(t_ns, ids, anchors, ranges, self._antenna(),
+                                         force=True, weigh=False)
+            if fix is not None:
+                track.append((t_ns, fix.position_m))
+                self._track_sigma_m = math.sqrt(max(float(np.trace(fix.covariance[:2, :2]))
+                                                    / 2, 0.0))
+        while track and track[0][0] < t_ns - STILL_S * NS:
+            track.popleft()
+
+    def _still(self, allow_noise: bool = False) -> bool:
+        """The UWB fixes of the last ``STILL_S`` do not show the vehicle moving: a line
+        fit's horizontal speed below ``STILL_MPS`` (with ``allow_noise``, or below 3σ of
+        what the fixes' noise gives). Too few fixes to tell: still, and the IMU decides."""
+        track = self._track
+        n = len(track)
+        if n < MIN_STILL_FIXES:
             return True
-        (t0, *p0), (t1, *p1) = track[0], track[-1]
-        span_s = max((t1 - t0) / NS, self.cfg.static_window_s)
-        return math.dist(p0, p1) < self.cfg.zupt_max_speed_mps * span_s
+        v, _ = velocity_fit(list(track))
+        limit = STILL_MPS
+        if allow_noise:
+            span_s = max((track[-1][0] - track[0][0]) / NS, 1e-3)
+            limit = max(limit, 3.0 * self._track_sigma_m * math.sqrt(12.0 / n) / span_s)
+        return math.hypot(v[0], v[1]) < limit
 
     def _check_tilt_against_gravity(self) -> None:
         """At rest the mean specific force is gravity's reaction: an attitude more than 10°
         from it for a second is wrong (the EKF can be confidently wrong about tilt after a
         fault); level it anew from the samples of the rest."""
-        ekf, means = self.ekf, self.window.means()
+        ekf, means = self.ekf, self.window.means(self.cfg.static_window_s)
         assert ekf is not None and self.t_ns is not None
         if means is None:
             return
@@ -658,9 +691,14 @@ class Filter:
         tilt_check_due = t_ns - self._tilt_check_ns >= TILT_CHECK_EVERY_NS
         still_imu = ((slow and cfg.zupt) or tilt_check_due) and self._imu_fresh() \
             and self.imu_check.burst_s(t_ns) == 0.0 and self.window.static(cfg.static_window_s)
-        if still_imu and tilt_check_due:  # whatever the velocity says: a wrong tilt makes it
-            self._tilt_check_ns = t_ns    # wrong too
-            self._check_tilt_against_gravity()
+        if tilt_check_due:
+            self._tilt_check_ns = t_ns
+            # the IMU still and the UWB fixes too, whatever the velocity estimate says (a
+            # wrong tilt makes it wrong): the mean specific force is gravity's reaction
+            if still_imu and self._still(allow_noise=True):
+                self._check_tilt_against_gravity()
+            else:
+                self._tilt_bad_ns = None
         self._at_rest = bool(cfg.zupt and slow and still_imu and self._relevel is None)
         if self._at_rest:
             self.counters["zupt"] += 1
@@ -743,10 +781,17 @@ class Filter:
             return
         # only towards ranges that agree with each other: NLOS on every anchor must not
         # widen the gate to itself
-        fix = self.ranges.fix(t_ns, ids, anchors, ranges, None, force=True)
-        if fix is None or not self._consistent(fix, *self.ranges.last_inputs):
+        fix = self.ranges.fix(t_ns, ids, anchors, ranges, None, force=True, weigh=False)
+        used = self.ranges.last_inputs
+        if fix is None or not self._consistent(fix, *used):
             return
-        ekf.widen(slice(0, V_.stop), math.exp(0.5 * FADE_PER_S * max(t_ns - last, 0) / NS))
+        rate = FADE_PER_S
+        if len(used[1]) < 5:  # too few ranges to tell a common NLOS offset: fade slowly,
+            if not self.monitor.diverged(t_ns):  # and only once it has lasted
+                return
+            rate = SLOW_FADE_PER_S
+        dt_ns = min(max(t_ns - last, 0), MAX_FADE_STEP_NS)  # not a whole outage at once
+        ekf.widen(slice(0, V_.stop), math.exp(0.5 * rate * dt_ns / NS))
         self.counters["covariance_faded"] += 1
 
     def _check_divergence(self, t_ns: int, ids: list[int], anchors: Array,
@@ -760,7 +805,7 @@ class Filter:
         if not self.monitor.diverged(t_ns):
             return False
         # the ranges disagree with the state: believe them only if they agree with each other
-        fix = self.ranges.fix(t_ns, ids, anchors, ranges, None, force=True)
+        fix = self.ranges.fix(t_ns, ids, anchors, ranges, None, force=True, weigh=False)
         if fix is None or not self._consistent(fix, *self.ranges.last_inputs):
             self.counters["divergence_without_consistent_fix"] += 1
             return False
@@ -772,7 +817,7 @@ class Filter:
         if t_ns - self._position_reset_ns < REPEATED_RESET_NS:
             # moving the position did not make the ranges agree: the attitude, velocity or
             # biases are wrong too; start again from this consistent fix
-            self._restart(t_ns, "diverged again after a position reset")
+            self._restart(t_ns, "diverged again after a position reset", keep_biases=False)
             return True
         self._position_reset_ns = t_ns
         self.counters["position_resets"] += 1

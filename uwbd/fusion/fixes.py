@@ -44,14 +44,15 @@ class RangeWindow:
             self._latest[a] = (t_ns, pos, r)
 
     def fix(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
-            x0: Array | None, force: bool = False) -> LsqFix | None:
+            x0: Array | None, force: bool = False, weigh: bool = True) -> LsqFix | None:
         """The fix at ``t_ns`` (after :meth:`add` of this message): from the message alone
         when it holds enough anchors, else from the window; ``None`` when there are too few
         anchors, it is not yet time for another window fix (unless ``force``), or the
-        solution does not converge."""
+        solution does not converge. ``weigh``: count the fix as evidence for the mirror side
+        (once per message: checks that solve again say False)."""
         if len(ids) >= self.needed:
             self._last_fix_ns = t_ns
-            return self._solve(anchors, ranges, x0)
+            return self._solve(anchors, ranges, x0, weigh)
         if not force and self._last_fix_ns is not None and \
                 t_ns - self._last_fix_ns < self.min_interval_ns:
             return None
@@ -61,15 +62,16 @@ class RangeWindow:
             return None
         self._last_fix_ns = t_ns
         return self._solve(np.array([p for p, _ in recent]), np.array([r for _, r in recent]),
-                           x0)
+                           x0, weigh)
 
-    def _solve(self, anchors: Array, ranges: Array, x0: Array | None) -> LsqFix | None:
+    def _solve(self, anchors: Array, ranges: Array, x0: Array | None,
+               weigh: bool) -> LsqFix | None:
         self.last_inputs = (anchors, ranges)
         if x0 is None and self.side.ambiguous and self.fixed_z is None:
             x0 = self.side.start_point()
         fix = multilaterate(anchors, ranges, self.sigma_m, x0, self.fixed_z,
                             side=self.side.sign)
-        if fix is not None:
+        if fix is not None and weigh:
             self.side.weigh(anchors, ranges, fix, self.sigma_m, self.fixed_z)
         return fix
 

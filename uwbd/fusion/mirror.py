@@ -52,7 +52,7 @@ class MirrorSide:
         self.normal = np.array([0.0, 0.0, 1.0])
         if len(anchors_m) >= 3:
             n = np.linalg.svd(anchors_m - self.centroid)[2][-1]
-            largest = int(np.argmax(np.abs(n[:2]))) if abs(n[2]) < 1e-9 else 2
+            largest = int(np.argmax(np.abs(n[:2]))) if abs(n[2]) < WALL_NORMAL_Z else 2
             self.normal = -n if n[largest] < 0 else n
         self.decided_by = "no mirror" if not self.ambiguous else "default"
         wall = abs(self.normal[2]) < WALL_NORMAL_Z

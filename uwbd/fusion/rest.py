@@ -52,11 +52,16 @@ class ImuWindow:
         s = self._samples
         return (s[-1][0] - s[0][0]) / 1e9 if s else 0.0
 
-    def means(self) -> tuple[Array, Array] | None:
-        """Mean specific force and mean rate over the window, ``None`` when empty."""
-        if not self._samples:
+    def means(self, span_s: float | None = None) -> tuple[Array, Array] | None:
+        """Mean specific force and mean rate over the window (or its last ``span_s``),
+        ``None`` when empty."""
+        samples = self._samples
+        if not samples:
             return None
-        m = np.mean(self._samples, axis=0)
+        a = np.array(samples)
+        if span_s is not None:
+            a = a[a[:, 0] >= a[-1, 0] - span_s * 1e9]
+        m = a.mean(axis=0)
         return m[1:4], m[4:7]
 
     def static(self, span_s: float) -> bool:
