@@ -6,10 +6,10 @@
 * **While moving** (no rest within ``init_max_wait_s``, or at once after a restart):
   roll and pitch from the mean specific force, position from the latest fix, velocity
   from a line fit through the last second of fixes, wider σ for velocity and gyro bias.
-* **Carried over** (a restart that keeps the motion: an IMU gap or a rejected burst): the
-  position, velocity and biases of the estimate before, with its position σ; the tilt of
-  the attitude before (after a gap, when the IMU saw nothing to say otherwise) or from
-  gravity over the fresh IMU samples (after a rejected burst, when it may have changed).
+* **Carried over** (the attitude restarted in place after an IMU gap or a rejected burst, or
+  levelled anew at rest): the position, velocity and biases of the estimate before, with
+  its position σ; the tilt of the attitude before, or, when levelling, roll and pitch from
+  gravity over the fresh samples with the yaw value kept.
 
 The heading always starts unknown (σ 180°): :mod:`.alignment` finds it once the vehicle
 moves.
@@ -44,7 +44,7 @@ class Start(NamedTuple):
     b_a_mps2: Array
     b_r_m: Array
     sigma_p_m: float
-    q: Array | None = None  # the attitude before (an IMU gap): its tilt beats a moving level
+    q: Array | None = None  # the attitude to keep (None: level from gravity, keep yaw_rad)
     tilt_sigma_rad: float = math.radians(2)
     yaw_rad: float = 0.0  # the heading to keep when the tilt is levelled anew
 
