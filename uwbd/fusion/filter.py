@@ -19,12 +19,13 @@ the sequence it runs; each step's policy has a module of its own:
 Life cycle: **waiting** (collect IMU and fixes), start at rest or while moving, **aligning**
 (heading held until the vehicle has moved enough), **tracking**. A rejected IMU burst or an
 IMU gap widens the covariance for what was not seen; one longer than
-``attitude_lost_after_s`` restarts the heading in place (position, velocity, biases and
-tilt kept). A non-finite state restarts from UWB, keeping finite biases (a non-finite
-covariance with a finite state only restores the last finite covariance). Innovations
-inconsistent for a while move the position to a UWB fix, but only to one that is consistent itself (NLOS does not pull the
-state away); diverging again within 10 s restarts from UWB, biases dropped. At rest (IMU
-and UWB fixes both still), an attitude 10° against gravity for a second is levelled anew.
+``attitude_lost_after_s`` restarts the heading in place (position, velocity, biases and tilt
+kept). A non-finite state restarts from UWB, keeping finite biases (a non-finite covariance
+with a finite state only restores the last finite covariance). Innovations inconsistent for
+a while move the position to a UWB fix, but only to one that is consistent itself (NLOS does
+not pull the state away); diverging again within 10 s restarts from UWB, biases dropped. At
+rest (IMU and UWB fixes both still), an attitude 10° against gravity for a second is
+levelled anew.
 Without ranges the state coasts and its covariance grows.
 """
 
