@@ -378,3 +378,18 @@ def test_rest_is_not_seen_in_slow_steady_motion() -> None:
     assert len(zupt_s) and zupt_s.min() < 4.0  # rest is seen at rest
     moving_epochs = sum(1 for e in sim.uwb if (e.t_ns - sim.truth_t_ns[0]) / NS > 6.0)
     assert (zupt_s > 6.0).sum() < 0.05 * moving_epochs  # and hardly ever in steady motion
+
+
+def test_a_device_quality_widens_that_range_noise() -> None:
+    """DWM1001-style per-range quality (0-100): a range at quality 20 is fused with five
+    times the variance of one at 100."""
+    sim = short()
+    low = [dataclasses.replace(e, ranges=tuple(
+        dataclasses.replace(r, quality=20.0 if r.anchor_id == 0 else 100.0) for r in e.ranges))
+        for e in sim.uwb]
+    _, reports, _ = run_filter(datasheet(sim), merge(sim.imu, low))
+    fused = [r for r in reports if r.kind == "range" and r.accepted and r.t_ns > sim.uwb[60].t_ns]
+    s_low = np.median([r.innovation_var for r in fused if r.key == "0"])
+    s_high = np.median([r.innovation_var for r in fused if r.key != "0"])
+    sigma2 = datasheet(sim).range_sigma_m ** 2
+    assert s_low - sigma2 * 5 > -0.2 * sigma2 and s_high < 2 * sigma2
