@@ -57,7 +57,7 @@ from uwbd.fusion.measurements import (
     range_rows,
     zupt_rows,
 )
-from uwbd.fusion.mirror import MirrorSide
+from uwbd.fusion.mirror import WALL_NORMAL_Z, MirrorSide
 from uwbd.fusion.rest import ImuWindow, RestLimits
 from uwbd.fusion.robust import AnchorStats, RobustPolicy, quality_scale
 from uwbd.fusion.rotation import Array
@@ -204,8 +204,16 @@ class Filter:
         held over coplanar ones, and one antenna-delay and one multipath state each."""
         cfg = self.cfg
         anchors = np.array(list(self._anchors.values()), dtype=float).reshape(-1, 3)
-        self.mirror = MirrorSide(anchors, cfg.tag_side, cfg.height_range_m)
-        self._fixed_z = (cfg.known_height_m if len(anchors) and coplanar(anchors) else None)
+        old, self.mirror = self.mirror, MirrorSide(anchors, cfg.tag_side, cfg.height_range_m)
+        if old.decided_by.startswith("ranges") and self.mirror.ambiguous:
+            # what the ranges told about the side still holds with one anchor more
+            self.mirror.sign, self.mirror.resolved = old.sign, old.resolved
+            self.mirror.decided_by = old.decided_by
+        # a known height replaces the vertical that a (horizontal) plane of anchors cannot
+        # tell; over a wall the height is observed and the mirror is sideways
+        horizontal = abs(float(self.mirror.normal[2])) >= WALL_NORMAL_Z
+        self._fixed_z = (cfg.known_height_m
+                         if len(anchors) and coplanar(anchors) and horizontal else None)
         self.ranges.side, self.ranges.fixed_z = self.mirror, self._fixed_z
         ids = sorted(self._anchors)
         tight = cfg.mode is Mode.TIGHT  # the offsets are unobservable from loose fixes
