@@ -14,6 +14,7 @@ the sequence it runs; each step's policy has a module of its own:
 * :mod:`.measurements` — the rows of each measurement model (range, fix, ZUPT, NHC, height);
 * :mod:`.robust` — de-weighting NLOS ranges, per-anchor statistics;
 * :mod:`.health` — the health record, and the evidence for restarts;
+* :mod:`.recovery` — the restarts themselves and what triggers them (a mixin of this class);
 * :mod:`.eskf` — the algebra (docs/ekf.md).
 
 Life cycle: **waiting** (collect IMU and fixes), start at rest or while moving, **aligning**
@@ -42,12 +43,12 @@ import numpy as np
 
 from drivers.frames import ImuSample, UwbRanges
 from uwbd.fusion.alignment import HeadingAligner, velocity_fit
-from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, V_, Eskf, ImuNoise
-from uwbd.fusion.fixes import RangeWindow, consistent
+from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, Eskf, ImuNoise
+from uwbd.fusion.fixes import RangeWindow
 from uwbd.fusion.gating import GatingCounters, GatingPolicy, chi2_quantile, gate
 from uwbd.fusion.health import WAITING, Health, HealthLimits, HealthMonitor
 from uwbd.fusion.imu_check import ImuCheck, ImuLimits
-from uwbd.fusion.initialise import Start, start_state
+from uwbd.fusion.initialise import Start
 from uwbd.fusion.lsq import LsqFix, coplanar
 from uwbd.fusion.measurements import (
     Rows,
@@ -58,6 +59,12 @@ from uwbd.fusion.measurements import (
     zupt_rows,
 )
 from uwbd.fusion.mirror import WALL_NORMAL_Z, MirrorSide
+from uwbd.fusion.recovery import (
+    COAST_ACCEL_SIGMA_MPS2,
+    NS,
+    UNSEEN_RATE_SIGMA_RPS,
+    Recovery,
+)
 from uwbd.fusion.rest import ImuWindow, RestLimits
 from uwbd.fusion.robust import AnchorStats, RobustPolicy, quality_scale
 from uwbd.fusion.rotation import Array
@@ -67,7 +74,6 @@ from uwbd.fusion.types import FusionReport, Pose
 Vec3 = tuple[float, float, float]
 HELD_YAW_SIGMA_RAD = 1e-3  # the heading's σ while it is held, before the coarse alignment
 IDENTITY3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
-NS = 1_000_000_000
 ATTITUDE_AND_IMU_BIASES = slice(TH_.start, BA_.stop)
 ATTITUDE_AND_GYRO_BIAS = slice(TH_.start, BG_.stop)
 PROPAGATE_EVERY_S = 0.1  # the covariance follows the state at least this often (coasting)
@@ -75,21 +81,12 @@ MIN_PROPAGATE_S = 0.02  # and at most this often: P grows little in 20 ms
 CONSTRAINT_EVERY_NS = 95_000_000  # ZUPT, NHC, known height: about 10 Hz
 STILL_S, STILL_MPS = 1, 0.15  # at rest the UWB fixes of this long move slower than this
 STILL_EVERY_NS, MIN_STILL_FIXES = 180_000_000, 5
-MAX_TILT_ERROR_RAD = math.radians(10)  # at rest, attitude against gravity
 TILT_CHECK_EVERY_NS = NS // 2
 MAX_ANCHOR_COORD_M = 1e4  # a device-reported anchor farther out than this is garbage
-FADE_PER_S = 1.0  # variance growth rate while the innovations are inconsistent
-SLOW_FADE_PER_S = 0.25
-MAX_FADE_STEP_NS = NS // 5
-REPEATED_RESET_NS = 10 * NS  # a second divergence this soon after a position reset restarts
 NUMERICAL_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError)
 # the covariance is kept finite: no error state may be less certain than this (σ per state)
 MAX_SIGMA = np.array([1e3] * 3 + [1e2] * 3 + [math.pi] * 3 + [0.5] * 3 + [5.0] * 3)
 MAX_RANGE_BIAS_SIGMA_M = 5.0
-# what the IMU did not see (a gap, rejected samples): accelerations and turns of this σ per √s
-COAST_ACCEL_SIGMA_MPS2 = 2.0
-UNSEEN_RATE_SIGMA_RPS = 0.3
-UNSEEN_TILT_SIGMA_RPS = 0.003  # roll and pitch: bounded by gravity, they wander far less
 
 
 class Mode(str, Enum):
@@ -142,7 +139,7 @@ class FilterConfig:
     align_min_dv_mps: float = 0.5  # ... with this much horizontal velocity change at least
 
 
-class Filter:
+class Filter(Recovery):
     """Loosely or tightly coupled UWB/INS error-state EKF (see module doc)."""
 
     def __init__(self, config: FilterConfig, record: bool = False) -> None:
@@ -325,6 +322,9 @@ class Filter:
             self._restart(uwb.t_ns, "mirror side flipped by the ranges")
         self.monitor.mirror_unresolved = self.mirror.unresolved
         if self.ekf is None:
+            if self._new_anchors:  # reported since the last start: laid out before the next
+                self._new_anchors = False
+                self._layout()
             self._try_start(uwb.t_ns, fix)
             return reports
         if self.t_ns is not None and uwb.t_ns < self.t_ns:
@@ -416,122 +416,6 @@ class Filter:
                 "mirror": {"ambiguous": m.ambiguous, "side": "above" if m.sign > 0 else "below",
                            "decided_by": m.decided_by, "resolved": m.resolved},
                 "anchors": {str(a): s.as_dict() for a, s in sorted(self.anchor_stats.items())}}
-
-    # -- starting and restarting ----------------------------------------------------------
-    def _try_start(self, t_ns: int, fix: LsqFix | None) -> None:
-        cfg = self.cfg
-        if self._new_anchors:
-            self._new_anchors = False
-            self._layout()
-        if fix is None or self.window.means() is None:
-            return
-        if self._start_started_ns is not None:  # a restart: fresh IMU data first
-            if self.window.span_s() < 0.9 * cfg.static_window_s:
-                return
-            waited_long = True
-        else:
-            waited_long = (t_ns - (self._first_t_ns or t_ns)) / NS >= cfg.init_max_wait_s
-        recent = [(t, p) for t, p in self._fixes if t >= t_ns - cfg.init_static_s * NS]
-        start = start_state(cfg, self.window, fix, recent, list(self._fixes), waited_long,
-                            self._carry, len(self._bias_index), self.lever, len(self._mp_index))
-        if start is None:
-            return
-        self._begin(start, t_ns)
-        self.monitor.last_range_ns = t_ns  # the start is a UWB fix
-
-    def _restart(self, t_ns: int, reason: str, keep_biases: bool = True) -> None:
-        """Drop the estimate and start again from UWB and fresh IMU samples, keeping only
-        the biases (when they are finite and ``keep_biases``)."""
-        ekf = self.ekf
-        self._count_restart(reason)
-        self._carry = None
-        if keep_biases and ekf is not None and np.isfinite(
-                np.concatenate([ekf.b_g, ekf.b_a, ekf.b_r])).all():
-            self._carry = Start(None, None, np.array(ekf.b_g), np.array(ekf.b_a),
-                                ekf.b_r.copy(), 0.0)
-        self.ekf = None
-        self._relevel = None
-        self._start_started_ns = t_ns
-        self._fixes.clear()  # from the old estimate's side of a mirror, perhaps
-        self._forget_attitude(t_ns, reason)
-
-    def _lose_attitude(self, t_ns: int, reason: str) -> None:
-        """The IMU was unusable too long for the attitude to be trusted: coast on the ranges
-        (constant velocity, as through a gap) until fresh IMU samples span a window, then
-        restart the heading there, keeping position, velocity, biases and the tilt from
-        before (the EKF refines a changed tilt; re-levelling from gravity while moving puts
-        the vehicle's acceleration into the tilt)."""
-        self._count_restart(reason)
-        self._relevel = "keep"
-        self._forget_attitude(t_ns, reason)
-
-    def _relevel_when_ready(self, t_ns: int) -> None:
-        ekf = self.ekf
-        assert ekf is not None and self.t_ns is not None and self._relevel is not None
-        if self.window.span_s() < 0.9 * self.cfg.static_window_s or (
-                self._relevel == "level" and not self.window.static(self.cfg.static_window_s)):
-            return  # levelling from gravity needs the vehicle at rest
-        dt = (t_ns - self.t_ns) / NS
-        if dt > 0:
-            self._coast(dt)
-        sig = float(np.sqrt(max(float(np.diag(ekf.P)[P_].max()), 0.0)))
-        level = self._relevel == "level"
-        carry = Start(np.array(ekf.p), np.array(ekf.v), np.array(ekf.b_g), np.array(ekf.b_a),
-                      ekf.b_r.copy(), sig, None if level else np.array(ekf.q),
-                      ekf.tilt_sigma_rad(), yaw_rad=ekf.yaw_rad())
-        antenna = np.array(ekf.p) + ekf.R @ self.lever
-        fix = LsqFix(antenna, np.diag(np.diag(ekf.P)[P_]), np.zeros(0), np.zeros(0, bool),
-                     0.0, 0)
-        start = start_state(self.cfg, self.window, fix, [], [], True, carry,
-                            len(self._bias_index), self.lever, len(self._mp_index))
-        if start is not None:
-            self._relevel = None
-            self.monitor.imu_gap = False
-            self._begin(start, max(t_ns, self.t_ns))
-
-    def _begin(self, start: tuple[Eskf, str], t_ns: int) -> None:
-        self.ekf, how = start
-        self.t_ns = t_ns
-        self._carry = None
-        self._start_started_ns = None
-        self._last_good_P = None
-        self._track.clear()
-        self._position_reset_ns = -(2**63)
-        self._tilt_bad_ns = None
-        self.counters["initialisations"] += 1
-        self.counters[f"started_{how}"] += 1
-
-    def _coast(self, dt: float) -> None:
-        ekf = self.ekf
-        assert ekf is not None
-        ekf.coast(dt, COAST_ACCEL_SIGMA_MPS2, UNSEEN_RATE_SIGMA_RPS, UNSEEN_TILT_SIGMA_RPS)
-
-    def _count_restart(self, reason: str) -> None:
-        self.counters["restarts"] += 1
-        self.counters[f"restart_{reason.replace(' ', '_')}"] += 1
-
-    def _forget_attitude(self, t_ns: int, reason: str) -> None:
-        self.window.clear()
-        self._aligner = HeadingAligner(self.cfg.align_window_s, self.cfg.align_min_dv_mps,
-                                       self.cfg.range_sigma_m)
-        self._aligned = False
-        self.monitor.reset(t_ns, reason, None)
-
-    def _restart_not_finite(self, t_ns: int) -> None:
-        """A non-finite covariance with a finite state: ``P`` goes back to the last finite
-        one, doubled in σ (the state itself was never touched by it: no row with a
-        non-finite variance is fused). A non-finite state restarts, keeping finite biases."""
-        ekf = self.ekf
-        assert ekf is not None
-        good = self._last_good_P
-        if math.isfinite(sum(ekf.p) + sum(ekf.v) + sum(ekf.q)) and good is not None \
-                and good.shape == ekf.P.shape:
-            ekf.P = 4.0 * good
-            self.counters["covariance_restored"] += 1
-            self.monitor.reset(t_ns, "covariance not finite: the last finite one, widened",
-                               0.0)
-        else:
-            self._restart(t_ns, "state not finite")
 
     # -- internals ------------------------------------------------------------------------
     def _snapshot(self) -> tuple[Nominal, Array]:
@@ -669,25 +553,6 @@ class Filter:
             limit = max(limit, 3.0 * self._track_sigma_m * math.sqrt(12.0 / n) / span_s)
         return math.hypot(v[0], v[1]) < limit
 
-    def _check_tilt_against_gravity(self) -> None:
-        """At rest the mean specific force is gravity's reaction: an attitude more than 10°
-        from it for a second is wrong (the EKF can be confidently wrong about tilt after a
-        fault); level it anew from the samples of the rest."""
-        ekf, means = self.ekf, self.window.means(self.cfg.static_window_s)
-        assert ekf is not None and self.t_ns is not None
-        if means is None:
-            return
-        if ekf.tilt_from_gravity_rad(means[0]) <= MAX_TILT_ERROR_RAD:
-            self._tilt_bad_ns = None
-            return
-        if self._tilt_bad_ns is None:
-            self._tilt_bad_ns = self.t_ns
-        elif self.t_ns - self._tilt_bad_ns >= NS:
-            self._tilt_bad_ns = None
-            self._count_restart("attitude against gravity")
-            self._relevel = "level"
-            self._forget_attitude(self.t_ns, "attitude against gravity")
-
     def _constraints(self) -> list[Rows]:
         ekf = self.ekf
         assert ekf is not None
@@ -779,69 +644,6 @@ class Filter:
         self._keep_covariance_sane()
         return reports
 
-    def _fade(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array) -> None:
-        """While the innovations are inconsistent, the state's covariance was too small for
-        what happened: widen position and velocity e-fold per second (a fading memory) so
-        that the gate opens again to ranges that are right, rather than reject them for good
-        while the state drifts away."""
-        last, self._fade_ns = self._fade_ns, t_ns
-        ekf = self.ekf
-        if ekf is None or last is None or not self.monitor.inconsistent:
-            return
-        # only towards ranges that agree with each other: NLOS on every anchor must not
-        # widen the gate to itself
-        fix = self.ranges.fix(t_ns, ids, anchors, ranges, None, force=True, weigh=False)
-        used = self.ranges.last_inputs
-        if fix is None or not self._consistent(fix, *used):
-            return
-        rate = FADE_PER_S
-        if len(used[1]) < 5:  # too few ranges to tell a common NLOS offset: fade slowly,
-            if not self.monitor.diverged(t_ns):  # and only once it has lasted
-                return
-            rate = SLOW_FADE_PER_S
-        dt_ns = min(max(t_ns - last, 0), MAX_FADE_STEP_NS)  # not a whole outage at once
-        ekf.widen(slice(0, V_.stop), math.exp(0.5 * rate * dt_ns / NS))
-        self.counters["covariance_faded"] += 1
-
-    def _check_divergence(self, t_ns: int, ids: list[int], anchors: Array,
-                          ranges: Array) -> bool:
-        """Restart or move the state when the evidence says it is wrong; True if it did."""
-        ekf = self.ekf
-        assert ekf is not None
-        if not math.isfinite(float(ekf.P.sum()) + sum(ekf.p) + sum(ekf.v) + sum(ekf.q)):
-            self._restart_not_finite(t_ns)
-            return True
-        if not self.monitor.diverged(t_ns):
-            return False
-        # the ranges disagree with the state: believe them only if they agree with each other
-        fix = self.ranges.fix(t_ns, ids, anchors, ranges, None, force=True, weigh=False)
-        if fix is None or not self._consistent(fix, *self.ranges.last_inputs):
-            self.counters["divergence_without_consistent_fix"] += 1
-            return False
-        p_ant = np.array(ekf.p) + ekf.R @ self.lever
-        jump = float(np.linalg.norm(fix.position_m - p_ant))
-        spread = math.sqrt(max(float(np.trace(ekf.P[P_, P_]) + np.trace(fix.covariance)), 0.0))
-        if jump <= 3.0 * spread:
-            return False  # the fix agrees with the state after all: nothing to move
-        if t_ns - self._position_reset_ns < REPEATED_RESET_NS:
-            # moving the position did not make the ranges agree: the attitude, velocity or
-            # biases are wrong too; start again from this consistent fix
-            self._restart(t_ns, "diverged again after a position reset", keep_biases=False)
-            return True
-        self._position_reset_ns = t_ns
-        self.counters["position_resets"] += 1
-        ekf.p = (np.array(ekf.p) + fix.position_m - p_ant).tolist()
-        ekf.v = [0.0, 0.0, 0.0]
-        self._inflate(velocity_mps=1.0, attitude_rad=0.0,
-                      position_m=math.sqrt(max(np.trace(fix.covariance) / 3, 0.05**2)))
-        self.monitor.reset(t_ns, "innovations inconsistent: position from a UWB fix", jump)
-        return True
-
-    def _consistent(self, fix: LsqFix, anchors: Array, ranges: Array) -> bool:
-        cfg = self.cfg
-        return consistent(fix, anchors, ranges, cfg.range_sigma_m, cfg.tag_delay_sigma_m,
-                          self.ranges.needed)
-
     def _keep_covariance_sane(self) -> None:
         ekf = self.ekf
         assert ekf is not None
@@ -852,12 +654,3 @@ class Filter:
         """A rejected IMU sample hid ``dt`` of motion: widen velocity and attitude for it."""
         self._inflate(velocity_mps=COAST_ACCEL_SIGMA_MPS2 * math.sqrt(dt),
                       attitude_rad=UNSEEN_RATE_SIGMA_RPS * math.sqrt(dt))
-
-    def _inflate(self, velocity_mps: float, attitude_rad: float, position_m: float = 0.0) -> None:
-        ekf = self.ekf
-        assert ekf is not None
-        d = np.zeros(ekf.n)
-        d[P_] = position_m**2
-        d[V_] = velocity_mps**2
-        d[TH_] = attitude_rad**2
-        ekf.P[np.diag_indices(ekf.n)] += d

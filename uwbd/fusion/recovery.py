@@ -1,0 +1,272 @@
+"""Starting again: restarts, the attitude restarted in place, and what triggers them.
+
+The steps :class:`~uwbd.fusion.filter.Filter` takes when the evidence says its estimate is
+wrong or lost (docs/ekf.md §6): a start from UWB and fresh IMU samples (non-finite state,
+a mirror flip, repeated divergence), the heading restarted in place after the IMU was
+unusable (position, velocity, biases and tilt kept), levelling anew when gravity disagrees
+at rest, a non-finite covariance restored, the covariance faded while the innovations are
+inconsistent, and the position moved to a UWB fix that is consistent itself. A mixin of
+the filter: these methods act on its state.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from uwbd.fusion.alignment import HeadingAligner
+from uwbd.fusion.eskf import P_, TH_, V_, Eskf
+from uwbd.fusion.fixes import RangeWindow, consistent
+from uwbd.fusion.health import HealthMonitor
+from uwbd.fusion.initialise import Start, start_state
+from uwbd.fusion.lsq import LsqFix
+from uwbd.fusion.rest import ImuWindow
+from uwbd.fusion.rotation import Array
+
+if TYPE_CHECKING:
+    from uwbd.fusion.filter import FilterConfig
+
+NS = 1_000_000_000
+# what the IMU did not see (a gap, rejected samples): accelerations and turns of this σ per √s
+COAST_ACCEL_SIGMA_MPS2 = 2.0
+UNSEEN_RATE_SIGMA_RPS = 0.3
+UNSEEN_TILT_SIGMA_RPS = 0.003  # roll and pitch: bounded by gravity, they wander far less
+MAX_TILT_ERROR_RAD = math.radians(10)  # at rest, attitude against gravity
+FADE_PER_S = 1.0  # variance growth rate while the innovations are inconsistent
+SLOW_FADE_PER_S = 0.25
+MAX_FADE_STEP_NS = NS // 5
+REPEATED_RESET_NS = 10 * NS  # a second divergence this soon after a position reset restarts
+
+
+class Recovery:
+    """The restart steps of :class:`~uwbd.fusion.filter.Filter`, and the state they act on
+    (set by the filter)."""
+
+    cfg: FilterConfig
+    ekf: Eskf | None
+    t_ns: int | None
+    lever: Array
+    counters: collections.Counter[str]
+    monitor: HealthMonitor
+    window: ImuWindow
+    ranges: RangeWindow
+    _aligner: HeadingAligner
+    _aligned: bool
+    _bias_index: dict[int, int]
+    _mp_index: dict[int, int]
+    _carry: Start | None
+    _start_started_ns: int | None
+    _first_t_ns: int | None
+    _fixes: collections.deque[tuple[int, Array]]
+    _track: collections.deque[tuple[int, Array]]
+    _last_good_P: Array | None  # noqa: N815 - P as in docs/ekf.md
+    _relevel: str | None
+    _tilt_bad_ns: int | None
+    _position_reset_ns: int
+    _fade_ns: int | None
+    def _try_start(self, t_ns: int, fix: LsqFix | None) -> None:
+        cfg = self.cfg
+        if fix is None or self.window.means() is None:
+            return
+        if self._start_started_ns is not None:  # a restart: fresh IMU data first
+            if self.window.span_s() < 0.9 * cfg.static_window_s:
+                return
+            waited_long = True
+        else:
+            waited_long = (t_ns - (self._first_t_ns or t_ns)) / NS >= cfg.init_max_wait_s
+        recent = [(t, p) for t, p in self._fixes if t >= t_ns - cfg.init_static_s * NS]
+        start = start_state(cfg, self.window, fix, recent, list(self._fixes), waited_long,
+                            self._carry, len(self._bias_index), self.lever, len(self._mp_index))
+        if start is None:
+            return
+        self._begin(start, t_ns)
+        self.monitor.last_range_ns = t_ns  # the start is a UWB fix
+
+    def _restart(self, t_ns: int, reason: str, keep_biases: bool = True) -> None:
+        """Drop the estimate and start again from UWB and fresh IMU samples, keeping only
+        the biases (when they are finite and ``keep_biases``)."""
+        ekf = self.ekf
+        self._count_restart(reason)
+        self._carry = None
+        if keep_biases and ekf is not None and np.isfinite(
+                np.concatenate([ekf.b_g, ekf.b_a, ekf.b_r])).all():
+            self._carry = Start(None, None, np.array(ekf.b_g), np.array(ekf.b_a),
+                                ekf.b_r.copy(), 0.0)
+        self.ekf = None
+        self._relevel = None
+        self._start_started_ns = t_ns
+        self._fixes.clear()  # from the old estimate's side of a mirror, perhaps
+        self._forget_attitude(t_ns, reason)
+
+    def _lose_attitude(self, t_ns: int, reason: str) -> None:
+        """The IMU was unusable too long for the attitude to be trusted: coast on the ranges
+        (constant velocity, as through a gap) until fresh IMU samples span a window, then
+        restart the heading there, keeping position, velocity, biases and the tilt from
+        before (the EKF refines a changed tilt; re-levelling from gravity while moving puts
+        the vehicle's acceleration into the tilt)."""
+        self._count_restart(reason)
+        self._relevel = "keep"
+        self._forget_attitude(t_ns, reason)
+
+    def _relevel_when_ready(self, t_ns: int) -> None:
+        ekf = self.ekf
+        assert ekf is not None and self.t_ns is not None and self._relevel is not None
+        if self.window.span_s() < 0.9 * self.cfg.static_window_s or (
+                self._relevel == "level" and not self.window.static(self.cfg.static_window_s)):
+            return  # levelling from gravity needs the vehicle at rest
+        dt = (t_ns - self.t_ns) / NS
+        if dt > 0:
+            self._coast(dt)
+        sig = float(np.sqrt(max(float(np.diag(ekf.P)[P_].max()), 0.0)))
+        level = self._relevel == "level"
+        carry = Start(np.array(ekf.p), np.array(ekf.v), np.array(ekf.b_g), np.array(ekf.b_a),
+                      ekf.b_r.copy(), sig, None if level else np.array(ekf.q),
+                      ekf.tilt_sigma_rad(), yaw_rad=ekf.yaw_rad())
+        antenna = np.array(ekf.p) + ekf.R @ self.lever
+        fix = LsqFix(antenna, np.diag(np.diag(ekf.P)[P_]), np.zeros(0), np.zeros(0, bool),
+                     0.0, 0)
+        start = start_state(self.cfg, self.window, fix, [], [], True, carry,
+                            len(self._bias_index), self.lever, len(self._mp_index))
+        if start is not None:
+            self._relevel = None
+            self.monitor.imu_gap = False
+            self._begin(start, max(t_ns, self.t_ns))
+
+    def _begin(self, start: tuple[Eskf, str], t_ns: int) -> None:
+        self.ekf, how = start
+        self.t_ns = t_ns
+        self._carry = None
+        self._start_started_ns = None
+        self._last_good_P = None
+        self._track.clear()
+        self._position_reset_ns = -(2**63)
+        self._tilt_bad_ns = None
+        self.counters["initialisations"] += 1
+        self.counters[f"started_{how}"] += 1
+
+    def _coast(self, dt: float) -> None:
+        ekf = self.ekf
+        assert ekf is not None
+        ekf.coast(dt, COAST_ACCEL_SIGMA_MPS2, UNSEEN_RATE_SIGMA_RPS, UNSEEN_TILT_SIGMA_RPS)
+
+    def _count_restart(self, reason: str) -> None:
+        self.counters["restarts"] += 1
+        self.counters[f"restart_{reason.replace(' ', '_')}"] += 1
+
+    def _forget_attitude(self, t_ns: int, reason: str) -> None:
+        self.window.clear()
+        self._aligner = HeadingAligner(self.cfg.align_window_s, self.cfg.align_min_dv_mps,
+                                       self.cfg.range_sigma_m)
+        self._aligned = False
+        self.monitor.reset(t_ns, reason, None)
+
+    def _restart_not_finite(self, t_ns: int) -> None:
+        """A non-finite covariance with a finite state: ``P`` goes back to the last finite
+        one, doubled in σ (the state itself was never touched by it: no row with a
+        non-finite variance is fused). A non-finite state restarts, keeping finite biases."""
+        ekf = self.ekf
+        assert ekf is not None
+        good = self._last_good_P
+        if math.isfinite(sum(ekf.p) + sum(ekf.v) + sum(ekf.q)) and good is not None \
+                and good.shape == ekf.P.shape:
+            ekf.P = 4.0 * good
+            self.counters["covariance_restored"] += 1
+            self.monitor.reset(t_ns, "covariance not finite: the last finite one, widened",
+                               0.0)
+        else:
+            self._restart(t_ns, "state not finite")
+
+    # -- when the evidence says the state is wrong ---------------------------------------
+    def _check_tilt_against_gravity(self) -> None:
+        """At rest the mean specific force is gravity's reaction: an attitude more than 10°
+        from it for a second is wrong (the EKF can be confidently wrong about tilt after a
+        fault); level it anew from the samples of the rest."""
+        ekf, means = self.ekf, self.window.means(self.cfg.static_window_s)
+        assert ekf is not None and self.t_ns is not None
+        if means is None:
+            return
+        if ekf.tilt_from_gravity_rad(means[0]) <= MAX_TILT_ERROR_RAD:
+            self._tilt_bad_ns = None
+            return
+        if self._tilt_bad_ns is None:
+            self._tilt_bad_ns = self.t_ns
+        elif self.t_ns - self._tilt_bad_ns >= NS:
+            self._tilt_bad_ns = None
+            self._count_restart("attitude against gravity")
+            self._relevel = "level"
+            self._forget_attitude(self.t_ns, "attitude against gravity")
+
+    def _fade(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array) -> None:
+        """While the innovations are inconsistent, the state's covariance was too small for
+        what happened: widen position and velocity e-fold per second (a fading memory) so
+        that the gate opens again to ranges that are right, rather than reject them for good
+        while the state drifts away."""
+        last, self._fade_ns = self._fade_ns, t_ns
+        ekf = self.ekf
+        if ekf is None or last is None or not self.monitor.inconsistent:
+            return
+        # only towards ranges that agree with each other: NLOS on every anchor must not
+        # widen the gate to itself
+        fix = self.ranges.fix(t_ns, ids, anchors, ranges, None, force=True, weigh=False)
+        used = self.ranges.last_inputs
+        if fix is None or not self._consistent(fix, *used):
+            return
+        rate = FADE_PER_S
+        if len(used[1]) < 5:  # too few ranges to tell a common NLOS offset: fade slowly,
+            if not self.monitor.diverged(t_ns):  # and only once it has lasted
+                return
+            rate = SLOW_FADE_PER_S
+        dt_ns = min(max(t_ns - last, 0), MAX_FADE_STEP_NS)  # not a whole outage at once
+        ekf.widen(slice(0, V_.stop), math.exp(0.5 * rate * dt_ns / NS))
+        self.counters["covariance_faded"] += 1
+
+    def _check_divergence(self, t_ns: int, ids: list[int], anchors: Array,
+                          ranges: Array) -> bool:
+        """Restart or move the state when the evidence says it is wrong; True if it did."""
+        ekf = self.ekf
+        assert ekf is not None
+        if not math.isfinite(float(ekf.P.sum()) + sum(ekf.p) + sum(ekf.v) + sum(ekf.q)):
+            self._restart_not_finite(t_ns)
+            return True
+        if not self.monitor.diverged(t_ns):
+            return False
+        # the ranges disagree with the state: believe them only if they agree with each other
+        fix = self.ranges.fix(t_ns, ids, anchors, ranges, None, force=True, weigh=False)
+        if fix is None or not self._consistent(fix, *self.ranges.last_inputs):
+            self.counters["divergence_without_consistent_fix"] += 1
+            return False
+        p_ant = np.array(ekf.p) + ekf.R @ self.lever
+        jump = float(np.linalg.norm(fix.position_m - p_ant))
+        spread = math.sqrt(max(float(np.trace(ekf.P[P_, P_]) + np.trace(fix.covariance)), 0.0))
+        if jump <= 3.0 * spread:
+            return False  # the fix agrees with the state after all: nothing to move
+        if t_ns - self._position_reset_ns < REPEATED_RESET_NS:
+            # moving the position did not make the ranges agree: the attitude, velocity or
+            # biases are wrong too; start again from this consistent fix
+            self._restart(t_ns, "diverged again after a position reset", keep_biases=False)
+            return True
+        self._position_reset_ns = t_ns
+        self.counters["position_resets"] += 1
+        ekf.p = (np.array(ekf.p) + fix.position_m - p_ant).tolist()
+        ekf.v = [0.0, 0.0, 0.0]
+        self._inflate(velocity_mps=1.0, attitude_rad=0.0,
+                      position_m=math.sqrt(max(np.trace(fix.covariance) / 3, 0.05**2)))
+        self.monitor.reset(t_ns, "innovations inconsistent: position from a UWB fix", jump)
+        return True
+
+    def _consistent(self, fix: LsqFix, anchors: Array, ranges: Array) -> bool:
+        cfg = self.cfg
+        return consistent(fix, anchors, ranges, cfg.range_sigma_m, cfg.tag_delay_sigma_m,
+                          self.ranges.needed)
+
+    def _inflate(self, velocity_mps: float, attitude_rad: float, position_m: float = 0.0) -> None:
+        ekf = self.ekf
+        assert ekf is not None
+        d = np.zeros(ekf.n)
+        d[P_] = position_m**2
+        d[V_] = velocity_mps**2
+        d[TH_] = attitude_rad**2
+        ekf.P[np.diag_indices(ekf.n)] += d
