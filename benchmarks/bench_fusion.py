@@ -35,8 +35,8 @@ from uwbd.evaluate import (
     truth_spikes,
 )
 from uwbd.fusion.baselines import comparison_methods
-from uwbd.fusion.filter import FilterConfig, Mode
 from uwbd.fusion.rotation import Array
+from uwbd.fusion.settings import FilterConfig, Mode
 from uwbd.importer import load_iasl
 from uwbd.logtools import simulation_toml
 from uwbd.simulator import Z_DOWN, SimConfig, Simulation, simulate

@@ -35,7 +35,7 @@ import numpy as np
 from uwbd.config import parse
 from uwbd.evaluate import merge, run_filter, run_method, score, truth_spikes
 from uwbd.fusion.baselines import UwbLeastSquares
-from uwbd.fusion.filter import FilterConfig
+from uwbd.fusion.settings import FilterConfig
 from uwbd.fusion.types import Pose
 from uwbd.importer import INROL_LEVER_ARM_M, INROL_MOUNTING, Dataset, load_iasl, load_inrol
 from uwbd.logtools import simulation_toml

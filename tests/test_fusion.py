@@ -22,11 +22,12 @@ from uwbd.evaluate import (
 )
 from uwbd.fusion.baselines import ComplementaryAttitude, Kf4, PureIns, UwbLeastSquares
 from uwbd.fusion.eskf import N_CORE, TH_, Eskf, ImuNoise
-from uwbd.fusion.filter import Filter, FilterConfig, Mode
+from uwbd.fusion.filter import Filter
 from uwbd.fusion.gating import chi2_quantile
 from uwbd.fusion.health import Phase
 from uwbd.fusion.lsq import coplanar, multilaterate
 from uwbd.fusion.rotation import Array, euler_from_quat, quat_from_euler, quat_mul, quat_to_matrix
+from uwbd.fusion.settings import FilterConfig, Mode
 from uwbd.fusion.smoother import smooth
 from uwbd.fusion.types import Pose
 from uwbd.simulator import SimConfig, Simulation, simulate

@@ -20,12 +20,13 @@ from uwbd.config import parse
 from uwbd.evaluate import merge, run_filter, run_method, score, score_poses
 from uwbd.fusion.baselines import UwbLeastSquares
 from uwbd.fusion.eskf import N_CORE
-from uwbd.fusion.filter import Filter, FilterConfig
+from uwbd.fusion.filter import Filter
 from uwbd.fusion.health import Phase
 from uwbd.fusion.lsq import multilaterate
 from uwbd.fusion.mirror import MirrorSide
 from uwbd.fusion.robust import RobustPolicy
 from uwbd.fusion.rotation import Array
+from uwbd.fusion.settings import FilterConfig
 from uwbd.fusion.types import Pose
 from uwbd.logtools import simulation_toml
 from uwbd.simulator import SimConfig, Simulation, ceiling_room, handheld_async, simulate

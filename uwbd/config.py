@@ -36,10 +36,11 @@ from typing import Any
 
 from drivers import PARSERS
 from uwbd.fusion.eskf import ImuNoise
-from uwbd.fusion.filter import IDENTITY3, Filter, FilterConfig, Mode
+from uwbd.fusion.filter import Filter
 from uwbd.fusion.gating import GatingPolicy
 from uwbd.fusion.imu_check import ImuLimits
 from uwbd.fusion.robust import RobustPolicy
+from uwbd.fusion.settings import IDENTITY3, FilterConfig, Mode
 
 if sys.version_info >= (3, 11):
     import tomllib

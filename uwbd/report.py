@@ -30,8 +30,8 @@ from uwbd.evaluate import (
     truth_spikes,
 )
 from uwbd.fusion.baselines import comparison_methods
-from uwbd.fusion.filter import Mode
 from uwbd.fusion.rotation import Array
+from uwbd.fusion.settings import Mode
 from uwbd.logtools import Recording
 
 Track = tuple[Times, Array, Array | None]

@@ -23,11 +23,12 @@ from scipy.signal import butter, sosfilt, sosfilt_zi
 
 from drivers.frames import ImuSample, UwbRanges
 from uwbd.fusion.eskf import GRAVITY_MPS2
-from uwbd.fusion.filter import Filter, FilterConfig
+from uwbd.fusion.filter import Filter
 from uwbd.fusion.fixes import RangeWindow
 from uwbd.fusion.lsq import LsqFix
 from uwbd.fusion.mirror import MirrorSide
 from uwbd.fusion.rotation import Array, quat_from_rotvec, quat_mul, quat_to_matrix
+from uwbd.fusion.settings import FilterConfig
 
 
 class PureIns:

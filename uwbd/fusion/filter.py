@@ -34,20 +34,17 @@ from __future__ import annotations
 
 import collections
 import math
-from collections.abc import Mapping
-from dataclasses import dataclass, field
-from enum import Enum
 from typing import Any
 
 import numpy as np
 
 from drivers.frames import ImuSample, UwbRanges
 from uwbd.fusion.alignment import HeadingAligner, velocity_fit
-from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, Eskf, ImuNoise
+from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, Eskf
 from uwbd.fusion.fixes import RangeWindow
-from uwbd.fusion.gating import GatingCounters, GatingPolicy, chi2_quantile, gate
-from uwbd.fusion.health import WAITING, Health, HealthLimits, HealthMonitor
-from uwbd.fusion.imu_check import ImuCheck, ImuLimits
+from uwbd.fusion.gating import GatingCounters, chi2_quantile, gate
+from uwbd.fusion.health import WAITING, Health, HealthMonitor
+from uwbd.fusion.imu_check import ImuCheck
 from uwbd.fusion.initialise import Start
 from uwbd.fusion.lsq import LsqFix, coplanar
 from uwbd.fusion.measurements import (
@@ -65,15 +62,15 @@ from uwbd.fusion.recovery import (
     UNSEEN_RATE_SIGMA_RPS,
     Recovery,
 )
-from uwbd.fusion.rest import ImuWindow, RestLimits
-from uwbd.fusion.robust import AnchorStats, RobustPolicy, quality_scale
+from uwbd.fusion.rest import ImuWindow
+from uwbd.fusion.robust import AnchorStats, quality_scale
 from uwbd.fusion.rotation import Array
+from uwbd.fusion.settings import FilterConfig, Mode
 from uwbd.fusion.smoother import EpochRecord, Nominal
 from uwbd.fusion.types import FusionReport, Pose
 
 Vec3 = tuple[float, float, float]
 HELD_YAW_SIGMA_RAD = 1e-3  # the heading's σ while it is held, before the coarse alignment
-IDENTITY3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 ATTITUDE_AND_IMU_BIASES = slice(TH_.start, BA_.stop)
 ATTITUDE_AND_GYRO_BIAS = slice(TH_.start, BG_.stop)
 PROPAGATE_EVERY_S = 0.1  # the covariance follows the state at least this often (coasting)
@@ -87,56 +84,6 @@ NUMERICAL_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError)
 # the covariance is kept finite: no error state may be less certain than this (σ per state)
 MAX_SIGMA = np.array([1e3] * 3 + [1e2] * 3 + [math.pi] * 3 + [0.5] * 3 + [5.0] * 3)
 MAX_RANGE_BIAS_SIGMA_M = 5.0
-
-
-class Mode(str, Enum):
-    LOOSE = "loose"  # UWB least-squares positions are the measurements
-    TIGHT = "tight"  # every range is a scalar measurement
-
-
-@dataclass(frozen=True)
-class FilterConfig:
-    """Everything the filter is told. Units in names; rotations as row-major 3×3 tuples."""
-
-    mode: Mode = Mode.TIGHT
-    anchors_m: Mapping[int, Vec3] = field(default_factory=dict)
-    mounting_rotation: tuple[Vec3, Vec3, Vec3] = IDENTITY3  # C_bs: sensor axes -> body FLU
-    lever_arm_m: Vec3 = (0.0, 0.0, 0.0)  # IMU -> UWB antenna, body axes
-    imu_noise: ImuNoise = field(default_factory=ImuNoise)
-    imu_limits: ImuLimits = field(default_factory=ImuLimits)
-    range_sigma_m: float = 0.10
-    acc_bias_sigma_mps2: float = 0.1  # initial; the vertical part is set from |f| - g at rest
-    gate_probability: float = 0.997  # per-measurement χ² gate (3 σ for a scalar)
-    gating: GatingPolicy = field(default_factory=lambda: GatingPolicy(min_anchors=1))
-    robust: RobustPolicy = field(default_factory=RobustPolicy)
-    range_bias_states: bool = True  # self-calibrate each anchor's antenna delay
-    range_bias_sigma_m: float = 0.1  # each anchor's own antenna delay, as a range offset
-    tag_delay_sigma_m: float = 0.2  # the tag's antenna delay: one offset common to all ranges
-    # one Gauss–Markov range error per anchor: multipath and antenna patterns make real range
-    # errors time-correlated (seconds); off for white range noise (a simulator's)
-    multipath_states: bool = True
-    multipath_sigma_m: float = 0.07
-    multipath_tau_s: float = 1.0
-    tag_side: str = "auto"  # of a plane of anchors: auto | below | above (see .mirror)
-    height_range_m: tuple[float, float] | None = None  # where the tag can be (a hint)
-    zupt: bool = True
-    zupt_sigma_mps: float = 0.02
-    zupt_max_speed_mps: float = 0.15
-    nhc: bool = False
-    nhc_sigma_mps: float = 0.1
-    known_height_m: float | None = None
-    height_sigma_m: float = 0.05
-    static_window_s: float = 0.5
-    rest: RestLimits = field(default_factory=RestLimits)
-    init_static_s: float = 1.0
-    init_max_wait_s: float = 3.0
-    range_window_s: float = 0.2  # single ranges solved together for a fix (see .fixes)
-    fix_interval_s: float = 0.1
-    max_imu_gap_s: float = 0.5
-    attitude_lost_after_s: float = 3.0  # an IMU gap or rejected burst this long: re-level
-    health: HealthLimits = field(default_factory=HealthLimits)
-    align_window_s: float = 2.0  # coarse heading alignment: window of UWB fixes compared
-    align_min_dv_mps: float = 0.5  # ... with this much horizontal velocity change at least
 
 
 class Filter(Recovery):

@@ -29,7 +29,7 @@ from uwbd.fusion.rest import ImuWindow
 from uwbd.fusion.rotation import Array, quat_from_euler, quat_to_matrix
 
 if TYPE_CHECKING:
-    from uwbd.fusion.filter import FilterConfig
+    from uwbd.fusion.settings import FilterConfig
 
 NS = 1_000_000_000
 

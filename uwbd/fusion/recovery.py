@@ -27,7 +27,7 @@ from uwbd.fusion.rest import ImuWindow
 from uwbd.fusion.rotation import Array
 
 if TYPE_CHECKING:
-    from uwbd.fusion.filter import FilterConfig
+    from uwbd.fusion.settings import FilterConfig
 
 NS = 1_000_000_000
 # what the IMU did not see (a gap, rejected samples): accelerations and turns of this σ per √s

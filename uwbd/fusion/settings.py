@@ -1,0 +1,68 @@
+"""What the filter is told: its mode and every setting, with units in names (the TOML
+configuration's ``[imu]`` and ``[fusion]`` keys land here through :mod:`uwbd.config`)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from enum import Enum
+
+from uwbd.fusion.eskf import ImuNoise
+from uwbd.fusion.gating import GatingPolicy
+from uwbd.fusion.health import HealthLimits
+from uwbd.fusion.imu_check import ImuLimits
+from uwbd.fusion.rest import RestLimits
+from uwbd.fusion.robust import RobustPolicy
+
+Vec3 = tuple[float, float, float]
+IDENTITY3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+
+
+class Mode(str, Enum):
+    LOOSE = "loose"  # UWB least-squares positions are the measurements
+    TIGHT = "tight"  # every range is a scalar measurement
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Everything the filter is told. Units in names; rotations as row-major 3×3 tuples."""
+
+    mode: Mode = Mode.TIGHT
+    anchors_m: Mapping[int, Vec3] = field(default_factory=dict)
+    mounting_rotation: tuple[Vec3, Vec3, Vec3] = IDENTITY3  # C_bs: sensor axes -> body FLU
+    lever_arm_m: Vec3 = (0.0, 0.0, 0.0)  # IMU -> UWB antenna, body axes
+    imu_noise: ImuNoise = field(default_factory=ImuNoise)
+    imu_limits: ImuLimits = field(default_factory=ImuLimits)
+    range_sigma_m: float = 0.10
+    acc_bias_sigma_mps2: float = 0.1  # initial; the vertical part is set from |f| - g at rest
+    gate_probability: float = 0.997  # per-measurement χ² gate (3 σ for a scalar)
+    gating: GatingPolicy = field(default_factory=lambda: GatingPolicy(min_anchors=1))
+    robust: RobustPolicy = field(default_factory=RobustPolicy)
+    range_bias_states: bool = True  # self-calibrate each anchor's antenna delay
+    range_bias_sigma_m: float = 0.1  # each anchor's own antenna delay, as a range offset
+    tag_delay_sigma_m: float = 0.2  # the tag's antenna delay: one offset common to all ranges
+    # one Gauss–Markov range error per anchor: multipath and antenna patterns make real range
+    # errors time-correlated (seconds); off for white range noise (a simulator's)
+    multipath_states: bool = True
+    multipath_sigma_m: float = 0.07
+    multipath_tau_s: float = 1.0
+    tag_side: str = "auto"  # of a plane of anchors: auto | below | above (see .mirror)
+    height_range_m: tuple[float, float] | None = None  # where the tag can be (a hint)
+    zupt: bool = True
+    zupt_sigma_mps: float = 0.02
+    zupt_max_speed_mps: float = 0.15
+    nhc: bool = False
+    nhc_sigma_mps: float = 0.1
+    known_height_m: float | None = None
+    height_sigma_m: float = 0.05
+    static_window_s: float = 0.5
+    rest: RestLimits = field(default_factory=RestLimits)
+    init_static_s: float = 1.0
+    init_max_wait_s: float = 3.0
+    range_window_s: float = 0.2  # single ranges solved together for a fix (see .fixes)
+    fix_interval_s: float = 0.1
+    max_imu_gap_s: float = 0.5
+    attitude_lost_after_s: float = 3.0  # an IMU gap or rejected burst this long: re-level
+    health: HealthLimits = field(default_factory=HealthLimits)
+    align_window_s: float = 2.0  # coarse heading alignment: window of UWB fixes compared
+    align_min_dv_mps: float = 0.5  # ... with this much horizontal velocity change at least
