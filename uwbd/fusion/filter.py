@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from drivers.frames import ImuSample, UwbRanges
-from uwbd.fusion.alignment import HeadingAligner, velocity_fit
+from uwbd.fusion.alignment import HeadingAligner
 from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, Eskf
 from uwbd.fusion.fixes import RangeWindow
 from uwbd.fusion.gating import GatingCounters, chi2_quantile, gate
@@ -62,7 +62,7 @@ from uwbd.fusion.recovery import (
     UNSEEN_RATE_SIGMA_RPS,
     Recovery,
 )
-from uwbd.fusion.rest import ImuWindow
+from uwbd.fusion.rest import ImuWindow, UwbStillness
 from uwbd.fusion.robust import AnchorStats, quality_scale
 from uwbd.fusion.rotation import Array
 from uwbd.fusion.settings import FilterConfig, Mode
@@ -76,8 +76,6 @@ ATTITUDE_AND_GYRO_BIAS = slice(TH_.start, BG_.stop)
 PROPAGATE_EVERY_S = 0.1  # the covariance follows the state at least this often (coasting)
 MIN_PROPAGATE_S = 0.02  # and at most this often: P grows little in 20 ms
 CONSTRAINT_EVERY_NS = 95_000_000  # ZUPT, NHC, known height: about 10 Hz
-STILL_S, STILL_MPS = 1, 0.15  # at rest the UWB fixes of this long move slower than this
-STILL_EVERY_NS, MIN_STILL_FIXES = 180_000_000, 5
 TILT_CHECK_EVERY_NS = NS // 2
 MAX_ANCHOR_COORD_M = 1e4  # a device-reported anchor farther out than this is garbage
 NUMERICAL_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError)
@@ -134,8 +132,7 @@ class Filter(Recovery):
         self._relevel: str | None = None  # attitude restart pending: "keep" or "level" the tilt
         self._tilt_bad_ns: int | None = None  # since when, at rest, gravity disagrees
         self._tilt_check_ns = -(2**63)
-        self._track: collections.deque[tuple[int, Array]] = collections.deque()
-        self._track_sigma_m = 0.0  # horizontal σ of the latest fix in it
+        self.stillness = UwbStillness()
         self._coasted = False
         self._aligner = HeadingAligner(config.align_window_s, config.align_min_dv_mps,
                                        config.range_sigma_m)
@@ -472,33 +469,13 @@ class Filter(Recovery):
 
     def _track_fixes(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                      fix: LsqFix | None) -> None:
-        """UWB-only fixes, about 5 a second over the last ``STILL_S``: what the ranges alone
-        say about motion, whatever a ZUPT does to the state's velocity."""
-        track = self._track
-        if not track or t_ns - track[-1][0] >= STILL_EVERY_NS:
+        """UWB-only fixes for :class:`UwbStillness`, about 5 a second."""
+        if self.stillness.wants_fix(t_ns):
             fix = fix or self.ranges.fix(t_ns, ids, anchors, ranges, self._antenna(),
                                          force=True, weigh=False)
             if fix is not None:
-                track.append((t_ns, fix.position_m))
-                self._track_sigma_m = math.sqrt(max(float(np.trace(fix.covariance[:2, :2]))
-                                                    / 2, 0.0))
-        while track and track[0][0] < t_ns - STILL_S * NS:
-            track.popleft()
-
-    def _still(self, allow_noise: bool = False) -> bool:
-        """The UWB fixes of the last ``STILL_S`` do not show the vehicle moving: a line
-        fit's horizontal speed below ``STILL_MPS`` (with ``allow_noise``, or below 3σ of
-        what the fixes' noise gives). Too few fixes to tell: still, and the IMU decides."""
-        track = self._track
-        n = len(track)
-        if n < MIN_STILL_FIXES:
-            return True
-        v, _ = velocity_fit(list(track))
-        limit = STILL_MPS
-        if allow_noise:
-            span_s = max((track[-1][0] - track[0][0]) / NS, 1e-3)
-            limit = max(limit, 3.0 * self._track_sigma_m * math.sqrt(12.0 / n) / span_s)
-        return math.hypot(v[0], v[1]) < limit
+                self.stillness.add(t_ns, fix)
+        self.stillness.forget_before(t_ns)
 
     def _constraints(self) -> list[Rows]:
         ekf = self.ekf
@@ -507,7 +484,7 @@ class Filter(Recovery):
         rows = []
         # constant velocity looks like rest to an IMU: require a slow estimate, and a state
         # that the ranges have not moved either (a ZUPT would otherwise pin v at 0 for good)
-        slow = math.hypot(*ekf.v) < cfg.zupt_max_speed_mps and self._still()
+        slow = math.hypot(*ekf.v) < cfg.zupt_max_speed_mps and self.stillness.still()
         t_ns = self.t_ns or 0
         tilt_check_due = t_ns - self._tilt_check_ns >= TILT_CHECK_EVERY_NS
         still_imu = ((slow and cfg.zupt) or tilt_check_due) and self._imu_fresh() \
@@ -516,7 +493,7 @@ class Filter(Recovery):
             self._tilt_check_ns = t_ns
             # the IMU still and the UWB fixes too, whatever the velocity estimate says (a
             # wrong tilt makes it wrong): the mean specific force is gravity's reaction
-            if still_imu and self._still(allow_noise=True):
+            if still_imu and self.stillness.still(allow_noise=True):
                 self._check_tilt_against_gravity()
             else:
                 self._tilt_bad_ns = None

@@ -23,7 +23,7 @@ from uwbd.fusion.fixes import RangeWindow, consistent
 from uwbd.fusion.health import HealthMonitor
 from uwbd.fusion.initialise import Start, start_state
 from uwbd.fusion.lsq import LsqFix
-from uwbd.fusion.rest import ImuWindow
+from uwbd.fusion.rest import ImuWindow, UwbStillness
 from uwbd.fusion.rotation import Array
 
 if TYPE_CHECKING:
@@ -61,7 +61,7 @@ class Recovery:
     _start_started_ns: int | None
     _first_t_ns: int | None
     _fixes: collections.deque[tuple[int, Array]]
-    _track: collections.deque[tuple[int, Array]]
+    stillness: UwbStillness
     _last_good_P: Array | None  # noqa: N815 - P as in docs/ekf.md
     _relevel: str | None
     _tilt_bad_ns: int | None
@@ -141,7 +141,7 @@ class Recovery:
         self._carry = None
         self._start_started_ns = None
         self._last_good_P = None
-        self._track.clear()
+        self.stillness.clear()
         self._position_reset_ns = -(2**63)
         self._tilt_bad_ns = None
         self.counters["initialisations"] += 1

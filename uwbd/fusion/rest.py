@@ -1,4 +1,5 @@
-"""The recent IMU samples (body axes) and the rest test on them.
+"""Rest: the recent IMU samples (body axes) and the rest test on them, and what the UWB
+fixes say about motion.
 
 At rest the specific force is steady (its spread is the sensor's noise plus a little
 vibration) and close to ``g`` in size, and the rotation rate is small and steady. Slow
@@ -10,11 +11,14 @@ asks for ``init_static_s``).
 from __future__ import annotations
 
 import collections
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from uwbd.fusion.alignment import velocity_fit
 from uwbd.fusion.eskf import GRAVITY_MPS2
+from uwbd.fusion.lsq import LsqFix
 from uwbd.fusion.rotation import Array
 
 Vec3 = tuple[float, float, float]
@@ -92,3 +96,47 @@ class ImuWindow:
                     < lim.gravity_tolerance_mps2
                     and np.linalg.norm(gyro.mean(axis=0)) < lim.gyro_rps
                     and np.linalg.norm(gyro.std(axis=0)) < lim.gyro_rps)
+
+
+STILL_S, STILL_MPS = 1, 0.15  # at rest the UWB fixes of this long move slower than this
+STILL_EVERY_NS, MIN_STILL_FIXES = 180_000_000, 5
+
+
+class UwbStillness:
+    """UWB-only fixes over the last ``STILL_S``: what the ranges alone say about motion,
+    whatever a ZUPT does to the state's velocity (constant velocity looks like rest to an
+    IMU)."""
+
+    def __init__(self) -> None:
+        self._fixes: collections.deque[tuple[int, Array]] = collections.deque()
+        self._sigma_m = 0.0  # horizontal σ of the latest fix
+
+    def wants_fix(self, t_ns: int) -> bool:
+        return not self._fixes or t_ns - self._fixes[-1][0] >= STILL_EVERY_NS
+
+    def add(self, t_ns: int, fix: LsqFix) -> None:
+        self._fixes.append((t_ns, fix.position_m))
+        self._sigma_m = math.sqrt(max(float(np.trace(fix.covariance[:2, :2])) / 2, 0.0))
+
+    def forget_before(self, t_ns: int) -> None:
+        fixes = self._fixes
+        while fixes and fixes[0][0] < t_ns - STILL_S * 1e9:
+            fixes.popleft()
+
+    def clear(self) -> None:
+        self._fixes.clear()
+
+    def still(self, allow_noise: bool = False) -> bool:
+        """The fixes do not show the vehicle moving: a line fit's horizontal speed below
+        ``STILL_MPS`` (with ``allow_noise``, or below 3σ of what the fixes' noise gives).
+        Too few fixes to tell: still, and the IMU decides."""
+        fixes = self._fixes
+        n = len(fixes)
+        if n < MIN_STILL_FIXES:
+            return True
+        v, _ = velocity_fit(list(fixes))
+        limit = STILL_MPS
+        if allow_noise:
+            span_s = max((fixes[-1][0] - fixes[0][0]) / 1e9, 1e-3)
+            limit = max(limit, 3.0 * self._sigma_m * math.sqrt(12.0 / n) / span_s)
+        return math.hypot(v[0], v[1]) < limit
