@@ -257,10 +257,6 @@ class Eskf:
         return math.sqrt(max((cov[0, 0] + cov[1, 1]) / 2, 0.0))
 
     # -- measurement update --------------------------------------------------------------
-    def innovation_variances(self, H: Array, R: Array) -> Array:
-        """``S_ii = H_i P H_iᵀ + R_i`` for each row, at the current prior."""
-        return np.einsum("ij,jk,ik->i", H, self.P, H) + R
-
     def sequential_update(self, H: Array, y: Array, R: Array,
                           decide: Callable[[int, float, float], float],
                           considered: slice | None = None) -> list[Row]:
@@ -360,9 +356,6 @@ class Eskf:
     def R(self) -> Array:
         """Body-to-navigation rotation matrix of the nominal attitude."""
         return quat_to_matrix(np.array(self.q))
-
-    def position_sigma_m(self) -> Array:
-        return np.sqrt(np.diag(self.P)[P_])
 
     def yaw_sigma_rad(self) -> float:
         """Standard deviation of the heading error: the nav-z component of ``R δθ``."""
