@@ -29,10 +29,10 @@ import numpy as np
 import zenoh
 
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M
-from uwbd.logtools import write_simulation
-from uwbd.mcaplog import read_log
-from uwbd.replay import replay
-from uwbd.simulator import SimConfig, simulate
+from uwbd.logs.mcaplog import read_log
+from uwbd.logs.replay import replay
+from uwbd.tools.logtools import write_simulation
+from uwbd.tools.simulator import SimConfig, simulate
 
 TICKS = os.sysconf("SC_CLK_TCK")
 

@@ -22,7 +22,10 @@ import numpy as np
 
 from drivers.frames import Frame, ImuSample, UwbRanges
 from uwbd.config import parse
-from uwbd.evaluate import (
+from uwbd.fusion.baselines import comparison_methods
+from uwbd.fusion.rotation import Array
+from uwbd.fusion.settings import FilterConfig, Mode
+from uwbd.tools.evaluate import (
     HEADER,
     Accuracy,
     Times,
@@ -34,12 +37,9 @@ from uwbd.evaluate import (
     score_poses,
     truth_spikes,
 )
-from uwbd.fusion.baselines import comparison_methods
-from uwbd.fusion.rotation import Array
-from uwbd.fusion.settings import FilterConfig, Mode
-from uwbd.importer import load_iasl
-from uwbd.logtools import simulation_toml
-from uwbd.simulator import Z_DOWN, SimConfig, Simulation, simulate
+from uwbd.tools.importer import load_iasl
+from uwbd.tools.logtools import simulation_toml
+from uwbd.tools.simulator import Z_DOWN, SimConfig, Simulation, simulate
 
 ANCHORS_8 = ((-5.0, 30.0, 0.0), (-5.0, -30.0, 0.0), (10.0, 10.0, 5.0), (10.0, -10.0, 5.0),
              (20.0, 30.0, 0.0), (20.0, -30.0, 0.0), (0.0, 0.0, 3.0), (15.0, 0.0, 3.0))

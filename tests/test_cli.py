@@ -13,7 +13,7 @@ from pathlib import Path
 import serial
 
 from drivers import PARSERS
-from uwbd.mcaplog import read_log
+from uwbd.logs.mcaplog import read_log
 
 DATA = Path(__file__).parent / "data"
 UWBD = [sys.executable, "-m", "uwbd"]

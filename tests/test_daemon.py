@@ -18,12 +18,13 @@ import zenoh
 from drivers.emulator import DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
 from uwbd.config import parse
-from uwbd.daemon import ReadQueue
-from uwbd.logtools import write_simulation
-from uwbd.mcaplog import read_log
-from uwbd.pipeline import McapSink, Pipeline, PoseList
-from uwbd.replay import replay
-from uwbd.simulator import SimConfig, simulate
+from uwbd.logs.mcaplog import read_log
+from uwbd.logs.replay import replay
+from uwbd.logs.sink import McapSink
+from uwbd.service.daemon import ReadQueue
+from uwbd.service.pipeline import Pipeline, PoseList
+from uwbd.tools.logtools import write_simulation
+from uwbd.tools.simulator import SimConfig, simulate
 
 UWBD = [sys.executable, "-m", "uwbd"]
 

@@ -11,15 +11,6 @@ import pytest
 from scipy.stats import chi2
 
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
-from uwbd.evaluate import (
-    merge,
-    run_filter,
-    run_method,
-    run_smoother,
-    score,
-    score_poses,
-    truth_spikes,
-)
 from uwbd.fusion.baselines import ComplementaryAttitude, Kf4, PureIns, UwbLeastSquares
 from uwbd.fusion.eskf import N_CORE, TH_, Eskf, ImuNoise
 from uwbd.fusion.filter import Filter
@@ -30,7 +21,16 @@ from uwbd.fusion.rotation import Array, euler_from_quat, quat_from_euler, quat_m
 from uwbd.fusion.settings import FilterConfig, Mode
 from uwbd.fusion.smoother import smooth
 from uwbd.fusion.types import Pose
-from uwbd.simulator import SimConfig, Simulation, simulate
+from uwbd.tools.evaluate import (
+    merge,
+    run_filter,
+    run_method,
+    run_smoother,
+    score,
+    score_poses,
+    truth_spikes,
+)
+from uwbd.tools.simulator import SimConfig, Simulation, simulate
 
 SHORT = ((4.0, 0.0, 0.0, 0.0), (5.0, 1.5, 0.0, 0.0), (5.2, 1.5, 0.3, 0.0),
          (5.0, 1.2, 0.0, 0.2), (3.0, 0.0, 0.0, 0.0))

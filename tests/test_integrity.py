@@ -17,7 +17,6 @@ from hypothesis import strategies as st
 
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
 from uwbd.config import parse
-from uwbd.evaluate import merge, run_filter, run_method, score, score_poses
 from uwbd.fusion.baselines import UwbLeastSquares
 from uwbd.fusion.eskf import N_CORE
 from uwbd.fusion.filter import Filter
@@ -28,8 +27,9 @@ from uwbd.fusion.robust import RobustPolicy
 from uwbd.fusion.rotation import Array
 from uwbd.fusion.settings import FilterConfig
 from uwbd.fusion.types import Pose
-from uwbd.logtools import simulation_toml
-from uwbd.simulator import SimConfig, Simulation, ceiling_room, handheld_async, simulate
+from uwbd.tools.evaluate import merge, run_filter, run_method, score, score_poses
+from uwbd.tools.logtools import simulation_toml
+from uwbd.tools.simulator import SimConfig, Simulation, ceiling_room, handheld_async, simulate
 
 SHORT = ((4.0, 0.0, 0.0, 0.0), (5.0, 1.5, 0.0, 0.0), (5.2, 1.5, 0.3, 0.0),
          (5.0, 1.2, 0.0, 0.2), (3.0, 0.0, 0.0, 0.0))

@@ -15,10 +15,10 @@ from mcap.reader import make_reader
 from drivers.frames import ImuSample, UwbRanges
 from uwbd import config as cfgmod
 from uwbd.codec import strict_json
-from uwbd.importer import INROL_EPOCH_NS
-from uwbd.logtools import load_recording, write_simulation
-from uwbd.mcaplog import LogWriter, SourceInfo, read_log
-from uwbd.simulator import EPOCH_NS, SimConfig, simulate
+from uwbd.logs.mcaplog import LogWriter, SourceInfo, read_log
+from uwbd.tools.importer import INROL_EPOCH_NS
+from uwbd.tools.logtools import load_recording, write_simulation
+from uwbd.tools.simulator import EPOCH_NS, SimConfig, simulate
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "iasl-s1"
 INROL = DATA.parent / "inrol-env1"

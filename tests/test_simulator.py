@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from uwbd.config import parse
-from uwbd.logtools import simulation_toml
-from uwbd.simulator import (
+from uwbd.tools.logtools import simulation_toml
+from uwbd.tools.simulator import (
     EPOCH_NS,
     PRESETS,
     SimConfig,

@@ -23,10 +23,14 @@ from uwbd import __version__
 from uwbd.codec import frame_to_dict
 from uwbd.config import Config, ConfigError
 from uwbd.config import load as load_config
-from uwbd.daemon import run as run_daemon
-from uwbd.demo import run_demo
-from uwbd.echo import echo
-from uwbd.importer import (
+from uwbd.logs.mcaplog import LogContents, read_log, recover
+from uwbd.logs.replay import replay
+from uwbd.service.daemon import run as run_daemon
+from uwbd.service.demo import run_demo
+from uwbd.service.echo import echo
+from uwbd.service.interrupt import shielded, wait_until
+from uwbd.service.zenohsink import default_prefix
+from uwbd.tools.importer import (
     INROL_LEVER_ARM_M,
     INROL_MOUNTING,
     Dataset,
@@ -34,12 +38,8 @@ from uwbd.importer import (
     load_iasl,
     load_inrol,
 )
-from uwbd.interrupt import shielded, wait_until
-from uwbd.logtools import load_recording, write_dataset, write_simulation
-from uwbd.mcaplog import LogContents, read_log, recover
-from uwbd.replay import replay
-from uwbd.simulator import Z_DOWN, SimConfig, simulate
-from uwbd.zenohsink import default_prefix
+from uwbd.tools.logtools import load_recording, write_dataset, write_simulation
+from uwbd.tools.simulator import Z_DOWN, SimConfig, simulate
 
 READ_CHUNK_BYTES = 65536
 
@@ -178,7 +178,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     out_dir = Path(args.out_dir) if args.out_dir else path.with_suffix("")
     # imported here: plotting and the baselines (matplotlib, filterpy, scipy) would otherwise
     # sit in the daemon's memory for nothing
-    from uwbd.report import report
+    from uwbd.tools.report import report
 
     print(report(rec, out_dir, args.skip))
     return 0

@@ -20,7 +20,10 @@ matplotlib.use("Agg")  # files only: no display needed
 import matplotlib.pyplot as plt
 import numpy as np
 
-from uwbd.evaluate import (
+from uwbd.fusion.baselines import comparison_methods
+from uwbd.fusion.rotation import Array
+from uwbd.fusion.settings import Mode
+from uwbd.tools.evaluate import (
     HEADER,
     Times,
     run_filter,
@@ -29,10 +32,7 @@ from uwbd.evaluate import (
     score,
     truth_spikes,
 )
-from uwbd.fusion.baselines import comparison_methods
-from uwbd.fusion.rotation import Array
-from uwbd.fusion.settings import Mode
-from uwbd.logtools import Recording
+from uwbd.tools.logtools import Recording
 
 Track = tuple[Times, Array, Array | None]
 

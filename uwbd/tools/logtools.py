@@ -21,11 +21,11 @@ from drivers.emulator import ENCODERS
 from drivers.frames import Frame, ImuSample, UwbRanges
 from uwbd import config as cfgmod
 from uwbd.codec import frame_from_dict
-from uwbd.evaluate import merge
 from uwbd.fusion.rotation import Array, quat_from_euler, quat_from_matrix
-from uwbd.importer import Dataset
-from uwbd.mcaplog import LogContents, LogWriter, SourceInfo, pose_message
-from uwbd.simulator import Simulation, sensor_settings
+from uwbd.logs.mcaplog import LogContents, LogWriter, SourceInfo, pose_message
+from uwbd.tools.evaluate import merge
+from uwbd.tools.importer import Dataset
+from uwbd.tools.simulator import Simulation, sensor_settings
 
 FLUSH_EVERY_NS = 1_000_000_000
 TRUTH_EVERY = 4  # of the simulator's IMU-rate truth: 50 Hz

@@ -1,7 +1,7 @@
 """``uwbd demo``: the real daemon against emulated sensors, with live poses in the terminal.
 
 The emulator serves a WitMotion IMU and a Nooploop tag on pseudo-terminals (with a little
-line noise); the daemon (:func:`uwbd.daemon.run`: serial sources → drivers → aligner →
+line noise); the daemon (:func:`uwbd.service.daemon.run`: serial sources → drivers → aligner →
 fusion → MCAP + Zenoh) reads them like real ports. A view prints a pose line a second;
 Ctrl-C stops everything cleanly and prints a summary with the accuracy against the
 scenario's truth and where the log is. Zenoh listens on a unix socket in the work
@@ -22,11 +22,11 @@ from drivers.emulator import DeviceSpec, Emulator, Faults
 from drivers.emulator.scenario import CircleScenario
 from drivers.frames import Frame
 from uwbd.config import SourceConfig, parse, to_toml
-from uwbd.daemon import run
 from uwbd.fusion.types import Pose
-from uwbd.interrupt import shielded
-from uwbd.mcaplog import pose_message
-from uwbd.pipeline import McapSink
+from uwbd.logs.mcaplog import pose_message
+from uwbd.logs.sink import McapSink
+from uwbd.service.daemon import run
+from uwbd.service.interrupt import shielded
 
 DEMO_FAULTS = Faults(garbage_rate_hz=0.5, split=True, corrupt_prob=0.01)
 PREFIX = "uwbd/demo"

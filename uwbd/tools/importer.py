@@ -41,7 +41,7 @@ IASL_ANCHORS_M: dict[int, tuple[float, float, float]] = {
 
 INROL_EPOCH_NS = 1_700_000_000 * 10**9
 """Added to every inrol time: the files' clock starts at 0 with the recording, so the run is
-put on a stated epoch, the simulator's (``uwbd.simulator.EPOCH_NS``, 2023-11-14T22:13:20Z)."""
+put on a stated epoch, the simulator's (``uwbd.tools.simulator.EPOCH_NS``, 2023-11-14T22:13:20Z)."""
 INROL_MOUNTING = IDENTITY3  # the truth is the IMU's pose: body frame = IMU frame
 INROL_LEVER_ARM_M = (0.0, 0.0, 0.01)  # IMU -> tag antenna, IMU axes (the dataset's README)
 

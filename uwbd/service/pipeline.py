@@ -15,21 +15,14 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Sequence
-from datetime import datetime, timezone
-from pathlib import Path
 from typing import Any, Protocol
 
 from drivers import PARSERS, Frame, ImuSample, Parser
 from uwbd import __version__
-from uwbd.aligner import Aligner
 from uwbd.config import Config
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.types import Pose
-from uwbd.mcaplog import LogWriter, SourceInfo
-
-FLUSH_PERIOD_NS = 1_000_000_000  # the log is handed to the OS about once a second
-WRITE_BEHIND_NS = 100_000_000  # records wait this long in memory, then are written together
-MAX_BEHIND_NS = 500_000_000  # the longest they wait when the owner paces the writing
+from uwbd.service.aligner import Aligner
 
 
 class Sink(Protocol):
@@ -185,135 +178,6 @@ def _brief(parser: Parser) -> dict[str, Any]:
     recent = stats.pop("recent_errors")
     stats["last_error"] = recent[-1] if recent else ""
     return stats
-
-
-class McapSink:
-    """Writes the pipeline to MCAP files: one file, or a rotating series in a directory.
-
-    Rotation starts a new file when the current one passes ``rotate_bytes`` or spans
-    ``rotate_ns`` of data time. Records are written behind: kept until they span
-    ``WRITE_BEHIND_NS`` and then written in one go, on warm caches (one by one, each record
-    cost the daemon twice the CPU). With ``paced`` the owner calls :meth:`write_pending`
-    when it has time (the daemon: on a read that brings no pose, so the writing never
-    delays one); records then wait at most ``MAX_BEHIND_NS``. The file is flushed about
-    once a second of data time, so a crash loses about 1.1 s (1.5 s at worst). An
-    ``OSError`` (disk full, directory gone) stops logging, is kept in :attr:`error` for the
-    status, and never reaches the pipeline.
-    """
-
-    def __init__(self, config: Config, path: Path | None = None, directory: Path | None = None,
-                 rotate_bytes: int | None = None, rotate_ns: int | None = None,
-                 paced: bool = False) -> None:
-        if (path is None) == (directory is None):
-            raise ValueError("give either a file path or a directory")
-        self.config = config
-        self.path = path
-        self.directory = directory
-        self.rotate_bytes = rotate_bytes
-        self.rotate_ns = rotate_ns
-        self.files: list[Path] = []
-        self.error = ""
-        self._log: LogWriter | None = None
-        self._opened_ns = 0
-        self._flushed_ns = 0
-        self._behind: list[tuple[int, str, tuple[Any, ...]]] = []
-        self._max_behind_ns = MAX_BEHIND_NS if paced else WRITE_BEHIND_NS
-
-    def _writer(self, t_ns: int) -> LogWriter | None:
-        if self.error:
-            return None
-        log = self._log
-        # rotation is judged at flush time (about once a second), not on every message
-        if (log is not None and self.directory is not None and self._due_flush(t_ns) and (
-                (self.rotate_bytes and log.path.stat().st_size >= self.rotate_bytes)
-                or (self.rotate_ns and t_ns - self._opened_ns >= self.rotate_ns))):
-            self._close_current()
-            log = None
-        if log is None:
-            path = self.path or self._next_name(t_ns)
-            sources = tuple(SourceInfo(s.name, s.driver, s.port) for s in self.config.sources)
-            try:
-                if self.directory is not None:
-                    self.directory.mkdir(parents=True, exist_ok=True)
-                log = self._log = LogWriter(path, self.config.text, sources)
-            except OSError as err:
-                self._fail(f"cannot write log {path}: {err.strerror or err}")
-                return None
-            self.files.append(path)
-            self._opened_ns = self._flushed_ns = t_ns
-        return log
-
-    def _due_flush(self, t_ns: int) -> bool:
-        return t_ns - self._flushed_ns >= FLUSH_PERIOD_NS
-
-    def _next_name(self, t_ns: int) -> Path:
-        assert self.directory is not None
-        stamp = datetime.fromtimestamp(t_ns / 1e9, tz=timezone.utc).strftime("%Y%m%d-%H%M%S")
-        path = self.directory / f"uwbd-{stamp}.mcap"
-        k = 1
-        while path.exists() or path in self.files:
-            path = self.directory / f"uwbd-{stamp}-{k}.mcap"
-            k += 1
-        return path
-
-    def _write(self, t_ns: int, action: str, *args: Any) -> None:
-        if self.error:
-            return  # logging has stopped: keep nothing
-        behind = self._behind
-        behind.append((t_ns, action, args))
-        if t_ns - behind[0][0] >= self._max_behind_ns:
-            self.write_pending(everything=True)
-
-    def write_pending(self, everything: bool = False) -> None:
-        """Write the records kept back once they span ``WRITE_BEHIND_NS`` of data time (or
-        ``everything`` now)."""
-        behind = self._behind
-        if not behind or (not everything and behind[-1][0] - behind[0][0] < WRITE_BEHIND_NS):
-            return
-        self._behind = []
-        for t_ns, action, args in behind:
-            log = self._writer(t_ns)
-            if log is None:
-                return
-            try:
-                getattr(log, action)(*args)
-                if self._due_flush(t_ns):
-                    log.flush()
-                    self._flushed_ns = t_ns
-            except OSError as err:
-                self._fail(f"writing {log.path}: {err.strerror or err}")
-
-    def _fail(self, reason: str) -> None:
-        self.error = f"logging stopped: {reason}"
-        self._log = None
-
-    def raw(self, source: str, t_ns: int, data: bytes) -> None:
-        self._write(t_ns, "raw", source, t_ns, data)
-
-    def frame(self, frame: Frame) -> None:
-        self._write(frame.t_ns, "frame", frame)
-
-    def pose(self, pose: Pose) -> None:
-        self._write(pose.t_ns, "pose", pose)
-
-    def status(self, t_ns: int, status: dict[str, Any]) -> None:
-        self.json("/status", t_ns, status)
-
-    def json(self, topic: str, t_ns: int, obj: dict[str, Any], schema_name: str = "") -> None:
-        """Any other JSON record (e.g. ``/truth`` when the truth is known)."""
-        self._write(t_ns, "json", topic, t_ns, obj, schema_name)
-
-    def _close_current(self) -> None:
-        if self._log is not None:
-            try:
-                self._log.close()
-            except OSError as err:
-                self._fail(f"finishing {self._log.path}: {err.strerror or err}")
-            self._log = None
-
-    def close(self) -> None:
-        self.write_pending(everything=True)
-        self._close_current()
 
 
 class PoseList:

@@ -14,7 +14,7 @@ from typing import Any
 
 import zenoh
 
-from uwbd.zenohsink import session_config
+from uwbd.service.zenohsink import session_config
 
 
 def echo(zcfg: dict[str, Any], prefix: str, status: bool, count: int | None,

@@ -26,9 +26,10 @@ import zenoh
 
 from drivers.dwm1001_tlv import LOC_GET_REQUEST
 from uwbd.config import Config, SourceConfig
-from uwbd.notify import Notifier
-from uwbd.pipeline import McapSink, Pipeline, Sink
-from uwbd.zenohsink import ZenohSink
+from uwbd.logs.sink import McapSink
+from uwbd.service.notify import Notifier
+from uwbd.service.pipeline import Pipeline, Sink
+from uwbd.service.zenohsink import ZenohSink
 
 READ_BYTES = 4096
 # drivers whose device speaks only when asked: (request bytes, period s)

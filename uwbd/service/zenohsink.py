@@ -21,7 +21,7 @@ import zenoh
 from drivers.frames import Frame
 from uwbd.codec import strict_json
 from uwbd.fusion.types import Pose
-from uwbd.mcaplog import pose_to_message
+from uwbd.logs.mcaplog import pose_to_message
 
 
 def default_prefix() -> str:

@@ -13,8 +13,9 @@ from pathlib import Path
 
 from uwbd.codec import frame_from_dict
 from uwbd.config import parse
-from uwbd.mcaplog import LogContents
-from uwbd.pipeline import McapSink, Pipeline, PoseList, Sink, monotonic_pacer
+from uwbd.logs.mcaplog import LogContents
+from uwbd.logs.sink import McapSink
+from uwbd.service.pipeline import Pipeline, PoseList, Sink, monotonic_pacer
 
 RAW_PREFIX = "/raw/"
 

@@ -1,0 +1,1 @@
+"""uwbd's MCAP logs: the file layout, the log sink, replay and recovery."""

@@ -1,0 +1,1 @@
+"""Offline tools: simulator, dataset importers, scoring and the comparison report."""
