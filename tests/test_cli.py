@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import serial
+from procs import read_until
 
 from drivers import PARSERS
 from uwbd.logs.mcaplog import read_log
@@ -113,9 +114,7 @@ def test_demo_survives_ctrl_c_twice() -> None:
     signals the process and its group) must not break the clean stop."""
     proc = subprocess.Popen([*UWBD, "demo"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    assert proc.stdout is not None
-    while b"pose (" not in proc.stdout.readline():
-        pass
+    read_until(proc, b"pose (", timeout_s=30)
     proc.send_signal(signal.SIGINT)
     time.sleep(0.01)
     proc.send_signal(signal.SIGINT)

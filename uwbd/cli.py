@@ -1,8 +1,11 @@
 """The ``uwbd`` command line: one entry point, one subcommand per job.
 
-Errors the user can fix (a missing file, an unknown driver, a bad option value) print one
-line ``uwbd <command>: <what and where>`` and exit 2; an interrupted run exits 0 after
-cleaning up.
+Everything a command says goes through :mod:`uwbd.journal` (``-v``/``-q`` on every command).
+Errors the user can fix (a missing or malformed file, an unknown driver, a bad option value,
+a folder that cannot be written) print one line ``uwbd <command>: <what and where>`` and
+exit 2; a run that fails while working (the pipeline raised, an output could not be
+written) exits 1; an interrupted run exits 0 after cleaning up. No traceback reaches the
+user (``-v`` shows one for an internal error); output piped into ``head`` ends quietly.
 """
 
 from __future__ import annotations
@@ -10,25 +13,27 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
 import sys
 import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 from drivers import PARSERS, Frame
 from drivers.emulator import ENCODERS, DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import CircleScenario
-from uwbd import __version__
+from uwbd import __version__, journal
 from uwbd.codec import frame_to_dict
 from uwbd.config import Config, ConfigError
 from uwbd.config import load as load_config
-from uwbd.logs.mcaplog import LogContents, read_log, recover
+from uwbd.logs.mcaplog import LogContents, not_a_log, read_log, recover
 from uwbd.logs.replay import replay
+from uwbd.service.daemon import PipelineError
 from uwbd.service.daemon import run as run_daemon
 from uwbd.service.demo import run_demo
-from uwbd.service.echo import echo
-from uwbd.service.interrupt import shielded, wait_until
+from uwbd.service.echo import EchoError, dial_endpoints, echo
+from uwbd.service.interrupt import quiet_stdout, shielded, wait_until
 from uwbd.service.zenohsink import default_prefix
 from uwbd.tools.importer import (
     INROL_LEVER_ARM_M,
@@ -42,10 +47,26 @@ from uwbd.tools.logtools import load_recording, write_dataset, write_simulation
 from uwbd.tools.simulator import Z_DOWN, SimConfig, simulate
 
 READ_CHUNK_BYTES = 65536
+LOG = journal.get("cli")
 
 
 class UsageError(Exception):
     """A problem with what the user asked for; printed as one line, exit code 2."""
+
+
+class RunError(Exception):
+    """The command failed while working (an output it could not write); exit code 1."""
+
+
+def _writable_folder(target: Path, what: str) -> None:
+    """Fail before any work when ``target`` (a file to write) cannot be created."""
+    folder = target.parent
+    if not folder.is_dir():
+        raise UsageError(f"cannot write {what} {target}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise UsageError(f"cannot write {what} {target}: folder {folder} is not writable")
+    if target.is_dir():
+        raise UsageError(f"cannot write {what} {target}: it is a folder")
 
 
 def _driver(name: str) -> str:
@@ -96,8 +117,12 @@ def cmd_emulate(args: argparse.Namespace) -> int:
     if not devices:
         raise UsageError("nothing to emulate: both --imu and --uwb are 'none'")
     link_dir = Path(args.link_dir) if args.link_dir else None
-    if link_dir is not None and not link_dir.is_dir():
-        raise UsageError(f"--link-dir {link_dir}: not a directory")
+    if link_dir is not None:
+        try:
+            link_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise UsageError(f"--link-dir {link_dir}: cannot create it: "
+                             f"{err.strerror or err}") from err
     with Emulator(devices, CircleScenario(seed=args.seed), args.duration, link_dir) as emu:
         for dev in devices:
             port = emu.ports[dev.name]
@@ -119,9 +144,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     """Run the simulator and write its log (raw device bytes + ground truth)."""
-    sim = simulate(SimConfig(seed=args.seed))
     out = Path(args.output)
-    write_simulation(sim, out, _driver(args.uwb))
+    _writable_folder(out, "the log")
+    driver = _driver(args.uwb)
+    sim = simulate(SimConfig(seed=args.seed))
+    try:
+        write_simulation(sim, out, driver)
+    except OSError as err:
+        raise RunError(f"cannot write {out}: {err.strerror or err}") from err
     duration = (sim.truth_t_ns[-1] - sim.truth_t_ns[0]) / 1e9
     print(f"{out}: {duration:.0f} s simulated, {len(sim.imu)} IMU samples, "
           f"{len(sim.uwb)} UWB epochs ({args.uwb}), seed {args.seed}")
@@ -139,6 +169,7 @@ IMPORTERS: dict[str, tuple[Callable[[Path], Dataset], Sequence[Sequence[float]],
 def cmd_import(args: argparse.Namespace) -> int:
     """Turn a recorded dataset into a replayable log with its ground truth."""
     directory, out = Path(args.directory), Path(args.output)
+    _writable_folder(out, "the log")
     load, mounting, lever_arm_m = IMPORTERS[args.format]
     try:
         ds = load(directory)
@@ -147,7 +178,7 @@ def cmd_import(args: argparse.Namespace) -> int:
     try:
         write_dataset(ds, out, mounting, lever_arm_m)
     except OSError as err:
-        raise UsageError(f"cannot write {out}: {err.strerror or err}") from err
+        raise RunError(f"cannot write {out}: {err.strerror or err}") from err
     # the loaders return every stream non-empty and in time order
     start = min(ds.imu[0].t_ns, ds.uwb[0].t_ns, int(ds.truth_t_ns[0]))
     end = max(ds.imu[-1].t_ns, ds.uwb[-1].t_ns, int(ds.truth_t_ns[-1]))
@@ -160,58 +191,124 @@ def cmd_import(args: argparse.Namespace) -> int:
 def _open_log(name: str, doing: str) -> tuple[Path, LogContents]:
     """A log read for ``doing``; a log cut short by a crash is used up to its last chunk."""
     path = Path(name)
-    if not path.is_file():
+    if not path.exists():
         raise UsageError(f"cannot read {path}: no such file")
+    problem = not_a_log(path)
+    if problem:
+        raise UsageError(problem)
     contents = read_log(path)
     if contents.truncated:
-        print(f"warning: {contents.error}; {doing} what was complete", file=sys.stderr)
+        LOG.warning("%s; %s what was complete", contents.error, doing)
     return path, contents
+
+
+def _log_config(args: argparse.Namespace, path: Path, contents: LogContents) -> str | None:
+    """The config to run a log with: the log's own, or ``-c``'s, with the ``--set`` items;
+    ``None`` for the log's own unchanged."""
+    if args.config:
+        text = _read_text(Path(args.config))
+    elif "config_toml" in contents.metadata:
+        text = contents.metadata["config_toml"]
+    else:
+        raise UsageError(f"{path}: not a uwbd log (no uwbd metadata holding its config); "
+                         "give the config to use with -c CONFIG")
+    if not args.set and not args.config:
+        return None
+    from uwbd.config import apply_overrides
+
+    try:
+        return apply_overrides(text, args.set, args.config or f"{path} (metadata)")
+    except ConfigError as err:
+        raise UsageError(str(err)) from err
+
+
+def _read_text(path: Path) -> str:
+    try:
+        return load_config(path).text
+    except ConfigError as err:
+        raise UsageError(str(err)) from err
+
+
+def _replayable(path: Path, contents: LogContents) -> None:
+    if not any(m.topic.startswith("/raw/") or m.topic in ("/imu", "/uwb")
+               for m in contents.messages):
+        raise UsageError(f"{path}: nothing to run (no /raw/*, /imu or /uwb messages; topics: "
+                         f"{', '.join(sorted(contents.topics())) or 'none'})")
 
 
 def cmd_report(args: argparse.Namespace) -> int:
     """Every method on one log, scored against its ground truth, with plots."""
     path, contents = _open_log(args.log, "reporting")
+    config_toml = _log_config(args, path, contents)
+    _replayable(path, contents)
     try:
-        rec = load_recording(contents, str(path))
+        rec = load_recording(contents, str(path), config_toml)
     except ConfigError as err:
         raise UsageError(str(err)) from err
-    out_dir = Path(args.out_dir) if args.out_dir else path.with_suffix("")
+    default = path.with_suffix("")
+    out_dir = Path(args.out_dir) if args.out_dir else (
+        default if default != path else path.with_name(path.name + "-report"))
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise UsageError(f"cannot write the plots into {out_dir}: {err.strerror or err}") from err
+    if not os.access(out_dir, os.W_OK | os.X_OK):
+        raise UsageError(f"cannot write the plots into {out_dir}: the folder is not writable")
     # imported here: plotting and the baselines (matplotlib, filterpy, scipy) would otherwise
     # sit in the daemon's memory for nothing
     from uwbd.tools.report import report
 
-    print(report(rec, out_dir, args.skip))
+    try:
+        print(report(rec, out_dir, args.skip))
+    except OSError as err:
+        raise RunError(f"cannot write the plots into {out_dir}: {err.strerror or err}") from err
     return 0
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
     """A log's reads through the live pipeline; the poses to -o, a summary to stdout."""
     path, contents = _open_log(args.log, "replaying")
+    config_toml = _log_config(args, path, contents)
+    _replayable(path, contents)
     out = Path(args.output) if args.output else None
+    if out is not None:
+        _writable_folder(out, "the replayed log")
+        if out.exists() and out.resolve() == path.resolve():
+            raise UsageError(f"{out}: give another file to write, not the log itself")
     try:
         pipeline, poses = replay(contents, str(path), out, args.realtime,
-                                 progress=sys.stderr.isatty())
+                                 progress=sys.stderr.isatty(), config_toml=config_toml)
     except ConfigError as err:
         raise UsageError(str(err)) from err
+    log_errors = [str(getattr(sink, "error", "")) for sink in pipeline.sinks
+                  if getattr(sink, "error", "")]
     print(f"{path}: {pipeline.poses} poses; filter {pipeline.filter.status}"
-          + (f"; written to {out}" if out else ""))
+          + (f"; written to {out}" if out and not log_errors and out.is_file() else ""))
     if poses.poses:
         x, y, z = poses.poses[-1].position_m
         print(f"last pose ({x:.3f}, {y:.3f}, {z:.3f}) m")
+    if out is not None and (log_errors or not out.is_file()):
+        raise RunError(f"{out}: the replayed log is incomplete: "
+                       f"{log_errors[0] if log_errors else 'the file was not written'}")
     return 0
 
 
 def cmd_recover(args: argparse.Namespace) -> int:
     """Rewrite a log cut short by a crash (no footer) as a valid MCAP file."""
     source, target = Path(args.log), Path(args.output)
-    if not source.is_file():
+    if not source.exists():
         raise UsageError(f"cannot read {source}: no such file")
-    if target.resolve() == source.resolve():
+    problem = not_a_log(source)
+    if problem:
+        raise UsageError(problem)
+    if target.exists() and target.resolve() == source.resolve():
         raise UsageError(f"{target}: give another file to write, not the log itself")
+    _writable_folder(target, "the recovered log")
     try:
         result = recover(source, target)
     except OSError as err:
-        raise UsageError(f"cannot write {target}: {err.strerror or err}") from err
+        target.unlink(missing_ok=True)
+        raise RunError(f"cannot write {target}: {err.strerror or err}") from err
     print(f"{target}: {result.messages} messages recovered from {source}"
           + (f" (it ends mid-record: {result.error})" if result.truncated else
              " (it was complete)"))
@@ -241,37 +338,62 @@ def cmd_run(args: argparse.Namespace) -> int:
     if not config.sources:
         raise UsageError(f"{args.config}: sources: at least one [[sources]] is needed")
     log_dir = Path(args.log_dir or config.log.get("directory", "logs"))
-    pipeline = asyncio.run(run_daemon(config, log_dir, args.duration))
-    files = [str(p) for sink in pipeline.sinks for p in getattr(sink, "files", [])]
-    print(f"stopped: {pipeline.poses} poses; logs: {', '.join(files) or 'none'}",
-          file=sys.stderr)
+    try:
+        pipeline = asyncio.run(run_daemon(config, log_dir, args.duration,
+                                          summary_s=args.summary_every, where=args.config))
+    except PipelineError as err:
+        raise RunError(str(err)) from err
+    sources = pipeline.extra_status.get("sources", {})
+    if sources and not any(s["opens"] for s in sources.values()):
+        raise RunError("no port could be opened: " + "; ".join(
+            f"{name}: {s['last_error']}" for name, s in sources.items()))
     return 0
 
 
 def cmd_echo(args: argparse.Namespace) -> int:
     """Print the poses (or status) a daemon publishes."""
     zcfg: dict[str, object] = {"mode": "peer", "multicast_scouting": not args.connect}
-    if args.connect:
-        zcfg["connect"] = args.connect
+    prefix = args.prefix
     if args.config:
-        zcfg.update(_load(args.config).zenoh)
-        zcfg["listen"] = []  # a subscriber dials; it does not take the daemon's listen port
-    prefix = args.prefix or str(zcfg.get("prefix") or default_prefix())
-    echo(zcfg, prefix, args.status, args.count, args.timeout)
+        zenoh_cfg = _load(args.config).zenoh
+        # dial the daemon: its routers, and its own listen endpoints (a subscriber must not
+        # take the daemon's listen port itself)
+        dial = [*zenoh_cfg.get("connect", []), *dial_endpoints(zenoh_cfg.get("listen", []))]
+        zcfg.update(multicast_scouting=zenoh_cfg.get("multicast_scouting", True),
+                    connect=dial)
+        prefix = prefix or zenoh_cfg.get("prefix")
+    if args.connect:
+        zcfg["connect"] = [*args.connect, *zcfg.get("connect", [])]  # type: ignore[misc]
+    prefix = str(prefix or default_prefix())
+    try:
+        printed = echo(zcfg, prefix, args.status, args.count, args.timeout)
+    except EchoError as err:
+        raise UsageError(str(err)) from err
+    if args.timeout is not None and printed == 0:
+        raise RunError(f"nothing received on {prefix}/{'status' if args.status else 'pose'} "
+                       f"in {args.timeout:g} s")
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="uwbd", description=__doc__.splitlines()[0])
     ap.add_argument("--version", action="version", version=f"uwbd {__version__}")
+    talk = argparse.ArgumentParser(add_help=False)
+    talk.add_argument("-v", "--verbose", action="count", default=0,
+                      help="say more (debug lines)")
+    talk.add_argument("-q", "--quiet", action="count", default=0,
+                      help="only warnings and errors")
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("dump", help="decode a byte capture as JSON lines")
+    def add(name: str, **kw: Any) -> argparse.ArgumentParser:
+        return sub.add_parser(name, parents=[talk], **kw)
+
+    p = add("dump", help="decode a byte capture as JSON lines")
     p.add_argument("--driver", required=True, help=f"one of: {', '.join(PARSERS)}")
     p.add_argument("file", help="capture file, or - for standard input")
     p.set_defaults(func=cmd_dump)
 
-    p = sub.add_parser("emulate", help="serve emulated devices on pseudo-terminals")
+    p = add("emulate", help="serve emulated devices on pseudo-terminals")
     p.add_argument("--imu", default="wit", help="IMU driver, or none (default: wit)")
     p.add_argument("--uwb", default="nlink",
                    help=f"UWB driver, or none; one of {', '.join(set(ENCODERS) - {'wit'})}")
@@ -290,18 +412,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="close the port at AT for DUR seconds (repeatable)")
     p.set_defaults(func=cmd_emulate)
 
-    p = sub.add_parser("run", help="the daemon: serial ports -> fusion -> MCAP")
+    p = add("run", help="the daemon: serial ports -> fusion -> MCAP")
     p.add_argument("-c", "--config", required=True, help="configuration TOML")
     p.add_argument("--log-dir", help="where logs go (default: [log] directory, or ./logs)")
     p.add_argument("--duration", type=float, default=None, metavar="S",
                    help="stop after S seconds (default: until SIGINT/SIGTERM)")
+    p.add_argument("--summary-every", type=float, default=60.0, metavar="S",
+                   help="log a one-line health summary every S seconds (default 60)")
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("check-config", help="validate a configuration file")
+    p = add("check-config", help="validate a configuration file")
     p.add_argument("config")
     p.set_defaults(func=cmd_check_config)
 
-    p = sub.add_parser("echo", help="print the poses (or --status) a daemon publishes")
+    p = add("echo", help="print the poses (or --status) a daemon publishes")
     p.add_argument("--status", action="store_true", help="status instead of poses")
     p.add_argument("--prefix", help="key prefix (default: from -c, else uwbd/<hostname>)")
     p.add_argument("-c", "--config", help="take the [zenoh] settings from this config")
@@ -311,41 +435,49 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, metavar="S", help="stop after S seconds")
     p.set_defaults(func=cmd_echo)
 
-    p = sub.add_parser("replay", help="re-run a log through the same pipeline")
+    p = add("replay", help="re-run a log through the same pipeline")
     p.add_argument("log")
     p.add_argument("-o", "--output", help="write the replayed run (raw, frames, poses) here")
     p.add_argument("--realtime", action="store_true", help="pace by the log's times")
+    _tuning(p)
     p.set_defaults(func=cmd_replay)
 
-    p = sub.add_parser("recover", help="rewrite a log cut short by a crash as a valid MCAP file")
+    p = add("recover", help="rewrite a log cut short by a crash as a valid MCAP file")
     p.add_argument("log")
     p.add_argument("-o", "--output", required=True, help="the MCAP file to write")
     p.set_defaults(func=cmd_recover)
 
-    p = sub.add_parser("simulate", help="simulate a run and write its MCAP log")
+    p = add("simulate", help="simulate a run and write its MCAP log")
     p.add_argument("-o", "--output", default="sim.mcap", help="log to write (default sim.mcap)")
     p.add_argument("--uwb", default="nlink", help="UWB wire format in the log (default nlink)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_simulate)
 
-    p = sub.add_parser("import", help="turn a recorded dataset into an MCAP log")
+    p = add("import", help="turn a recorded dataset into an MCAP log")
     p.add_argument("format", choices=list(IMPORTERS), help="dataset layout")
     p.add_argument("directory", help="dataset folder (iasl: imu.csv, uwb.csv, gt.csv; "
                    "inrol: anchor.txt, imu.txt, uwb.txt, imu_pose.txt)")
     p.add_argument("-o", "--output", default="import.mcap")
     p.set_defaults(func=cmd_import)
 
-    p = sub.add_parser("report", help="compare all methods on a log against its ground truth")
+    p = add("report", help="compare all methods on a log against its ground truth")
     p.add_argument("log")
     p.add_argument("-o", "--out-dir", help="where the plots go (default: next to the log)")
     p.add_argument("--skip", type=float, default=0.0, metavar="S",
                    help="leave the first S seconds of truth out of the scores")
+    _tuning(p)
     p.set_defaults(func=cmd_report)
 
-    p = sub.add_parser("demo", help="emulated sensors through drivers and fusion, live poses")
+    p = add("demo", help="emulated sensors through drivers and fusion, live poses")
     _common(p)
     p.set_defaults(func=cmd_demo)
     return ap
+
+
+def _tuning(p: argparse.ArgumentParser) -> None:
+    p.add_argument("-c", "--config", help="run with this config instead of the log's own")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="change one setting, e.g. --set fusion.zupt=false (repeatable)")
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -356,13 +488,22 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    log = journal.setup(args.command, args.verbose - args.quiet)
     try:
         return int(args.func(args))
     except UsageError as err:
-        print(f"uwbd {args.command}: {err}", file=sys.stderr)
+        log.error("%s", err)
         return 2
+    except RunError as err:
+        log.error("%s", err)
+        return 1
     except BrokenPipeError:
-        sys.stderr.close()  # output piped into e.g. `head`: not an error
+        quiet_stdout()  # output piped into e.g. `head`: not an error
         return 0
     except KeyboardInterrupt:  # interrupted before the command was ready to stop cleanly
         return 130
+    except Exception as err:  # a bug: one line (the traceback with -v), exit 1
+        log.error("internal error: %s: %s (run again with -v for the traceback, and please "
+                  "report it)", type(err).__name__, err, exc_info=True)
+        return 1
+

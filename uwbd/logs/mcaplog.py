@@ -17,6 +17,7 @@ says so. :func:`recover` rewrites such a file, any MCAP file, as a valid one.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import struct
 from collections.abc import Iterator, Sequence
@@ -25,10 +26,11 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO, Any
 
+from mcap.data_stream import RecordBuilder
 from mcap.exceptions import McapError
-from mcap.records import Attachment, Channel, Message, Metadata, Schema
+from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
-from mcap.writer import CompressionType, Writer
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from drivers.frames import Frame, ImuSample
 from uwbd import __version__
@@ -101,6 +103,7 @@ class LogWriter:
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._sequence = 0
+        self.flushed_bytes = 0  # the file is whole records up to here (see finish_cut)
 
     def _channel(self, topic: str, encoding: str, schema_name: str = "",
                  schema: dict[str, Any] | None = None) -> int:
@@ -138,6 +141,14 @@ class LogWriter:
     def flush(self) -> None:
         """Close the open chunk and hand it to the OS (about once a second)."""
         self._w.flush()  # type: ignore[no-untyped-call]
+        self._file.flush()
+        self.flushed_bytes = self._file.tell()
+
+    def abandon(self) -> None:
+        """Close the file as it is, after a write failed (the disk is full): nothing more is
+        written to it; :func:`finish_cut` makes it a finished file later."""
+        with contextlib.suppress(OSError):  # the buffer cannot be written: it is lost
+            self._file.close()
 
     def close(self) -> None:
         if not self._file.closed:
@@ -176,6 +187,24 @@ class LogContents:
         return (json.loads(m.data) for m in self.messages if m.topic == topic)
 
 
+def not_a_log(path: Path) -> str:
+    """Why ``path`` cannot be read as an MCAP file ("" when it can): missing, a folder,
+    unreadable, empty, or not starting with the MCAP magic."""
+    if path.is_dir():
+        return f"{path}: is a folder, not an MCAP log"
+    try:
+        with path.open("rb") as f:
+            head = f.read(len(MCAP0_MAGIC))
+    except OSError as err:
+        return f"cannot read {path}: {err.strerror or err}"
+    if not head:
+        return f"{path}: the file is empty, not an MCAP log"
+    if head != MCAP0_MAGIC:
+        return (f"{path}: not an MCAP file (it starts with {head[:4]!r}, an MCAP log with "
+                f"{MCAP0_MAGIC[:4]!r})")
+    return ""
+
+
 def read_log(path: Path) -> LogContents:
     """Read a (possibly unfinished) uwbd log by a linear scan."""
     out = LogContents()
@@ -195,6 +224,20 @@ def read_log(path: Path) -> LogContents:
             out.truncated = True
             out.error = f"{path}: {type(err).__name__}: {err}"
     return out
+
+
+def finish_cut(path: Path, size: int) -> None:
+    """Finish a log whose writing stopped (disk full): keep its first ``size`` bytes, whole
+    records up to a chunk's end as :attr:`LogWriter.flushed_bytes` says, and end it with
+    the records a finished MCAP file ends with (data end, an empty summary, the footer), so
+    every reader opens it. Needs a few dozen bytes of room; raises ``OSError`` without."""
+    end = RecordBuilder()
+    DataEnd(0).write(end)  # CRC 0: not computed
+    Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(end)
+    with path.open("r+b") as f:
+        f.truncate(max(size, len(MCAP0_MAGIC)))
+        f.seek(0, 2)
+        f.write(end.end() + MCAP0_MAGIC)  # type: ignore[no-untyped-call]
 
 
 @dataclass(frozen=True)

@@ -8,8 +8,9 @@ with no raw channels (an imported dataset) replays its decoded ``/imu`` and ``/u
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
+
+from tqdm import tqdm
 
 from uwbd.codec import frame_from_dict
 from uwbd.config import parse
@@ -21,8 +22,12 @@ RAW_PREFIX = "/raw/"
 
 
 def replay(contents: LogContents, where: str, output: Path | None = None,
-           realtime: bool = False, progress: bool = False) -> tuple[Pipeline, PoseList]:
-    config = parse(contents.metadata.get("config_toml", ""), f"{where} (metadata)")
+           realtime: bool = False, progress: bool = False,
+           config_toml: str | None = None) -> tuple[Pipeline, PoseList]:
+    """Replay with the log's own config, or ``config_toml`` (what ``-c``/``--set`` make);
+    the output log records the config used."""
+    config = (parse(contents.metadata.get("config_toml", ""), f"{where} (metadata)")
+              if config_toml is None else parse(config_toml, f"{where} (with -c/--set)"))
     poses = PoseList()
     sinks: list[Sink] = [poses]
     if output is not None:
@@ -31,18 +36,14 @@ def replay(contents: LogContents, where: str, output: Path | None = None,
     raw = [m for m in contents.messages if m.topic.startswith(RAW_PREFIX)]
     items = raw or [m for m in contents.messages if m.topic in ("/imu", "/uwb")]
     pace = monotonic_pacer(items[0].log_time_ns) if realtime and items else None
-    step = max(1, len(items) // 100)
-    for k, m in enumerate(items):
+    for m in tqdm(items, desc="replay", unit="read", disable=not progress, leave=False,
+                  mininterval=0.5):
         if pace is not None:
             pace(m.log_time_ns)
         if raw:
             pipeline.on_bytes(m.topic[len(RAW_PREFIX):], m.log_time_ns, m.data)
         else:
             pipeline.on_frame(frame_from_dict(json.loads(m.data)))
-        if progress and k % step == 0:
-            print(f"\rreplay {100 * k // len(items):3d} %", end="", file=sys.stderr, flush=True)
     pipeline.finish()
     pipeline.close()
-    if progress:
-        print("\rreplay 100 %", file=sys.stderr)
     return pipeline, poses

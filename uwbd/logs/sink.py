@@ -7,13 +7,16 @@ from pathlib import Path
 from typing import Any
 
 from drivers import Frame
+from uwbd import journal
 from uwbd.config import Config
 from uwbd.fusion.types import Pose
-from uwbd.logs.mcaplog import LogWriter, SourceInfo
+from uwbd.logs.mcaplog import LogWriter, SourceInfo, finish_cut
 
 FLUSH_PERIOD_NS = 1_000_000_000  # the log is handed to the OS about once a second
 WRITE_BEHIND_NS = 100_000_000  # records wait this long in memory, then are written together
 MAX_BEHIND_NS = 500_000_000  # the longest they wait when the owner paces the writing
+RETRY_NS = 5_000_000_000  # after a failure, a new log file is tried this often
+LOG = journal.get("log")
 
 
 class McapSink:
@@ -25,9 +28,14 @@ class McapSink:
     cost the daemon twice the CPU). With ``paced`` the owner calls :meth:`write_pending`
     when it has time (the daemon: on a read that brings no pose, so the writing never
     delays one); records then wait at most ``MAX_BEHIND_NS``. The file is flushed about
-    once a second of data time, so a crash loses about 1.1 s (1.5 s at worst). An
-    ``OSError`` (disk full, directory gone) stops logging, is kept in :attr:`error` for the
-    status, and never reaches the pipeline.
+    once a second of data time, so a crash loses about 1.1 s (1.5 s at worst).
+
+    An ``OSError`` (disk full, directory gone) never reaches the pipeline: logging pauses,
+    the reason is in :attr:`error` (the status) and in a warning line, and the file it cut
+    is finished in place with what was flushed (:func:`finish_cut`). In a directory, a new
+    file is tried every ``RETRY_NS`` of data time, so logging resumes by itself once there is
+    room again; records in between are counted in :attr:`records_lost`. A record that
+    cannot be encoded is counted (:attr:`bad_records`) and skipped; the rest go on.
     """
 
     def __init__(self, config: Config, path: Path | None = None, directory: Path | None = None,
@@ -42,6 +50,9 @@ class McapSink:
         self.rotate_ns = rotate_ns
         self.files: list[Path] = []
         self.error = ""
+        self.records_lost = 0  # while logging was paused
+        self.bad_records = 0  # could not be encoded
+        self._retry_ns: int | None = None  # data time of the next try after a failure
         self._log: LogWriter | None = None
         self._opened_ns = 0
         self._flushed_ns = 0
@@ -50,7 +61,9 @@ class McapSink:
 
     def _writer(self, t_ns: int) -> LogWriter | None:
         if self.error:
-            return None
+            if self._retry_ns is None or t_ns < self._retry_ns:
+                return None
+            self._retry_ns = t_ns + RETRY_NS
         log = self._log
         # rotation is judged at flush time (about once a second), not on every message
         if (log is not None and self.directory is not None and self._due_flush(t_ns) and (
@@ -66,10 +79,16 @@ class McapSink:
                     self.directory.mkdir(parents=True, exist_ok=True)
                 log = self._log = LogWriter(path, self.config.text, sources)
             except OSError as err:
-                self._fail(f"cannot write log {path}: {err.strerror or err}")
+                self._fail(f"cannot write log {path}: {err.strerror or err}", t_ns)
                 return None
             self.files.append(path)
             self._opened_ns = self._flushed_ns = t_ns
+            if self.error:
+                LOG.info("logging resumed into %s (%d records lost while it was stopped)",
+                         path, self.records_lost)
+                self.error = ""
+            else:
+                LOG.debug("logging to %s", path)
         return log
 
     def _due_flush(self, t_ns: int) -> bool:
@@ -86,8 +105,9 @@ class McapSink:
         return path
 
     def _write(self, t_ns: int, action: str, *args: Any) -> None:
-        if self.error:
-            return  # logging has stopped: keep nothing
+        if self.error and (self._retry_ns is None or t_ns < self._retry_ns):
+            self.records_lost += 1  # logging has stopped: keep nothing until the next try
+            return
         behind = self._behind
         behind.append((t_ns, action, args))
         if t_ns - behind[0][0] >= self._max_behind_ns:
@@ -103,18 +123,42 @@ class McapSink:
         for t_ns, action, args in behind:
             log = self._writer(t_ns)
             if log is None:
-                return
+                self.records_lost += 1
+                continue
             try:
                 getattr(log, action)(*args)
                 if self._due_flush(t_ns):
                     log.flush()
                     self._flushed_ns = t_ns
             except OSError as err:
-                self._fail(f"writing {log.path}: {err.strerror or err}")
+                self._fail(f"writing {log.path}: {err.strerror or err}", t_ns)
+            except (TypeError, ValueError) as err:  # a record that cannot be encoded
+                self.bad_records += 1
+                if self.bad_records == 1:
+                    LOG.warning("a %s record could not be written to %s (%s); it is skipped",
+                                action, log.path, err)
 
-    def _fail(self, reason: str) -> None:
+    def _fail(self, reason: str, t_ns: int) -> None:
+        """Logging pauses: the cut file is finished with what reached it; a directory sink
+        tries a new file in ``RETRY_NS``."""
+        first = not self.error
         self.error = f"logging stopped: {reason}"
-        self._log = None
+        log, self._log = self._log, None
+        if log is not None:
+            log.abandon()
+            try:
+                finish_cut(log.path, log.flushed_bytes)
+                kept = f"{log.path} is finished with what was written before"
+            except OSError as err:
+                kept = (f"{log.path} could not be finished ({err.strerror or err}); "
+                        f"`uwbd recover {log.path} -o OUT` reads what it holds")
+        else:
+            kept = "no file was open"
+        self._retry_ns = t_ns + RETRY_NS if self.directory is not None else None
+        if first:
+            LOG.warning("%s; %s; %s", self.error, kept,
+                        "a new file is tried every 5 s" if self.directory is not None
+                        else "nothing more is written")
 
     def raw(self, source: str, t_ns: int, data: bytes) -> None:
         self._write(t_ns, "raw", source, t_ns, data)
@@ -137,7 +181,7 @@ class McapSink:
             try:
                 self._log.close()
             except OSError as err:
-                self._fail(f"finishing {self._log.path}: {err.strerror or err}")
+                self._fail(f"finishing {self._log.path}: {err.strerror or err}", self._opened_ns)
             self._log = None
 
     def close(self) -> None:

@@ -6,16 +6,22 @@ read is stamped as it completes with :class:`EpochClock`: Unix-epoch nanoseconds
 advance with the monotonic clock, so an NTP step (a robot without a real-time clock, just
 after boot) cannot make the aligner drop frames as late or the filter see a leap. A port
 that is absent at start or vanishes (unplugged) is retried with a backoff of 0.1 s doubling
-to 2 s; its state shows in the status. SIGINT and SIGTERM stop the loop and finish the log.
+to 2 s; its state shows in the status and every change of it in a log line. SIGINT and
+SIGTERM stop the loop and finish the log.
+
+The status is published on the wall clock, whether or not data arrives. The systemd
+watchdog is fed by the loop's tick, so a hung loop is restarted; an exception out of the
+pipeline (a bug: bad input is counted, never raised) is logged, the log finished, and the
+run ends with :class:`PipelineError` (exit code 1, so systemd restarts it).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import os
 import signal
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,8 +31,10 @@ import serial
 import zenoh
 
 from drivers.dwm1001_tlv import LOC_GET_REQUEST
+from uwbd import __version__, journal
 from uwbd.config import Config, SourceConfig
 from uwbd.logs.sink import McapSink
+from uwbd.service.narrator import Narrator
 from uwbd.service.notify import Notifier
 from uwbd.service.pipeline import Pipeline, Sink
 from uwbd.service.zenohsink import ZenohSink
@@ -38,6 +46,11 @@ BACKOFF_START_S = 0.1
 BACKOFF_MAX_S = 2.0
 IMU_ONLY_DRIVERS = {"wit"}  # their reads may wait for the next pose (ReadQueue)
 MAX_QUEUE_NS = 100_000_000
+LOG = journal.get("daemon")
+
+
+class PipelineError(RuntimeError):
+    """The pipeline raised: the run stopped (its log is finished)."""
 
 
 @dataclass
@@ -79,6 +92,7 @@ class ReadQueue:
         self.urgent = {s.name for s in pipeline.config.sources
                        if s.driver not in IMU_ONLY_DRIVERS}
         self._pending: list[tuple[str, int, bytes]] = []
+        self.failure: Exception | None = None  # what the pipeline raised; reads then stop
 
     def push(self, source: str, t_ns: int, data: bytes) -> None:
         pending = self._pending
@@ -91,9 +105,16 @@ class ReadQueue:
 
     def flush(self) -> None:
         pending, self._pending = self._pending, []
+        if self.failure is not None:
+            return
         on_bytes = self.pipeline.on_bytes
-        for source, t_ns, data in pending:
-            on_bytes(source, t_ns, data)
+        try:
+            for source, t_ns, data in pending:
+                on_bytes(source, t_ns, data)
+        except Exception as err:
+            self.failure = err
+            LOG.error("the pipeline failed on a read of %s: %s: %s; stopping (please report "
+                      "this with the log)", source, type(err).__name__, err, exc_info=True)
 
 
 class SerialSource:
@@ -121,12 +142,15 @@ class SerialSource:
         try:
             port = serial.Serial(self.cfg.port, self.cfg.baud, timeout=0, exclusive=True)
         except (OSError, ValueError) as err:
-            self._schedule_retry(f"cannot open {self.cfg.port}: {err}")
+            self._schedule_retry(f"cannot open {self.cfg.port}: {_reason(err)}")
             return
         self._port, self._fd = port, port.fileno()
         self.loop.add_reader(self._fd, self._readable)
         self.info.state = "open"
         self.info.opens += 1
+        LOG.info("%s: %s %s at %d baud (%s)", self.cfg.name,
+                 "opened" if self.info.opens == 1 else "reopened", self.cfg.port,
+                 self.cfg.baud, self.cfg.driver)
         self._backoff_s = BACKOFF_START_S
         if self.cfg.driver in POLLED:
             self._poll()
@@ -146,6 +170,9 @@ class SerialSource:
         self._poller = self.loop.call_later(period_s, self._poll)
 
     def _schedule_retry(self, reason: str) -> None:
+        if reason != self.info.last_error or self.info.state == "open":
+            LOG.warning("%s: %s; retrying every %.1f s at most", self.cfg.name, reason,
+                        BACKOFF_MAX_S)
         self.info.state = "closed"
         self.info.last_error = reason
         self._retry = self.loop.call_later(self._backoff_s, self._open)
@@ -168,7 +195,7 @@ class SerialSource:
     def _lost(self, err: OSError) -> None:
         self.info.losses += 1
         self._release()
-        self._schedule_retry(f"lost {self.cfg.port}: {err}")
+        self._schedule_retry(f"lost {self.cfg.port}: {_reason(err)}")
 
     def _release(self) -> None:
         if self._poller is not None:
@@ -189,9 +216,12 @@ class SerialSource:
 
 async def run(config: Config, log_dir: Path, duration_s: float | None = None,
               extra_sinks: tuple[Sink, ...] = (),
-              on_log: Callable[[McapSink], None] | None = None) -> Pipeline:
+              on_log: Callable[[McapSink], None] | None = None,
+              summary_s: float = 60.0, where: str = "") -> Pipeline:
     """Run until SIGINT/SIGTERM (or ``duration_s``); returns the finished pipeline.
-    ``on_log`` is handed the log sink first, for callers with more to log (the demo: truth)."""
+    ``on_log`` is handed the log sink first, for callers with more to log (the demo: truth).
+    ``summary_s``: how often a health line is logged; ``where``: the config's file name.
+    Raises :class:`PipelineError` (after finishing the log) if the pipeline raised."""
     loop = asyncio.get_running_loop()
     rotate_mb = config.log.get("rotate_mb", 256)
     rotate_min = config.log.get("rotate_minutes", 60)
@@ -199,34 +229,47 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
                     rotate_ns=int(rotate_min * 60e9), paced=True)
     if on_log is not None:
         on_log(mcap)
-    sinks: list[Sink] = [*extra_sinks]
+    sources: list[SerialSource] = []
+    narrator = Narrator(summary_s, ports=lambda: ", ".join(
+        f"{s.cfg.name} {s.info.state}" for s in sources))
+    sinks: list[Sink] = [narrator, *extra_sinks]
+    zenoh_sink = None
     if config.zenoh.get("enabled", True):
         try:
-            sinks.append(ZenohSink(config.zenoh))
+            zenoh_sink = ZenohSink(config.zenoh)
+            sinks.append(zenoh_sink)
         except zenoh.ZError as err:  # e.g. listen port taken: fusion and logging go on
-            print(f"uwbd run: zenoh disabled: {err}", file=sys.stderr)
+            LOG.error("zenoh disabled: %s (check [zenoh] listen/connect)", err)
     sinks.append(mcap)
     pipeline = Pipeline(config, sinks)
     clock = EpochClock()
     queue = ReadQueue(pipeline, idle=mcap.write_pending)
-    sources = [SerialSource(s, queue, loop, clock) for s in config.sources]
+    sources += [SerialSource(s, queue, loop, clock) for s in config.sources]
+    _announce(config, where, log_dir, zenoh_sink)
     stop = asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     notifier = Notifier()
-    tick_s = min(0.5, notifier.watchdog_s or 0.5)
+    period_s = config.status_period_ns / 1e9
+    tick_s = min(0.5, period_s / 2, notifier.watchdog_s or 0.5)
+    started = loop.time()
     try:
         for source in sources:
             source.start()
         notifier.notify("READY=1", f"STATUS={_summary(sources, pipeline)}")
         deadline = None if duration_s is None else loop.time() + duration_s
         next_status = loop.time() + 1.0
-        while not stop.is_set():
+        while not stop.is_set() and queue.failure is None:
             pipeline.extra_status["sources"] = {
                 s.cfg.name: {"port": s.cfg.port, "state": s.info.state, "opens": s.info.opens,
                              "losses": s.info.losses, "bytes": s.info.bytes_read,
                              "last_error": s.info.last_error} for s in sources}
-            if notifier.watchdog_s is not None:
+            pipeline.extra_status["log"] = {
+                "files": [str(f) for f in mcap.files], "error": mcap.error,
+                "records_lost": mcap.records_lost, "bad_records": mcap.bad_records}
+            queue.flush()  # what waited goes in before a status on the wall clock
+            pipeline.tick(clock.now_ns())
+            if notifier.watchdog_s is not None and queue.failure is None:
                 notifier.notify("WATCHDOG=1")
             if loop.time() >= next_status:
                 next_status += 1.0
@@ -244,10 +287,57 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
         for source in sources:
             source.close()
         queue.flush()
-        pipeline.finish()
+        if queue.failure is None:
+            pipeline.finish()
         pipeline.close()
         notifier.close()
+        never = [s for s in sources if not s.info.opens]
+        if len(never) == len(sources):
+            never = []  # the caller says it: nothing could be opened
+        LOG.info("stopped after %.1f s: %d poses; logs: %s", loop.time() - started,
+                 pipeline.poses, ", ".join(str(f) for f in mcap.files) or "none")
+        for source in never:
+            LOG.warning("%s was never opened: %s", source.cfg.name, source.info.last_error)
+    if queue.failure is not None:
+        raise PipelineError(f"the pipeline failed: {type(queue.failure).__name__}: "
+                              f"{queue.failure}") from queue.failure
     return pipeline
+
+
+def _announce(config: Config, where: str, log_dir: Path, zenoh_sink: ZenohSink | None) -> None:
+    """The start-up summary: config, sources, anchors, Zenoh, log."""
+    LOG.info("starting uwbd %s with %s", __version__, where or "the built-in config")
+    for s in config.sources:
+        LOG.info("source %s: %s on %s at %d baud", s.name, s.driver, s.port, s.baud)
+    anchors = "; ".join(f"{a} ({x:.2f}, {y:.2f}, {z:.2f})"
+                        for a, (x, y, z) in sorted(config.anchors_m.items()))
+    LOG.info("anchors: %s", anchors or "none configured (taken from the tag's reports)")
+    f = config.filter_config()
+    LOG.info("fusion: %s, range σ %.3f m, poses at %.0f Hz, status every %.1f s",
+             f.mode.value, f.range_sigma_m, 1e9 / config.pose_period_ns,
+             config.status_period_ns / 1e9)
+    if zenoh_sink is not None:
+        z = config.zenoh
+        LOG.info("zenoh %s: keys %s/{pose,status,alive}; listen %s; connect %s; multicast "
+                 "scouting %s", z.get("mode", "peer"), zenoh_sink.prefix,
+                 ", ".join(z.get("listen", [])) or "default", ", ".join(z.get("connect", []))
+                 or "none", "on" if z.get("multicast_scouting", True) else "off")
+    elif not config.zenoh.get("enabled", True):
+        LOG.info("zenoh: disabled in the config")
+    LOG.info("logs: %s", log_dir.resolve())
+
+
+def _reason(err: Exception) -> str:
+    """An OS error as a person reads it, with what to check: ``No such file or directory (is
+    it plugged in? ...)`` rather than pyserial's ``could not open port ...: [Errno 2] ...``."""
+    code = getattr(err, "errno", None)
+    if not isinstance(code, int):
+        return str(err)
+    hint = {errno.ENOENT: " (is it plugged in? see ls /dev/serial/by-id/)",
+            errno.EACCES: " (is the user in group dialout?)",
+            errno.EBUSY: " (another program has it open)",
+            errno.EAGAIN: " (another program has it locked)"}.get(code, "")
+    return os.strerror(code) + hint
 
 
 def _summary(sources: list[SerialSource], pipeline: Pipeline) -> str:

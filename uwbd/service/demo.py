@@ -12,6 +12,9 @@ from __future__ import annotations
 
 import asyncio
 import math
+import os
+import shlex
+import signal
 import sys
 import tempfile
 import time
@@ -26,7 +29,7 @@ from uwbd.fusion.types import Pose
 from uwbd.logs.mcaplog import pose_message
 from uwbd.logs.sink import McapSink
 from uwbd.service.daemon import run
-from uwbd.service.interrupt import shielded
+from uwbd.service.interrupt import quiet_stdout, shielded
 
 DEMO_FAULTS = Faults(garbage_rate_hz=0.5, split=True, corrupt_prob=0.01)
 PREFIX = "uwbd/demo"
@@ -66,9 +69,14 @@ class LiveView:
             sx, sy = math.sqrt(pose.covariance[0]), math.sqrt(pose.covariance[7])
             speed = math.hypot(*pose.velocity_mps[:2])
             heading = "heading ok" if pose.heading_observable else "heading unknown"
-            print(f"{(pose.t_ns - self.start_ns) / 1e9:6.1f} s  pose ({x:6.2f}, {y:6.2f}, "
-                  f"{z:5.2f}) m ±({sx:.2f}, {sy:.2f})  {speed:4.2f} m/s  {heading}  "
-                  f"error {self.errors_m[-1]:.3f} m", flush=True)
+            line = (f"{(pose.t_ns - self.start_ns) / 1e9:6.1f} s  pose ({x:6.2f}, {y:6.2f}, "
+                    f"{z:5.2f}) m ±({sx:.2f}, {sy:.2f})  {speed:4.2f} m/s  {heading}  "
+                    f"error {self.errors_m[-1]:.3f} m")
+            try:
+                print(line, flush=True)
+            except BrokenPipeError:  # `uwbd demo | head`: the reader left; stop the demo
+                quiet_stdout()
+                os.kill(os.getpid(), signal.SIGTERM)
 
     def attach_log(self, log: McapSink) -> None:
         self.log = log
@@ -103,7 +111,8 @@ def run_demo(workdir: Path, duration_s: float | None, seed: int) -> int:
     config = parse(text, "demo config")
     view = LiveView(scenario)
     print(f"uwbd demo: emulated WitMotion IMU on {emu.ports['imu'].path}, Nooploop tag on "
-          f"{emu.ports['uwb'].path}; the daemon fuses them. Ctrl-C to stop.", flush=True)
+          f"{emu.ports['uwb'].path}; the daemon fuses them. Ctrl-C to stop.\n"
+          f"  follow it from another terminal: {echo_command(sock)}", flush=True)
     try:
         emu.start()
         view.start_ns = time.time_ns()
@@ -124,7 +133,12 @@ def run_demo(workdir: Path, duration_s: float | None, seed: int) -> int:
               f"{len(view.errors_m)} poses")
     files = [str(p) for sink in pipeline.sinks for p in getattr(sink, "files", [])]
     print(f"  log: {', '.join(files)}  (try: uwbd report {files[-1]})" if files else "  no log")
-    print(f"  while it runs, from another terminal: uwbd echo --prefix {PREFIX} "
-          f"--connect unixsock-stream/{sock}")
     sys.stdout.flush()
     return 0
+
+
+def echo_command(sock: Path) -> str:
+    """The ``uwbd echo`` line that follows this demo, with the ``uwbd`` this one was
+    started as (``.venv/bin/uwbd`` after the README's install)."""
+    me = sys.argv[0] if Path(sys.argv[0]).name == "uwbd" else f"{sys.executable} -m uwbd"
+    return f"{me} echo --prefix {PREFIX} --connect {shlex.quote(f'unixsock-stream/{sock}')}"

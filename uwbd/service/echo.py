@@ -1,5 +1,12 @@
 """``uwbd echo``: subscribe to a daemon's poses (or status) and print them, one line each.
 
+It dials where the daemon can be reached: ``--connect`` endpoints, or, with ``-c``, the
+config's ``connect`` endpoints and its ``listen`` endpoints turned into addresses to dial
+(``tcp/0.0.0.0:7447`` → ``tcp/127.0.0.1:7447``). When nothing arrives for a few seconds it
+says so, with the daemons it does see (their liveliness tokens ``<prefix>/alive``). With a
+wildcard in the prefix (``uwbd/*``) every line starts with the key it came on, so the
+robots can be told apart.
+
 Any Zenoh client does the same; from another language, subscribe to ``<prefix>/pose`` and
 parse the JSON payload (see the README's "Subscribing from other languages").
 """
@@ -14,7 +21,26 @@ from typing import Any
 
 import zenoh
 
+from uwbd import journal
 from uwbd.service.zenohsink import session_config
+
+LOG = journal.get("echo")
+QUIET_AFTER_S = 3.0  # nothing this long: say what is (not) there
+
+
+class EchoError(Exception):
+    """Zenoh could not be opened with these settings (a malformed endpoint ...)."""
+
+
+def dial_endpoints(listen: list[str]) -> list[str]:
+    """The addresses a client dials to reach a process listening on ``listen``."""
+    out = []
+    for endpoint in listen:
+        proto, _, address = endpoint.partition("/")
+        address = (address.replace("0.0.0.0:", "127.0.0.1:", 1)
+                   .replace("[::]:", "[::1]:", 1))
+        out.append(f"{proto}/{address}")
+    return out
 
 
 def echo(zcfg: dict[str, Any], prefix: str, status: bool, count: int | None,
@@ -22,31 +48,47 @@ def echo(zcfg: dict[str, Any], prefix: str, status: bool, count: int | None,
     """Print samples until ``count`` were printed, ``timeout_s`` passed, or Ctrl-C.
     Returns how many were printed."""
     key = f"{prefix.strip('/')}/{'status' if status else 'pose'}"
-    inbox: queue.Queue[bytes] = queue.Queue(maxsize=1000)
+    show_key = "*" in key
+    inbox: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=1000)
 
     def on_sample(sample: zenoh.Sample) -> None:  # a Zenoh thread: hand off, nothing more
         # the printer is behind: dropping beats blocking Zenoh's receive thread
         with contextlib.suppress(queue.Full):
-            inbox.put_nowait(sample.payload.to_bytes())
+            inbox.put_nowait((str(sample.key_expr), sample.payload.to_bytes()))
 
-    session = zenoh.open(session_config(zcfg))
+    try:
+        session = zenoh.open(session_config(zcfg))
+    except zenoh.ZError as err:
+        raise EchoError(f"cannot open zenoh with these settings: {err}") from err
+    where = ", ".join(zcfg.get("connect", [])) or "peers found by multicast scouting"
+    LOG.info("listening on %s (via %s)", key, where)
     printed = 0
-    deadline = None if timeout_s is None else time.monotonic() + timeout_s
+    started = last = time.monotonic()
+    deadline = None if timeout_s is None else started + timeout_s
+    said_quiet = False
     try:
         subscriber = session.declare_subscriber(key, on_sample)
         if status:  # the current status right away, from the queryable
             for reply in session.get(key, timeout=2.0):
                 if reply.ok is not None:
-                    inbox.put_nowait(reply.ok.payload.to_bytes())
+                    inbox.put_nowait((str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
         while count is None or printed < count:
             wait = 0.2 if deadline is None else min(0.2, deadline - time.monotonic())
             if wait <= 0:
                 break
             try:
-                payload = inbox.get(timeout=wait)
+                sample_key, payload = inbox.get(timeout=wait)
             except queue.Empty:
+                if not said_quiet and time.monotonic() - last >= QUIET_AFTER_S:
+                    said_quiet = True
+                    _say_what_is_there(session, key, where)
                 continue
-            print(_line(json.loads(payload), status), flush=True)
+            last = time.monotonic()
+            if said_quiet:
+                said_quiet = False
+                LOG.info("receiving on %s", sample_key)
+            line = _line(payload, status)
+            print(f"{sample_key}  {line}" if show_key else line, flush=True)
             printed += 1
         subscriber.undeclare()
     except KeyboardInterrupt:
@@ -56,9 +98,28 @@ def echo(zcfg: dict[str, Any], prefix: str, status: bool, count: int | None,
     return printed
 
 
-def _line(msg: dict[str, Any], status: bool) -> str:
-    if status:
-        return json.dumps(msg)
-    p, q = msg["pose"]["position"], msg["pose"]["orientation"]
-    return (f"{msg['t_ns']}  p=({p['x']:.3f}, {p['y']:.3f}, {p['z']:.3f}) m  "
-            f"q=({q['x']:.3f}, {q['y']:.3f}, {q['z']:.3f}, {q['w']:.3f})  {msg.get('status', '')}")
+def _say_what_is_there(session: zenoh.Session, key: str, where: str) -> None:
+    """Nothing arrives on ``key``: list the daemons whose liveliness tokens are visible."""
+    alive = sorted({str(r.ok.key_expr).removesuffix("/alive")
+                    for r in session.liveliness().get("**/alive", timeout=1.0)
+                    if r.ok is not None})
+    if alive:
+        LOG.warning("nothing published on %s for %.0f s; daemons seen: %s (pick one with "
+                    "--prefix)", key, QUIET_AFTER_S, ", ".join(alive))
+    else:
+        LOG.warning("nothing published on %s for %.0f s, and no uwbd daemon seen via %s: is "
+                    "it running, and can it be reached there (-c CONFIG or --connect "
+                    "ENDPOINT)?", key, QUIET_AFTER_S, where)
+
+
+def _line(payload: bytes, status: bool) -> str:
+    try:
+        msg = json.loads(payload)
+        if status:
+            return json.dumps(msg)
+        p, q = msg["pose"]["position"], msg["pose"]["orientation"]
+        return (f"{msg['t_ns']}  p=({p['x']:.3f}, {p['y']:.3f}, {p['z']:.3f}) m  "
+                f"q=({q['x']:.3f}, {q['y']:.3f}, {q['z']:.3f}, {q['w']:.3f})  "
+                f"{msg.get('status', '')}")
+    except (ValueError, KeyError, TypeError) as err:
+        return f"(not a uwbd pose: {type(err).__name__}: {payload[:80]!r})"

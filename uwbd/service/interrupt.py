@@ -1,9 +1,12 @@
-"""Waiting in the foreground until work ends or the user (or systemd) says stop."""
+"""Waiting in the foreground until work ends or the user (or systemd) says stop, and a
+reader of stdout that goes away (``| head``)."""
 
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 from types import FrameType
@@ -40,3 +43,11 @@ def shielded() -> Iterator[None]:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+def quiet_stdout() -> None:
+    """stdout's reader went away (``| head``): send what is left to /dev/null, so the
+    interpreter's last flush does not complain."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)

@@ -7,7 +7,9 @@ that carry only decoded frames go in through :meth:`Pipeline.on_frame`.
 
 Poses leave after every UWB update and, between updates, at most every
 ``pose_period_ns`` of data time; status every ``status_period_ns``. Sinks receive
-everything (raw bytes, frames, poses, status); one that fails does not stop the others.
+everything (raw bytes, frames, poses, status). Each call to a sink is guarded: a sink that
+raises is counted and reported (a warning line, ``sink_errors`` in the status) and the
+others, the log among them, still get every record.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from collections.abc import Sequence
 from typing import Any, Protocol
 
 from drivers import PARSERS, Frame, ImuSample, Parser
-from uwbd import __version__
+from uwbd import __version__, journal
 from uwbd.config import Config
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.types import Pose
@@ -37,10 +39,30 @@ class Sink(Protocol):
     def close(self) -> None: ...
 
 
+LOG = journal.get("pipeline")
+
+
+@dataclasses.dataclass
+class SinkTrouble:
+    """How often one sink raised, and the last error."""
+
+    name: str
+    failures: int = 0
+    last_error: str = ""
+
+    def text(self) -> str:
+        return f"{self.name} failed {self.failures}x, last: {self.last_error}"
+
+
 class Pipeline:
     def __init__(self, config: Config, sinks: Sequence[Sink]) -> None:
         self.config = config
         self.sinks = list(sinks)
+        self.sink_trouble: dict[int, SinkTrouble] = {}  # by id(sink)
+        self._raw = [s.raw for s in self.sinks]
+        self._frame = [s.frame for s in self.sinks]
+        self._pose = [s.pose for s in self.sinks]
+        self._status = [s.status for s in self.sinks]
         self.parsers: dict[str, Parser] = {s.name: PARSERS[s.driver]() for s in config.sources}
         self.aligner = Aligner(config.aligner_wait_ns)
         self.filter = Filter(config.filter_config())
@@ -63,8 +85,11 @@ class Pipeline:
         if parser is None:
             self.unknown_sources += 1
             return
-        for sink in self.sinks:
-            sink.raw(source, t_ns, data)
+        for call in self._raw:
+            try:
+                call(source, t_ns, data)
+            except Exception as err:
+                self._sink_failed(call, err)
         self._frames(self._spread(source, parser.feed(data, t_ns)))
         self._tick(t_ns)
 
@@ -115,12 +140,29 @@ class Pipeline:
 
     def close(self) -> None:
         for sink in self.sinks:
-            sink.close()
+            try:
+                sink.close()
+            except Exception as err:
+                self._sink_failed(sink.close, err)
+
+    def _sink_failed(self, call: Any, err: Exception) -> None:
+        """Count and report a sink's exception; the first of each kind is a warning line."""
+        sink = getattr(call, "__self__", call)
+        trouble = self.sink_trouble.setdefault(id(sink), SinkTrouble(type(sink).__name__))
+        text = f"{type(err).__name__}: {err}"
+        trouble.failures += 1
+        if text != trouble.last_error:
+            LOG.warning("sink %s failed in %s: %s (the other sinks go on)", trouble.name,
+                        getattr(call, "__name__", "?"), text)
+        trouble.last_error = text
 
     def _frames(self, frames: Sequence[Frame]) -> None:
         for frame in frames:
-            for sink in self.sinks:
-                sink.frame(frame)
+            for call in self._frame:
+                try:
+                    call(frame)
+                except Exception as err:
+                    self._sink_failed(call, err)
             for ready in self.aligner.push(frame):
                 self._fuse(ready)
 
@@ -136,8 +178,16 @@ class Pipeline:
         if pose is not None:
             self._last_pose_ns = pose.t_ns
             self.poses += 1
-            for sink in self.sinks:
-                sink.pose(pose)
+            for call in self._pose:
+                try:
+                    call(pose)
+                except Exception as err:
+                    self._sink_failed(call, err)
+
+    def tick(self, t_ns: int) -> None:
+        """The status, if one is due at ``t_ns``: the daemon calls this on the wall clock too,
+        so the status goes on while no data arrives."""
+        self._tick(t_ns)
 
     def _tick(self, t_ns: int) -> None:
         if self._last_status_ns is None:
@@ -148,8 +198,11 @@ class Pipeline:
 
     def _emit_status(self, t_ns: int) -> None:
         status = self.status(t_ns)
-        for sink in self.sinks:
-            sink.status(t_ns, status)
+        for call in self._status:
+            try:
+                call(t_ns, status)
+            except Exception as err:
+                self._sink_failed(call, err)
 
     def status(self, t_ns: int) -> dict[str, Any]:
         """Filter health, gating counts, parser and aligner statistics."""
@@ -170,6 +223,8 @@ class Pipeline:
             problem = getattr(sink, "error", "")
             if problem:
                 out.setdefault("sink_errors", []).append(problem)
+        for trouble in self.sink_trouble.values():
+            out.setdefault("sink_errors", []).append(trouble.text())
         return out
 
 

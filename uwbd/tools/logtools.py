@@ -94,10 +94,12 @@ class Recording:
     parser_stats: dict[str, dict[str, object]]
 
 
-def load_recording(contents: LogContents, where: str) -> Recording:
+def load_recording(contents: LogContents, where: str,
+                   config_toml: str | None = None) -> Recording:
     """Decode a log: raw channels through the drivers named in its metadata, else the
-    decoded channels. The config comes from the log's metadata."""
-    config = cfgmod.parse(contents.metadata.get("config_toml", ""), f"{where} (metadata)")
+    decoded channels. The config comes from the log's metadata unless ``config_toml``."""
+    config = (cfgmod.parse(contents.metadata.get("config_toml", ""), f"{where} (metadata)")
+              if config_toml is None else cfgmod.parse(config_toml, f"{where} (with -c/--set)"))
     sources = json.loads(contents.metadata.get("sources", "[]") or "[]")
     raw_topics = {f"/raw/{s['name']}": s for s in sources}
     imu: list[ImuSample] = []

@@ -1,0 +1,431 @@
+"""The service as an operator meets it: what every command says when something is wrong, and
+that it never claims an output it did not write. Real subprocesses, ptys, Zenoh on unix
+sockets, MCAP files, read-only and full file systems."""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+import pty
+import signal
+import struct
+import subprocess
+import termios
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from mcap.writer import Writer
+from procs import UNBUFFERED, UWBD, one_line, read_until, uwbd
+
+from drivers import Frame
+from drivers.emulator import DeviceSpec, Emulator, Faults
+from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
+from uwbd.config import parse
+from uwbd.fusion.types import Pose
+from uwbd.logs.mcaplog import read_log
+from uwbd.logs.sink import McapSink
+from uwbd.service.pipeline import Pipeline, PoseList
+from uwbd.tools.logtools import simulation_toml, write_simulation
+from uwbd.tools.simulator import DEFAULT_SEGMENTS, SimConfig, simulate
+
+ANCHORS = "\n".join(f'"{i}" = [{x}, {y}, {z}]' for i, (x, y, z) in enumerate(DEFAULT_ANCHORS_M))
+
+
+def config(tmp: Path, sources: dict[str, tuple[str, str]], extra: str = "") -> Path:
+    """A daemon config: ``sources`` name -> (driver, port); Zenoh on a unix socket only."""
+    text = "".join(f'[[sources]]\nname = "{n}"\ndriver = "{d}"\nport = "{p}"\nbaud = 921600\n\n'
+                   for n, (d, p) in sources.items())
+    text += f"[anchors]\n{ANCHORS}\n\n{extra}\n"
+    text += (f'[zenoh]\nprefix = "uwbd/op"\nlisten = ["unixsock-stream/{tmp / "z.sock"}"]\n'
+             "multicast_scouting = false\n")
+    path = tmp / "cfg.toml"
+    path.write_text(text)
+    return path
+
+
+@pytest.fixture(scope="module")
+def sim_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A short simulated run (raw device bytes + truth)."""
+    path = tmp_path_factory.mktemp("sim") / "sim.mcap"
+    write_simulation(simulate(SimConfig(seed=5, segments=DEFAULT_SEGMENTS[:4])), path)
+    return path
+
+
+@pytest.fixture
+def readonly_dir(tmp_path: Path) -> Iterator[Path]:
+    """A folder nothing can be written into: a read-only tmpfs when we are root (root writes
+    through file modes), else a folder with its write bit off."""
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    if os.geteuid() == 0:
+        mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs",
+                                  str(folder)], capture_output=True, check=False)
+        if mounted.returncode != 0:
+            pytest.skip("running as root without mount: no folder is read-only to us")
+        try:
+            yield folder
+        finally:
+            subprocess.run(["umount", str(folder)], check=False)
+    else:
+        folder.chmod(0o500)
+        try:
+            yield folder
+        finally:
+            folder.chmod(0o700)
+
+
+def foreign_mcap(path: Path) -> Path:
+    """A valid MCAP file that uwbd did not write: no uwbd metadata, another topic."""
+    with path.open("wb") as f:
+        w = Writer(f)
+        w.start()
+        channel = w.register_channel("/chatter", "json", 0)
+        w.add_message(channel, log_time=1, publish_time=1, data=b"{}")
+        w.finish()
+    return path
+
+
+# -- commands that read a log ----------------------------------------------------------------
+
+@pytest.mark.parametrize("command", ["replay", "report"])
+@pytest.mark.parametrize(("make", "says"), [
+    (lambda p: p.write_bytes(os.urandom(300)) and p, "not an MCAP file"),
+    (lambda p: p.write_bytes(b"") or p, "the file is empty"),
+    (lambda p: p.mkdir() or p, "is a folder"),
+    (foreign_mcap, "not a uwbd log"),
+    (lambda p: p, "no such file"),
+])
+def test_a_log_that_is_not_one_is_one_line_and_exit_2(tmp_path: Path, command: str,
+                                                      make: Any, says: str) -> None:
+    path = tmp_path / "in.mcap"
+    make(path)
+    result = uwbd(command, str(path), cwd=tmp_path)
+    one_line(result, 2, str(path), says)
+    assert not result.stdout  # no summary of a run that did not happen
+    assert sorted(p.name for p in tmp_path.iterdir()) == (["in.mcap"] if path.exists() else [])
+
+
+def test_recover_refuses_what_is_not_mcap_and_leaves_no_output(tmp_path: Path) -> None:
+    garbage = tmp_path / "g.mcap"
+    garbage.write_bytes(b"\x00" * 50)
+    one_line(uwbd("recover", str(garbage), "-o", str(tmp_path / "out.mcap")), 2,
+             "not an MCAP file")
+    assert not (tmp_path / "out.mcap").exists()
+    # any MCAP file is fine, uwbd's or not
+    ok = uwbd("recover", str(foreign_mcap(tmp_path / "f.mcap")), "-o", str(tmp_path / "r.mcap"))
+    assert ok.returncode == 0 and "1 messages recovered" in ok.stdout, ok.stderr
+
+
+def test_outputs_into_missing_or_read_only_folders_fail_before_work(
+        tmp_path: Path, sim_log: Path, readonly_dir: Path) -> None:
+    missing = tmp_path / "nope" / "out.mcap"
+    result = one_line(uwbd("replay", str(sim_log), "-o", str(missing)), 2, str(missing),
+                      "does not exist")
+    assert "written to" not in result
+    for args, target in [
+        (("replay", str(sim_log), "-o", str(readonly_dir / "out.mcap")), "out.mcap"),
+        (("simulate", "-o", str(readonly_dir / "s.mcap")), "s.mcap"),
+        (("import", "inrol", str(tmp_path), "-o", str(readonly_dir / "i.mcap")), "i.mcap"),
+        (("report", str(sim_log), "-o", str(readonly_dir / "plots")), "plots"),
+        (("recover", str(sim_log), "-o", str(readonly_dir / "r.mcap")), "r.mcap"),
+    ]:
+        result = uwbd(*args)
+        line = one_line(result, 2, target)
+        assert "writ" in line and "written to" not in result.stdout, line
+    assert list(readonly_dir.iterdir()) == []
+
+
+def test_replay_with_other_settings_records_the_config_used(tmp_path: Path,
+                                                           sim_log: Path) -> None:
+    base = uwbd("replay", str(sim_log), "-o", str(tmp_path / "base.mcap"))
+    tuned = uwbd("replay", str(sim_log), "-o", str(tmp_path / "tuned.mcap"),
+                 "--set", "fusion.zupt=false", "--set", "fusion.range_sigma_m=0.3")
+    assert base.returncode == 0 and tuned.returncode == 0, tuned.stderr
+    used = parse(read_log(tmp_path / "tuned.mcap").metadata["config_toml"])
+    assert used.fusion["zupt"] is False and used.fusion["range_sigma_m"] == 0.3
+    assert parse(read_log(tmp_path / "base.mcap").metadata["config_toml"]).fusion.get(
+        "zupt", True) is True
+
+    def poses(name: str) -> list[Any]:
+        return [d["pose"]["position"] for d in read_log(tmp_path / name).json("/pose")]
+    assert poses("base.mcap") != poses("tuned.mcap")  # the settings took effect
+    # a whole config file instead of the log's own (here: the log's, written out, in loose mode)
+    still = SimConfig(seed=5, segments=((1.0, 0.0, 0.0, 0.0),))
+    (tmp_path / "other.toml").write_text(simulation_toml(simulate(still)) + 'mode = "loose"\n')
+    other = uwbd("replay", str(sim_log), "-c", str(tmp_path / "other.toml"),
+                 "-o", str(tmp_path / "other.mcap"))
+    assert other.returncode == 0, other.stderr
+    assert 'mode = "loose"' in read_log(tmp_path / "other.mcap").metadata["config_toml"]
+    # a setting that is not one: one line naming it, nothing written
+    one_line(uwbd("replay", str(sim_log), "--set", "fusion.zupt=maybe",
+                  "-o", str(tmp_path / "bad.mcap")), 2, "fusion.zupt")
+    one_line(uwbd("replay", str(sim_log), "--set", "fusion.nonsense=1"), 2, "nonsense")
+    assert not (tmp_path / "bad.mcap").exists()
+
+
+def test_replay_shows_progress_only_on_a_terminal(tmp_path: Path, sim_log: Path) -> None:
+    piped = uwbd("replay", str(sim_log))
+    assert piped.returncode == 0 and "replay:" not in piped.stderr, piped.stderr
+    controller, terminal = pty.openpty()
+    # a terminal has a size (a fresh pty's is 0 x 0, where a bar has no room)
+    fcntl.ioctl(terminal, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))
+    shown = b""
+    try:
+        proc = subprocess.Popen([*UWBD, "replay", str(sim_log)], stdout=subprocess.DEVNULL,
+                                stderr=terminal)
+        os.close(terminal)
+        with contextlib.suppress(OSError):  # EIO once the replay has ended
+            while chunk := os.read(controller, 65536):  # read as it runs: a pty drops the
+                shown += chunk  # rest once its writer is gone
+        proc.wait(timeout=120)
+    finally:
+        os.close(controller)
+    assert proc.returncode == 0
+    assert b"replay:" in shown and b"%" in shown
+
+
+# -- the daemon -------------------------------------------------------------------------------
+
+def test_daemon_with_no_ports_says_so_keeps_its_status_and_exits_1(tmp_path: Path) -> None:
+    cfg = config(tmp_path, {"imu": ("wit", "/dev/ttyUSB97"), "uwb": ("nlink", "/dev/ttyUSB98")})
+    journal = tmp_path / "journal.txt"
+    with journal.open("w") as err:
+        st = os.fstat(err.fileno())
+        result = subprocess.run(
+            [*UWBD, "run", "-c", str(cfg), "--log-dir", str(tmp_path / "logs"),
+             "--duration", "3"], stdout=subprocess.PIPE, stderr=err, timeout=60, check=False,
+            env={**os.environ, "JOURNAL_STREAM": f"{st.st_dev}:{st.st_ino}"})
+    lines = journal.read_text().splitlines()
+    assert result.returncode == 1 and "Traceback" not in journal.read_text()
+    # journald reads the priority from each line; systemd adds the time
+    assert all(line[:3] in ("<6>", "<4>", "<3>") for line in lines), lines
+    text = "\n".join(lines)
+    for needle in (f"with {cfg}", "source imu: wit on /dev/ttyUSB97", "anchors: 0 (",
+                   "keys uwbd/op/{pose,status,alive}", f"logs: {tmp_path / 'logs'}",
+                   "<4>uwbd run: warning: imu: cannot open /dev/ttyUSB97: No such file",
+                   "<3>uwbd run: no port could be opened"):
+        assert needle in text, (needle, text)
+    # no byte arrived, and the status went on once a second all the same
+    (log,) = (tmp_path / "logs").glob("*.mcap")
+    statuses = list(read_log(log).json("/status"))
+    assert len(statuses) >= 2
+    assert statuses[-1]["sources"]["imu"]["state"] == "closed"
+    quiet = uwbd("run", "-q", "-c", str(cfg), "--log-dir", str(tmp_path / "l2"),
+                 "--duration", "0.5")
+    assert "source imu" not in quiet.stderr and "warning: imu" in quiet.stderr
+
+
+def test_daemon_says_when_every_range_is_rejected(tmp_path: Path) -> None:
+    devices = [DeviceSpec("imu", "wit", Faults()), DeviceSpec("uwb", "nlink", Faults())]
+    with Emulator(devices, CircleScenario(seed=1), duration_s=12.0, link_dir=tmp_path) as emu:
+        # the anchors are 10-30 m away: a 2 m range limit lets nothing through
+        cfg = config(tmp_path, {n: (d.driver, emu.ports[n].path) for n, d in
+                                zip(("imu", "uwb"), devices, strict=True)},
+                     "[fusion]\nmax_range_m = 2.0\n")
+        daemon = subprocess.Popen([*UWBD, "run", "-c", str(cfg), "--log-dir",
+                                   str(tmp_path / "logs")], stderr=subprocess.PIPE,
+                                  stdout=subprocess.DEVNULL, env=UNBUFFERED)
+        try:
+            read_until(daemon, b"uwb: opened", 20, "stderr")
+            emu.start()
+            said = read_until(daemon, b"every range rejected", 20, "stderr")
+        finally:
+            daemon.send_signal(signal.SIGTERM)
+            daemon.communicate(timeout=20)
+    assert b"too_long" in said
+
+
+def _full_disk(folder: Path) -> list[str]:
+    """Make ``folder`` small: a 400 kB tmpfs when we may mount (returns no wrapper), else a
+    limit on the size of every file the daemon writes (``prlimit``; each new file has room
+    again)."""
+    if os.geteuid() == 0 and subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "size=400k", "tmpfs", str(folder)],
+            capture_output=True, check=False).returncode == 0:
+        return []
+    return ["prlimit", "--fsize=150000"]
+
+
+def test_log_stops_on_a_full_disk_finishes_the_file_and_resumes(tmp_path: Path) -> None:
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    wrapper = _full_disk(logs)
+    tmpfs = not wrapper
+    try:
+        filler = logs / "filler"
+        if tmpfs:  # leave ~120 kB: a few seconds of log
+            filler.write_bytes(b"\0" * 280_000)
+        devices = [DeviceSpec("imu", "wit", Faults()), DeviceSpec("uwb", "nlink", Faults())]
+        with Emulator(devices, CircleScenario(seed=1), duration_s=60.0,
+                      link_dir=tmp_path) as emu:
+            cfg = config(tmp_path, {n: (d.driver, emu.ports[n].path) for n, d in
+                                    zip(("imu", "uwb"), devices, strict=True)})
+            daemon = subprocess.Popen([*wrapper, *UWBD, "run", "-c", str(cfg), "--log-dir",
+                                       str(logs)], stderr=subprocess.PIPE,
+                                      stdout=subprocess.DEVNULL, env=UNBUFFERED)
+            try:
+                read_until(daemon, b"uwb: opened", 20, "stderr")
+                emu.start()
+                stopped = read_until(daemon, b"logging stopped", 40, "stderr")
+                if tmpfs:
+                    filler.unlink()  # room again
+                resumed = read_until(daemon, b"logging resumed into", 20, "stderr")
+                time.sleep(1.5)
+            finally:
+                daemon.send_signal(signal.SIGTERM)
+                _, rest = daemon.communicate(timeout=20)
+        assert daemon.returncode == 0, rest
+        assert b"is finished with what was written before" in stopped
+        files = sorted(logs.glob("*.mcap"))
+        assert len(files) >= 2
+        for path in files:  # every file finished: no crash recovery needed
+            contents = read_log(path)
+            assert not contents.truncated, (path, contents.error)
+            assert contents.metadata["config_toml"]
+        first, last = read_log(files[0]), read_log(files[-1])
+        assert len(list(first.json("/pose"))) > 20 and len(list(last.json("/pose"))) > 20
+        assert b"Traceback" not in stopped + resumed + rest
+    finally:
+        if tmpfs:
+            subprocess.run(["umount", str(logs)], check=False)
+
+
+def test_kill_9_of_a_uwb_only_run_keeps_all_but_the_last_second(tmp_path: Path) -> None:
+    """At 10 Hz of ranges a chunk takes minutes to fill: only the periodic flush saves it."""
+    devices = [DeviceSpec("uwb", "nlink", Faults())]
+    with Emulator(devices, CircleScenario(seed=1), duration_s=20.0, link_dir=tmp_path) as emu:
+        cfg = config(tmp_path, {"uwb": ("nlink", emu.ports["uwb"].path)})
+        daemon = subprocess.Popen([*UWBD, "run", "-c", str(cfg), "--log-dir",
+                                   str(tmp_path / "logs")], stderr=subprocess.PIPE,
+                                  stdout=subprocess.DEVNULL, env=UNBUFFERED)
+        try:
+            read_until(daemon, b"uwb: opened", 20, "stderr")
+            emu.start()
+            time.sleep(4.0)
+        finally:
+            killed_ns = time.time_ns()
+            daemon.send_signal(signal.SIGKILL)
+            daemon.communicate(timeout=10)
+    (log,) = (tmp_path / "logs").glob("*.mcap")
+    contents = read_log(log)
+    assert contents.truncated
+    ranges = [m.log_time_ns for m in contents.messages if m.topic == "/raw/uwb"]
+    assert len(ranges) >= 20
+    assert (killed_ns - max(ranges)) / 1e9 < 1.6
+
+
+# -- sinks -------------------------------------------------------------------------------------
+
+class Broken:
+    """A sink that raises on everything."""
+
+    def raw(self, source: str, t_ns: int, data: bytes) -> None:
+        raise RuntimeError("raw broke")
+
+    def frame(self, frame: Frame) -> None:
+        raise RuntimeError("frame broke")
+
+    def pose(self, pose: Pose) -> None:
+        raise ValueError("pose broke")
+
+    def status(self, t_ns: int, status: dict[str, Any]) -> None:
+        raise RuntimeError("status broke")
+
+    def close(self) -> None:
+        raise RuntimeError("close broke")
+
+
+def _run(sim_log: Path, sinks: list[Any]) -> Pipeline:
+    contents = read_log(sim_log)
+    pipeline = Pipeline(parse(contents.metadata["config_toml"]), sinks)
+    for m in contents.messages:
+        if m.topic.startswith("/raw/"):
+            pipeline.on_bytes(m.topic[5:], m.log_time_ns, m.data)
+    pipeline.finish()
+    pipeline.close()
+    return pipeline
+
+
+def test_a_failing_sink_costs_the_others_nothing(tmp_path: Path, sim_log: Path,
+                                                 caplog: pytest.LogCaptureFixture) -> None:
+    alone = PoseList()
+    _run(sim_log, [alone])
+    config = parse(read_log(sim_log).metadata["config_toml"])
+    beside, log = PoseList(), McapSink(config, path=tmp_path / "out.mcap")
+    with caplog.at_level("WARNING", logger="uwbd"):
+        pipeline = _run(sim_log, [Broken(), beside, log])
+    assert beside.poses == alone.poses and len(alone.poses) > 100
+    contents = read_log(tmp_path / "out.mcap")
+    assert not contents.truncated and len(list(contents.json("/pose"))) == len(alone.poses)
+    (trouble,) = pipeline.sink_trouble.values()
+    assert trouble.name == "Broken" and trouble.failures > 1000
+    assert any("Broken failed" in e for e in beside.statuses[-1]["sink_errors"])
+    warned = [r.getMessage() for r in caplog.records]
+    assert any("raw broke" in w for w in warned) and any("pose broke" in w for w in warned)
+
+
+def test_a_record_the_log_cannot_encode_is_counted_and_skipped(tmp_path: Path) -> None:
+    log = McapSink(parse(""), path=tmp_path / "x.mcap")
+    log.json("/a", 1, {"ok": 1})
+    log.json("/a", 2, {"not json": {1, 2}})  # a set: json cannot encode it
+    log.json("/a", 3, {"ok": 3})
+    log.close()
+    assert log.bad_records == 1
+    assert [d["ok"] for d in read_log(tmp_path / "x.mcap").json("/a")] == [1, 3]
+
+
+# -- demo, echo, emulate ---------------------------------------------------------------------
+
+def test_demo_into_head_ends_quietly() -> None:
+    started = time.monotonic()
+    result = subprocess.run(f"{' '.join(UWBD)} demo --duration 30 | head -3", shell=True,
+                            capture_output=True, text=True, timeout=60, check=False)
+    assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr
+    assert len(result.stdout.splitlines()) == 3
+    assert time.monotonic() - started < 20  # it stopped when its reader left
+
+
+def test_demo_says_how_to_follow_it_and_echo_finds_it(tmp_path: Path) -> None:
+    demo = subprocess.Popen([*UWBD, "demo", "--duration", "40"], stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, env=UNBUFFERED)
+    try:
+        head = read_until(demo, b"follow it from another terminal: ", 20)
+        if not head.split(b"follow it from another terminal: ")[1].count(b"\n"):
+            head += read_until(demo, b"\n", 5)
+        line = next(x for x in head.decode().splitlines() if "follow it" in x)
+        printed = line.split("terminal: ", 1)[1]
+        command = printed.split()
+        assert "echo" in command and "--connect" in command
+        sock = command[command.index("--connect") + 1]
+        read_until(demo, b"pose (", 20)
+        # the line as printed, run as printed
+        got = subprocess.run(f"{printed} --count 2", shell=True, capture_output=True, text=True,
+                             timeout=30, check=False)
+        assert got.returncode == 0 and len(got.stdout.splitlines()) == 2, got.stderr
+        # a wildcard: each line says which robot it came from
+        fleet = uwbd("echo", "--prefix", "uwbd/*", "--connect", sock, "--count", "2")
+        assert all(x.startswith("uwbd/demo/pose  ") for x in fleet.stdout.splitlines())
+        # the wrong prefix: said within seconds, with the daemons that are there
+        wrong = uwbd("echo", "--prefix", "uwbd/other", "--connect", sock, "--timeout", "5")
+        assert wrong.returncode == 1 and "Traceback" not in wrong.stderr
+        assert "daemons seen: uwbd/demo" in wrong.stderr and "nothing received" in wrong.stderr
+        # -c: the daemon's own config; echo dials its listen endpoint
+        cfg = tmp_path / "daemon.toml"
+        cfg.write_text(f'[zenoh]\nprefix = "uwbd/demo"\nlisten = ["{sock}"]\n'
+                       "multicast_scouting = false\n")
+        by_config = uwbd("echo", "-c", str(cfg), "--count", "1", "--timeout", "10")
+        assert by_config.returncode == 0 and "p=(" in by_config.stdout, by_config.stderr
+    finally:
+        demo.send_signal(signal.SIGINT)
+        demo.communicate(timeout=20)
+
+
+def test_emulate_creates_its_link_folder(tmp_path: Path) -> None:
+    links = tmp_path / "new" / "emu"
+    result = uwbd("emulate", "--link-dir", str(links), "--duration", "0.5")
+    assert result.returncode == 0, result.stderr
+    assert f"{links / 'imu'}" in result.stdout and links.is_dir()
