@@ -139,7 +139,7 @@ def test_absent_port_is_retried_and_shown(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(("text", "message"), [
-    ("[fusion]\nmode = 3\n", "cfg.toml: fusion.mode: wrong type int"),
+    ("[fusion]\nmode = 3\n", "cfg.toml: fusion.mode: expected a string, got 3 (an integer)"),
     ("[[sources]]\nname = 'imu'\ndriver = 'wit'\n", "cfg.toml: sources[0].port: required"),
     ("[pipeline]\npose_rate_hz = -5\n", "cfg.toml: pipeline.pose_rate_hz: must be positive"),
     ("[zenoh\n", "cfg.toml"),

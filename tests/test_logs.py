@@ -90,6 +90,11 @@ driver = "wit"
 port = "/dev/uwbd-imu"
 baud = 921600
 
+[[sources]]
+name = "uwb"
+driver = "dwm1001"
+port = "/dev/uwbd-uwb"
+
 [anchors]
 "0" = [0.0, 0.0, 0.0]
 "0x1151" = [8.0, 0.0, 2.2]
@@ -122,7 +127,7 @@ def test_config_parses_into_typed_objects() -> None:
     ('[fusion]', 'unknown key'),
     ('driver = "wit"', 'sources[0].driver: unknown driver'),
     ('"0" = [0.0, 0.0, 0.0]', 'anchors.0: expected [x, y, z]'),
-    ('mounting = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]', 'mounting_rotation'),
+    ('mounting = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]', 'imu.mounting: rows must be orthonormal'),
     ('baud = 921600', 'sources[0].baud'),
     ('gyro_noise_rps_rthz = 0.0002', 'imu.gyro_noise_rps_rthz: expected a positive number'),
     ('range_sigma_m = 0.1', 'fusion.range_sigma_m: must be positive'),

@@ -429,3 +429,27 @@ def test_emulate_creates_its_link_folder(tmp_path: Path) -> None:
     result = uwbd("emulate", "--link-dir", str(links), "--duration", "0.5")
     assert result.returncode == 0, result.stderr
     assert f"{links / 'imu'}" in result.stdout and links.is_dir()
+
+
+def test_the_readme_walk_through_works_as_written() -> None:
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    block = readme.split("<!-- walkthrough")[1].split("```sh\n")[1].split("```")[0]
+    emulate, run, echo = (line.replace(".venv/bin/uwbd", " ".join(UWBD)).split()
+                          for line in block.strip().splitlines())
+    root = Path(__file__).parents[1]
+    procs = [subprocess.Popen(emulate, cwd=root, stdout=subprocess.PIPE,
+                              stderr=subprocess.DEVNULL, env=UNBUFFERED)]
+    try:
+        read_until(procs[0], b"uwb", 20)
+        procs.append(subprocess.Popen(run, cwd=root, stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.PIPE, env=UNBUFFERED))
+        read_until(procs[1], b"uwb: opened", 20, "stderr")
+        got = subprocess.run([*echo, "--count", "3", "--timeout", "20"], cwd=root,
+                             capture_output=True, text=True, timeout=40, check=False)
+        assert got.returncode == 0 and len(got.stdout.splitlines()) == 3, got.stderr
+        assert all("p=(" in line for line in got.stdout.splitlines())
+    finally:
+        for proc in reversed(procs):
+            proc.send_signal(signal.SIGINT)
+            proc.communicate(timeout=20)
+    assert procs[1].returncode == 0

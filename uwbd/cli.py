@@ -25,7 +25,7 @@ from drivers.emulator import ENCODERS, DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import CircleScenario
 from uwbd import __version__, journal
 from uwbd.codec import frame_to_dict
-from uwbd.config import Config, ConfigError
+from uwbd.config import Config, ConfigError, apply_overrides
 from uwbd.config import load as load_config
 from uwbd.logs.mcaplog import LogContents, not_a_log, read_log, recover
 from uwbd.logs.replay import replay
@@ -214,8 +214,6 @@ def _log_config(args: argparse.Namespace, path: Path, contents: LogContents) -> 
                          "give the config to use with -c CONFIG")
     if not args.set and not args.config:
         return None
-    from uwbd.config import apply_overrides
-
     try:
         return apply_overrides(text, args.set, args.config or f"{path} (metadata)")
     except ConfigError as err:
@@ -315,26 +313,36 @@ def cmd_recover(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load(path: str) -> Config:
-    """A configuration file, or the one-line problem with file and key (exit 2)."""
+def _load(path: str, warn: bool = False) -> Config:
+    """A configuration file, or every problem with it, one line each naming file and key
+    (exit 2); ``warn``: its warnings are said too (they are said by check-config and run)."""
     try:
-        return load_config(Path(path))
+        config = load_config(Path(path))
     except ConfigError as err:
+        if warn:
+            for warning in err.warnings:
+                LOG.warning("%s", warning)
         raise UsageError(str(err)) from err
+    if warn:
+        for warning in config.warnings:
+            LOG.warning("%s", warning)
+    return config
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
-    """Validate a configuration file: one line per problem-free file, or the problem."""
-    config = _load(args.config)
+    """Validate a configuration file: every problem (exit 2), or one line saying it is fine,
+    after its warnings."""
+    config = _load(args.config, warn=True)
     ports = ", ".join(f"{s.name}={s.driver}@{s.port}" for s in config.sources) or "no sources"
     mode = config.filter_config().mode.value
-    print(f"{args.config}: ok ({ports}; {len(config.anchors_m)} anchors; {mode} fusion)")
+    print(f"{args.config}: ok ({ports}; {len(config.anchors_m)} anchors; {mode} fusion"
+          + (f"; {len(config.warnings)} warning(s) above)" if config.warnings else ")"))
     return 0
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     """The daemon: serial ports → fusion → MCAP logs, until SIGINT/SIGTERM."""
-    config = _load(args.config)
+    config = _load(args.config, warn=True)
     if not config.sources:
         raise UsageError(f"{args.config}: sources: at least one [[sources]] is needed")
     log_dir = Path(args.log_dir or config.log.get("directory", "logs"))
@@ -492,7 +500,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args))
     except UsageError as err:
-        log.error("%s", err)
+        for line in str(err).splitlines():  # a config may have several problems
+            log.error("%s", line)
         return 2
     except RunError as err:
         log.error("%s", err)
