@@ -21,13 +21,14 @@ import pytest
 from mcap.writer import Writer
 from procs import UNBUFFERED, UWBD, one_line, read_until, uwbd
 
-from drivers import Frame
+from drivers import PARSERS, Frame
 from drivers.emulator import DeviceSpec, Emulator, Faults
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
 from uwbd.config import parse
 from uwbd.fusion.types import Pose
 from uwbd.logs.mcaplog import read_log
 from uwbd.logs.sink import McapSink
+from uwbd.service.daemon import ReadQueue
 from uwbd.service.pipeline import Pipeline, PoseList
 from uwbd.tools.logtools import simulation_toml, write_simulation
 from uwbd.tools.simulator import DEFAULT_SEGMENTS, SimConfig, simulate
@@ -167,6 +168,13 @@ def test_replay_with_other_settings_records_the_config_used(tmp_path: Path,
     assert not (tmp_path / "bad.mcap").exists()
 
 
+def test_report_with_other_settings(tmp_path: Path, sim_log: Path) -> None:
+    result = uwbd("report", str(sim_log), "-o", str(tmp_path / "plots"),
+                  "--set", "fusion.range_sigma_m=0.2")
+    assert result.returncode == 0, result.stderr
+    assert "tight ESKF" in result.stdout and (tmp_path / "plots" / "error.png").is_file()
+
+
 def test_replay_shows_progress_only_on_a_terminal(tmp_path: Path, sim_log: Path) -> None:
     piped = uwbd("replay", str(sim_log))
     assert piped.returncode == 0 and "replay:" not in piped.stderr, piped.stderr
@@ -265,7 +273,7 @@ def test_log_stops_on_a_full_disk_finishes_the_file_and_resumes(tmp_path: Path) 
             cfg = config(tmp_path, {n: (d.driver, emu.ports[n].path) for n, d in
                                     zip(("imu", "uwb"), devices, strict=True)})
             daemon = subprocess.Popen([*wrapper, *UWBD, "run", "-c", str(cfg), "--log-dir",
-                                       str(logs)], stderr=subprocess.PIPE,
+                                       str(logs), "--summary-every", "2"], stderr=subprocess.PIPE,
                                       stdout=subprocess.DEVNULL, env=UNBUFFERED)
             try:
                 read_until(daemon, b"uwb: opened", 20, "stderr")
@@ -280,6 +288,10 @@ def test_log_stops_on_a_full_disk_finishes_the_file_and_resumes(tmp_path: Path) 
                 _, rest = daemon.communicate(timeout=20)
         assert daemon.returncode == 0, rest
         assert b"is finished with what was written before" in stopped
+        said = stopped + resumed + rest
+        # the daemon's running commentary, as the journal gets it
+        assert b"first pose: (" in said and b"poses/s; ranges " in said
+        assert b"filter waiting -> aligning" in said
         files = sorted(logs.glob("*.mcap"))
         assert len(files) >= 2
         for path in files:  # every file finished: no crash recovery needed
@@ -316,6 +328,38 @@ def test_kill_9_of_a_uwb_only_run_keeps_all_but_the_last_second(tmp_path: Path) 
     ranges = [m.log_time_ns for m in contents.messages if m.topic == "/raw/uwb"]
     assert len(ranges) >= 20
     assert (killed_ns - max(ranges)) / 1e9 < 1.6
+
+
+class BuggyParser(PARSERS["wit"]):  # type: ignore[misc,valid-type]
+    """A WitMotion parser with a bug: it raises on a read holding ``BUG``."""
+
+    def feed(self, data: bytes, t_ns: int) -> list[Frame]:
+        if b"BUG" in data:
+            raise ZeroDivisionError("a bug")
+        return list(super().feed(data, t_ns))
+
+
+def test_a_pipeline_that_raises_stops_the_reads_and_says_so(
+        sim_log: Path, caplog: pytest.LogCaptureFixture) -> None:
+    contents = read_log(sim_log)
+    pipeline = Pipeline(parse(contents.metadata["config_toml"]), [PoseList()])
+    pipeline.parsers["imu"] = BuggyParser()
+    queue = ReadQueue(pipeline)
+    raw = [m for m in contents.messages if m.topic.startswith("/raw/")][:500]
+    with caplog.at_level("ERROR", logger="uwbd"):
+        for m in raw[:200]:
+            queue.push(m.topic[5:], m.log_time_ns, m.data)
+        queue.push("imu", raw[200].log_time_ns, b"BUG")
+        for m in raw[201:]:
+            queue.push(m.topic[5:], m.log_time_ns, m.data)
+        queue.flush()
+    assert isinstance(queue.failure, ZeroDivisionError)
+    before = pipeline.parsers["uwb"].stats.frames
+    queue.push("uwb", raw[-1].log_time_ns + 1, raw[-1].data)
+    queue.flush()
+    assert pipeline.parsers["uwb"].stats.frames == before  # nothing more goes in
+    (record,) = caplog.records
+    assert "the pipeline failed on a read of imu: ZeroDivisionError: a bug" in record.getMessage()
 
 
 # -- sinks -------------------------------------------------------------------------------------

@@ -176,7 +176,7 @@ def cmd_import(args: argparse.Namespace) -> int:
     except DatasetError as err:
         raise UsageError(str(err)) from err
     try:
-        write_dataset(ds, out, mounting, lever_arm_m)
+        write_dataset(ds, out, mounting, lever_arm_m, progress=sys.stderr.isatty())
     except OSError as err:
         raise RunError(f"cannot write {out}: {err.strerror or err}") from err
     # the loaders return every stream non-empty and in time order
@@ -257,7 +257,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     from uwbd.tools.report import report
 
     try:
-        print(report(rec, out_dir, args.skip))
+        print(report(rec, out_dir, args.skip, progress=sys.stderr.isatty()))
     except OSError as err:
         raise RunError(f"cannot write the plots into {out_dir}: {err.strerror or err}") from err
     return 0

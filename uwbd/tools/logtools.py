@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
+from tqdm import tqdm
 
 from drivers import PARSERS
 from drivers.emulator import ENCODERS
@@ -70,12 +71,16 @@ def write_simulation(sim: Simulation, path: Path, uwb_driver: str = "nlink") -> 
 
 
 def write_dataset(ds: Dataset, path: Path, mounting: Sequence[Sequence[float]],
-                  lever_arm_m: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
+                  lever_arm_m: Sequence[float] = (0.0, 0.0, 0.0),
+                  progress: bool = False) -> None:
     """The dataset as a log of decoded frames and truth; its config holds the anchors, the
-    IMU mounting (sensor -> body) and the IMU-to-antenna lever arm, fusion at defaults."""
+    IMU mounting (sensor -> body) and the IMU-to-antenna lever arm, fusion at defaults.
+    ``progress``: a bar on stderr."""
     toml = cfgmod.to_toml((), ds.anchors_m, mounting, lever_arm_m)
     with LogWriter(path, toml) as log:
-        for frame in merge(ds.imu, ds.uwb):
+        for frame in tqdm(merge(ds.imu, ds.uwb), total=len(ds.imu) + len(ds.uwb),
+                          desc="import", unit="frame", disable=not progress, leave=False,
+                          mininterval=0.5):
             log.frame(frame)
         for t, p, r in zip(ds.truth_t_ns, ds.truth_p_m, ds.truth_rotation, strict=True):
             w, x, y, z = quat_from_matrix(r)

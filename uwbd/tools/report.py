@@ -19,6 +19,7 @@ import matplotlib
 matplotlib.use("Agg")  # files only: no display needed
 import matplotlib.pyplot as plt
 import numpy as np
+from tqdm import tqdm
 
 from uwbd.fusion.baselines import comparison_methods
 from uwbd.fusion.rotation import Array
@@ -37,15 +38,23 @@ from uwbd.tools.logtools import Recording
 Track = tuple[Times, Array, Array | None]
 
 
-def run_all(rec: Recording) -> tuple[dict[str, Track], dict[str, float]]:
-    """Positions (and covariances) of every method; consistency figures of the filters."""
+def run_all(rec: Recording, progress: bool = False
+            ) -> tuple[dict[str, Track], dict[str, float]]:
+    """Positions (and covariances) of every method; consistency figures of the filters.
+    ``progress``: a bar on stderr, one step per method."""
     cfg = rec.config.filter_config()
     tracks: dict[str, Track] = {}
-    for name, method in comparison_methods(cfg).items():
+    methods = comparison_methods(cfg)
+    bar = tqdm(total=len(methods) + len(Mode) + 1, desc="report", unit="method",
+               disable=not progress, leave=False)
+    for name, method in methods.items():
+        bar.set_postfix_str(name)
         t, p = run_method(method, rec.frames)
         tracks[name] = (t, p, None)
+        bar.update()
     extra: dict[str, float] = {}
     for mode in Mode:
+        bar.set_postfix_str(f"{mode.value} ESKF")
         poses, reports, _ = run_filter(dataclasses.replace(cfg, mode=mode), rec.frames)
         tracks[f"{mode.value} ESKF"] = (
             np.array([q.t_ns for q in poses], dtype=np.int64),
@@ -54,14 +63,17 @@ def run_all(rec: Recording) -> tuple[dict[str, Track], dict[str, float]]:
         nis = [r.nis for r in reports if r.accepted and r.kind in ("range", "position")]
         mean_nis = float(np.mean(nis)) if nis else math.nan  # nan: nothing was accepted
         extra[f"{mode.value} ESKF mean NIS (accepted UWB)"] = mean_nis
+        bar.update()
+    bar.set_postfix_str("RTS smoother")
     tracks["tight + RTS smoother"] = run_smoother(dataclasses.replace(cfg, mode=Mode.TIGHT),
                                                   rec.frames)
+    bar.close()
     return tracks, extra
 
 
-def report(rec: Recording, out_dir: Path, skip_s: float = 0.0) -> str:
+def report(rec: Recording, out_dir: Path, skip_s: float = 0.0, progress: bool = False) -> str:
     """The text report; plots go to ``out_dir``."""
-    tracks, extra = run_all(rec)
+    tracks, extra = run_all(rec, progress)
     lines = []
     if len(rec.truth_t_ns) < 2:
         lines.append("no ground truth in this log: positions only, no accuracy")
