@@ -10,15 +10,13 @@ import subprocess
 import sys
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
 
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from drivers import PARSERS
 from uwbd import config as cfgmod
-from uwbd.config import ConfigError, apply_overrides, dump_toml, load, parse
+from uwbd.config import ConfigError, SourceConfig, apply_overrides, load, parse, to_toml
+from uwbd.config import checks as cfgchecks
 from uwbd.fusion.filter import Filter
 from uwbd.tools.logtools import simulation_toml
 from uwbd.tools.simulator import SimConfig, ceiling_room, handheld_async
@@ -391,7 +389,7 @@ def test_what_only_the_filter_rejects_is_said_in_config_keys(
     def refuse(_: object) -> None:
         raise ValueError("mounting_rotation must be a proper rotation matrix")
 
-    monkeypatch.setattr(cfgmod, "Filter", refuse)
+    monkeypatch.setattr(cfgchecks, "Filter", refuse)
     assert one_problem(GOOD) == ("cfg.toml: imu.mounting: the filter cannot use it: "
                                  "imu.mounting must be a proper rotation matrix")
 
@@ -471,6 +469,24 @@ def test_shipped_configs_pass(path: Path) -> None:
 def test_the_configs_uwbd_writes_into_logs_pass(sim: SimConfig, driver: str) -> None:
     text = simulation_toml(SimpleNamespace(config=sim), driver)  # type: ignore[arg-type]
     assert parse(text, "log").warnings == ()
+
+
+def test_a_config_parses_into_typed_objects_and_is_written_back_the_same() -> None:
+    text = with_section("imu", "mounting = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]\n"
+                               "gyro_noise_rps_rthz = 0.0002",
+                        anchors('"0" = [0.0, 0.0, 0.0]', '"0x1151" = [8.0, 0.0, 2.2]',
+                                sources=SOURCES.replace("nlink", "dwm1001"),
+                                fusion='mode = "loose"\nrange_sigma_m = 0.1'))
+    c = parse(text, "cfg.toml")
+    assert c.sources[0] == SourceConfig("imu", "wit", "/dev/uwbd-imu", 921600)
+    assert c.anchors_m == {0: (0.0, 0.0, 0.0), 0x1151: (8.0, 0.0, 2.2)}
+    assert c.filter_config().mode.value == "loose"
+    assert c.filter_config().imu_noise.gyro == 0.0002  # from the datasheet ...
+    assert c.filter_config().imu_noise.acc == 0.01  # ... or the default
+    again = parse(to_toml(c.sources, c.anchors_m, c.mounting, c.lever_arm_m, c.fusion,
+                          c.imu_noise))
+    assert (again.sources, again.anchors_m, again.mounting, again.fusion, again.imu_noise) == (
+        c.sources, c.anchors_m, c.mounting, c.fusion, c.imu_noise)
 
 
 def test_crlf_and_a_byte_order_mark_read_as_before(tmp_path: Path) -> None:
@@ -624,21 +640,3 @@ def test_an_override_may_break_what_only_the_whole_file_tells() -> None:
     text = apply_overrides(SHIPPED, ['sources.uwb.port="/dev/uwbd-imu"'], "robot.toml")
     assert "sources[1].port: \"/dev/uwbd-imu\" is sources[0]'s port too" in one_problem(text)
 
-
-# the TOML writer keeps every value tomllib can read
-keys = st.text(max_size=8)
-scalars: st.SearchStrategy[Any] = st.one_of(
-    st.booleans(), st.integers(-(2**63), 2**63 - 1),
-    st.floats(allow_nan=False), st.text(max_size=20),
-    st.datetimes(), st.dates(), st.times())
-values = st.recursive(scalars, lambda inner: st.one_of(
-    st.lists(inner, max_size=4), st.dictionaries(keys, inner, max_size=3)), max_leaves=10)
-tables = st.dictionaries(keys, values, max_size=4)
-documents = st.dictionaries(keys, st.one_of(values, tables, st.lists(tables, min_size=1,
-                                                                     max_size=3)), max_size=5)
-
-
-@settings(max_examples=200, deadline=None)
-@given(documents)
-def test_dump_toml_round_trips(doc: dict[str, Any]) -> None:
-    assert tomllib.loads(dump_toml(doc)) == doc

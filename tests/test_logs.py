@@ -1,4 +1,4 @@
-"""MCAP logs, the config file, and the fusion commands, as real files and subprocesses."""
+"""MCAP logs and the fusion commands, as real files and subprocesses."""
 
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ import pytest
 from mcap.reader import make_reader
 
 from drivers.frames import ImuSample, UwbRanges
-from uwbd import config as cfgmod
 from uwbd.codec import strict_json
 from uwbd.logs.mcaplog import LogWriter, SourceInfo, read_log
 from uwbd.tools.importer import INROL_EPOCH_NS
@@ -81,72 +80,6 @@ def test_a_log_cut_short_by_a_crash_still_reads(tmp_path: Path) -> None:
         assert times == [m.log_time_ns for m in contents.messages]
         assert "uwbd" in {r.name for r in reader.iter_metadata()}
     assert not read_log(fixed).truncated
-
-
-CONFIG = """
-[[sources]]
-name = "imu"
-driver = "wit"
-port = "/dev/uwbd-imu"
-baud = 921600
-
-[[sources]]
-name = "uwb"
-driver = "dwm1001"
-port = "/dev/uwbd-uwb"
-
-[anchors]
-"0" = [0.0, 0.0, 0.0]
-"0x1151" = [8.0, 0.0, 2.2]
-
-[imu]
-mounting = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]
-gyro_noise_rps_rthz = 0.0002
-
-[fusion]
-mode = "loose"
-range_sigma_m = 0.1
-"""
-
-
-def test_config_parses_into_typed_objects() -> None:
-    c = cfgmod.parse(CONFIG, "cfg.toml")
-    assert c.sources[0] == cfgmod.SourceConfig("imu", "wit", "/dev/uwbd-imu", 921600)
-    assert c.anchors_m == {0: (0.0, 0.0, 0.0), 0x1151: (8.0, 0.0, 2.2)}
-    assert c.filter_config().mode.value == "loose"
-    assert c.filter_config().imu_noise.gyro == 0.0002  # from the datasheet ...
-    assert c.filter_config().imu_noise.acc == 0.01  # ... or the default
-    again = cfgmod.parse(cfgmod.to_toml(c.sources, c.anchors_m, c.mounting, c.lever_arm_m,
-                                        c.fusion, c.imu_noise))
-    assert (again.sources, again.anchors_m, again.mounting, again.fusion, again.imu_noise) == (
-        c.sources, c.anchors_m, c.mounting, c.fusion, c.imu_noise)
-
-
-@pytest.mark.parametrize(("change", "message"), [
-    ('mode = "loose"', 'fusion.mode: expected one of loose, tight'),
-    ('[fusion]', 'unknown key'),
-    ('driver = "wit"', 'sources[0].driver: unknown driver'),
-    ('"0" = [0.0, 0.0, 0.0]', 'anchors.0: expected [x, y, z]'),
-    ('mounting = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]', 'imu.mounting: rows must be orthonormal'),
-    ('baud = 921600', 'sources[0].baud'),
-    ('gyro_noise_rps_rthz = 0.0002', 'imu.gyro_noise_rps_rthz: expected a positive number'),
-    ('range_sigma_m = 0.1', 'fusion.range_sigma_m: must be positive'),
-])
-def test_config_errors_name_file_and_key(change: str, message: str) -> None:
-    bad = {
-        'mode = "loose"': 'mode = "tite"',
-        '[fusion]': '[fusion]\nspeed_of_light = 3',
-        'driver = "wit"': 'driver = "witmotion"',
-        '"0" = [0.0, 0.0, 0.0]': '"0" = [0.0, 0.0]',
-        'mounting = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]':
-            'mounting = [[1, 0, 0], [0, 1, 0], [0, 0, -1]]',
-        'baud = 921600': 'baud = "fast"',
-        'gyro_noise_rps_rthz = 0.0002': 'gyro_noise_rps_rthz = -0.0002',
-        'range_sigma_m = 0.1': 'range_sigma_m = 0',
-    }[change]
-    with pytest.raises(cfgmod.ConfigError, match=r"cfg\.toml") as err:
-        cfgmod.parse(CONFIG.replace(change, bad), "cfg.toml")
-    assert message in str(err.value)
 
 
 def test_simulate_then_report_as_commands(tmp_path: Path) -> None:

@@ -315,13 +315,10 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
 def _load(path: str, warn: bool = False) -> Config:
     """A configuration file, or every problem with it, one line each naming file and key
-    (exit 2); ``warn``: its warnings are said too (they are said by check-config and run)."""
+    (exit 2); ``warn``: the warnings of a config that loads are said too."""
     try:
         config = load_config(Path(path))
     except ConfigError as err:
-        if warn:
-            for warning in err.warnings:
-                LOG.warning("%s", warning)
         raise UsageError(str(err)) from err
     if warn:
         for warning in config.warnings:
@@ -330,9 +327,16 @@ def _load(path: str, warn: bool = False) -> Config:
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
-    """Validate a configuration file: every problem (exit 2), or one line saying it is fine,
-    after its warnings."""
-    config = _load(args.config, warn=True)
+    """Validate a configuration file: its warnings, then every problem (exit 2) or one line
+    saying it is fine."""
+    try:
+        config = load_config(Path(args.config))
+    except ConfigError as err:
+        for warning in err.warnings:
+            LOG.warning("%s", warning)
+        raise UsageError(str(err)) from err
+    for warning in config.warnings:
+        LOG.warning("%s", warning)
     ports = ", ".join(f"{s.name}={s.driver}@{s.port}" for s in config.sources) or "no sources"
     mode = config.filter_config().mode.value
     print(f"{args.config}: ok ({ports}; {len(config.anchors_m)} anchors; {mode} fusion"

@@ -1,0 +1,320 @@
+"""The file as a whole: the :class:`Report` of problems and warnings, and the checks that
+go beyond one key's type and range: sources (unique names and devices, a UWB one), anchors
+(what the driver needs, apart, within 10 km), sigmas, the IMU (a proper mounting, plausible
+noise and full scale), Zenoh (:func:`endpoint_problem`, then Zenoh's own parser), and last
+the filter itself."""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import math
+import re
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from uwbd.config.model import Config, SourceConfig, Vec3, vec3
+from uwbd.config.schema import (
+    DRIVERS,
+    FULL_SCALE_PLAUSIBLE,
+    HOST_PORT_PROTOCOLS,
+    HOSTNAME,
+    IMU_DRIVERS,
+    MIN_ANCHOR_SPACING_M,
+    NOISE_DEFAULTS,
+    NOISE_PLAUSIBLE_FACTOR,
+    ROTATION_TOLERANCE,
+    SECTIONS,
+    STANDARD_BAUDS,
+    UWB_DRIVERS,
+    ZENOH_PROTOCOLS,
+)
+from uwbd.config.spelling import known, show, toml_key
+from uwbd.fusion.filter import MAX_ANCHOR_COORD_M, MAX_RANGE_BIAS_SIGMA_M, Filter
+from uwbd.fusion.settings import IDENTITY3
+
+
+class Report:
+    """Problems and warnings, each ``"{where}: {key}: {what}"``."""
+
+    def __init__(self, where: str) -> None:
+        self.where = where
+        self._errors: list[tuple[int, str]] = []
+        self._warnings: list[tuple[int, str]] = []
+
+    def error(self, key: str, what: str) -> None:
+        self._errors.append((self._rank(key), f"{self.where}: {key}: {what}"))
+
+    def warn(self, key: str, what: str) -> None:
+        self._warnings.append((self._rank(key), f"{self.where}: {key}: {what}"))
+
+    @property
+    def errors(self) -> list[str]:
+        """In the order of the sections (``[[sources]]`` first), each as found."""
+        return [line for _, line in sorted(self._errors, key=lambda e: e[0])]
+
+    @property
+    def warnings(self) -> list[str]:
+        return [line for _, line in sorted(self._warnings, key=lambda e: e[0])]
+
+    @staticmethod
+    def _rank(key: str) -> int:
+        section = re.split(r"[.\[]", key, maxsplit=1)[0]
+        return SECTIONS.index(section) + 1 if section in SECTIONS else 0
+
+
+def mounting_rotation(r: Report, rows: list[list[float]] | None) -> tuple[Vec3, Vec3, Vec3]:
+    """``imu.mounting`` as a rotation; rows orthonormal only to a typed-in precision are
+    replaced by the nearest rotation (the filter wants them exact)."""
+    if rows is None:
+        return IDENTITY3
+    C = np.array(rows, dtype=float)
+    off = float(np.abs(C @ C.T - np.eye(3)).max())
+    det = float(np.linalg.det(C))
+    if off > ROTATION_TOLERANCE or det < 0:
+        r.error("imu.mounting", "rows must be orthonormal with determinant +1 (a rotation "
+                f"sensor -> body), got det {det:.3f}"
+                + (f", rows off orthonormal by up to {off:.3g}" if off > ROTATION_TOLERANCE
+                   else ""))
+        return IDENTITY3
+    if not np.allclose(C @ C.T, np.eye(3), atol=1e-9, rtol=0.0):
+        U, _, Vt = np.linalg.svd(C)
+        C = U @ Vt
+        r.warn("imu.mounting", f"rows are orthonormal to {off:.1g} only: the nearest rotation "
+               "is used")
+    a, b, c = (vec3(row) for row in C.tolist())
+    return (a, b, c)
+
+
+def _is_device_path(port: str) -> bool:
+    """A port that names a device (``simulated`` in a simulated log's config does not)."""
+    return "/" in port or "\\" in port or re.fullmatch(r"(?i)com\d+", port) is not None
+
+
+def check_sources(r: Report, sources: Sequence[tuple[int, SourceConfig]],
+                  complete: bool) -> None:
+    if not sources and complete:
+        r.warn("sources", "none: enough to replay or import a log, not to `uwbd run`")
+        return
+    names: dict[str, int] = {}
+    ports: dict[str, int] = {}
+    for i, s in sources:
+        if s.name in names:
+            r.error(f"sources[{i}].name", f"{show(s.name)} is sources[{names[s.name]}]'s name "
+                    "too: names must be unique")
+        names.setdefault(s.name, i)
+        if _is_device_path(s.port) and s.port in ports:
+            r.error(f"sources[{i}].port", f"{show(s.port)} is sources[{ports[s.port]}]'s port "
+                    "too: one device cannot feed two sources")
+        ports.setdefault(s.port, i)
+        if s.baud not in STANDARD_BAUDS:
+            r.warn(f"sources[{i}].baud", f"{s.baud} is not a standard serial rate (115200, "
+                   "230400, 460800, 921600, ...)")
+    if not complete:
+        return  # a source with a broken driver: what the file has in all is unknown
+    drivers = {s.driver for _, s in sources}
+    if not drivers & set(UWB_DRIVERS):
+        r.error("sources", f"no UWB source (driver {', '.join(UWB_DRIVERS)})")
+    elif not drivers & set(IMU_DRIVERS):
+        r.warn("sources", f"no IMU source (driver {', '.join(IMU_DRIVERS)}): the filter needs "
+               "IMU samples to start")
+
+
+def check_anchors(r: Report, anchors: Mapping[int, Vec3], keys: Mapping[int, str],
+                  complete: bool, sources: Sequence[tuple[int, SourceConfig]],
+                  fusion: Mapping[str, Any]) -> None:
+    def name(anchor_id: int) -> str:
+        return f"anchors.{toml_key(keys[anchor_id])}"
+
+    far = [a for a, p in anchors.items() if max(abs(x) for x in p) > MAX_ANCHOR_COORD_M]
+    for a in far:
+        r.error(name(a), f"{show(list(anchors[a]))}: more than {MAX_ANCHOR_COORD_M / 1000:g} "
+                "km from the origin (metres in the site's ENU frame?)")
+    ids = sorted(anchors)
+    for k, a in enumerate(ids):
+        for b in ids[:k]:
+            d = math.dist(anchors[a], anchors[b])
+            if d < MIN_ANCHOR_SPACING_M:
+                r.error(name(a), f"{d:.3f} m from {name(b)}: anchors must be "
+                        f"{MIN_ANCHOR_SPACING_M} m apart at least")
+    if len(anchors) >= 3 and not far:
+        points = np.array(list(anchors.values()))
+        centred = points - points.mean(axis=0)
+        direction = np.linalg.svd(centred)[2][0]
+        off_line = centred - np.outer(centred @ direction, direction)
+        if float(np.linalg.norm(off_line, axis=1).max()) < MIN_ANCHOR_SPACING_M:
+            r.warn("anchors", "all on one line: the tag's position around that line is not "
+                   "observable")
+    uwb = [(i, s.driver) for i, s in sources if s.driver in DRIVERS and DRIVERS[s.driver].uwb]
+    if not uwb:
+        return  # for replay or import, or without UWB (an error of its own)
+    for a in ids:
+        if not any(a in DRIVERS[d].anchor_ids for _, d in uwb):
+            said = "; ".join(f"{d} (sources[{i}]): {DRIVERS[d].ids_said}" for i, d in uwb)
+            r.error(name(a), f"id {a} is not one the UWB source can report ({said})")
+    ranges_only = [(i, d) for i, d in uwb if not DRIVERS[d].anchor_positions]
+    if not ranges_only or not complete:
+        return
+    i, driver = ranges_only[0]
+    if len(anchors) < 3:
+        r.error("anchors", f"the {driver} driver (sources[{i}]) reports ranges only, so the "
+                "anchor positions must be configured: 3 anchors at least (4 for a 3-D fix), "
+                f"got {len(anchors)}")
+    elif len(anchors) == 3 and "known_height_m" not in fusion:
+        r.warn("anchors", "3 anchors give a 2-D fix only: add a 4th out of their plane, or "
+               "set fusion.known_height_m")
+    min_anchors = fusion.get("min_anchors", 1)
+    if len(ranges_only) == len(uwb) and 3 <= len(anchors) < min_anchors:
+        r.error("fusion.min_anchors", f"{min_anchors}, but only {len(anchors)} anchors are "
+                f"configured (the {driver} driver ranges to configured anchors only)")
+
+
+def check_fusion(r: Report, fusion: Mapping[str, Any], anchors: Mapping[int, Vec3]) -> None:
+    if "height_range_m" in fusion:
+        lo, hi = fusion["height_range_m"]
+        if not lo < hi:
+            r.error("fusion.height_range_m", f"expected [lowest, highest] in m, lowest < "
+                    f"highest, got {show(fusion['height_range_m'])}")
+    sigma = fusion.get("range_sigma_m", 0.1)
+    if sigma > 1.0:
+        r.warn("fusion.range_sigma_m", f"{sigma:g} m: UWB ranges are good to about 0.1 m; "
+               "is it in metres?")
+    for key in ("range_bias_sigma_m", "tag_delay_sigma_m"):
+        if fusion.get(key, 0.0) > MAX_RANGE_BIAS_SIGMA_M:
+            r.warn(f"fusion.{key}", f"{fusion[key]:g} m: the filter holds antenna-delay "
+                   f"uncertainty to {MAX_RANGE_BIAS_SIGMA_M:g} m")
+    if "max_range_m" in fusion and len(anchors) >= 2:
+        spread = max(math.dist(p, q) for p in anchors.values() for q in anchors.values())
+        if fusion["max_range_m"] < spread:
+            r.warn("fusion.max_range_m", f"{fusion['max_range_m']:g} m, less than the "
+                   f"{spread:.1f} m between the farthest anchors: ranges across the site "
+                   "are dropped")
+
+
+def check_imu(r: Report, imu: Mapping[str, Any], lever: Vec3) -> None:
+    for key, default in NOISE_DEFAULTS.items():
+        if key in imu and not (default / NOISE_PLAUSIBLE_FACTOR <= imu[key]
+                               <= default * NOISE_PLAUSIBLE_FACTOR):
+            r.warn(f"imu.{key}", f"{imu[key]:g} is more than {NOISE_PLAUSIBLE_FACTOR:g}x off "
+                   f"the default {default:g}: is it in the unit of the key's key?")
+    for key, (lo, hi, lo_said, hi_said, unit) in FULL_SCALE_PLAUSIBLE.items():
+        if key in imu and not lo <= imu[key] <= hi:
+            r.warn(f"imu.{key}", f"{imu[key]:g} {unit} is outside {lo_said}..{hi_said}: is it "
+                   f"in {unit}?")
+    if math.hypot(*lever) > 10.0:
+        r.warn("imu.lever_arm_m", f"{math.hypot(*lever):.1f} m from the IMU to the antenna")
+
+
+def check_zenoh(r: Report, zenoh: Mapping[str, Any]) -> None:
+    good: dict[str, list[tuple[int, str]]] = {}
+    for key in ("connect", "listen"):
+        good[key] = []
+        seen: set[str] = set()
+        for k, endpoint in enumerate(zenoh.get(key, [])):
+            problem = endpoint_problem(endpoint)
+            if problem is not None:
+                r.error(f"zenoh.{key}[{k}]", f"{show(endpoint)}: {problem}")
+                continue
+            if endpoint in seen:
+                r.warn(f"zenoh.{key}[{k}]", f"{show(endpoint)} is listed twice")
+            seen.add(endpoint)
+            good[key].append((k, endpoint))
+    if zenoh.get("mode") == "client" and not zenoh.get("connect"):
+        r.error("zenoh.mode", "\"client\" needs a zenoh.connect endpoint (a router or peer)")
+    prefix = zenoh.get("prefix", "").strip("/")
+    if prefix and any(c in prefix for c in "*$?#"):
+        r.error("zenoh.prefix", f"{show(zenoh['prefix'])}: no wildcards (*, $*) nor # or ? in "
+                "a key to publish on")
+        prefix = ""
+    if good["connect"] or good["listen"] or prefix:
+        _check_with_zenoh(r, zenoh, good, prefix)
+
+
+def _check_with_zenoh(r: Report, zenoh_table: Mapping[str, Any],
+                      endpoints: Mapping[str, list[tuple[int, str]]], prefix: str) -> None:
+    """Zenoh's own parser as a second opinion on the endpoints and the key prefix."""
+    import zenoh  # noqa: PLC0415 - only for configs that key endpoints
+
+    def said(err: zenoh.ZError) -> str:  # without the Rust source location
+        return re.sub(r"\s+at \S+\.rs:\d+\.?\s*$", "", str(err))
+
+    for key, listed in endpoints.items():
+        for k, endpoint in listed:
+            try:
+                zenoh.Config.from_json5(json.dumps({key: {"endpoints": [endpoint]}}))
+            except zenoh.ZError as err:
+                r.error(f"zenoh.{key}[{k}]", f"{show(endpoint)}: Zenoh: {said(err)}")
+    if prefix:
+        try:
+            zenoh.KeyExpr(f"{prefix}/pose")
+        except zenoh.ZError as err:
+            r.error("zenoh.prefix", f"{show(zenoh_table['prefix'])}: Zenoh: {said(err)}")
+
+
+def endpoint_problem(endpoint: str) -> str | None:
+    """What is wrong with a Zenoh endpoint ``<protocol>/<address>[?<metadata>][#<config>]``,
+    or ``None``."""
+    locator = endpoint.partition("#")[0].partition("?")[0]
+    protocol, slash, address = locator.partition("/")
+    if not slash or not protocol:
+        return "expected <protocol>/<address>, e.g. tcp/192.168.1.10:7447"
+    if protocol not in ZENOH_PROTOCOLS:
+        return f"unknown protocol {show(protocol)}" + known(protocol, ZENOH_PROTOCOLS)
+    if not address:
+        return f"no address after {protocol}/"
+    if protocol in HOST_PORT_PROTOCOLS:
+        return _host_port_problem(address)
+    if protocol == "unixsock-stream" and not address.startswith("/"):
+        return "expected an absolute socket path (unixsock-stream//run/uwbd/zenoh.sock)"
+    return None
+
+
+def _host_port_problem(address: str) -> str | None:
+    if address.startswith("["):
+        host, bracket, rest = address[1:].partition("]")
+        if not bracket or not rest.startswith(":"):
+            return "expected [IPv6 address]:port, e.g. [::1]:7447"
+        port = rest[1:]
+        try:
+            ipaddress.IPv6Address(host)
+        except ValueError:
+            return f"{show(host)} is not an IPv6 address"
+    else:
+        if address.count(":") > 1:
+            return "an IPv6 address goes in brackets: [::1]:7447"
+        host, colon, port = address.rpartition(":")
+        if not colon or not host:
+            return "expected host:port, e.g. 192.168.1.10:7447"
+        if re.fullmatch(r"[\d.]+", host):
+            try:
+                ipaddress.IPv4Address(host)
+            except ValueError:
+                return f"{show(host)} is not an IPv4 address"
+        elif not HOSTNAME.fullmatch(host):
+            return f"{show(host)} is not a host name"
+    if not port.isascii() or not port.isdigit() or int(port) > 65535:
+        return f"port {show(port)}: expected 0..65535"
+    return None
+
+
+_FILTER_NAMES = {  # FilterConfig field (or word) in a filter error -> the config's key
+    "mounting_rotation": "imu.mounting", "lever_arm_m": "imu.lever_arm_m",
+    "min_anchors": "fusion.min_anchors", "max_range_m": "fusion.max_range_m",
+    "min_range_m": "fusion.max_range_m", "gate probability": "fusion.gate_probability",
+    "tag side": "fusion.tag_side", "height_range_m": "fusion.height_range_m",
+}
+_FILTER_WORDS = re.compile("|".join(re.escape(w) for w in _FILTER_NAMES))
+
+
+def check_filter(r: Report, config: Config) -> None:
+    """A last net: what only the filter understands."""
+    try:
+        Filter(config.filter_config())
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError) as err:
+        text = str(err).splitlines()[0] if str(err) else type(err).__name__
+        found = _FILTER_WORDS.search(text)
+        r.error(_FILTER_NAMES[found.group()] if found else "fusion",
+                "the filter cannot use it: "
+                + _FILTER_WORDS.sub(lambda m: _FILTER_NAMES[m.group()], text))

@@ -1,0 +1,103 @@
+"""What a parsed config is: :class:`Config` and its :class:`SourceConfig` entries, the
+:class:`ConfigError` a bad file raises, and :meth:`Config.filter_config` with the maps from
+``[imu]`` keys to the filter's fields."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from uwbd.fusion.eskf import ImuNoise
+from uwbd.fusion.gating import GatingPolicy
+from uwbd.fusion.imu_check import ImuLimits
+from uwbd.fusion.robust import RobustPolicy
+from uwbd.fusion.settings import IDENTITY3, FilterConfig, Mode
+
+Vec3 = tuple[float, float, float]
+# [imu] key -> ImuNoise field
+IMU_NOISE_KEYS = {"acc_noise_mps2_rthz": "acc", "gyro_noise_rps_rthz": "gyro",
+                  "acc_bias_walk_mps3_rthz": "acc_bias", "gyro_bias_walk_rps2_rthz": "gyro_bias"}
+IMU_LIMIT_KEYS = ("acc_full_scale_mps2", "gyro_full_scale_rps")  # ImuLimits fields
+MULTIPATH_SIGMA_M = 0.07  # the default time-correlated range error (real installations)
+
+
+def vec3(value: Sequence[float]) -> Vec3:
+    return (float(value[0]), float(value[1]), float(value[2]))
+
+
+class ConfigError(ValueError):
+    """Configuration problems, each a line ``"{file}: {key}: {what}"``.
+
+    ``problems`` lists them all; ``str()`` is them joined by newlines, so it starts with the
+    first. ``warnings`` holds what was only suspicious in the same file."""
+
+    def __init__(self, problems: str | Sequence[str], warnings: Sequence[str] = ()) -> None:
+        self.problems: list[str] = [problems] if isinstance(problems, str) else list(problems)
+        self.warnings: list[str] = list(warnings)
+        super().__init__("\n".join(self.problems))
+
+
+@dataclass(frozen=True)
+class SourceConfig:
+    name: str
+    driver: str
+    port: str
+    baud: int = 115200
+
+
+@dataclass(frozen=True)
+class Config:
+    sources: tuple[SourceConfig, ...] = ()
+    anchors_m: dict[int, Vec3] = field(default_factory=dict)
+    mounting: tuple[Vec3, Vec3, Vec3] = IDENTITY3
+    lever_arm_m: Vec3 = (0.0, 0.0, 0.0)
+    imu_noise: dict[str, float] = field(default_factory=dict)  # [imu] noise keys given
+    imu_limits: dict[str, float] = field(default_factory=dict)  # [imu] full-scale keys given
+    fusion: dict[str, Any] = field(default_factory=dict)
+    pipeline: dict[str, Any] = field(default_factory=dict)
+    log: dict[str, Any] = field(default_factory=dict)
+    zenoh: dict[str, Any] = field(default_factory=dict)
+    text: str = ""  # the TOML as read, for the log
+    warnings: tuple[str, ...] = ()  # "{file}: {key}: {what}", suspicious but not wrong
+
+    @property
+    def aligner_wait_ns(self) -> int:
+        return int(self.pipeline.get("aligner_wait_ms", 0) * 1_000_000)
+
+    @property
+    def pose_period_ns(self) -> int:
+        return int(1e9 / self.pipeline.get("pose_rate_hz", 50))
+
+    @property
+    def status_period_ns(self) -> int:
+        return int(self.pipeline.get("status_period_s", 1.0) * 1e9)
+
+    def filter_config(self) -> FilterConfig:
+        f = self.fusion
+        return FilterConfig(
+            mode=Mode(f.get("mode", "tight")), anchors_m=self.anchors_m,
+            mounting_rotation=self.mounting, lever_arm_m=self.lever_arm_m,
+            range_sigma_m=f.get("range_sigma_m", 0.10),
+            range_bias_states=f.get("range_bias_states", True),
+            range_bias_sigma_m=f.get("range_bias_sigma_m", 0.1),
+            tag_delay_sigma_m=f.get("tag_delay_sigma_m", 0.2),
+            imu_noise=ImuNoise(**{IMU_NOISE_KEYS[k]: v for k, v in self.imu_noise.items()}),
+            imu_limits=ImuLimits(
+                acc_full_scale_mps2=self.imu_limits.get("acc_full_scale_mps2",
+                                                        ImuLimits.acc_full_scale_mps2),
+                gyro_full_scale_rps=self.imu_limits.get("gyro_full_scale_rps",
+                                                        ImuLimits.gyro_full_scale_rps)),
+            robust=RobustPolicy(enabled=f.get("robust", True)),
+            multipath_states=f.get("multipath_sigma_m", MULTIPATH_SIGMA_M) > 0,
+            multipath_sigma_m=f.get("multipath_sigma_m", MULTIPATH_SIGMA_M) or MULTIPATH_SIGMA_M,
+            multipath_tau_s=f.get("multipath_tau_s", 1.0),
+            tag_side=f.get("tag_side", "auto"),
+            height_range_m=((float(f["height_range_m"][0]), float(f["height_range_m"][1]))
+                            if "height_range_m" in f else None),
+            zupt=f.get("zupt", True),
+            nhc=f.get("nhc", False), known_height_m=f.get("known_height_m"),
+            gate_probability=f.get("gate_probability", 0.997),
+            gating=GatingPolicy(min_anchors=f.get("min_anchors", 1),
+                                max_range_m=f.get("max_range_m", 100.0)),
+        )

@@ -1,0 +1,183 @@
+"""What each key may hold: the kinds of TOML value (said as ``expected {what}``), the bounds
+of numbers, each section's keys, the drivers (UWB or IMU, the anchor ids they report), and
+the limits the checks of the file as a whole hold it to."""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from drivers.nlink import N_SLOTS
+from uwbd.config.model import IMU_LIMIT_KEYS, IMU_NOISE_KEYS
+from uwbd.config.spelling import maybe, show, type_name
+from uwbd.fusion.eskf import ImuNoise
+from uwbd.fusion.filter import MAX_ANCHOR_COORD_M
+from uwbd.fusion.settings import Mode
+
+
+def _is_number(v: object) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _is_finite_vec(v: object, n: int) -> bool:
+    return (isinstance(v, list) and len(v) == n
+            and all(_is_number(x) and math.isfinite(x) for x in v))
+
+
+@dataclass(frozen=True)
+class Kind:
+    """A TOML value's expected type: said as ``expected {what}``."""
+
+    what: str
+    ok: Callable[[Any], bool]
+
+
+BOOL = Kind("true or false", lambda v: isinstance(v, bool))
+NUMBER = Kind("a number", _is_number)
+INTEGER = Kind("an integer", lambda v: isinstance(v, int) and not isinstance(v, bool))
+STRING = Kind("a string", lambda v: isinstance(v, str))
+POSITIVE = Kind("a positive number", lambda v: _is_number(v) and math.isfinite(v) and v > 0)
+ENDPOINTS = Kind("an array of endpoint strings (\"tcp/192.168.1.10:7447\")",
+                 lambda v: isinstance(v, list) and all(isinstance(e, str) for e in v))
+VEC3 = Kind("[x, y, z] of finite numbers", lambda v: _is_finite_vec(v, 3))
+ROWS = Kind("3 rows of 3 finite numbers ([[1, 0, 0], [0, 1, 0], [0, 0, 1]])",
+            lambda v: isinstance(v, list) and len(v) == 3 and all(_is_finite_vec(r, 3) for r in v))
+PAIR = Kind("[lowest, highest] of finite numbers, in m", lambda v: _is_finite_vec(v, 2))
+
+
+@dataclass(frozen=True)
+class Range:
+    """Bounds of a number: ``lo < v`` (``lo <= v`` when closed), ``v <= hi`` likewise."""
+
+    lo: float | None = 0.0
+    hi: float | None = None
+    lo_closed: bool = False
+    hi_closed: bool = True
+
+    def problem(self, v: float) -> str | None:
+        if not math.isfinite(v):
+            return f"must be a finite number, got {show(v)}"
+        low_ok = self.lo is None or (v >= self.lo if self.lo_closed else v > self.lo)
+        high_ok = self.hi is None or (v <= self.hi if self.hi_closed else v < self.hi)
+        return None if low_ok and high_ok else f"must be {self.said()}, got {show(v)}"
+
+    def said(self) -> str:
+        parts = []
+        if self.lo == 0:
+            parts.append("zero or more" if self.lo_closed else "positive")
+        elif self.lo is not None:
+            parts.append(f"{'at least' if self.lo_closed else 'more than'} {self.lo:g}")
+        if self.hi is not None:
+            parts.append(f"{'at most' if self.hi_closed else 'less than'} {self.hi:g}")
+        return " and ".join(parts)
+
+
+@dataclass(frozen=True)
+class Key:
+    kind: Kind
+    bounds: Range | None = None
+    choices: tuple[str, ...] = ()
+    non_empty: bool = False
+
+    def problem(self, value: Any) -> str | None:
+        """What is wrong with ``value`` for this key, or ``None``."""
+        if not self.kind.ok(value):
+            return f"expected {self.kind.what}, got {show(value)} ({type_name(value)})"
+        if self.bounds is not None:
+            return self.bounds.problem(value)
+        if self.choices and value not in self.choices:
+            return f"expected one of {', '.join(self.choices)}, got {show(value)}" + maybe(
+                value, self.choices)
+        if self.non_empty and not value.strip():
+            return "must not be empty"
+        return None
+
+
+_ZERO_OR_MORE = Range(0.0, lo_closed=True)
+_POSITIVE_RANGE = Range(0.0)
+SOURCE_SPEC = {"name": Key(STRING, non_empty=True), "driver": Key(STRING),
+               "port": Key(STRING, non_empty=True), "baud": Key(INTEGER, _POSITIVE_RANGE)}
+_IMU_SPEC = {"mounting": Key(ROWS), "lever_arm_m": Key(VEC3),
+             **{k: Key(POSITIVE) for k in (*IMU_NOISE_KEYS, *IMU_LIMIT_KEYS)}}
+_FUSION_SPEC = {
+    "mode": Key(STRING, choices=tuple(m.value for m in Mode)),
+    "range_sigma_m": Key(NUMBER, Range(0.0, 5.0)),
+    "range_bias_states": Key(BOOL),
+    "range_bias_sigma_m": Key(NUMBER, _ZERO_OR_MORE),
+    "tag_delay_sigma_m": Key(NUMBER, _ZERO_OR_MORE),
+    "zupt": Key(BOOL), "nhc": Key(BOOL), "robust": Key(BOOL),
+    "known_height_m": Key(NUMBER, Range(-MAX_ANCHOR_COORD_M, MAX_ANCHOR_COORD_M, True)),
+    "gate_probability": Key(NUMBER, Range(0.5, 1.0, hi_closed=False)),
+    "min_anchors": Key(INTEGER, Range(1, lo_closed=True)),
+    "max_range_m": Key(NUMBER, _POSITIVE_RANGE),
+    "multipath_sigma_m": Key(NUMBER, _ZERO_OR_MORE),
+    "multipath_tau_s": Key(NUMBER, _POSITIVE_RANGE),
+    "tag_side": Key(STRING, choices=("auto", "below", "above")),
+    "height_range_m": Key(PAIR),
+}
+_PIPELINE_SPEC = {"aligner_wait_ms": Key(NUMBER, Range(0.0, 1000.0, lo_closed=True)),
+                  "pose_rate_hz": Key(NUMBER, Range(0.0, 1000.0)),
+                  "status_period_s": Key(NUMBER, Range(0.05, 3600.0, lo_closed=True))}
+_LOG_SPEC = {"directory": Key(STRING, non_empty=True),
+             "rotate_mb": Key(NUMBER, _POSITIVE_RANGE),
+             "rotate_minutes": Key(NUMBER, _POSITIVE_RANGE)}
+_ZENOH_SPEC = {"enabled": Key(BOOL), "mode": Key(STRING, choices=("peer", "client", "router")),
+               "connect": Key(ENDPOINTS), "listen": Key(ENDPOINTS), "prefix": Key(STRING),
+               "multicast_scouting": Key(BOOL)}
+TABLES: dict[str, dict[str, Key]] = {
+    "imu": _IMU_SPEC, "fusion": _FUSION_SPEC, "pipeline": _PIPELINE_SPEC, "log": _LOG_SPEC,
+    "zenoh": _ZENOH_SPEC}
+SECTIONS = ("sources", "anchors", "imu", "fusion", "pipeline", "log", "zenoh")
+
+
+def anchor_id(key: str) -> int | None:
+    """The id an ``[anchors]`` key spells (``"3"``, ``"0x1151"``), or ``None``."""
+    try:
+        found = int(key, 0)
+    except ValueError:
+        return None
+    return found if found >= 0 else None
+
+
+@dataclass(frozen=True)
+class Driver:
+    """What a driver's device reports: UWB ranges or IMU samples; with anchor positions or
+    not; which anchor ids."""
+
+    uwb: bool
+    anchor_positions: bool = False
+    anchor_ids: range = range(0)
+    ids_said: str = ""
+
+
+DRIVERS = {
+    "wit": Driver(uwb=False),
+    # TagFrame0: a distance per slot 0..7, no positions (WIRE_FORMATS.md §3.2)
+    "nlink": Driver(True, False, range(N_SLOTS), f"TagFrame0 slots 0..{N_SLOTS - 1}"),
+    # shell `lec` and TLV 0x49: each range with the anchor's 16-bit short id and position
+    "dwm1001": Driver(True, True, range(1 << 16), "16-bit short ids 0..0xFFFF"),
+    "dwm1001-tlv": Driver(True, True, range(1 << 16), "16-bit short ids 0..0xFFFF"),
+}
+UWB_DRIVERS = tuple(name for name, d in DRIVERS.items() if d.uwb)
+IMU_DRIVERS = tuple(name for name, d in DRIVERS.items() if not d.uwb)
+STANDARD_BAUDS = frozenset({
+    1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000,
+    921600, 1000000, 1152000, 1500000, 2000000, 2500000, 3000000, 3500000, 4000000})
+MIN_ANCHOR_SPACING_M = 0.05
+ROTATION_TOLERANCE = 1e-3  # |C Cᵀ - I|: typed-in rows (0.7071) pass and are re-orthonormalised
+# a noise density this many times off its default is more likely a unit slip than a datasheet
+NOISE_PLAUSIBLE_FACTOR = 100.0
+NOISE_DEFAULTS = {key: getattr(ImuNoise(), name) for key, name in IMU_NOISE_KEYS.items()}
+G_MPS2 = 9.80665
+FULL_SCALE_PLAUSIBLE = {  # the smallest and largest ranges MEMS parts offer, with margin
+    "acc_full_scale_mps2": (1.9 * G_MPS2, 70 * G_MPS2, "2 g", "64 g", "m/s²"),
+    "gyro_full_scale_rps": (math.radians(120), math.radians(4100), "125 °/s", "4000 °/s",
+                            "rad/s")}
+# Zenoh 1.x link protocols (<protocol>/<address>[?<metadata>][#<config>])
+ZENOH_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial",
+                   "vsock")
+HOST_PORT_PROTOCOLS = frozenset({"tcp", "udp", "tls", "quic", "ws"})
+HOSTNAME = re.compile(r"[A-Za-z0-9_](?:[A-Za-z0-9_.-]*[A-Za-z0-9_])?")
