@@ -604,7 +604,7 @@ def test_load_applies_overrides(tmp_path: Path) -> None:
                           "(a string)"),
     ("fusion.zupt=", "--set fusion.zupt=: no value after ="),
     ("fusoin.zupt=true", "--set fusoin.zupt=true: unknown section 'fusoin' (did you mean fusion? "
-                         "known: sources, anchors, imu, fusion, pipeline, log, zenoh)"),
+                         "known: sources, anchors, imu, fusion, pipeline, log, zenoh, robot)"),
     ("fusion=true", "--set fusion=true: expected fusion.<key>=value"),
     ("fusion.zupy=true", "--set fusion.zupy=true: unknown key fusion.zupy (did you mean zupt?"),
     ("fusion.range_sigma_m=0,2", "--set fusion.range_sigma_m=0,2: not a TOML value (Expected "
@@ -640,3 +640,17 @@ def test_an_override_may_break_what_only_the_whole_file_tells() -> None:
     text = apply_overrides(SHIPPED, ['sources.uwb.port="/dev/uwbd-imu"'], "robot.toml")
     assert "sources[1].port: \"/dev/uwbd-imu\" is sources[0]'s port too" in one_problem(text)
 
+
+
+def test_the_robot_names_its_keys_logs_and_frames(tmp_path: Path) -> None:
+    named = cfgmod.parse('[robot]\nname = "r1"\nbody_frame_id = "r1/base_link"\n')
+    assert (named.robot_name, named.zenoh_prefix) == ("r1", "uwbd/r1")
+    assert (named.nav_frame_id, named.body_frame_id) == ("enu", "r1/base_link")
+    assert cfgmod.parse("").robot_name == cfgmod.default_robot_name()
+    with pytest.raises(cfgmod.ConfigError) as err:
+        cfgmod.parse('[robot]\nname = "robot one"\nnav_frame_id = ""\n', "cfg.toml")
+    assert err.value.problems == [
+        "cfg.toml: robot.name: expected a name of letters, digits, '-' and '_' (\"robot1\"), "
+        "got \"robot one\" (a string)",
+        "cfg.toml: robot.nav_frame_id: expected a frame name of letters, digits, '_', '-', '.' "
+        "and '/' (\"base_link\"), got \"\" (a string)"]

@@ -25,7 +25,7 @@ from drivers.emulator import ENCODERS, DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import CircleScenario
 from uwbd import __version__, journal
 from uwbd.codec import frame_to_dict
-from uwbd.config import Config, ConfigError, apply_overrides
+from uwbd.config import Config, ConfigError, apply_overrides, default_robot_name
 from uwbd.config import load as load_config
 from uwbd.logs.mcaplog import LogContents, not_a_log, read_log, recover
 from uwbd.logs.replay import replay
@@ -34,7 +34,6 @@ from uwbd.service.daemon import run as run_daemon
 from uwbd.service.demo import run_demo
 from uwbd.service.echo import EchoError, dial_endpoints, echo
 from uwbd.service.interrupt import quiet_stdout, shielded, wait_until
-from uwbd.service.zenohsink import default_prefix
 from uwbd.tools.importer import (
     INROL_LEVER_ARM_M,
     INROL_MOUNTING,
@@ -364,19 +363,20 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_echo(args: argparse.Namespace) -> int:
     """Print the poses (or status) a daemon publishes."""
-    zcfg: dict[str, object] = {"mode": "peer", "multicast_scouting": not args.connect}
+    zcfg: dict[str, Any] = {"mode": "peer", "multicast_scouting": not args.connect}
     prefix = args.prefix
     if args.config:
-        zenoh_cfg = _load(args.config).zenoh
+        config = _load(args.config)
         # dial the daemon: its routers, and its own listen endpoints (a subscriber must not
         # take the daemon's listen port itself)
+        zenoh_cfg = config.zenoh
         dial = [*zenoh_cfg.get("connect", []), *dial_endpoints(zenoh_cfg.get("listen", []))]
         zcfg.update(multicast_scouting=zenoh_cfg.get("multicast_scouting", True),
                     connect=dial)
-        prefix = prefix or zenoh_cfg.get("prefix")
+        prefix = prefix or config.zenoh_prefix
     if args.connect:
-        zcfg["connect"] = [*args.connect, *zcfg.get("connect", [])]  # type: ignore[misc]
-    prefix = str(prefix or default_prefix())
+        zcfg["connect"] = [*args.connect, *zcfg.get("connect", [])]
+    prefix = str(prefix or f"uwbd/{default_robot_name()}")
     try:
         printed = echo(zcfg, prefix, args.status, args.count, args.timeout)
     except EchoError as err:

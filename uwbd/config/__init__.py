@@ -9,6 +9,9 @@ silently ignored is worse than none. What is only suspicious (a non-standard bau
 noise density 100x off its default, exactly 3 anchors) lands in ``Config.warnings``.
 Sections::
 
+    [robot]              name (this machine's host name): in log names, metadata and the Zenoh
+                         prefix; nav_frame_id ("enu"), body_frame_id ("base_link"): the frame
+                         names in poses, transforms and ROS 2 bags
     [[sources]]          name, driver, port, baud
     [anchors]            "<id>" = [x, y, z]            (m, navigation frame ENU)
     [imu]                mounting = 3x3 rows (sensor -> body FLU), lever_arm_m = [x, y, z],
@@ -27,7 +30,7 @@ Sections::
     [pipeline]           aligner_wait_ms (0), pose_rate_hz (50), status_period_s (1)
     [log]                directory ("logs"), rotate_mb (256), rotate_minutes (60)
     [zenoh]              enabled (true), mode ("peer"), connect [], listen [], prefix
-                         ("uwbd/<hostname>"), multicast_scouting (true)
+                         ("uwbd/<robot name>"), multicast_scouting (true)
 
 Beyond types and ranges (the tables in :mod:`uwbd.config.schema`), the file must make sense
 as a whole (:mod:`uwbd.config.checks`): with sources, one of them is UWB; a driver that
@@ -52,6 +55,7 @@ from uwbd.config.model import (
     ConfigError,
     SourceConfig,
     Vec3,
+    default_robot_name,
 )
 from uwbd.config.overrides import apply_overrides, to_toml
 from uwbd.config.reading import MAX_CONFIG_BYTES, load, parse
@@ -70,5 +74,5 @@ __all__ = [
     "G_MPS2", "IMU_DRIVERS", "IMU_LIMIT_KEYS", "IMU_NOISE_KEYS", "MAX_CONFIG_BYTES",
     "MIN_ANCHOR_SPACING_M", "MULTIPATH_SIGMA_M", "NOISE_PLAUSIBLE_FACTOR", "ROTATION_TOLERANCE",
     "STANDARD_BAUDS", "UWB_DRIVERS", "ZENOH_PROTOCOLS", "Config", "ConfigError", "SourceConfig",
-    "Vec3", "apply_overrides", "endpoint_problem", "load", "parse", "to_toml",
+    "Vec3", "apply_overrides", "default_robot_name", "endpoint_problem", "load", "parse", "to_toml",
 ]

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import socket
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -38,6 +39,13 @@ class ConfigError(ValueError):
         super().__init__("\n".join(self.problems))
 
 
+def default_robot_name() -> str:
+    """This machine's host name, with what a key expression or file name cannot hold as
+    ``_``."""
+    host = "".join(c if c.isalnum() or c in "-_" else "_" for c in socket.gethostname())
+    return host or "robot"
+
+
 @dataclass(frozen=True)
 class SourceConfig:
     name: str
@@ -58,8 +66,28 @@ class Config:
     pipeline: dict[str, Any] = field(default_factory=dict)
     log: dict[str, Any] = field(default_factory=dict)
     zenoh: dict[str, Any] = field(default_factory=dict)
+    robot: dict[str, Any] = field(default_factory=dict)
     text: str = ""  # the TOML as read, for the log
     warnings: tuple[str, ...] = ()  # "{file}: {key}: {what}", suspicious but not wrong
+
+    @property
+    def robot_name(self) -> str:
+        """Who writes the logs and publishes: ``[robot] name``, else this machine's name."""
+        return str(self.robot.get("name") or default_robot_name())
+
+    @property
+    def nav_frame_id(self) -> str:
+        """The navigation frame's name in poses and transforms (ENU)."""
+        return str(self.robot.get("nav_frame_id", "enu"))
+
+    @property
+    def body_frame_id(self) -> str:
+        """The vehicle's frame's name (forward-left-up), child of the navigation frame."""
+        return str(self.robot.get("body_frame_id", "base_link"))
+
+    @property
+    def zenoh_prefix(self) -> str:
+        return str(self.zenoh.get("prefix") or f"uwbd/{self.robot_name}").strip("/")
 
     @property
     def aligner_wait_ns(self) -> int:

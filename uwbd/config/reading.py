@@ -91,7 +91,8 @@ def parse(text: str, where: str = "<config>") -> Config:
         lever_arm_m=lever,
         imu_noise={k: float(imu[k]) for k in IMU_NOISE_KEYS if k in imu},
         imu_limits={k: float(imu[k]) for k in IMU_LIMIT_KEYS if k in imu},
-        fusion=fusion, pipeline=tables["pipeline"], log=tables["log"], zenoh=zenoh, text=text,
+        fusion=fusion, pipeline=tables["pipeline"], log=tables["log"], zenoh=zenoh,
+        robot=tables["robot"], text=text,
         warnings=tuple(r.warnings))
     check_filter(r, config)  # a last net: what only the filter understands
     if r.errors:

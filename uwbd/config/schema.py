@@ -127,10 +127,17 @@ _LOG_SPEC = {"directory": Key(STRING, non_empty=True),
 _ZENOH_SPEC = {"enabled": Key(BOOL), "mode": Key(STRING, choices=("peer", "client", "router")),
                "connect": Key(ENDPOINTS), "listen": Key(ENDPOINTS), "prefix": Key(STRING),
                "multicast_scouting": Key(BOOL)}
+NAME = Kind("a name of letters, digits, '-' and '_' (\"robot1\")",
+            lambda v: isinstance(v, str) and re.fullmatch(r"[A-Za-z0-9_-]+", v) is not None)
+FRAME_ID = Kind("a frame name of letters, digits, '_', '-', '.' and '/' (\"base_link\")",
+                lambda v: isinstance(v, str)
+                and re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_./-]*", v) is not None)
+_ROBOT_SPEC = {"name": Key(NAME), "nav_frame_id": Key(FRAME_ID),
+               "body_frame_id": Key(FRAME_ID)}
 TABLES: dict[str, dict[str, Key]] = {
     "imu": _IMU_SPEC, "fusion": _FUSION_SPEC, "pipeline": _PIPELINE_SPEC, "log": _LOG_SPEC,
-    "zenoh": _ZENOH_SPEC}
-SECTIONS = ("sources", "anchors", "imu", "fusion", "pipeline", "log", "zenoh")
+    "zenoh": _ZENOH_SPEC, "robot": _ROBOT_SPEC}
+SECTIONS = ("sources", "anchors", "imu", "fusion", "pipeline", "log", "zenoh", "robot")
 
 
 def anchor_id(key: str) -> int | None:

@@ -8,7 +8,8 @@
 | ``/status`` | ``json`` | health and counters |
 
 ``log_time`` is the receive time in ns since the Unix epoch. Metadata record ``uwbd``: the uwbd
-version, the config TOML as used, and the sources (name, driver, port) as JSON.
+version, the config TOML as used, the sources (name, driver, port) as JSON, the robot's name
+(``[robot] name``) and the host that wrote the file.
 
 Reading is a linear scan of the records, so a log cut short by a crash (no footer, which
 the seeking reader refuses) reads up to its last complete chunk; ``LogContents.truncated``
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import socket
 import struct
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -92,14 +94,15 @@ class LogWriter:
     """Writes one MCAP file; use as a context manager so it is finished on every path."""
 
     def __init__(self, path: Path, config_toml: str = "", sources: tuple[SourceInfo, ...] = (),
-                 chunk_bytes: int = CHUNK_BYTES) -> None:
+                 chunk_bytes: int = CHUNK_BYTES, robot: str = "") -> None:
         self.path = path
         self._file: IO[bytes] = path.open("wb")
         self._w = Writer(self._file, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
         self._w.start(profile="", library=f"uwbd {__version__}")
         self._w.add_metadata(METADATA_NAME, {
             "version": __version__, "config_toml": config_toml,
-            "sources": json.dumps([vars(s) for s in sources])})
+            "sources": json.dumps([vars(s) for s in sources]), "robot": robot,
+            "host": socket.gethostname()})
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._sequence = 0

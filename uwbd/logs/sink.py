@@ -22,7 +22,9 @@ LOG = journal.get("log")
 class McapSink:
     """Writes the pipeline to MCAP files: one file, or a rotating series in a directory.
 
-    Rotation starts a new file when the current one passes ``rotate_bytes`` or spans
+    In a directory, files are named ``uwbd-<robot>-<UTC start, %Y%m%d-%H%M%S>.mcap``, so
+    the logs of several robots can share a folder. Rotation starts a new file when the
+    current one passes ``rotate_bytes`` or spans
     ``rotate_ns`` of data time. Records are written behind: kept until they span
     ``WRITE_BEHIND_NS`` and then written in one go, on warm caches (one by one, each record
     cost the daemon twice the CPU). With ``paced`` the owner calls :meth:`write_pending`
@@ -77,7 +79,8 @@ class McapSink:
             try:
                 if self.directory is not None:
                     self.directory.mkdir(parents=True, exist_ok=True)
-                log = self._log = LogWriter(path, self.config.text, sources)
+                log = self._log = LogWriter(path, self.config.text, sources,
+                                                robot=self.config.robot_name)
             except OSError as err:
                 self._fail(f"cannot write log {path}: {err.strerror or err}", t_ns)
                 return None
@@ -97,10 +100,11 @@ class McapSink:
     def _next_name(self, t_ns: int) -> Path:
         assert self.directory is not None
         stamp = datetime.fromtimestamp(t_ns / 1e9, tz=timezone.utc).strftime("%Y%m%d-%H%M%S")
-        path = self.directory / f"uwbd-{stamp}.mcap"
+        name = f"uwbd-{self.config.robot_name}-{stamp}"
+        path = self.directory / f"{name}.mcap"
         k = 1
         while path.exists() or path in self.files:
-            path = self.directory / f"uwbd-{stamp}-{k}.mcap"
+            path = self.directory / f"{name}-{k}.mcap"
             k += 1
         return path
 

@@ -1,6 +1,6 @@
 """Poses and status over Zenoh (ARCHITECTURE.md, "Zenoh").
 
-Keys under the configured prefix (default ``uwbd/<hostname>``): ``<prefix>/pose`` carries the
+Keys under the configured prefix (default ``uwbd/<robot name>``): ``<prefix>/pose`` carries the
 same JSON as MCAP ``/pose`` (a ``foxglove.PoseInFrame`` object plus uwbd's fields), encoding
 ``application/json``; ``<prefix>/status`` is published once a second and answered as a query;
 ``<prefix>/alive`` is a liveliness token. Peer mode by default; mode and endpoints come from
@@ -13,7 +13,6 @@ queryable runs on a Zenoh thread and only reads the last status bytes, swapped a
 from __future__ import annotations
 
 import json
-import socket
 from typing import Any
 
 import zenoh
@@ -22,11 +21,6 @@ from drivers.frames import Frame
 from uwbd.codec import strict_json
 from uwbd.fusion.types import Pose
 from uwbd.logs.mcaplog import pose_to_message
-
-
-def default_prefix() -> str:
-    host = "".join(c if c.isalnum() or c in "-_" else "_" for c in socket.gethostname())
-    return f"uwbd/{host or 'robot'}"
 
 
 def session_config(zcfg: dict[str, Any]) -> zenoh.Config:
@@ -41,8 +35,8 @@ def session_config(zcfg: dict[str, Any]) -> zenoh.Config:
 
 
 class ZenohSink:
-    def __init__(self, zcfg: dict[str, Any]) -> None:
-        self.prefix = str(zcfg.get("prefix") or default_prefix()).strip("/")
+    def __init__(self, zcfg: dict[str, Any], prefix: str) -> None:
+        self.prefix = prefix
         self.error = ""
         self.session = zenoh.open(session_config(zcfg))
         json_enc = zenoh.Encoding.APPLICATION_JSON
