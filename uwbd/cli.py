@@ -251,15 +251,25 @@ def cmd_report(args: argparse.Namespace) -> int:
         raise UsageError(f"cannot write the plots into {out_dir}: {err.strerror or err}") from err
     if not os.access(out_dir, os.W_OK | os.X_OK):
         raise UsageError(f"cannot write the plots into {out_dir}: the folder is not writable")
-    # imported here: plotting and the baselines (matplotlib, filterpy, scipy) would otherwise
-    # sit in the daemon's memory for nothing
-    from uwbd.tools.report import report
+    report = _tools_extra("report")
 
     try:
         print(report(rec, out_dir, args.skip, progress=sys.stderr.isatty()))
     except OSError as err:
         raise RunError(f"cannot write the plots into {out_dir}: {err.strerror or err}") from err
     return 0
+
+
+def _tools_extra(command: str) -> Any:
+    """The report function, from the ``tools`` extra (matplotlib, scipy, filterpy), which the
+    robot's install leaves out; imported here so it never sits in the daemon's memory."""
+    try:
+        from uwbd.tools.report import report
+    except ImportError as err:
+        raise UsageError(f"{command} needs the tools extra ({err.name} is missing): "
+                         "pip install 'uwbd[tools]' (from a checkout: pip install '.[tools]')"
+                         ) from err
+    return report
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
