@@ -34,6 +34,7 @@ from uwbd.service.daemon import run as run_daemon
 from uwbd.service.demo import run_demo
 from uwbd.service.echo import EchoError, dial_endpoints, echo
 from uwbd.service.interrupt import quiet_stdout, shielded, wait_until
+from uwbd.service.router import DEFAULT_LISTEN, RouterError, run_router
 from uwbd.tools.importer import (
     INROL_LEVER_ARM_M,
     INROL_MOUNTING,
@@ -387,6 +388,10 @@ def cmd_echo(args: argparse.Namespace) -> int:
     if args.connect:
         zcfg["connect"] = [*args.connect, *zcfg.get("connect", [])]
     prefix = str(prefix or f"uwbd/{default_robot_name()}")
+    if zcfg.get("connect"):
+        # it dials a daemon or a router and only listens: as a client it needs no listen
+        # endpoint of its own, which a peer would (peers mesh with each other directly)
+        zcfg["mode"] = "client"
     try:
         printed = echo(zcfg, prefix, args.status, args.count, args.timeout)
     except EchoError as err:
@@ -394,6 +399,15 @@ def cmd_echo(args: argparse.Namespace) -> int:
     if args.timeout is not None and printed == 0:
         raise RunError(f"nothing received on {prefix}/{'status' if args.status else 'pose'} "
                        f"in {args.timeout:g} s")
+    return 0
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    """A Zenoh router for several daemons (as ``zenohd``)."""
+    try:
+        run_router(args.listen or [DEFAULT_LISTEN], args.multicast_scouting)
+    except RouterError as err:
+        raise UsageError(str(err)) from err
     return 0
 
 
@@ -456,6 +470,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--count", type=int, help="stop after N messages")
     p.add_argument("--timeout", type=float, metavar="S", help="stop after S seconds")
     p.set_defaults(func=cmd_echo)
+
+    p = add("router", help="a Zenoh router for a fleet of daemons (as zenohd)")
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                   help=f"where daemons and subscribers connect (default {DEFAULT_LISTEN}; "
+                   "repeatable)")
+    p.add_argument("--multicast-scouting", action="store_true",
+                   help="also answer multicast scouting on the LAN (default off)")
+    p.set_defaults(func=cmd_router)
 
     p = add("replay", help="re-run a log through the same pipeline")
     p.add_argument("log")
