@@ -323,6 +323,37 @@ def cmd_recover(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    """A log as a ROS 2 bag folder (metadata.yaml + MCAP, CDR): see :mod:`uwbd.tools.ros2`."""
+    path, contents = _open_log(args.log, "exporting")
+    out = Path(args.ros2)
+    if out.exists() or out.is_symlink():
+        raise UsageError(f"cannot write the bag {out}: it exists (a bag is a new folder: "
+                         "remove it or give another name)")
+    _writable_folder(out, "the bag")
+    config_toml = _log_config(args, path, contents)
+    if config_toml is not None or not any(m.topic == "/pose" for m in contents.messages):
+        _replayable(path, contents)  # the poses come from a replay
+    try:
+        from uwbd.tools.ros2 import export_ros2
+    except ImportError as err:
+        raise UsageError(f"export needs the tools extra ({err.name} is missing): pip install "
+                         "'uwbd[tools]' (from a checkout: pip install '.[tools]')") from err
+    try:
+        result = export_ros2(contents, str(path), out, config_toml,
+                             progress=sys.stderr.isatty())
+    except ConfigError as err:
+        raise UsageError(str(err)) from err
+    except OSError as err:
+        raise RunError(f"cannot write the bag {out}: {err.strerror or err}") from err
+    n = result.counts
+    origin = "the log's own" if result.poses_from == "log" else "replayed"
+    print(f"{out}: ROS 2 bag (MCAP) from {path}: {n.get('/uwbd/pose', 0)} poses ({origin}), "
+          f"{n.get('/uwbd/imu', 0)} IMU samples, {n.get('/uwbd/truth', 0)} truth poses; "
+          f"topics {', '.join(sorted(n))}")
+    return 0
+
+
 def _load(path: str, warn: bool = False) -> Config:
     """A configuration file, or every problem with it, one line each naming file and key
     (exit 2); ``warn``: the warnings of a config that loads are said too."""
@@ -490,6 +521,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("log")
     p.add_argument("-o", "--output", required=True, help="the MCAP file to write")
     p.set_defaults(func=cmd_recover)
+
+    p = add("export", help="write a log as a ROS 2 bag (pose, odometry, IMU, TF, truth)",
+            description="Write a log as a ROS 2 bag folder (metadata.yaml + one MCAP file, "
+            "CDR): /uwbd/pose, /uwbd/odom, /uwbd/imu, /tf, /tf_static and /uwbd/truth (if "
+            "the log has truth), frame names from the config's [robot] section. The poses "
+            "are the log's own /pose; with -c or --set, or for a log without poses (a "
+            "simulated or imported one), the log is replayed with that config to make them.")
+    p.add_argument("log")
+    p.add_argument("--ros2", required=True, metavar="OUT",
+                   help="the bag folder to create (it must not exist)")
+    _tuning(p)
+    p.set_defaults(func=cmd_export)
 
     p = add("simulate", help="simulate a run and write its MCAP log")
     p.add_argument("-o", "--output", default="sim.mcap", help="log to write (default sim.mcap)")
