@@ -4,10 +4,10 @@ sockets, MCAP files, read-only and full file systems."""
 
 from __future__ import annotations
 
-import contextlib
 import fcntl
 import os
 import pty
+import selectors
 import signal
 import struct
 import subprocess
@@ -186,10 +186,22 @@ def test_replay_shows_progress_only_on_a_terminal(tmp_path: Path, sim_log: Path)
         proc = subprocess.Popen([*UWBD, "replay", str(sim_log)], stdout=subprocess.DEVNULL,
                                 stderr=terminal)
         os.close(terminal)
-        with contextlib.suppress(OSError):  # EIO once the replay has ended
-            while chunk := os.read(controller, 65536):  # read as it runs: a pty drops the
-                shown += chunk  # rest once its writer is gone
-        proc.wait(timeout=120)
+        deadline = time.monotonic() + 120
+        with selectors.DefaultSelector() as sel:  # read as it runs: a pty drops the rest
+            sel.register(controller, selectors.EVENT_READ)  # once its writer is gone
+            while time.monotonic() < deadline:
+                if not sel.select(1.0):
+                    if proc.poll() is not None:
+                        break
+                    continue
+                try:
+                    chunk = os.read(controller, 65536)
+                except OSError:  # EIO: the replay has ended
+                    break
+                if not chunk:
+                    break
+                shown += chunk
+        proc.wait(timeout=10)
     finally:
         os.close(controller)
     assert proc.returncode == 0
@@ -452,7 +464,9 @@ def test_demo_says_how_to_follow_it_and_echo_finds_it(tmp_path: Path) -> None:
         assert got.returncode == 0 and len(got.stdout.splitlines()) == 2, got.stderr
         # a wildcard: each line says which robot it came from
         fleet = uwbd("echo", "--prefix", "uwbd/*", "--connect", sock, "--count", "2")
-        assert all(x.startswith("uwbd/demo/pose  ") for x in fleet.stdout.splitlines())
+        lines = fleet.stdout.splitlines()
+        assert fleet.returncode == 0 and len(lines) == 2, fleet.stderr
+        assert all(x.startswith("uwbd/demo/pose  ") for x in lines)
         # the wrong prefix: said within seconds, with the daemons that are there
         wrong = uwbd("echo", "--prefix", "uwbd/other", "--connect", sock, "--timeout", "5")
         assert wrong.returncode == 1 and "Traceback" not in wrong.stderr
@@ -497,3 +511,20 @@ def test_the_readme_walk_through_works_as_written() -> None:
             proc.send_signal(signal.SIGINT)
             proc.communicate(timeout=20)
     assert procs[1].returncode == 0
+
+
+def test_echo_with_nothing_there_or_a_bad_prefix_says_so(tmp_path: Path) -> None:
+    gone = f"unixsock-stream/{tmp_path / 'nobody.sock'}"
+    one_line(uwbd("echo", "--connect", gone, "--timeout", "3"), 1, "cannot reach", gone,
+             "is the daemon (uwbd run) or the router running there?")
+    one_line(uwbd("echo", "--prefix", "uwbd/a?b", "--timeout", "1"), 2,
+             "--prefix uwbd/a?b: not a key expression")
+
+
+def test_output_into_head_ends_quietly(tmp_path: Path, sim_log: Path) -> None:
+    capture = Path(__file__).parent / "data" / "wit-GARBAGE.bin"
+    for command in (f"dump --driver wit {capture}", f"replay {sim_log}", "--help"):
+        result = subprocess.run(f"{' '.join(UWBD)} {command} | head -c 20", shell=True,
+                                capture_output=True, text=True, timeout=60, check=False)
+        assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr
+        assert "Exception ignored" not in result.stderr

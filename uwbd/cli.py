@@ -20,6 +20,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, BinaryIO
 
+import zenoh
+
 from drivers import PARSERS, Frame
 from drivers.emulator import ENCODERS, DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import CircleScenario
@@ -35,6 +37,7 @@ from uwbd.service.demo import run_demo
 from uwbd.service.echo import EchoError, dial_endpoints, echo
 from uwbd.service.interrupt import quiet_stdout, shielded, wait_until
 from uwbd.service.router import DEFAULT_LISTEN, RouterError, run_router
+from uwbd.service.zenohsink import zenoh_reason
 from uwbd.tools.importer import (
     INROL_LEVER_ARM_M,
     INROL_MOUNTING,
@@ -424,9 +427,14 @@ def cmd_echo(args: argparse.Namespace) -> int:
         # endpoint of its own, which a peer would (peers mesh with each other directly)
         zcfg["mode"] = "client"
     try:
+        zenoh.KeyExpr(f"{prefix.strip('/')}/pose")
+    except zenoh.ZError as err:
+        raise UsageError(f"--prefix {prefix}: not a key expression ({zenoh_reason(err)}); "
+                         "e.g. uwbd/robot1 or uwbd/*") from err
+    try:
         printed = echo(zcfg, prefix, args.status, args.count, args.timeout)
     except EchoError as err:
-        raise UsageError(str(err)) from err
+        raise RunError(str(err)) from err
     if args.timeout is not None and printed == 0:
         raise RunError(f"nothing received on {prefix}/{'status' if args.status else 'pose'} "
                        f"in {args.timeout:g} s")

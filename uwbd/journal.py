@@ -37,7 +37,10 @@ class _Formatter(logging.Formatter):
         text = record.getMessage()
         if record.exc_info and LOGGER.isEnabledFor(logging.DEBUG):
             text += "\n" + self.formatException(record.exc_info)
-        return f"{head}uwbd {self.command}: {_LEVEL_WORD.get(record.levelno, '')}{text}"
+        first, *more = text.splitlines() or [""]
+        line = f"{head}uwbd {self.command}: {_LEVEL_WORD.get(record.levelno, '')}{first}"
+        # each line its own journal entry: each gets the priority and the command
+        return "\n".join([line, *(f"{head}uwbd {self.command}:   {m}" for m in more)])
 
 
 def setup(command: str, verbosity: int = 0) -> logging.Logger:

@@ -22,14 +22,14 @@ from typing import Any
 import zenoh
 
 from uwbd import journal
-from uwbd.service.zenohsink import session_config
+from uwbd.service.zenohsink import session_config, zenoh_reason
 
 LOG = journal.get("echo")
 QUIET_AFTER_S = 3.0  # nothing this long: say what is (not) there
 
 
 class EchoError(Exception):
-    """Zenoh could not be opened with these settings (a malformed endpoint ...)."""
+    """Nothing could be reached where the daemon was said to be."""
 
 
 def dial_endpoints(listen: list[str]) -> list[str]:
@@ -56,11 +56,12 @@ def echo(zcfg: dict[str, Any], prefix: str, status: bool, count: int | None,
         with contextlib.suppress(queue.Full):
             inbox.put_nowait((str(sample.key_expr), sample.payload.to_bytes()))
 
+    where = ", ".join(zcfg.get("connect", [])) or "peers found by multicast scouting"
     try:
         session = zenoh.open(session_config(zcfg))
     except zenoh.ZError as err:
-        raise EchoError(f"cannot open zenoh with these settings: {err}") from err
-    where = ", ".join(zcfg.get("connect", [])) or "peers found by multicast scouting"
+        raise EchoError(f"cannot reach {where}: {zenoh_reason(err)}; is the daemon (uwbd run) "
+                        "or the router running there?") from err
     LOG.info("listening on %s (via %s)", key, where)
     printed = 0
     started = last = time.monotonic()

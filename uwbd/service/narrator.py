@@ -54,13 +54,16 @@ class Narrator:
             self._phase_changed(phase, str(status.get("filter", phase)))
         counters = status.get("fusion_counters", {})
         accepted = int(counters.get("range_accepted", 0))
-        rejected = int(counters.get("range_rejected", 0)) + sum(
-            status.get("gating_rejections", {}).values())
+        rejected = int(counters.get("range_rejected", 0)) + sum(  # ranges, not epochs
+            n for reason, n in status.get("gating_rejections", {}).items()
+            if reason != "too_few_anchors")
         self._all_rejected(t_ns, accepted, rejected, status)
         for error in status.get("sink_errors", []):
-            if error not in self._sink_errors:
-                self._sink_errors.add(error)
-                LOG.warning("%s", error)
+            # the pipeline and the log sink say their errors as they happen; here a sink's
+            # error is said again only if it is a new one ("X failed 3x, last: ..." counts up)
+            said = error.split(" failed ")[0] + error.partition(", last: ")[2]
+            if said not in self._sink_errors:
+                self._sink_errors.add(said)
         poses = int(status.get("poses", 0))
         last = self._last_summary
         if last is None:

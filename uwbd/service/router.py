@@ -13,7 +13,7 @@ import zenoh
 
 from uwbd import journal
 from uwbd.service.interrupt import wait_until
-from uwbd.service.zenohsink import session_config
+from uwbd.service.zenohsink import session_config, zenoh_reason
 
 LOG = journal.get("router")
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
@@ -30,7 +30,8 @@ def run_router(listen: list[str], multicast_scouting: bool,
         session = zenoh.open(session_config({"mode": "router", "listen": listen,
                                              "multicast_scouting": multicast_scouting}))
     except zenoh.ZError as err:
-        raise RouterError(f"cannot start a router on {', '.join(listen)}: {err}") from err
+        raise RouterError(f"cannot start a router on {', '.join(listen)}: "
+                          f"{zenoh_reason(err)}") from err
     try:
         LOG.info("routing on %s (multicast scouting %s); daemons connect with [zenoh] "
                  "connect = [%s]", ", ".join(listen), "on" if multicast_scouting else "off",

@@ -13,6 +13,7 @@ queryable runs on a Zenoh thread and only reads the last status bytes, swapped a
 from __future__ import annotations
 
 import json
+import re
 from typing import Any
 
 import zenoh
@@ -21,6 +22,11 @@ from drivers.frames import Frame
 from uwbd.codec import strict_json
 from uwbd.fusion.types import Pose
 from uwbd.logs.mcaplog import pose_to_message
+
+
+def zenoh_reason(err: Exception) -> str:
+    """A Zenoh error as a user reads it: without the Rust source location it ends with."""
+    return re.sub(r"\s+at \S+\.rs:\d+\.?\s*$", "", str(err))
 
 
 def session_config(zcfg: dict[str, Any]) -> zenoh.Config:
@@ -35,8 +41,9 @@ def session_config(zcfg: dict[str, Any]) -> zenoh.Config:
 
 
 class ZenohSink:
-    def __init__(self, zcfg: dict[str, Any], prefix: str) -> None:
+    def __init__(self, zcfg: dict[str, Any], prefix: str, frame_id: str = "enu") -> None:
         self.prefix = prefix
+        self.frame_id = frame_id  # the poses' frame, [robot] nav_frame_id
         self.error = ""
         self.session = zenoh.open(session_config(zcfg))
         json_enc = zenoh.Encoding.APPLICATION_JSON
@@ -58,7 +65,7 @@ class ZenohSink:
         """Frames stay in the log."""
 
     def pose(self, pose: Pose) -> None:
-        self._pose.put(strict_json(pose_to_message(pose)))
+        self._pose.put(strict_json(pose_to_message(pose, self.frame_id)))
 
     def status(self, t_ns: int, status: dict[str, Any]) -> None:
         self._status_bytes = strict_json(status)
