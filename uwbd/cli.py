@@ -154,6 +154,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     try:
         write_simulation(sim, out, driver)
     except OSError as err:
+        out.unlink(missing_ok=True)  # half a log claims nothing
         raise RunError(f"cannot write {out}: {err.strerror or err}") from err
     duration = (sim.truth_t_ns[-1] - sim.truth_t_ns[0]) / 1e9
     print(f"{out}: {duration:.0f} s simulated, {len(sim.imu)} IMU samples, "
@@ -181,6 +182,7 @@ def cmd_import(args: argparse.Namespace) -> int:
     try:
         write_dataset(ds, out, mounting, lever_arm_m, progress=sys.stderr.isatty())
     except OSError as err:
+        out.unlink(missing_ok=True)  # half a log claims nothing
         raise RunError(f"cannot write {out}: {err.strerror or err}") from err
     # the loaders return every stream non-empty and in time order
     start = min(ds.imu[0].t_ns, ds.uwb[0].t_ns, int(ds.truth_t_ns[0]))
@@ -242,6 +244,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     path, contents = _open_log(args.log, "reporting")
     config_toml = _log_config(args, path, contents)
     _replayable(path, contents)
+    report = _tools_extra("report")  # before anything is made
     try:
         rec = load_recording(contents, str(path), config_toml)
     except ConfigError as err:
@@ -255,7 +258,6 @@ def cmd_report(args: argparse.Namespace) -> int:
         raise UsageError(f"cannot write the plots into {out_dir}: {err.strerror or err}") from err
     if not os.access(out_dir, os.W_OK | os.X_OK):
         raise UsageError(f"cannot write the plots into {out_dir}: the folder is not writable")
-    report = _tools_extra("report")
 
     try:
         print(report(rec, out_dir, args.skip, progress=sys.stderr.isatty()))
