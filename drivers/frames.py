@@ -43,15 +43,22 @@ class ImuSample:
 class AnchorRange:
     """One tag-to-anchor distance as the device reported it.
 
-    ``quality`` is what the device says about this range on its own scale (DWM1001: 0-100),
-    ``None`` when the device says nothing. ``anchor_position_m`` is the anchor position the
-    device sends with the range (DWM1001), ``None`` when positions come from configuration.
+    ``quality`` is what the device says about this range on a 0-100 scale (100: trust it
+    fully; the filter scales the range variance by ``100/quality``): DWM1001 TLV's
+    per-distance qf; for Nooploop NodeFrame2 it is derived from the two RSSIs
+    (:func:`drivers.nlink_node2.nlos_quality`); ``None`` when the device says nothing.
+    ``anchor_position_m`` is the anchor position the device sends with the range (DWM1001),
+    ``None`` when positions come from configuration. ``fp_rssi_dbm`` and ``rx_rssi_dbm`` are
+    the first-path and total received power of the range's last message (Nooploop
+    NodeFrame2), ``None`` elsewhere; ``rx - fp`` above about 6 dB suggests NLOS.
     """
 
     anchor_id: int
     range_m: float
     quality: float | None = None
     anchor_position_m: Vec3 | None = None
+    fp_rssi_dbm: float | None = None
+    rx_rssi_dbm: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -73,4 +80,29 @@ class UwbRanges:
     device_time_ms: int | None = None
 
 
-Frame = ImuSample | UwbRanges
+@dataclass(frozen=True, slots=True)
+class AnchorPair:
+    """One anchor-to-anchor range (``anchor_a < anchor_b``)."""
+
+    anchor_a: int
+    anchor_b: int
+    range_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class AnchorRanges:
+    """Anchor-to-anchor ranges, for surveying the anchors (TREK1000 ``ma``); never fused.
+
+    The anchors measure them between themselves; anchor A0 reports them. ``pairs`` holds
+    an :class:`AnchorPair` per range; ``device_time_ms`` is the reporting anchor's
+    millisecond tick.
+    """
+
+    t_ns: int
+    pairs: tuple[AnchorPair, ...]
+    device_time_ms: int | None = None
+
+
+Frame = ImuSample | UwbRanges | AnchorRanges
+"""What parsers emit. Consumers act on the types they know and pass over the others: the
+filter fuses ``ImuSample`` and ``UwbRanges`` only."""

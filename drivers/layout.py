@@ -23,6 +23,7 @@ _KINDS: dict[str, tuple[str, int, int, int]] = {
     "i24": ("3s", 3, -0x800000, 0x7FFFFF),
     "i32": ("i", 4, -0x80000000, 0x7FFFFFFF),
     "u32": ("I", 4, 0, 0xFFFFFFFF),
+    "u64": ("Q", 8, 0, 0xFFFFFFFFFFFFFFFF),
     "f32": ("f", 4, 0, 0),
     "pad": ("s", 1, 0, 0),
 }

@@ -7,8 +7,8 @@ import datetime as dt
 
 from hypothesis import strategies as st
 
-from drivers import wit
-from drivers.frames import AnchorRange, ImuSample, UwbRanges
+from drivers import nlink_node2, wit
+from drivers.frames import AnchorPair, AnchorRange, AnchorRanges, ImuSample, UwbRanges
 
 i16 = st.integers(-0x8000, 0x7FFF)
 i24 = st.integers(-0x800000, 0x7FFFFF)
@@ -64,10 +64,10 @@ def dwm_tlv_epochs(draw: st.DrawFn) -> UwbRanges:
     milli = i32.map(lambda r: r / 1000)
     ranges = tuple(
         AnchorRange(draw(st.integers(0, 0xFFFF)), draw(st.integers(0, 2**32 - 1)) / 1000,
-                    float(draw(st.integers(0, 255))), (draw(milli), draw(milli), draw(milli)))
+                    float(draw(st.integers(0, 100))), (draw(milli), draw(milli), draw(milli)))
         for _ in range(draw(st.integers(0, 12))))
     return UwbRanges(0, ranges, (draw(milli), draw(milli), draw(milli)),
-                     float(draw(st.integers(0, 255))))
+                     float(draw(st.integers(0, 100))))
 
 
 @st.composite
@@ -90,4 +90,42 @@ def nlink_imus(draw: st.DrawFn) -> ImuSample:
     return ImuSample(
         t_ns=0, acc_mps2=draw(st.tuples(f32, f32, f32)), gyro_rps=draw(st.tuples(f32, f32, f32)),
         angle_deg=draw(vec(i16, 100)), quaternion_wire=draw(st.tuples(f32, f32, f32, f32)),
+    )
+
+
+@st.composite
+def trek_epochs(draw: st.DrawFn, raw: bool = False) -> UwbRanges:
+    """An ``mc`` epoch (``raw``: an ``mr`` one, which carries no time): ranges in whole mm
+    (signed: a bias-corrected range may be negative) to a subset of A0..A3."""
+    anchors = draw(st.lists(st.integers(0, 3), unique=True, max_size=4).map(sorted))
+    return UwbRanges(
+        t_ns=0, ranges=tuple(AnchorRange(k, draw(i32) / 1000) for k in anchors),
+        tag_id=draw(st.integers(0, 255)),
+        device_time_ms=None if raw else draw(st.integers(0, 2**32 - 1)))
+
+
+@st.composite
+def trek_anchor_ranges(draw: st.DrawFn) -> AnchorRanges:
+    """An ``ma`` report: some of the pairs A0-A1, A0-A2, A1-A2, in that order."""
+    pairs = draw(st.lists(st.sampled_from([(0, 1), (0, 2), (1, 2)]), unique=True).map(sorted))
+    return AnchorRanges(0, tuple(AnchorPair(a, b, draw(i32) / 1000) for a, b in pairs),
+                        draw(st.integers(0, 2**32 - 1)))
+
+
+@st.composite
+def node2_epochs(draw: st.DrawFn, max_nodes: int = 12) -> UwbRanges:
+    """A NodeFrame2 epoch: RSSIs on the wire's 0.5 dB grid, quality derived from them."""
+    ranges = []
+    for _ in range(draw(st.integers(0, max_nodes))):
+        fp, rx = (draw(st.integers(0, 255)) / nlink_node2.RSSI_DIV for _ in range(2))
+        ranges.append(AnchorRange(draw(st.integers(0, 255)), draw(i24) / 1000,
+                                  nlink_node2.nlos_quality(fp, rx), fp_rssi_dbm=fp,
+                                  rx_rssi_dbm=rx))
+    return UwbRanges(
+        t_ns=0, ranges=tuple(ranges),
+        tag_position_m=draw(vec(i24, 1000)),
+        tag_velocity_mps=draw(vec(i24, 10000)),
+        tag_position_error_m=draw(vec(st.integers(0, 255), 100)),
+        tag_id=draw(st.integers(0, 255)),
+        device_time_ms=draw(st.integers(0, 2**32 - 1)),
     )

@@ -33,7 +33,8 @@ def test_dump_prints_one_json_object_per_frame_and_counters_on_stderr() -> None:
     assert frame["type"] == "UwbRanges"
     assert frame["tag_position_m"] == [2.702, -0.091, 1.0]
     assert frame["ranges"][0] == {"anchor_id": 0, "range_m": 3.125, "quality": None,
-                                  "anchor_position_m": None}
+                                  "anchor_position_m": None, "fp_rssi_dbm": None,
+                                  "rx_rssi_dbm": None}
     stats = json.loads(result.stderr)["parser_stats"]
     assert stats["frames"] == 1 and stats["checksum_errors"] == 1
     assert stats["recent_errors"] == ["byte 0: nlink TagFrame0: checksum mismatch"]

@@ -142,7 +142,8 @@ def test_type_errors_say_the_type_expected(body: str, message: str) -> None:
     (GOOD.replace('baud = 921600\n\n[[sources]]', 'baud = 921600\nbaudrate = 1\n\n[[sources]]'),
      "sources[0].baudrate: unknown key (did you mean baud? known: baud, driver, name, port)"),
     (GOOD.replace('"nlink"', '"nlnk"'), 'sources[1].driver: unknown driver "nlnk" (did you mean '
-                                        "nlink? known: wit, dwm1001, dwm1001-tlv, nlink)"),
+                                        "nlink? known: wit, dwm1001, dwm1001-tlv, nlink, "
+                                        "nlink-node2, trek1000, trek1000-raw)"),
 ])
 def test_unknown_keys_list_the_known_and_suggest_the_closest(text: str, message: str) -> None:
     assert message in one_problem(text)
@@ -157,7 +158,8 @@ def test_a_toml_syntax_error_is_one_line_with_file_and_place() -> None:
 
 def test_fusion_needs_a_uwb_source() -> None:
     assert one_problem(IMU_SOURCE + ANCHORS) == (
-        "cfg.toml: sources: no UWB source (driver nlink, dwm1001, dwm1001-tlv)")
+        "cfg.toml: sources: no UWB source (driver nlink, dwm1001, dwm1001-tlv, nlink-node2, "
+        "trek1000, trek1000-raw)")
 
 
 def test_a_config_without_sources_replays_and_imports() -> None:

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import serial
 
-from drivers import PARSERS, ImuSample, UwbRanges
+from drivers import PARSERS, AnchorRange, ImuSample, UwbRanges, trek1000
 from drivers.emulator import DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import CircleScenario
 
@@ -106,3 +106,66 @@ def test_unplug_closes_the_port_and_replug_brings_it_back(tmp_path: Path) -> Non
 def test_unknown_driver_is_refused() -> None:
     with pytest.raises(ValueError, match="unknown driver"):
         DeviceSpec("imu", "witmotion")
+
+
+def test_new_devices_are_served_at_their_rate(tmp_path: Path) -> None:
+    scenario = CircleScenario(seed=4)
+    devices = [DeviceSpec("node2", "nlink-node2"), DeviceSpec("trek", "trek1000")]
+    with Emulator(devices, scenario, duration_s=1.0, link_dir=tmp_path) as emu:
+        frames, parsers, errors = read_until_done(
+            emu, {"node2": "nlink-node2", "trek": "trek1000"})
+    expected = [f for _, f in scenario.uwb(1.0)]
+    assert errors == {"node2": 0, "trek": 0}
+    node2, trek = frames["node2"], frames["trek"]
+    assert len(node2) == len(trek) == len(expected) == 11
+    # NodeFrame2 carries all six anchors; a TREK1000 network has A0..A3
+    assert [r.anchor_id for r in node2[0].ranges] == list(range(6))
+    assert all(r.quality == 100.0 for f in node2 for r in f.ranges)  # a direct path
+    assert all([r.anchor_id for r in f.ranges] == [0, 1, 2, 3] for f in trek)
+    assert trek[-1].ranges[0].range_m == pytest.approx(expected[-1].ranges[0].range_m, abs=1e-3)
+    assert parsers["node2"].stats.bytes_skipped == 0
+    # the trek stream is mc then mr lines: the mr half is skipped, nothing is malformed
+    trek_stats = parsers["trek"].stats
+    assert trek_stats.malformed == 0 and trek_stats.bytes_skipped == trek_stats.bytes_in // 2
+
+
+def test_trek1000_device_answers_the_pc_handshake() -> None:
+    """WIRE_FORMATS.md §4.5, sans I/O: replies, the 1 s pause, mr lines off and on."""
+    dev = trek1000.Trek1000Device()
+    epoch = UwbRanges(0, tuple(AnchorRange(k, 1.0 + k) for k in range(6)))
+    assert trek1000.Trek1000Parser().feed(dev.report(0, epoch))[0].ranges == tuple(
+        AnchorRange(k, 1.0 + k) for k in range(4))
+    assert dev.report(0, epoch).count(b"\r\n") == 2  # mc and mr
+    reply = dev.on_input(b"de", 10) + dev.on_input(b"cA$", 10)  # straddling two reads
+    assert reply == b"nVer.2.25mx TREK\x00" + bytes((trek1000.S1_CONFIG,)) + b"\r\n"
+    assert len(reply) == 20 and reply.startswith(b"nV")  # what the PC app waits for
+    assert dev.report(10 + 999_000_000, epoch) == b""  # paused for a second
+    assert dev.report(10 + 1_000_000_000, epoch).startswith(b"mc ")
+    assert dev.report(10 + 1_000_000_000, epoch).count(b"\r\n") == 1  # decA$: no mr
+    assert dev.on_input(b"deca?", 2_000_000_000).startswith(b"nEVB1000 USB2SPI 2.0")
+    assert dev.report(2_000_000_000, epoch).count(b"\r\n") == 2  # mr back
+    assert dev.on_input(b"deca!", 3_000_000_000)[9:] == b"\r\n"  # n, part id, lot id
+    assert dev.on_input(b"hello", 3_000_000_000) == b""
+
+
+def test_emulated_trek1000_replies_on_the_port(tmp_path: Path) -> None:
+    devices = [DeviceSpec("trek", "trek1000")]
+    with Emulator(devices, CircleScenario(), duration_s=30, link_dir=tmp_path) as emu:
+        with serial.Serial(emu.ports["trek"].path, 115200, timeout=0.05) as port:
+            emu.start()
+            seen = b""
+            deadline = time.monotonic() + 5
+            while seen.count(b"mr ") < 2 and time.monotonic() < deadline:
+                seen += port.read(4096)
+            port.write(b"decA$")
+            while b"nV" not in seen and time.monotonic() < deadline:
+                seen += port.read(4096)
+            after = seen[seen.index(b"nV") :]
+            while after.count(b"mc ") < 2 and time.monotonic() < deadline + 3:
+                after += port.read(4096)
+        assert emu.received["trek"].endswith(b"decA$")
+    assert after.startswith(b"nVer.2.25mx TREK\x00")
+    # one epoch may have left before the command was read; none with mr after it
+    assert after.count(b"mr ") <= 1 and after.count(b"mc ") >= 2
+    frames = trek1000.Trek1000Parser().feed(after)
+    assert frames and all(len(f.ranges) == 4 for f in frames if isinstance(f, UwbRanges))

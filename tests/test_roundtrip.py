@@ -13,11 +13,14 @@ from strategies import (
     dwm_tlv_epochs,
     nlink_epochs,
     nlink_imus,
+    node2_epochs,
+    trek_anchor_ranges,
+    trek_epochs,
     wit_streams,
 )
 
-from drivers import PARSERS, dwm1001, dwm1001_tlv, nlink, wit
-from drivers.frames import AnchorRange, ImuSample, UwbRanges
+from drivers import PARSERS, dwm1001, dwm1001_tlv, nlink, nlink_node2, trek1000, wit
+from drivers.frames import AnchorPair, AnchorRange, AnchorRanges, ImuSample, UwbRanges
 from drivers.layout import Field, Layout
 
 
@@ -81,6 +84,83 @@ def test_nlink_round_trip_with_tag_imu(epoch, imu: ImuSample) -> None:
     assert frames == [at(epoch), expected_imu]
 
 
+@given(node2_epochs())
+def test_nlink_node2_round_trip(epoch) -> None:
+    assert parse_all("nlink-node2", nlink_node2.encode(epoch)) == [at(epoch)]
+
+
+@given(node2_epochs(max_nodes=3), nlink_imus())
+def test_nlink_node2_round_trip_with_tag_imu(epoch, imu: ImuSample) -> None:
+    parser = nlink_node2.NlinkNode2Parser(emit_imu=True)
+    frames = parser.feed(nlink_node2.encode(epoch, imu), 7)
+    expected_imu = dataclasses.replace(imu, t_ns=7, device_time_ns=epoch.device_time_ms * 10**6)
+    assert frames == [at(epoch), expected_imu]
+
+
+def test_nlink_node2_largest_frame_round_trips() -> None:
+    epoch = UwbRanges(0, tuple(AnchorRange(k, k / 1000, 100.0, fp_rssi_dbm=-80.0,
+                                           rx_rssi_dbm=-76.0) for k in range(255)))
+    data = nlink_node2.encode(epoch)
+    assert len(data) == nlink_node2.MAX_LEN == 119 + 13 * 255 + 1
+    (frame,) = parse_all("nlink-node2", data)
+    assert frame.ranges == epoch.ranges
+
+
+@given(trek_epochs(), st.integers(0, 0xFFFF), st.integers(0, 0xFF))
+def test_trek1000_round_trip(epoch, count: int, seq: int) -> None:
+    """mc feeds the fusion; the mr line that follows it is checked and skipped."""
+    assert parse_all("trek1000", trek1000.encode(epoch, False, count, seq)) == [at(epoch)]
+    both = trek1000.encode(epoch, True, count, seq)
+    parser = trek1000.Trek1000Parser()
+    assert parser.feed(both, 7) == [at(epoch)]
+    assert parser.stats.bytes_skipped == len(both) // 2 and parser.stats.malformed == 0
+
+
+@given(trek_epochs(raw=True))
+def test_trek1000_raw_round_trip(epoch) -> None:
+    """trek1000-raw takes the mr line's ranges and skips the mc line."""
+    parser = PARSERS["trek1000-raw"]()
+    mr = trek1000.encode(epoch)
+    assert parser.feed(mr, 7) == [at(epoch)]
+    assert parser.stats.bytes_skipped == len(mr) // 2
+
+
+@given(trek_anchor_ranges())
+def test_trek1000_anchor_ranges_round_trip(report: AnchorRanges) -> None:
+    for driver in ("trek1000", "trek1000-raw"):
+        assert parse_all(driver, trek1000.encode(report)) == [at(report)]
+
+
+def test_trek1000_encoder_refuses_what_the_lines_cannot_carry() -> None:
+    with pytest.raises(ValueError, match=r"A0\.\.A3"):
+        trek1000.encode(UwbRanges(0, (AnchorRange(4, 1.0),)))
+    with pytest.raises(ValueError, match="twice"):
+        trek1000.encode(UwbRanges(0, (AnchorRange(1, 1.0), AnchorRange(1, 2.0))))
+    with pytest.raises(ValueError, match="hex digits"):
+        trek1000.encode(UwbRanges(0, (AnchorRange(0, 3e6),)))
+    with pytest.raises(ValueError, match="pair"):
+        trek1000.encode(AnchorRanges(0, (AnchorPair(0, 3, 1.0),)))
+
+
+def test_nlink_node2_encoder_refuses_what_the_frame_cannot_carry() -> None:
+    with pytest.raises(ValueError, match="node id"):
+        nlink_node2.encode(UwbRanges(0, (AnchorRange(256, 1.0),)))
+    with pytest.raises(ValueError, match="at most 255"):
+        nlink_node2.encode(UwbRanges(0, tuple(AnchorRange(k % 256, 1.0) for k in range(256))))
+
+
+def test_dwm1001_tlv_encoder_refuses_a_quality_above_100() -> None:
+    with pytest.raises(ValueError, match="quality"):
+        dwm1001_tlv.encode(UwbRanges(0, (AnchorRange(1, 1.0, 101.0),), (0.0, 0.0, 0.0), 50.0))
+
+
+@pytest.mark.parametrize(("gap_db", "quality"), [
+    (-3.0, 100.0), (6.0, 100.0), (7.0, 90.0), (10.0, 60.0), (15.5, 5.0), (16.0, 0.0),
+    (30.0, 0.0)])
+def test_nlos_quality_scale(gap_db: float, quality: float) -> None:
+    assert nlink_node2.nlos_quality(-90.0, -90.0 + gap_db) == quality
+
+
 @given(st.floats(-1e4, 1e4))
 def test_layout_saturates_and_rounds(value: float) -> None:
     """Encoding off-grid values rounds to the nearest step and clamps at the type's limits."""
@@ -104,7 +184,9 @@ def test_nlink_encoder_refuses_what_the_frame_cannot_carry() -> None:
 
 
 @pytest.mark.parametrize("layout", [nlink.TAG_FRAME0, dwm1001_tlv.POSITION,
-                                    dwm1001_tlv.TAG_DISTANCE, *wit.PAYLOADS.values()])
+                                    dwm1001_tlv.TAG_DISTANCE, dwm1001_tlv.ANCHOR_DISTANCE,
+                                    nlink_node2.NODE_FRAME2, nlink_node2.NODE2_RECORD,
+                                    *wit.PAYLOADS.values()])
 @given(data=st.data())
 def test_compiled_decoder_equals_the_reference(layout: Layout, data: st.DataObject) -> None:
     raw = data.draw(st.binary(min_size=layout.size, max_size=layout.size))

@@ -141,8 +141,38 @@ def cmd_emulate(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     """Emulated sensors through the pipeline, live in the terminal, until Ctrl-C."""
+    live = _foxglove(args)
     with tempfile.TemporaryDirectory(prefix="uwbd-demo-") as tmp:
-        return run_demo(Path(tmp), duration_s=args.duration, seed=args.seed)
+        return run_demo(Path(tmp), duration_s=args.duration, seed=args.seed, live=live)
+
+
+FOXGLOVE_DEFAULT = "127.0.0.1:8765"
+
+
+def _foxglove(args: argparse.Namespace) -> Callable[[Config], Any] | None:
+    """``--foxglove [HOST:PORT]``: what starts the live Foxglove server for a config, from the
+    ``foxglove`` extra (imported only then, so it never sits in the daemon's memory
+    otherwise); ``None`` without the option."""
+    if args.foxglove is None:
+        return None
+    try:
+        from uwbd.service.live import FoxgloveLive, parse_endpoint
+    except ImportError as err:
+        raise UsageError(f"--foxglove needs the foxglove extra ({err.name} is missing): "
+                         "pip install 'uwbd[foxglove]' (from a checkout: pip install "
+                         "'.[foxglove]')") from err
+    try:
+        host, port = parse_endpoint(args.foxglove)
+    except ValueError as err:
+        raise UsageError(f"--foxglove {err}") from err
+
+    def start(config: Config) -> Any:
+        try:
+            return FoxgloveLive(config, host, port)
+        except RuntimeError as err:  # the SDK's FoxgloveError: the port is taken, no such host
+            raise UsageError(f"--foxglove {args.foxglove}: cannot serve there: "
+                             f"{str(err).removeprefix('FoxgloveError: ')}") from err
+    return start
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -396,11 +426,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     if not config.sources:
         raise UsageError(f"{args.config}: sources: at least one [[sources]] is needed")
     log_dir = Path(args.log_dir or config.log.get("directory", "logs"))
+    live = _foxglove(args)
+    extra = (live(config),) if live is not None else ()
     try:
-        pipeline = asyncio.run(run_daemon(config, log_dir, args.duration,
+        pipeline = asyncio.run(run_daemon(config, log_dir, args.duration, extra_sinks=extra,
                                           summary_s=args.summary_every, where=args.config))
     except PipelineError as err:
         raise RunError(str(err)) from err
+    finally:
+        for sink in extra:  # the pipeline closes its sinks; this is for a run that never began
+            sink.close()
     sources = pipeline.extra_status.get("sources", {})
     if sources and not any(s["opens"] for s in sources.values()):
         raise RunError("no port could be opened: " + "; ".join(
@@ -496,6 +531,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="stop after S seconds (default: until SIGINT/SIGTERM)")
     p.add_argument("--summary-every", type=float, default=60.0, metavar="S",
                    help="log a one-line health summary every S seconds (default 60)")
+    _foxglove_option(p)
     p.set_defaults(func=cmd_run)
 
     p = add("check-config", help="validate a configuration file")
@@ -567,8 +603,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("demo", help="emulated sensors through drivers and fusion, live poses")
     _common(p)
+    _foxglove_option(p)
     p.set_defaults(func=cmd_demo)
     return ap
+
+
+def _foxglove_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--foxglove", nargs="?", const=FOXGLOVE_DEFAULT, default=None,
+                   metavar="HOST:PORT",
+                   help=f"serve the channels live to Foxglove over its WebSocket protocol "
+                        f"(default {FOXGLOVE_DEFAULT}: this machine only; 0.0.0.0:PORT serves "
+                        "the network); needs the foxglove extra")
 
 
 def _tuning(p: argparse.ArgumentParser) -> None:

@@ -1,7 +1,10 @@
 """Frames as JSON-ready dicts: the field names (with units) of the frame dataclasses.
 
-Used by ``uwbd dump`` and by the decoded MCAP channels. Non-finite floats become ``null``,
-so the output is strict JSON.
+Used by ``uwbd dump`` (:func:`frame_to_dict`: every field, ``null`` where a value is
+missing) and by the decoded MCAP channels (:func:`frame_to_json`: a field whose value is
+missing is left out, and ``timestamp {sec, nsec}`` is added, so each record fits the
+channel's JSON Schema, :mod:`uwbd.logs.foxglove`). Non-finite floats become ``null``, so the
+output is strict JSON.
 """
 
 from __future__ import annotations
@@ -11,7 +14,7 @@ import json
 import math
 from typing import Any
 
-from drivers.frames import AnchorRange, Frame, ImuSample, UwbRanges
+from drivers.frames import AnchorPair, AnchorRange, AnchorRanges, Frame, ImuSample, UwbRanges
 
 
 def frame_to_dict(frame: Frame) -> dict[str, Any]:
@@ -20,9 +23,23 @@ def frame_to_dict(frame: Frame) -> dict[str, Any]:
 
 
 def frame_to_json(frame: Frame) -> bytes:
-    """``frame_to_dict`` as JSON bytes; the decoded log channels take one per frame, so the
-    common case (every number finite) skips the walk that replaces NaN with ``null``."""
-    return strict_json(_fields(frame))
+    """A frame's log record (``/imu``, ``/uwb``) as JSON bytes: ``type``, ``timestamp``, and
+    the fields that have a value (:func:`frame_from_dict` reads a missing one as ``None``).
+    The decoded log channels take one per frame, so the common case (every number finite)
+    skips the walk that replaces NaN with ``null``."""
+    t_ns = frame.t_ns
+    out: dict[str, Any] = {"type": type(frame).__name__,
+                           "timestamp": {"sec": t_ns // 1_000_000_000,
+                                         "nsec": t_ns % 1_000_000_000}}
+    for f in _FIELDS[type(frame)]:
+        value = getattr(frame, f)
+        if value is None:
+            continue
+        if f in _ITEM_FIELDS:
+            value = [{g: v for g in _ITEM_FIELDS[f] if (v := getattr(r, g)) is not None}
+                     for r in value]
+        out[f] = value
+    return strict_json(out)
 
 
 def strict_json(obj: Any) -> bytes:
@@ -40,14 +57,16 @@ def _fields(frame: Frame) -> dict[str, Any]:
     out: dict[str, Any] = {"type": type(frame).__name__}
     for f in _FIELDS[type(frame)]:
         value = getattr(frame, f)
-        if f == "ranges":
-            value = [{g: getattr(r, g) for g in _RANGE_FIELDS} for r in value]
+        if f in _ITEM_FIELDS:  # a tuple of records: each as an object
+            value = [{g: getattr(r, g) for g in _ITEM_FIELDS[f]} for r in value]
         out[f] = value
     return out
 
 
-_FIELDS = {cls: tuple(f.name for f in dataclasses.fields(cls)) for cls in (ImuSample, UwbRanges)}
-_RANGE_FIELDS = tuple(f.name for f in dataclasses.fields(AnchorRange))
+_FIELDS = {cls: tuple(f.name for f in dataclasses.fields(cls))
+           for cls in (ImuSample, UwbRanges, AnchorRanges)}
+_ITEM_FIELDS = {name: tuple(f.name for f in dataclasses.fields(cls))
+                for name, cls in (("ranges", AnchorRange), ("pairs", AnchorPair))}
 
 
 def _plain(value: Any) -> Any:
@@ -74,9 +93,15 @@ def frame_from_dict(d: dict[str, Any]) -> Frame:
     if kind == "UwbRanges":
         ranges = tuple(AnchorRange(int(r["anchor_id"]),
                                    math.nan if r["range_m"] is None else float(r["range_m"]),
-                                   r.get("quality"), vec(r.get("anchor_position_m")))
+                                   r.get("quality"), vec(r.get("anchor_position_m")),
+                                   r.get("fp_rssi_dbm"), r.get("rx_rssi_dbm"))
                        for r in d["ranges"])
         return UwbRanges(int(d["t_ns"]), ranges, vec(d.get("tag_position_m")), d.get("quality"),
                          vec(d.get("tag_velocity_mps")), vec(d.get("tag_position_error_m")),
                          d.get("tag_id"), d.get("device_time_ms"))
+    if kind == "AnchorRanges":
+        pairs = tuple(AnchorPair(int(q["anchor_a"]), int(q["anchor_b"]),
+                                 math.nan if q["range_m"] is None else float(q["range_m"]))
+                      for q in d["pairs"])
+        return AnchorRanges(int(d["t_ns"]), pairs, d.get("device_time_ms"))
     raise ValueError(f"not a frame: type {kind!r}")

@@ -5,7 +5,11 @@
 ...     serial.Serial(emu.ports["imu"].path)  # read it like the real device
 
 One thread paces all devices from a single start instant (no drift builds up), applies each
-device's :class:`Faults`, and drains whatever the reader writes to the device.
+device's :class:`Faults`, and drains whatever the reader writes to the device. A device with
+a model in :data:`DEVICES` (TREK1000) also answers it: the model turns each epoch into the
+device's bytes and replies to the host's commands (the reply is written after the next
+event of any device, so within one sample period of the fastest one; a command that changes
+what the device reports takes effect from its next epoch but one).
 """
 
 from __future__ import annotations
@@ -17,9 +21,9 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, Protocol
 
-from drivers import dwm1001, dwm1001_tlv, nlink, wit
+from drivers import dwm1001, dwm1001_tlv, nlink, nlink_node2, trek1000, wit
 from drivers.emulator.faults import REPLUG, UNPLUG, Event, FaultCounts, Faults, Window, inject
 from drivers.emulator.pty import EmulatedPort
 from drivers.emulator.scenario import CircleScenario
@@ -29,10 +33,49 @@ ENCODERS: dict[str, Callable[[Any], bytes]] = {
     "dwm1001": dwm1001.encode,
     "dwm1001-tlv": dwm1001_tlv.encode,
     "nlink": nlink.encode,
+    "nlink-node2": nlink_node2.encode,
+    # a TREK1000 tag: mc then mr lines, ranges to A0..A3 (the others are not heard)
+    "trek1000": trek1000.encode_tag_report,
+    "trek1000-raw": trek1000.encode_tag_report,
 }
 IMU_DRIVERS = frozenset({"wit"})
 MAX_RECEIVED_BYTES = 65536  # what the reader sent to a device, kept for inspection
-DEFAULT_BAUD = {"wit": 921600, "dwm1001": 115200, "dwm1001-tlv": 115200, "nlink": 921600}
+DEFAULT_BAUD = {"wit": 921600, "dwm1001": 115200, "dwm1001-tlv": 115200, "nlink": 921600,
+                "nlink-node2": 921600, "trek1000": 115200, "trek1000-raw": 115200}
+
+
+class DeviceModel(Protocol):
+    """A device that keeps state: its bytes for each epoch (``b""``: it sends nothing), and
+    its replies to what the host sends. ``t_ns``: the emulator's clock, ns from its start."""
+
+    def report(self, t_ns: int, frame: Any) -> bytes: ...
+
+    def on_input(self, data: bytes, t_ns: int) -> bytes: ...
+
+
+class Encoder:
+    """The model of a device that only sends: its encoder, deaf to the host."""
+
+    def __init__(self, encode: Callable[[Any], bytes]) -> None:
+        self.encode = encode
+
+    def report(self, t_ns: int, frame: Any) -> bytes:
+        return self.encode(frame)
+
+    def on_input(self, data: bytes, t_ns: int) -> bytes:
+        return b""
+
+
+DEVICES: dict[str, Callable[[], DeviceModel]] = {
+    "trek1000": trek1000.Trek1000Device,
+    "trek1000-raw": trek1000.Trek1000Device,
+}
+
+
+def device_model(driver: str) -> DeviceModel:
+    """A fresh model of a device speaking ``driver``."""
+    make = DEVICES.get(driver)
+    return make() if make is not None else Encoder(ENCODERS[driver])
 
 
 @dataclass(frozen=True)
@@ -63,16 +106,18 @@ class Emulator:
                       for d in devices}
         self.counts = {d.name: FaultCounts() for d in devices}
         self.received: dict[str, bytearray] = {d.name: bytearray() for d in devices}
+        self.models = {d.name: device_model(d.driver) for d in devices}
         self.finished = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
     def _events(self, index: int, dev: DeviceSpec) -> Iterator[tuple[int, int, bytes | None]]:
-        encode = ENCODERS[dev.driver]
+        model = self.models[dev.name]
         frames: Iterator[tuple[int, Any]] = (
             self.scenario.imu(self.duration_s) if dev.driver in IMU_DRIVERS
             else self.scenario.uwb(self.duration_s))
-        encoded = ((t, encode(frame)) for t, frame in frames)
+        # b"" is REPLUG among events: an epoch a device does not report is left out
+        encoded = ((t, data) for t, frame in frames if (data := model.report(t, frame)))
         baud = dev.baud or DEFAULT_BAUD[dev.driver]
         events: Iterator[Event] = inject(
             encoded, dev.faults, baud, self.scenario.seed * 1000 + index, self.counts[dev.name])
@@ -103,11 +148,22 @@ class Emulator:
                     port.plug()
                 else:
                     port.write(payload)
-                received = self.received[self.devices[index].name]
-                received += port.read_input()
-                del received[:-MAX_RECEIVED_BYTES]
+                self._answer(ports, t_ns)
         finally:
             self.finished.set()
+
+    def _answer(self, ports: list[EmulatedPort], t_ns: int) -> None:
+        """Drain what the reader sent to each device; write the device's replies."""
+        for dev, port in zip(self.devices, ports, strict=True):
+            data = port.read_input()
+            if not data:
+                continue
+            received = self.received[dev.name]
+            received += data
+            del received[:-MAX_RECEIVED_BYTES]
+            reply = self.models[dev.name].on_input(data, t_ns)
+            if reply:
+                port.write(reply)
 
     def stop(self) -> None:
         self._stop.set()
@@ -127,5 +183,5 @@ class Emulator:
         self.close()
 
 
-__all__ = ["DEFAULT_BAUD", "ENCODERS", "DeviceSpec", "Emulator", "FaultCounts", "Faults",
-           "Window"]
+__all__ = ["DEFAULT_BAUD", "DEVICES", "ENCODERS", "DeviceModel", "DeviceSpec", "Emulator",
+           "FaultCounts", "Faults", "Window", "device_model"]

@@ -167,6 +167,11 @@ DRIVERS = {
     # shell `lec` and TLV 0x49: each range with the anchor's 16-bit short id and position
     "dwm1001": Driver(True, True, range(1 << 16), "16-bit short ids 0..0xFFFF"),
     "dwm1001-tlv": Driver(True, True, range(1 << 16), "16-bit short ids 0..0xFFFF"),
+    # NodeFrame2: a record per remote node, by its node id, no positions (§3.3)
+    "nlink-node2": Driver(True, False, range(256), "NodeFrame2 node ids 0..255"),
+    # mc (trek1000) or mr (trek1000-raw) lines: ranges to anchors A0..A3, no positions (§4)
+    "trek1000": Driver(True, False, range(4), "TREK1000 anchors A0..A3 as ids 0..3"),
+    "trek1000-raw": Driver(True, False, range(4), "TREK1000 anchors A0..A3 as ids 0..3"),
 }
 UWB_DRIVERS = tuple(name for name, d in DRIVERS.items() if d.uwb)
 IMU_DRIVERS = tuple(name for name, d in DRIVERS.items() if not d.uwb)

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.frames import ImuSample, UwbRanges
+from drivers.frames import AnchorRanges, ImuSample, UwbRanges
 from uwbd.fusion.alignment import HeadingAligner
 from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, Eskf
 from uwbd.fusion.fixes import RangeWindow
@@ -172,8 +172,11 @@ class Filter(Recovery):
         except NUMERICAL_ERRORS as err:
             self._internal_error(imu.t_ns, err)
 
-    def update(self, uwb: UwbRanges) -> list[FusionReport]:
-        """Fuse one UWB message (an epoch, or a single range); one report per measurement."""
+    def update(self, uwb: UwbRanges | AnchorRanges) -> list[FusionReport]:
+        """Fuse one UWB message (an epoch, or a single range); one report per measurement.
+        Anchor-to-anchor ranges (a survey's input, not the tag's) are passed over."""
+        if not isinstance(uwb, UwbRanges):
+            return []
         try:
             return self._update(uwb)
         except NUMERICAL_ERRORS as err:

@@ -1,11 +1,17 @@
 """uwbd's MCAP logs: the layout of ARCHITECTURE.md, written and read back.
 
-| topic | encoding | content |
-|---|---|---|
-| ``/raw/<source>`` | schemaless, ``uwbd.raw`` | bytes exactly as read, one message per read |
-| ``/imu``, ``/uwb`` | ``json`` + JSON Schema | decoded frames (:mod:`uwbd.codec`) |
-| ``/pose``, ``/truth`` | ``json``, schema ``foxglove.PoseInFrame`` | fused pose; ground truth |
-| ``/status`` | ``json`` | health and counters |
+* ``/raw/<source>``: ``protobuf``, schema ``uwbd.Raw`` (older logs: schemaless, encoding
+  ``uwbd.raw``): bytes exactly as read, one message per read;
+* ``/imu``, ``/uwb``: ``json``, ``uwbd.ImuSample``, ``uwbd.UwbRanges``: decoded frames
+  (:mod:`uwbd.codec`);
+* ``/pose``, ``/truth``: ``json``, ``foxglove.PoseInFrame``: the fused pose (plus uwbd's
+  fields); ground truth;
+* ``/status``: ``json``, ``uwbd.Status``: health and counters;
+* ``/tf``, ``/anchors``, ``/trajectory``, ``/truth/trajectory``: ``json``, ``foxglove.*``:
+  for viewers (:mod:`uwbd.logs.foxglove`).
+
+Every JSON channel has a JSON Schema (:mod:`uwbd.logs.foxglove`) and every record a
+``timestamp {sec, nsec}``.
 
 ``log_time`` is the receive time in ns since the Unix epoch. Metadata record ``uwbd``: the uwbd
 version, the config TOML as used, the sources (name, driver, port) as JSON, the robot's name
@@ -34,40 +40,28 @@ from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata
 from mcap.stream_reader import StreamReader
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
-from drivers.frames import Frame, ImuSample
+from drivers.frames import Frame, UwbRanges
 from uwbd import __version__
 from uwbd.codec import frame_to_json, strict_json
 from uwbd.fusion.types import Pose
+from uwbd.logs import foxglove as fx
 
-RAW_ENCODING = "uwbd.raw"
+RAW_ENCODING = fx.LEGACY_RAW_ENCODING  # the old schemaless /raw/* encoding, still read
 METADATA_NAME = "uwbd"
 CHUNK_BYTES = 64 * 1024  # ~1 s of a 200 Hz IMU + UWB: a crash loses about that much
-POSE_SCHEMA = {
-    "title": "foxglove.PoseInFrame", "type": "object",
-    "properties": {
-        "timestamp": {"type": "object", "properties": {
-            "sec": {"type": "integer"}, "nsec": {"type": "integer"}}},
-        "frame_id": {"type": "string"},
-        "pose": {"type": "object", "properties": {
-            "position": {"type": "object", "properties": {
-                k: {"type": "number"} for k in "xyz"}},
-            "orientation": {"type": "object", "properties": {
-                k: {"type": "number"} for k in "xyzw"}}}},
-    },
-}
-FRAME_SCHEMA = {"type": "object", "properties": {"type": {"type": "string"},
-                                                  "t_ns": {"type": "integer"}}}
-NAV_FRAME_ID = "enu"
+POSE_SCHEMA = fx.POSE_SCHEMA
+NAV_FRAME_ID = "enu"  # the default [robot] nav_frame_id
 
 
 def pose_message(t_ns: int, position_m: Sequence[float], orientation_xyzw: Sequence[float],
-                 extra: dict[str, Any] | None = None) -> dict[str, Any]:
+                 extra: dict[str, Any] | None = None,
+                 frame_id: str = NAV_FRAME_ID) -> dict[str, Any]:
     """A ``foxglove.PoseInFrame`` JSON object (plus uwbd's own fields, which Foxglove ignores)."""
     x, y, z = (float(v) for v in position_m)
     qx, qy, qz, qw = (float(v) for v in orientation_xyzw)
     msg: dict[str, Any] = {
         "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
-        "frame_id": NAV_FRAME_ID,
+        "frame_id": frame_id,
         "pose": {"position": {"x": x, "y": y, "z": z},
                  "orientation": {"x": qx, "y": qy, "z": qz, "w": qw}},
         "t_ns": t_ns,
@@ -76,11 +70,19 @@ def pose_message(t_ns: int, position_m: Sequence[float], orientation_xyzw: Seque
     return msg
 
 
-def pose_to_message(pose: Pose) -> dict[str, Any]:
+def pose_to_message(pose: Pose, frame_id: str = NAV_FRAME_ID) -> dict[str, Any]:
+    """``/pose`` (and Zenoh ``<prefix>/pose``): :func:`pose_message` plus velocity,
+    covariance, status and the health record, whose unknown values are left out."""
     return pose_message(pose.t_ns, pose.position_m, pose.orientation_xyzw, {
         "velocity_mps": list(pose.velocity_mps), "covariance": list(pose.covariance),
         "status": pose.status, "heading_observable": pose.heading_observable,
-        "health": pose.health.as_dict()})
+        "health": known(pose.health.as_dict())}, frame_id)
+
+
+def known(record: dict[str, Any]) -> dict[str, Any]:
+    """``record`` without its ``None`` values: a value not known is left out, not ``null``
+    (Foxglove's schemas have no nullable fields)."""
+    return {k: v for k, v in record.items() if v is not None}
 
 
 @dataclass(frozen=True)
@@ -91,11 +93,19 @@ class SourceInfo:
 
 
 class LogWriter:
-    """Writes one MCAP file; use as a context manager so it is finished on every path."""
+    """Writes one MCAP file; use as a context manager so it is finished on every path.
+
+    Beside the records it is given it writes the viewer channels of
+    :mod:`uwbd.logs.foxglove` from ``view`` (by default one made from ``config_toml``;
+    :class:`uwbd.logs.sink.McapSink` passes the one its files share): ``/tf`` and
+    ``/trajectory`` with the poses, ``/truth/trajectory`` with ``/truth``, and ``/anchors``
+    with the file's first record and whenever the anchor set changes."""
 
     def __init__(self, path: Path, config_toml: str = "", sources: tuple[SourceInfo, ...] = (),
-                 chunk_bytes: int = CHUNK_BYTES, robot: str = "") -> None:
+                 chunk_bytes: int = CHUNK_BYTES, robot: str = "",
+                 view: fx.FoxgloveView | None = None) -> None:
         self.path = path
+        self.view = view if view is not None else fx.FoxgloveView.from_toml(config_toml)
         self._file: IO[bytes] = path.open("wb")
         self._w = Writer(self._file, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
         self._w.start(profile="", library=f"uwbd {__version__}")
@@ -104,42 +114,74 @@ class LogWriter:
             "sources": json.dumps([vars(s) for s in sources]), "robot": robot,
             "host": socket.gethostname()})
         self._channels: dict[str, int] = {}
-        self._schemas: dict[str, int] = {}
+        self._schemas: dict[tuple[str, str, bytes], int] = {}
         self._sequence = 0
+        self._scene_version = 0  # the anchors last written to this file
         self.flushed_bytes = 0  # the file is whole records up to here (see finish_cut)
 
     def _channel(self, topic: str, encoding: str, schema_name: str = "",
-                 schema: dict[str, Any] | None = None) -> int:
+                 schema: dict[str, Any] | None = None, schema_encoding: str = "jsonschema",
+                 schema_data: bytes = b"") -> int:
         if topic not in self._channels:
             schema_id = 0
             if schema is not None:
-                if schema_name not in self._schemas:
-                    self._schemas[schema_name] = self._w.register_schema(
-                        schema_name, "jsonschema", json.dumps(schema).encode())
-                schema_id = self._schemas[schema_name]
+                schema_data = json.dumps(schema).encode()
+            if schema_data:
+                key = (schema_name, schema_encoding, schema_data)
+                if key not in self._schemas:
+                    self._schemas[key] = self._w.register_schema(schema_name, schema_encoding,
+                                                                 schema_data)
+                schema_id = self._schemas[key]
             self._channels[topic] = self._w.register_channel(topic, encoding, schema_id)
         return self._channels[topic]
 
     def _add(self, channel: int, t_ns: int, data: bytes) -> None:
+        if self._scene_version != self.view.anchors_version:
+            self._scene_version = self.view.anchors_version
+            self.json("/anchors", t_ns, self.view.scene(t_ns), "foxglove.SceneUpdate")
         self._sequence += 1
         self._w.add_message(channel, log_time=t_ns, publish_time=t_ns, data=data,
                             sequence=self._sequence)
 
     def raw(self, source: str, t_ns: int, data: bytes) -> None:
-        self._add(self._channel(f"/raw/{source}", RAW_ENCODING), t_ns, data)
+        topic = f"/raw/{source}"
+        channel = self._channels.get(topic)
+        if channel is None:
+            channel = self._channel(topic, fx.RAW_MESSAGE_ENCODING, fx.RAW_SCHEMA_NAME,
+                                    schema_encoding="protobuf", schema_data=fx.RAW_DESCRIPTOR)
+        self._add(channel, t_ns, fx.encode_raw(data))
 
     def frame(self, frame: Frame) -> None:
-        topic = "/imu" if isinstance(frame, ImuSample) else "/uwb"
-        channel = self._channel(topic, "json", f"uwbd.{type(frame).__name__}", FRAME_SCHEMA)
+        topic, schema = fx.frame_channel(type(frame))
+        channel = self._channels.get(topic)
+        if channel is None:
+            channel = self._channel(topic, "json", schema["title"], schema)
+        if type(frame) is UwbRanges:
+            self.view.observe(frame)
         self._add(channel, frame.t_ns, frame_to_json(frame))
 
     def pose(self, pose: Pose, topic: str = "/pose") -> None:
-        self.json(topic, pose.t_ns, pose_to_message(pose), "foxglove.PoseInFrame", POSE_SCHEMA)
+        view = self.view
+        self.json(topic, pose.t_ns, pose_to_message(pose, view.nav_frame_id),
+                  "foxglove.PoseInFrame", POSE_SCHEMA)
+        self.json("/tf", pose.t_ns, view.transform(pose), "foxglove.FrameTransform")
+        trajectory = view.trajectory(pose)
+        if trajectory is not None:
+            self.json("/trajectory", pose.t_ns, trajectory, "foxglove.PosesInFrame")
 
     def json(self, topic: str, t_ns: int, obj: dict[str, Any], schema_name: str = "",
              schema: dict[str, Any] | None = None) -> None:
-        channel = self._channel(topic, "json", schema_name, schema)
+        """A JSON record; ``schema`` defaults to uwbd's schema named ``schema_name``
+        (:data:`uwbd.logs.foxglove.SCHEMAS`), and ``/truth`` brings ``/truth/trajectory``."""
+        channel = self._channels.get(topic)
+        if channel is None:
+            channel = self._channel(topic, "json", schema_name,
+                                    schema if schema is not None else fx.SCHEMAS.get(schema_name))
         self._add(channel, t_ns, strict_json(obj))
+        if topic == "/truth":
+            trajectory = self.view.truth_trajectory(t_ns, obj)
+            if trajectory is not None:
+                self.json("/truth/trajectory", t_ns, trajectory, "foxglove.PosesInFrame")
 
     def flush(self) -> None:
         """Close the open chunk and hand it to the OS (about once a second)."""
@@ -209,17 +251,30 @@ def not_a_log(path: Path) -> str:
 
 
 def read_log(path: Path) -> LogContents:
-    """Read a (possibly unfinished) uwbd log by a linear scan."""
+    """Read a (possibly unfinished) uwbd log by a linear scan. ``/raw/*`` messages come out as
+    the bytes read from the port, whether the log wrote them as ``uwbd.Raw`` protobuf
+    messages or, before, schemaless (``uwbd.raw``)."""
     out = LogContents()
     channels: dict[int, str] = {}
+    raw_protobuf: set[int] = set()  # channels of uwbd.Raw messages (new logs)
+    schemas: dict[int, str] = {}
     with path.open("rb") as f:
         try:
             for record in StreamReader(f).records:
-                if isinstance(record, Channel):
+                if isinstance(record, Schema):
+                    schemas[record.id] = record.name
+                elif isinstance(record, Channel):
                     channels[record.id] = record.topic
+                    if (record.message_encoding == fx.RAW_MESSAGE_ENCODING
+                            and schemas.get(record.schema_id) == fx.RAW_SCHEMA_NAME):
+                        raw_protobuf.add(record.id)
                 elif isinstance(record, Message):
+                    data = record.data
+                    if record.channel_id in raw_protobuf:
+                        with contextlib.suppress(ValueError):  # not one: left as it is
+                            data = fx.decode_raw(data)
                     out.messages.append(LogMessage(channels.get(record.channel_id, "?"),
-                                                   record.log_time, record.data))
+                                                   record.log_time, data))
                 elif isinstance(record, Metadata) and record.name == METADATA_NAME:
                     out.metadata = dict(record.metadata)
         except (McapError, EOFError, ValueError, struct.error) as err:

@@ -10,6 +10,7 @@ from drivers import Frame
 from uwbd import journal
 from uwbd.config import Config
 from uwbd.fusion.types import Pose
+from uwbd.logs.foxglove import FoxgloveView
 from uwbd.logs.mcaplog import LogWriter, SourceInfo, finish_cut
 
 FLUSH_PERIOD_NS = 1_000_000_000  # the log is handed to the OS about once a second
@@ -31,6 +32,10 @@ class McapSink:
     when it has time (the daemon: on a read that brings no pose, so the writing never
     delays one); records then wait at most ``MAX_BEHIND_NS``. The file is flushed about
     once a second of data time, so a crash loses about 1.1 s (1.5 s at worst).
+
+    Every file gets the viewer channels of :mod:`uwbd.logs.foxglove` (``/tf``, ``/anchors``,
+    ``/trajectory``) from one :class:`FoxgloveView`, so a rotated file shows the anchors
+    and the trajectory goes on across files.
 
     An ``OSError`` (disk full, directory gone) never reaches the pipeline: logging pauses,
     the reason is in :attr:`error` (the status) and in a warning line, and the file it cut
@@ -60,6 +65,7 @@ class McapSink:
         self._flushed_ns = 0
         self._behind: list[tuple[int, str, tuple[Any, ...]]] = []
         self._max_behind_ns = MAX_BEHIND_NS if paced else WRITE_BEHIND_NS
+        self.view = FoxgloveView.from_config(config)
 
     def _writer(self, t_ns: int) -> LogWriter | None:
         if self.error:
@@ -80,7 +86,7 @@ class McapSink:
                 if self.directory is not None:
                     self.directory.mkdir(parents=True, exist_ok=True)
                 log = self._log = LogWriter(path, self.config.text, sources,
-                                                robot=self.config.robot_name)
+                                            robot=self.config.robot_name, view=self.view)
             except OSError as err:
                 self._fail(f"cannot write log {path}: {err.strerror or err}", t_ns)
                 return None
@@ -174,10 +180,11 @@ class McapSink:
         self._write(pose.t_ns, "pose", pose)
 
     def status(self, t_ns: int, status: dict[str, Any]) -> None:
-        self.json("/status", t_ns, status)
+        self.json("/status", t_ns, status, "uwbd.Status")
 
     def json(self, topic: str, t_ns: int, obj: dict[str, Any], schema_name: str = "") -> None:
-        """Any other JSON record (e.g. ``/truth`` when the truth is known)."""
+        """Any other JSON record (e.g. ``/truth`` when the truth is known); its schema is
+        uwbd's of that name (:data:`uwbd.logs.foxglove.SCHEMAS`)."""
         self._write(t_ns, "json", topic, t_ns, obj, schema_name)
 
     def _close_current(self) -> None:

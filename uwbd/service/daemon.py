@@ -236,7 +236,7 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
     zenoh_sink = None
     if config.zenoh.get("enabled", True):
         try:
-            zenoh_sink = ZenohSink(config.zenoh, config.zenoh_prefix)
+            zenoh_sink = ZenohSink(config.zenoh, config.zenoh_prefix, config.nav_frame_id)
             sinks.append(zenoh_sink)
         except zenoh.ZError as err:  # e.g. listen port taken: fusion and logging go on
             LOG.error("zenoh disabled: %s (check [zenoh] listen/connect)", err)

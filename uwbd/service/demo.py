@@ -18,30 +18,42 @@ import signal
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 from drivers.emulator import DeviceSpec, Emulator, Faults
 from drivers.emulator.scenario import CircleScenario
 from drivers.frames import Frame
-from uwbd.config import SourceConfig, parse, to_toml
+from uwbd.config import Config, SourceConfig, parse, to_toml
 from uwbd.fusion.types import Pose
 from uwbd.logs.mcaplog import pose_message
 from uwbd.logs.sink import McapSink
 from uwbd.service.daemon import run
 from uwbd.service.interrupt import quiet_stdout, shielded
+from uwbd.service.pipeline import Sink
 
 DEMO_FAULTS = Faults(garbage_rate_hz=0.5, split=True, corrupt_prob=0.01)
 PREFIX = "uwbd/demo"
 
 
+@runtime_checkable
+class JsonOutput(Protocol):
+    """Where the truth goes: the log sink, and the live Foxglove server if there is one."""
+
+    def json(self, topic: str, t_ns: int, obj: dict[str, Any], schema_name: str = "") -> None:
+        ...
+
+
 class LiveView:
     """A sink that prints a pose line a second, scores poses against the truth, and puts the
-    truth in the log (``/truth`` at each pose) so ``uwbd report`` can score the log too."""
+    truth in the log (``/truth`` at each pose) so ``uwbd report`` can score the log too
+    (and on the live Foxglove server, with ``--foxglove``)."""
 
-    def __init__(self, scenario: CircleScenario) -> None:
+    def __init__(self, scenario: CircleScenario, frame_id: str = "enu") -> None:
         self.scenario = scenario
-        self.log: McapSink | None = None
+        self.frame_id = frame_id
+        self.outputs: list[JsonOutput] = []
         self.start_ns = time.time_ns()
         self.errors_m: list[float] = []
         self.last: Pose | None = None
@@ -57,11 +69,13 @@ class LiveView:
         self.last = pose
         t_s = (pose.t_ns - self.start_ns) / 1e9
         truth = self.scenario.position_m(t_s)
-        if self.log is not None:
+        if self.outputs:
             yaw = self.scenario.heading_rad(t_s)
-            self.log.json("/truth", pose.t_ns, pose_message(
-                pose.t_ns, truth, (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))),
-                "foxglove.PoseInFrame")
+            message = pose_message(pose.t_ns, truth,
+                                   (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)),
+                                   frame_id=self.frame_id)
+            for output in self.outputs:
+                output.json("/truth", pose.t_ns, message, "foxglove.PoseInFrame")
         self.errors_m.append(math.dist(pose.position_m[:2], truth[:2]))
         if pose.t_ns - self._printed_ns >= 1_000_000_000:
             self._printed_ns = pose.t_ns
@@ -79,7 +93,7 @@ class LiveView:
                 os.kill(os.getpid(), signal.SIGTERM)
 
     def attach_log(self, log: McapSink) -> None:
-        self.log = log
+        self.outputs.insert(0, log)
 
     def status(self, t_ns: int, status: dict[str, Any]) -> None:
         """The summary reads the final status from the pipeline."""
@@ -88,8 +102,10 @@ class LiveView:
         """Nothing to release."""
 
 
-def run_demo(workdir: Path, duration_s: float | None, seed: int) -> int:
-    """Run until ``duration_s`` or Ctrl-C; returns 0."""
+def run_demo(workdir: Path, duration_s: float | None, seed: int,
+             live: Callable[[Config], Sink] | None = None) -> int:
+    """Run until ``duration_s`` or Ctrl-C; returns 0. ``live`` makes a sink from the demo's
+    config (``--foxglove``: the live server), which also gets the truth."""
     devices = [DeviceSpec("imu", "wit", DEMO_FAULTS), DeviceSpec("uwb", "nlink", DEMO_FAULTS)]
     scenario = CircleScenario(seed=seed)
     log_dir = Path(tempfile.gettempdir()) / "uwbd-demo"
@@ -109,18 +125,30 @@ def run_demo(workdir: Path, duration_s: float | None, seed: int) -> int:
     text += (f'\n[zenoh]\nprefix = "{PREFIX}"\nlisten = ["unixsock-stream/{sock}"]\n'
              "multicast_scouting = false\n")
     config = parse(text, "demo config")
-    view = LiveView(scenario)
+    view = LiveView(scenario, config.nav_frame_id)
+    extra: list[Sink] = [view]
+    if live is not None:
+        try:
+            server = live(config)  # before anything is said: a port in use ends the demo here
+        except BaseException:
+            emu.close()
+            raise
+        extra.append(server)
+        if isinstance(server, JsonOutput):
+            view.outputs.append(server)
     print(f"uwbd demo: emulated WitMotion IMU on {emu.ports['imu'].path}, Nooploop tag on "
           f"{emu.ports['uwb'].path}; the daemon fuses them. Ctrl-C to stop.\n"
           f"  follow it from another terminal: {echo_command(sock)}", flush=True)
     try:
         emu.start()
         view.start_ns = time.time_ns()
-        pipeline = asyncio.run(run(config, log_dir, duration_s, extra_sinks=(view,),
+        pipeline = asyncio.run(run(config, log_dir, duration_s, extra_sinks=tuple(extra),
                                    on_log=view.attach_log))
     finally:
         with shielded():
             emu.close()
+            for sink in extra[1:]:  # closed by the pipeline, unless it never ran
+                sink.close()
     status = pipeline.status(time.time_ns())
     print("\nsummary:")
     for name, stats in status["parsers"].items():

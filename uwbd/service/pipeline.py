@@ -19,7 +19,7 @@ import time
 from collections.abc import Sequence
 from typing import Any, Protocol
 
-from drivers import PARSERS, Frame, ImuSample, Parser
+from drivers import PARSERS, AnchorRanges, Frame, ImuSample, Parser, UwbRanges
 from uwbd import __version__, journal
 from uwbd.config import Config
 from uwbd.fusion.filter import Filter
@@ -103,6 +103,10 @@ class Pipeline:
         hold one frame each; spread times never fall back to or before the source's previous
         frame. Deterministic: replay spreads the logged reads the same way.
         """
+        survey = [f for f in frames if isinstance(f, AnchorRanges)]
+        if survey:  # anchor-to-anchor reports are not samples of the source: keep their times
+            frames = [f for f in frames if not isinstance(f, AnchorRanges)]
+            return [*self._spread(source, frames), *survey] if frames else survey
         previous = self._last_frame_ns.get(source)
         if len(frames) == 1:
             t = frames[0].t_ns
@@ -172,8 +176,10 @@ class Pipeline:
             flt.predict(frame)
             if frame.t_ns - self._last_pose_ns < self.config.pose_period_ns:
                 return
-        else:
+        elif isinstance(frame, UwbRanges):
             flt.update(frame)
+        else:
+            return  # anchor-to-anchor ranges: logged for surveying, never fused
         pose = flt.pose()
         if pose is not None:
             self._last_pose_ns = pose.t_ns
@@ -205,10 +211,11 @@ class Pipeline:
                 self._sink_failed(call, err)
 
     def status(self, t_ns: int) -> dict[str, Any]:
-        """Filter health, gating counts, parser and aligner statistics."""
+        """Filter health, gating counts, parser and aligner statistics (``uwbd.Status``)."""
         flt = self.filter
         pose = flt.pose()
         out: dict[str, Any] = {
+            "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
             "t_ns": t_ns, "version": __version__, "filter": flt.status, **flt.diagnostics(),
             "heading_observable": bool(pose and pose.heading_observable),
             "poses": self.poses, "fusion_counters": dict(flt.counters),
@@ -216,6 +223,8 @@ class Pipeline:
             "aligner": self.aligner.stats(),
             "parsers": {name: _brief(p) for name, p in self.parsers.items()},
         }
+        # a value not known is left out (the JSON schema, uwbd.logs.foxglove, has no nulls)
+        out["health"] = {k: v for k, v in out["health"].items() if v is not None}
         if self.unknown_sources:
             out["unknown_source_reads"] = self.unknown_sources
         out.update(self.extra_status)

@@ -139,6 +139,8 @@ def run_method(method: Method, frames: Iterable[Frame]) -> tuple[Times, Array]:
         if isinstance(frame, ImuSample):
             method.predict(frame)
             continue
+        if not isinstance(frame, UwbRanges):
+            continue  # anchor-to-anchor ranges: not the tag's
         method.update(frame)
         pos = method.position()
         if pos is not None:

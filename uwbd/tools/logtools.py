@@ -135,5 +135,5 @@ def _sort(frames: Iterable[Frame], imu: list[ImuSample], uwb: list[UwbRanges]) -
     for f in frames:
         if isinstance(f, ImuSample):
             imu.append(f)
-        else:
+        elif isinstance(f, UwbRanges):  # anchor-to-anchor ranges are not the tag's
             uwb.append(f)

@@ -1,0 +1,602 @@
+"""What Foxglove needs to show a uwbd log or a live daemon: the schemas of every channel and
+the viewer channels (a transform tree, the anchors, trajectories), in one place.
+
+Written by hand, with no dependency (the robot's install stays lean): the ``foxglove.*``
+schemas below are Foxglove's own message schemas (its JSON Schema definitions, as the
+``foxglove-sdk``'s protobuf descriptors and ``@foxglove/schemas`` publish them), reduced to
+the fields uwbd writes; ``tests/test_foxglove.py`` checks them and every logged message
+against Foxglove's definitions. uwbd's own channels (``/imu``, ``/uwb``, ``/status``, the
+extra fields of ``/pose``) get complete schemas, derived from the frame dataclasses where
+they can be.
+
+Every schema stays inside what Foxglove's JSON Schema reader accepts: each property has one
+``type`` (``object`` with ``properties``, ``array`` with typed ``items``, ``string``,
+``number``, ``integer``, ``boolean``), no ``null`` and no type lists. So a value that is not
+known (no reset yet, a field the device does not send) is left out of a record, not written
+as ``null``; only a number that is not finite is ``null`` (JSON has no NaN), which the filter
+and the drivers do not produce in normal operation.
+
+Times: every record carries ``timestamp {sec, nsec}``, exact in JavaScript, as Foxglove
+reads it; ``t_ns`` (integer ns since the Unix epoch) stays for the Python, Rust and C++
+clients that read it (above 2^53, so a JavaScript ``JSON.parse`` rounds it: use
+``timestamp`` there).
+
+Channels beside the recorded ones:
+
+* ``/tf``, ``foxglove.FrameTransform``: ``nav_frame_id`` → ``body_frame_id`` at each pose;
+* ``/anchors``, ``foxglove.SceneUpdate``: a sphere and an id label per anchor, at the start
+  of each file and whenever the anchor set changes (live: once a second);
+* ``/trajectory``, ``foxglove.PosesInFrame``: the last ``TRAIL_WINDOW_NS`` of poses, one
+  every ``TRAIL_SPACING_NS``, once a second;
+* ``/truth/trajectory``, ``foxglove.PosesInFrame``: the same for ``/truth`` when there is one.
+
+The trajectory is a ``PosesInFrame``, not a line in a ``SceneUpdate``: it is the standard
+path type (Foxglove's 3D panel draws it as a line, arrows or axes, with a gradient; it
+maps one to one onto ROS's ``nav_msgs/Path``), it keeps each point's heading, and its
+schema is Foxglove's own, so other tools read it as a trajectory too.
+
+``/raw/<source>`` messages are protobuf ``uwbd.Raw { bytes data = 1; }`` (schema: the
+serialized ``FileDescriptorSet`` :data:`RAW_DESCRIPTOR`), encoded by hand: the bytes plus a
+tag and a length, two bytes for a read under 128 B; logs before this used the schemaless
+encoding ``uwbd.raw`` (the bytes as they are), which Foxglove cannot open; both are read.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from collections import deque
+from collections.abc import Mapping
+from typing import Any, Union
+
+from drivers.frames import Frame, ImuSample, UwbRanges
+from uwbd.config import ConfigError, parse
+from uwbd.fusion.filter import MAX_ANCHOR_COORD_M
+from uwbd.fusion.types import Pose
+
+Schema = dict[str, Any]
+Vec3 = tuple[float, float, float]
+
+TRAIL_SPACING_NS = 500_000_000  # a trajectory point every 0.5 s of data time
+TRAIL_WINDOW_NS = 60_000_000_000  # the last minute
+TRAIL_PERIOD_NS = 1_000_000_000  # sent once a second
+ANCHOR_DIAMETER_M = 0.15
+ANCHOR_COLOR = {"r": 1.0, "g": 0.55, "b": 0.0, "a": 1.0}
+LABEL_COLOR = {"r": 1.0, "g": 1.0, "b": 1.0, "a": 1.0}
+
+T_NS_TEXT = ("receive time, integer ns since the Unix epoch (exact for Python, Rust, C++; "
+             "above 2^53, so JavaScript rounds it: use timestamp)")
+
+
+def stamp(t_ns: int) -> dict[str, int]:
+    """``{sec, nsec}`` of a time in ns (Foxglove's time)."""
+    return {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000}
+
+
+# -- building blocks --------------------------------------------------------------------------
+
+def _num(text: str) -> Schema:
+    return {"type": "number", "description": text}
+
+
+def _obj(title: str, text: str, props: Mapping[str, Schema],
+         required: tuple[str, ...] = (), closed: bool = False) -> Schema:
+    out: Schema = {"title": title, "description": text, "type": "object",
+                   "properties": dict(props)}
+    if required:
+        out["required"] = list(required)
+    if closed:
+        out["additionalProperties"] = False
+    return out
+
+
+def time_schema(text: str) -> Schema:
+    return {"title": "time", "description": text, "type": "object", "properties": {
+        "sec": {"type": "integer", "minimum": 0, "description": "whole seconds since the "
+                "Unix epoch"},
+        "nsec": {"type": "integer", "minimum": 0, "maximum": 999_999_999,
+                 "description": "nanoseconds past sec"}}, "required": ["sec", "nsec"]}
+
+
+def _duration(text: str) -> Schema:
+    return {"title": "duration", "description": text, "type": "object", "properties": {
+        "sec": {"type": "integer"},
+        "nsec": {"type": "integer", "minimum": 0, "maximum": 999_999_999}}}
+
+
+def _vector3(text: str, title: str = "foxglove.Vector3") -> Schema:
+    return _obj(title, text, {k: _num(f"{k} (m)") for k in "xyz"}, tuple("xyz"))
+
+
+def _quaternion(text: str) -> Schema:
+    return _obj("foxglove.Quaternion", text, {k: _num(f"{k} component") for k in "xyzw"},
+                tuple("xyzw"))
+
+
+def _pose(text: str) -> Schema:
+    return _obj("foxglove.Pose", text, {
+        "position": _vector3("position (m)"),
+        "orientation": _quaternion("orientation, unit quaternion")},
+        ("position", "orientation"))
+
+
+def _color(text: str) -> Schema:
+    return _obj("foxglove.Color", text, {k: _num(f"{k}, 0 to 1") for k in "rgba"},
+                tuple("rgba"))
+
+
+def _t_ns() -> Schema:
+    return {"type": "integer", "description": T_NS_TEXT}
+
+
+def pose_in_frame_schema(extra: Mapping[str, Schema] | None = None,
+                         text: str = "a pose in a frame") -> Schema:
+    """``foxglove.PoseInFrame`` (and ``t_ns``), with ``extra`` properties."""
+    return _obj("foxglove.PoseInFrame", text, {
+        "timestamp": time_schema("time of the pose (exact)"),
+        "frame_id": {"type": "string", "description": "frame the pose is in (the config's "
+                     "[robot] nav_frame_id)"},
+        "pose": _pose("the body frame's origin and orientation in frame_id"),
+        "t_ns": _t_ns(), **(extra or {})}, ("timestamp", "frame_id", "pose"))
+
+
+def _health_schema() -> Schema:
+    optional = "; absent when not known"
+    return _obj("uwbd.Health", "the filter's health record (README: Integrity)", {
+        "phase": {"type": "string", "description": "waiting, recovering, coasting, degraded, "
+                  "aligning or tracking (only tracking is healthy)"},
+        "healthy": {"type": "boolean", "description": "phase is tracking"},
+        "faults": {"type": "array", "items": {"type": "string"},
+                   "description": "what is wrong now"},
+        "notes": {"type": "array", "items": {"type": "string"},
+                  "description": "what to know, not wrong (e.g. mirror_unresolved)"},
+        "since_range_s": _num("s since the last accepted UWB measurement" + optional),
+        "position_sigma_m": _num("horizontal σ, √(σx² + σy²), m" + optional),
+        "resets": {"type": "integer", "description": "filter restarts so far"},
+        "last_reset_t_ns": {"type": "integer",
+                            "description": "time of the last restart, ns" + optional},
+        "last_reset_reason": {"type": "string", "description": "why (empty: none)"},
+        "last_reset_jump_m": _num("how far the position moved at that restart, m" + optional),
+    }, required=("phase", "healthy", "faults", "notes", "resets", "last_reset_reason"),
+        closed=True)
+
+
+def _array(items: Schema, text: str, n: int | None = None) -> Schema:
+    out: Schema = {"type": "array", "items": items, "description": text}
+    if n is not None:
+        out["minItems"] = out["maxItems"] = n
+    return out
+
+
+POSE_SCHEMA = pose_in_frame_schema({
+    "velocity_mps": _array({"type": "number"}, "velocity in frame_id, m/s (x, y, z)", 3),
+    "covariance": _array({"type": "number"}, "6×6 row-major over x, y, z (m) and rotation "
+                         "about frame_id's x, y, z (rad), as ROS PoseWithCovariance", 36),
+    "status": {"type": "string", "description": "the health record in one line"},
+    "heading_observable": {"type": "boolean",
+                           "description": "the heading is known (false until aligned)"},
+    "health": _health_schema(),
+}, "the fused pose: a foxglove.PoseInFrame plus uwbd's fields")
+POSE_SCHEMA["required"] = ["timestamp", "frame_id", "pose", "t_ns", "velocity_mps",
+                           "covariance", "status", "heading_observable", "health"]
+POSE_SCHEMA["additionalProperties"] = False
+TRUTH_SCHEMA = pose_in_frame_schema(text="ground truth (simulator, dataset or demo scenario)")
+
+FRAME_TRANSFORM_SCHEMA = _obj(
+    "foxglove.FrameTransform", "the body frame in the navigation frame, at each pose", {
+        "timestamp": time_schema("time of the transform"),
+        "parent_frame_id": {"type": "string", "description": "navigation frame"},
+        "child_frame_id": {"type": "string", "description": "body frame"},
+        "translation": _vector3("body origin in the parent frame"),
+        "rotation": _quaternion("body orientation in the parent frame")},
+    ("timestamp", "parent_frame_id", "child_frame_id", "translation", "rotation"))
+
+POSES_IN_FRAME_SCHEMA = _obj(
+    "foxglove.PosesInFrame", "a trajectory: recent poses, oldest first", {
+        "timestamp": time_schema("time of the newest pose"),
+        "frame_id": {"type": "string", "description": "frame of the poses"},
+        "poses": {"type": "array", "items": _pose("a pose on the trajectory"),
+                  "description": "the poses"}}, ("timestamp", "frame_id", "poses"))
+
+
+def _primitive(title: str, text: str, props: Mapping[str, Schema]) -> Schema:
+    return {"type": "array", "description": text,
+            "items": _obj(title, text, {"pose": _pose("centre and orientation"), **props},
+                          ("pose", *props))}
+
+
+def _unused(title: str) -> Schema:
+    """A primitive list uwbd leaves empty (Foxglove's schema wants it present)."""
+    return {"type": "array", "description": f"{title}: none",
+            "items": {"title": title, "type": "object", "properties": {}}}
+
+
+ENTITY_FIELDS = ("timestamp", "frame_id", "id", "lifetime", "frame_locked", "metadata",
+                 "arrows", "cubes", "spheres", "cylinders", "lines", "triangles", "texts",
+                 "models")
+
+
+SCENE_UPDATE_SCHEMA = _obj(
+    "foxglove.SceneUpdate", "entities of a 3D scene (the fields uwbd writes)", {
+        "deletions": {"type": "array", "description": "entities to delete", "items": _obj(
+            "foxglove.SceneEntityDeletion", "a deletion", {
+                "timestamp": time_schema("delete matching entities older than this"),
+                "type": {"title": "foxglove.SceneEntityDeletionType",
+                         "description": "what to delete",
+                         "oneOf": [{"title": "MATCHING_ID", "const": 0},
+                                   {"title": "ALL", "const": 1}]},
+                "id": {"type": "string", "description": "entity id (MATCHING_ID)"}},
+            ("timestamp", "type", "id"))},
+        "entities": {"type": "array", "description": "entities to add or replace", "items": _obj(
+            "foxglove.SceneEntity", "a visual element", {
+                "timestamp": time_schema("time of the entity"),
+                "frame_id": {"type": "string", "description": "frame of reference"},
+                "id": {"type": "string", "description": "replaces an entity with this id"},
+                "lifetime": _duration("0: until replaced"),
+                "frame_locked": {"type": "boolean", "description": "follow frame_id"},
+                "metadata": {"type": "array", "description": "key/value pairs", "items": _obj(
+                    "foxglove.KeyValuePair", "a key and its value", {
+                        "key": {"type": "string"}, "value": {"type": "string"}},
+                    ("key", "value"))},
+                "arrows": _unused("foxglove.ArrowPrimitive"),
+                "cubes": _unused("foxglove.CubePrimitive"),
+                "spheres": _primitive("foxglove.SpherePrimitive", "spheres", {
+                    "size": _vector3("diameters along x, y, z (m)"),
+                    "color": _color("colour")}),
+                "texts": _primitive("foxglove.TextPrimitive", "text labels", {
+                    "billboard": {"type": "boolean", "description": "face the camera"},
+                    "font_size": _num("font size (pixels when scale_invariant)"),
+                    "scale_invariant": {"type": "boolean", "description": "size in pixels"},
+                    "color": _color("colour"),
+                    "text": {"type": "string", "description": "the text"}}),
+                "cylinders": _unused("foxglove.CylinderPrimitive"),
+                "lines": _unused("foxglove.LinePrimitive"),
+                "triangles": _unused("foxglove.TriangleListPrimitive"),
+                "models": _unused("foxglove.ModelPrimitive"),
+            }, ENTITY_FIELDS)},
+    }, ("deletions", "entities"))
+
+
+# -- frames, from the dataclasses -------------------------------------------------------------
+
+UNITS = {"_mps2": "m/s²", "_rps": "rad/s", "_mps": "m/s", "_deg": "°", "_c": "°C",
+         "_ns": "ns", "_ms": "ms", "_m": "m"}
+
+
+def _unit(name: str) -> str:
+    return next((u for suffix, u in UNITS.items() if name.endswith(suffix)), "")
+
+
+def _field_schema(name: str, hint: Any) -> tuple[Schema, bool]:
+    """(schema, required) of one dataclass field from its type."""
+    required = True
+    args = typing.get_args(hint)
+    if typing.get_origin(hint) in (Union, types.UnionType) and type(None) in args:
+        required = False
+        (hint,) = (a for a in args if a is not type(None))
+    unit = _unit(name)
+    text = name.replace("_", " ") + (f" ({unit})" if unit else "")
+    if not required:
+        text += "; absent when the device does not send it"
+    out = _value_schema(hint)
+    out["description"] = text
+    return out, required
+
+
+def _value_schema(hint: Any) -> Schema:
+    if dataclasses.is_dataclass(hint):
+        return _dataclass_schema(hint)  # type: ignore[arg-type]
+    if typing.get_origin(hint) is tuple:
+        items = typing.get_args(hint)
+        if len(items) == 2 and items[1] is Ellipsis:
+            return {"type": "array", "items": _value_schema(items[0])}
+        kinds = {_value_schema(a)["type"] for a in items}
+        # a fixed-size vector; an array of arrays is valid JSON Schema but not one Foxglove
+        # reads: a frame type that needs one is better logged as objects
+        kind = "integer" if kinds == {"integer"} else "number"
+        return {"type": "array", "items": {"type": kind}, "minItems": len(items),
+                "maxItems": len(items)}
+    return {"type": {int: "integer", float: "number", str: "string", bool: "boolean"}[hint]}
+
+
+def _dataclass_schema(cls: type[Any]) -> Schema:
+    hints = typing.get_type_hints(cls)
+    props: dict[str, Schema] = {}
+    required: list[str] = []
+    for f in dataclasses.fields(cls):
+        props[f.name], needed = _field_schema(f.name, hints[f.name])
+        if needed:
+            required.append(f.name)
+    return _obj(f"uwbd.{cls.__name__}", (cls.__doc__ or cls.__name__).strip().split("\n")[0],
+                props, tuple(required), closed=True)
+
+
+def frame_schema(cls: type[Any]) -> Schema:
+    """A decoded frame's record (``/imu``, ``/uwb``): ``type``, ``timestamp`` and the
+    dataclass's fields (:func:`uwbd.codec.frame_to_json`)."""
+    out = _dataclass_schema(cls)
+    out["properties"] = {"type": {"type": "string", "description": f'"{cls.__name__}"'},
+                         "timestamp": time_schema("receive time (exact)"),
+                         **out["properties"]}
+    out["properties"]["t_ns"] = _t_ns()
+    out["required"] = ["type", "timestamp", *out["required"]]
+    return out
+
+
+IMU_SCHEMA = frame_schema(ImuSample)
+UWB_SCHEMA = frame_schema(UwbRanges)  # its ranges' items: AnchorRange, derived the same way
+FRAME_CHANNELS: dict[type[Any], tuple[str, Schema]] = {
+    ImuSample: ("/imu", IMU_SCHEMA), UwbRanges: ("/uwb", UWB_SCHEMA)}
+
+
+def frame_channel(cls: type[Any]) -> tuple[str, Schema]:
+    """The topic and schema of a frame type's records: ``/imu``, ``/uwb``; another frame
+    type (a driver's new kind) gets ``/<snake_case name>`` and a schema derived the same way."""
+    known = FRAME_CHANNELS.get(cls)
+    if known is None:
+        topic = "/" + "".join(f"_{c.lower()}" if c.isupper() else c for c in cls.__name__)[1:]
+        known = FRAME_CHANNELS[cls] = (topic, frame_schema(cls))
+    return known
+
+
+def _open_map(values: Schema, text: str) -> Schema:
+    """An object keyed by names uwbd cannot list (anchors, sources, counters)."""
+    return {"type": "object", "description": text, "properties": {},
+            "additionalProperties": values}
+
+
+_COUNT = {"type": "integer", "minimum": 0}
+STATUS_SCHEMA = _obj("uwbd.Status", "once a second: the filter's health, counters, "
+                     "parsers, ports and the log (README: What the daemon says)", {
+    "timestamp": time_schema("time of the status (exact)"),
+    "t_ns": _t_ns(),
+    "version": {"type": "string", "description": "uwbd version"},
+    "filter": {"type": "string", "description": "the health record in one line"},
+    "health": _health_schema(),
+    "mirror": _obj("uwbd.Mirror", "the side of a plane of anchors", {
+        "ambiguous": {"type": "boolean", "description": "the anchors are coplanar"},
+        "side": {"type": "string", "description": "above or below them"},
+        "decided_by": {"type": "string", "description": "how the side was chosen"},
+        "resolved": {"type": "boolean", "description": "the side is settled"}}),
+    "anchors": _open_map(_obj("uwbd.AnchorStats", "ranges of one anchor", {
+        "accepted": _COUNT, "deweighted": _COUNT, "rejected": _COUNT,
+        "mean_innovation_sigma": _num("mean innovation / σ"),
+        "rms_innovation_sigma": _num("RMS innovation / σ")}), "per anchor id"),
+    "heading_observable": {"type": "boolean", "description": "the heading is known"},
+    "poses": {"type": "integer", "description": "poses so far"},
+    "fusion_counters": _open_map(_COUNT, "filter events by name"),
+    "gating_rejections": _open_map(_COUNT, "ranges rejected, by reason"),
+    "aligner": _open_map(_COUNT, "time-aligner counters (late, overflow, pending)"),
+    "parsers": _open_map({"type": "object", "properties": {}}, "per source: the parser's "
+                         "counters and its last error"),
+    "sources": _open_map({"type": "object", "properties": {}}, "per source: port, state, "
+                         "opens, losses, bytes, last_error (the daemon)"),
+    "log": {"type": "object", "description": "the log's files and errors (the daemon)",
+            "properties": {}},
+    "sink_errors": {"type": "array", "items": {"type": "string"},
+                    "description": "sinks that failed"},
+    "unknown_source_reads": {"type": "integer",
+                             "description": "reads from a source the config does not name"},
+}, required=("timestamp", "t_ns", "version", "filter", "health", "poses"))
+
+# by schema name, for records logged with a name only (``/truth`` from the simulator, the
+# importer and the demo; the status)
+SCHEMAS: dict[str, Schema] = {s["title"]: s for s in (
+    TRUTH_SCHEMA, STATUS_SCHEMA, FRAME_TRANSFORM_SCHEMA, POSES_IN_FRAME_SCHEMA,
+    SCENE_UPDATE_SCHEMA)}
+
+
+# -- /raw/<source> as protobuf ----------------------------------------------------------------
+
+RAW_SCHEMA_NAME = "uwbd.Raw"
+RAW_MESSAGE_ENCODING = "protobuf"
+LEGACY_RAW_ENCODING = "uwbd.raw"  # before: schemaless, the bytes as they are
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while n > 0x7F:
+        out.append((n & 0x7F) | 0x80)
+        n >>= 7
+    out.append(n)
+    return bytes(out)
+
+
+def _pb_bytes(field: int, payload: bytes) -> bytes:
+    return _varint(field << 3 | 2) + _varint(len(payload)) + payload
+
+
+def _pb_int(field: int, value: int) -> bytes:
+    return _varint(field << 3) + _varint(value)
+
+
+# FileDescriptorSet { file: FileDescriptorProto { name, package, message_type: DescriptorProto
+# { name: "Raw", field: FieldDescriptorProto { name: "data", number: 1, LABEL_OPTIONAL,
+# TYPE_BYTES, json_name: "data" } }, syntax: "proto3" } }
+RAW_DESCRIPTOR = _pb_bytes(1, b"".join((
+    _pb_bytes(1, b"uwbd/Raw.proto"),
+    _pb_bytes(2, b"uwbd"),
+    _pb_bytes(4, _pb_bytes(1, b"Raw") + _pb_bytes(2, b"".join((
+        _pb_bytes(1, b"data"), _pb_int(3, 1), _pb_int(4, 1), _pb_int(5, 12),
+        _pb_bytes(10, b"data"))))),
+    _pb_bytes(12, b"proto3"))))
+
+
+def encode_raw(data: bytes) -> bytes:
+    """``uwbd.Raw {data}`` as protobuf: tag 0x0A, the length as a varint, the bytes."""
+    n = len(data)
+    if n < 0x80:
+        return b"\n" + bytes((n,)) + data if n else b""
+    return b"\n" + _varint(n) + data
+
+
+def decode_raw(message: bytes) -> bytes:
+    """The bytes of a ``uwbd.Raw`` message (any valid encoding of it: fields other than
+    ``data`` are skipped, the last ``data`` wins, as protobuf says)."""
+    data, k, end = b"", 0, len(message)
+    while k < end:
+        key, k = _read_varint(message, k)
+        wire = key & 7
+        if wire == 2:
+            n, k = _read_varint(message, k)
+            if key >> 3 == 1:
+                data = message[k:k + n]
+            k += n
+        elif wire == 0:
+            _, k = _read_varint(message, k)
+        elif wire in (1, 5):
+            k += 8 if wire == 1 else 4
+        else:
+            raise ValueError(f"uwbd.Raw: unsupported protobuf wire type {wire}")
+    if k != end:
+        raise ValueError("uwbd.Raw: message ends inside a field")
+    return data
+
+
+def _read_varint(buf: bytes, k: int) -> tuple[int, int]:
+    value = shift = 0
+    while True:
+        if k >= len(buf):
+            raise ValueError("uwbd.Raw: message ends inside a varint")
+        b = buf[k]
+        k += 1
+        value |= (b & 0x7F) << shift
+        if b < 0x80:
+            return value, k
+        shift += 7
+
+
+# -- the viewer channels ----------------------------------------------------------------------
+
+def _point(position: Any) -> dict[str, float]:
+    x, y, z = position
+    return {"x": float(x), "y": float(y), "z": float(z)}
+
+
+def _quat(q: Any) -> dict[str, float]:
+    x, y, z, w = q
+    return {"x": float(x), "y": float(y), "z": float(z), "w": float(w)}
+
+
+class Trail:
+    """A trajectory kept as points ``spacing_ns`` apart over the last ``window_ns``; every
+    ``period_ns`` :meth:`add` hands out a ``foxglove.PosesInFrame`` of it."""
+
+    def __init__(self, frame_id: str, spacing_ns: int = TRAIL_SPACING_NS,
+                 window_ns: int = TRAIL_WINDOW_NS, period_ns: int = TRAIL_PERIOD_NS) -> None:
+        self.frame_id = frame_id
+        self.spacing_ns = spacing_ns
+        self.window_ns = window_ns
+        self.period_ns = period_ns
+        self.points: deque[tuple[int, dict[str, Any]]] = deque()
+        self._sent_ns: int | None = None
+
+    def add(self, t_ns: int, position: Any, orientation_xyzw: Any) -> dict[str, Any] | None:
+        points = self.points
+        if not points or t_ns - points[-1][0] >= self.spacing_ns:
+            if not all(map(math.isfinite, (*position, *orientation_xyzw))):
+                return None  # a broken pose stays out of the drawing
+            # 0.1 mm and 1e-4 are far below what a viewer shows, and halve the record
+            x, y, z = (round(float(v), 4) for v in position)
+            qx, qy, qz, qw = (round(float(v), 4) for v in orientation_xyzw)
+            points.append((t_ns, {"position": {"x": x, "y": y, "z": z},
+                                  "orientation": {"x": qx, "y": qy, "z": qz, "w": qw}}))
+            while t_ns - points[0][0] > self.window_ns:
+                points.popleft()
+        if self._sent_ns is not None and t_ns - self._sent_ns < self.period_ns:
+            return None
+        self._sent_ns = t_ns
+        return {"timestamp": stamp(t_ns), "frame_id": self.frame_id,
+                "poses": [p for _, p in points]}
+
+
+class FoxgloveView:
+    """The state behind the viewer channels of one run: frame names, the anchors (configured,
+    and those the device reports, taken as the filter takes them), the trajectories.
+
+    Shared by the files of a rotating log (the trajectory goes on across files) and used on
+    its own by the live server."""
+
+    def __init__(self, nav_frame_id: str = "enu", body_frame_id: str = "base_link",
+                 anchors_m: Mapping[int, Vec3] | None = None) -> None:
+        self.nav_frame_id = nav_frame_id
+        self.body_frame_id = body_frame_id
+        self.anchors_m: dict[int, Vec3] = dict(anchors_m or {})
+        self.anchors_version = 1 if self.anchors_m else 0  # +1 at each change
+        self.trail = Trail(nav_frame_id)
+        self.truth_trail = Trail(nav_frame_id)
+
+    @classmethod
+    def from_config(cls, config: Any) -> FoxgloveView:
+        """From a :class:`uwbd.config.Config`."""
+        return cls(config.nav_frame_id, config.body_frame_id, config.anchors_m)
+
+    @classmethod
+    def from_toml(cls, text: str) -> FoxgloveView:
+        """From a config's TOML (a log's metadata); the defaults if it does not parse."""
+        try:
+            return cls.from_config(parse(text, "log config"))
+        except ConfigError:
+            return cls()
+
+    def observe(self, frame: Frame) -> bool:
+        """Anchors the device reports with its ranges (configured positions win, as in the
+        filter); True when the set changed."""
+        if not isinstance(frame, UwbRanges):
+            return False
+        changed = False
+        for r in frame.ranges:
+            pos = r.anchor_position_m
+            if (pos is not None and r.anchor_id not in self.anchors_m
+                    and max(map(abs, pos)) <= MAX_ANCHOR_COORD_M):  # NaN fails too
+                self.anchors_m[r.anchor_id] = (float(pos[0]), float(pos[1]), float(pos[2]))
+                changed = True
+        if changed:
+            self.anchors_version += 1
+        return changed
+
+    def transform(self, pose: Pose) -> dict[str, Any]:
+        """``/tf``: the body frame in the navigation frame."""
+        return {"timestamp": stamp(pose.t_ns), "parent_frame_id": self.nav_frame_id,
+                "child_frame_id": self.body_frame_id,
+                "translation": _point(pose.position_m),
+                "rotation": _quat(pose.orientation_xyzw)}
+
+    def scene(self, t_ns: int) -> dict[str, Any]:
+        """``/anchors``: a sphere and an id label per anchor."""
+        identity = {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}
+        size = {"x": ANCHOR_DIAMETER_M, "y": ANCHOR_DIAMETER_M, "z": ANCHOR_DIAMETER_M}
+        entities = []
+        for anchor_id, pos in sorted(self.anchors_m.items()):
+            label = dict(_point(pos))
+            label["z"] += ANCHOR_DIAMETER_M
+            entities.append({
+                "timestamp": stamp(t_ns), "frame_id": self.nav_frame_id,
+                "id": f"anchor-{anchor_id}", "lifetime": {"sec": 0, "nsec": 0},
+                "frame_locked": False,
+                "metadata": [{"key": "anchor_id", "value": str(anchor_id)}],
+                "arrows": [], "cubes": [],
+                "spheres": [{"pose": {"position": _point(pos), "orientation": identity},
+                             "size": size, "color": ANCHOR_COLOR}],
+                "cylinders": [], "lines": [], "triangles": [],
+                "texts": [{"pose": {"position": label, "orientation": identity},
+                           "billboard": True, "font_size": 14.0, "scale_invariant": True,
+                           "color": LABEL_COLOR, "text": f"anchor {anchor_id}"}],
+                "models": []})
+        return {"deletions": [], "entities": entities}
+
+    def trajectory(self, pose: Pose) -> dict[str, Any] | None:
+        """``/trajectory`` when one is due."""
+        return self.trail.add(pose.t_ns, pose.position_m, pose.orientation_xyzw)
+
+    def truth_trajectory(self, t_ns: int, truth: Mapping[str, Any]) -> dict[str, Any] | None:
+        """``/truth/trajectory`` when one is due, from a ``/truth`` record."""
+        try:
+            p, q = truth["pose"]["position"], truth["pose"]["orientation"]
+            position = (p["x"], p["y"], p["z"])
+            orientation = (q["x"], q["y"], q["z"], q["w"])
+        except (KeyError, TypeError):
+            return None
+        return self.truth_trail.add(t_ns, position, orientation)
