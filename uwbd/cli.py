@@ -353,7 +353,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
         target.unlink(missing_ok=True)
         raise RunError(f"cannot write {target}: {err.strerror or err}") from err
     print(f"{target}: {result.messages} messages recovered from {source}"
-          + (f" (it ends mid-record: {result.error})" if result.truncated else
+          + (f" ({result.error})" if result.truncated else
              " (it was complete)"))
     return 0
 

@@ -34,8 +34,9 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO, Any
 
+import zstandard
 from mcap.data_stream import RecordBuilder
-from mcap.exceptions import McapError
+from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
@@ -118,6 +119,8 @@ class LogWriter:
         self._sequence = 0
         self._scene_version = 0  # the anchors last written to this file
         self.flushed_bytes = 0  # the file is whole records up to here (see finish_cut)
+        self.unflushed = 0  # records since then: what a cut there loses
+        self.flush()  # header and metadata reach the disk now: a cut file keeps them
 
     def _channel(self, topic: str, encoding: str, schema_name: str = "",
                  schema: dict[str, Any] | None = None, schema_encoding: str = "jsonschema",
@@ -140,6 +143,7 @@ class LogWriter:
             self._scene_version = self.view.anchors_version
             self.json("/anchors", t_ns, self.view.scene(t_ns), "foxglove.SceneUpdate")
         self._sequence += 1
+        self.unflushed += 1
         self._w.add_message(channel, log_time=t_ns, publish_time=t_ns, data=data,
                             sequence=self._sequence)
 
@@ -188,6 +192,7 @@ class LogWriter:
         self._w.flush()  # type: ignore[no-untyped-call]
         self._file.flush()
         self.flushed_bytes = self._file.tell()
+        self.unflushed = 0
 
     def abandon(self) -> None:
         """Close the file as it is, after a write failed (the disk is full): nothing more is
@@ -260,7 +265,7 @@ def read_log(path: Path) -> LogContents:
     schemas: dict[int, str] = {}
     with path.open("rb") as f:
         try:
-            for record in StreamReader(f).records:
+            for record in StreamReader(f, validate_crcs=True).records:
                 if isinstance(record, Schema):
                     schemas[record.id] = record.name
                 elif isinstance(record, Channel):
@@ -277,11 +282,23 @@ def read_log(path: Path) -> LogContents:
                                                    record.log_time, data))
                 elif isinstance(record, Metadata) and record.name == METADATA_NAME:
                     out.metadata = dict(record.metadata)
-        except (McapError, EOFError, ValueError, struct.error) as err:
-            # a torn last record: mcap raises struct.error when the stream ends inside one
+        except DAMAGED as err:
+            # a torn last record (mcap raises struct.error when the stream ends inside one),
+            # or a damaged chunk: what came before it is kept
             out.truncated = True
-            out.error = f"{path}: {type(err).__name__}: {err}"
+            out.error = f"{path}: {_damage(err, f)}"
     return out
+
+
+# what reading a damaged or torn file raises: mcap's own errors, a record cut off (EOFError,
+# struct.error), a damaged compressed chunk (zstandard, lz4: a RuntimeError)
+DAMAGED = (McapError, EOFError, ValueError, struct.error, zstandard.ZstdError, RuntimeError)
+
+
+def _damage(err: BaseException, f: IO[bytes]) -> str:
+    kind = ("ends mid-record" if isinstance(err, (EOFError, struct.error, EndOfFile))
+            else "is damaged")
+    return f"it {kind} near byte {f.tell()} ({type(err).__name__}: {err})"
 
 
 def finish_cut(path: Path, size: int) -> None:
@@ -316,7 +333,7 @@ def recover(source: Path, target: Path) -> Recovered:
         w = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
         w.start(profile="", library=f"uwbd {__version__} (recover)")
         try:
-            for record in StreamReader(f).records:
+            for record in StreamReader(f, validate_crcs=True).records:
                 if isinstance(record, Schema):
                     schemas[record.id] = w.register_schema(record.name, record.encoding,
                                                            record.data)
@@ -333,7 +350,7 @@ def recover(source: Path, target: Path) -> Recovered:
                 elif isinstance(record, Attachment):
                     w.add_attachment(record.create_time, record.log_time, record.name,
                                      record.media_type, record.data)
-        except (McapError, EOFError, ValueError, struct.error) as err:
-            error = f"{source}: {type(err).__name__}: {err}"
+        except DAMAGED as err:
+            error = f"{source}: {_damage(err, f)}"
         w.finish()  # type: ignore[no-untyped-call]
     return Recovered(count, bool(error), error)

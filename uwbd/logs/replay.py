@@ -12,6 +12,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from uwbd import journal
 from uwbd.codec import frame_from_dict
 from uwbd.config import parse
 from uwbd.logs.mcaplog import LogContents
@@ -19,6 +20,7 @@ from uwbd.logs.sink import McapSink
 from uwbd.service.pipeline import Pipeline, PoseList, Sink, monotonic_pacer
 
 RAW_PREFIX = "/raw/"
+LOG = journal.get("replay")
 
 
 def replay(contents: LogContents, where: str, output: Path | None = None,
@@ -36,14 +38,24 @@ def replay(contents: LogContents, where: str, output: Path | None = None,
     raw = [m for m in contents.messages if m.topic.startswith(RAW_PREFIX)]
     items = raw or [m for m in contents.messages if m.topic in ("/imu", "/uwb")]
     pace = monotonic_pacer(items[0].log_time_ns) if realtime and items else None
-    for m in tqdm(items, desc="replay", unit="read", disable=not progress, leave=False,
-                  mininterval=0.5):
-        if pace is not None:
-            pace(m.log_time_ns)
-        if raw:
-            pipeline.on_bytes(m.topic[len(RAW_PREFIX):], m.log_time_ns, m.data)
-        else:
-            pipeline.on_frame(frame_from_dict(json.loads(m.data)))
-    pipeline.finish()
-    pipeline.close()
+    try:
+        for m in tqdm(items, desc="replay", unit="read", disable=not progress, leave=False,
+                      mininterval=0.5):
+            if pace is not None:
+                pace(m.log_time_ns)
+            if raw:
+                pipeline.on_bytes(m.topic[len(RAW_PREFIX):], m.log_time_ns, m.data)
+                continue
+            try:
+                frame = frame_from_dict(json.loads(m.data))
+            except (ValueError, KeyError, TypeError, IndexError) as err:
+                pipeline.bad_records += 1  # a damaged record: counted, the rest go on
+                if pipeline.bad_records == 1:
+                    LOG.warning("%s: a %s record at %d ns is not a frame (%s: %s); skipped",
+                                where, m.topic, m.log_time_ns, type(err).__name__, err)
+                continue
+            pipeline.on_frame(frame)
+        pipeline.finish()
+    finally:  # an interrupted replay (Ctrl-C under --realtime) still finishes -o
+        pipeline.close()
     return pipeline, poses

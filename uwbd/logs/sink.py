@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -67,19 +68,29 @@ class McapSink:
         self._max_behind_ns = MAX_BEHIND_NS if paced else WRITE_BEHIND_NS
         self.view = FoxgloveView.from_config(config)
 
+    def _paused(self, t_ns: int) -> bool:
+        """Logging has stopped and no new file is to be tried yet."""
+        return bool(self.error) and self._log is None and (
+            self._retry_ns is None or t_ns < self._retry_ns)
+
     def _writer(self, t_ns: int) -> LogWriter | None:
-        if self.error:
-            if self._retry_ns is None or t_ns < self._retry_ns:
-                return None
-            self._retry_ns = t_ns + RETRY_NS
+        if self._paused(t_ns):
+            return None
         log = self._log
         # rotation is judged at flush time (about once a second), not on every message
-        if (log is not None and self.directory is not None and self._due_flush(t_ns) and (
-                (self.rotate_bytes and log.path.stat().st_size >= self.rotate_bytes)
-                or (self.rotate_ns and t_ns - self._opened_ns >= self.rotate_ns))):
-            self._close_current()
-            log = None
+        if log is not None and self.directory is not None and self._due_flush(t_ns):
+            try:
+                full = (self.rotate_bytes is not None
+                        and log.path.stat().st_size >= self.rotate_bytes)
+            except OSError as err:  # the file or its folder was removed under us
+                self._fail(f"{log.path}: {err.strerror or err}", t_ns)
+                return None
+            if full or (self.rotate_ns and t_ns - self._opened_ns >= self.rotate_ns):
+                self._close_current()
+                log = None
         if log is None:
+            if self.error:
+                self._retry_ns = t_ns + RETRY_NS  # should this try fail too
             path = self.path or self._next_name(t_ns)
             sources = tuple(SourceInfo(s.name, s.driver, s.port) for s in self.config.sources)
             try:
@@ -88,17 +99,23 @@ class McapSink:
                 log = self._log = LogWriter(path, self.config.text, sources,
                                             robot=self.config.robot_name, view=self.view)
             except OSError as err:
+                with contextlib.suppress(OSError):
+                    path.unlink(missing_ok=True)  # half a header is no log
                 self._fail(f"cannot write log {path}: {err.strerror or err}", t_ns)
                 return None
             self.files.append(path)
             self._opened_ns = self._flushed_ns = t_ns
-            if self.error:
-                LOG.info("logging resumed into %s (%d records lost while it was stopped)",
-                         path, self.records_lost)
-                self.error = ""
-            else:
-                LOG.debug("logging to %s", path)
+            LOG.debug("logging to %s", path)
         return log
+
+    def _flushed(self, log: LogWriter) -> None:
+        """A flush went through: a log that was paused has resumed (said only now, once
+        data reached the disk)."""
+        if self.error:
+            LOG.info("logging resumed into %s (%d records lost while it was stopped)",
+                     log.path, self.records_lost)
+            self.error = ""
+            self._retry_ns = None
 
     def _due_flush(self, t_ns: int) -> bool:
         return t_ns - self._flushed_ns >= FLUSH_PERIOD_NS
@@ -115,7 +132,7 @@ class McapSink:
         return path
 
     def _write(self, t_ns: int, action: str, *args: Any) -> None:
-        if self.error and (self._retry_ns is None or t_ns < self._retry_ns):
+        if self._paused(t_ns):
             self.records_lost += 1  # logging has stopped: keep nothing until the next try
             return
         behind = self._behind
@@ -140,6 +157,7 @@ class McapSink:
                 if self._due_flush(t_ns):
                     log.flush()
                     self._flushed_ns = t_ns
+                    self._flushed(log)
             except OSError as err:
                 self._fail(f"writing {log.path}: {err.strerror or err}", t_ns)
             except (TypeError, ValueError) as err:  # a record that cannot be encoded
@@ -155,6 +173,7 @@ class McapSink:
         self.error = f"logging stopped: {reason}"
         log, self._log = self._log, None
         if log is not None:
+            self.records_lost += log.unflushed  # the cut loses them (the failing one among)
             log.abandon()
             try:
                 finish_cut(log.path, log.flushed_bytes)
@@ -197,4 +216,7 @@ class McapSink:
 
     def close(self) -> None:
         self.write_pending(everything=True)
+        log = self._log
         self._close_current()
+        if log is not None and not self.error:
+            self._flushed(log)

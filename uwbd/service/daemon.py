@@ -37,15 +37,17 @@ from uwbd.logs.sink import McapSink
 from uwbd.service.narrator import Narrator
 from uwbd.service.notify import Notifier
 from uwbd.service.pipeline import Pipeline, Sink
-from uwbd.service.zenohsink import ZenohSink
+from uwbd.service.zenohsink import ZenohSink, zenoh_reason
 
 READ_BYTES = 4096
 # drivers whose device speaks only when asked: (request bytes, period s)
 POLLED = {"dwm1001-tlv": (LOC_GET_REQUEST, 0.1)}
 BACKOFF_START_S = 0.1
 BACKOFF_MAX_S = 2.0
+STABLE_OPEN_S = 5.0  # open this long before a loss: the backoff starts again from the start
 IMU_ONLY_DRIVERS = {"wit"}  # their reads may wait for the next pose (ReadQueue)
 MAX_QUEUE_NS = 100_000_000
+ZENOH_RETRY_S = 5.0
 LOG = journal.get("daemon")
 
 
@@ -101,7 +103,10 @@ class ReadQueue:
                 or t_ns - pending[0][1] >= MAX_QUEUE_NS):
             self.flush()
         else:
-            self.idle()
+            try:
+                self.idle()
+            except Exception as err:  # the log's own work: reported like a sink's
+                self.pipeline.sink_failed(self.idle, err)
 
     def flush(self) -> None:
         pending, self._pending = self._pending, []
@@ -112,9 +117,13 @@ class ReadQueue:
             for source, t_ns, data in pending:
                 on_bytes(source, t_ns, data)
         except Exception as err:
-            self.failure = err
-            LOG.error("the pipeline failed on a read of %s: %s: %s; stopping (please report "
-                      "this with the log)", source, type(err).__name__, err, exc_info=True)
+            self.fail(err, f"on a read of {source}")
+
+    def fail(self, err: Exception, doing: str) -> None:
+        """The pipeline raised (a bug: bad input is counted, never raised): reads stop."""
+        self.failure = err
+        LOG.error("the pipeline failed %s: %s: %s; stopping (please report this with the log)",
+                  doing, type(err).__name__, err, exc_info=True)
 
 
 class SerialSource:
@@ -128,6 +137,7 @@ class SerialSource:
         self._port: serial.Serial | None = None
         self._fd = -1
         self._backoff_s = BACKOFF_START_S
+        self._opened_at = 0.0
         self._retry: asyncio.TimerHandle | None = None
         self._poller: asyncio.TimerHandle | None = None
         self._closed = False
@@ -151,7 +161,7 @@ class SerialSource:
         LOG.info("%s: %s %s at %d baud (%s)", self.cfg.name,
                  "opened" if self.info.opens == 1 else "reopened", self.cfg.port,
                  self.cfg.baud, self.cfg.driver)
-        self._backoff_s = BACKOFF_START_S
+        self._opened_at = self.loop.time()
         if self.cfg.driver in POLLED:
             self._poll()
 
@@ -194,6 +204,9 @@ class SerialSource:
 
     def _lost(self, err: OSError) -> None:
         self.info.losses += 1
+        if self.loop.time() - self._opened_at >= STABLE_OPEN_S:
+            self._backoff_s = BACKOFF_START_S  # it worked a while: retry quickly
+        # else a port that opens and fails at once keeps backing off (no flood of lines)
         self._release()
         self._schedule_retry(f"lost {self.cfg.port}: {_reason(err)}")
 
@@ -233,19 +246,13 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
     narrator = Narrator(summary_s, ports=lambda: ", ".join(
         f"{s.cfg.name} {s.info.state}" for s in sources))
     sinks: list[Sink] = [narrator, *extra_sinks]
-    zenoh_sink = None
-    if config.zenoh.get("enabled", True):
-        try:
-            zenoh_sink = ZenohSink(config.zenoh, config.zenoh_prefix, config.nav_frame_id)
-            sinks.append(zenoh_sink)
-        except zenoh.ZError as err:  # e.g. listen port taken: fusion and logging go on
-            LOG.error("zenoh disabled: %s (check [zenoh] listen/connect)", err)
     sinks.append(mcap)
     pipeline = Pipeline(config, sinks)
     clock = EpochClock()
     queue = ReadQueue(pipeline, idle=mcap.write_pending)
     sources += [SerialSource(s, queue, loop, clock) for s in config.sources]
-    _announce(config, where, log_dir, zenoh_sink)
+    _announce(config, where, log_dir)
+    zenoh_link = ZenohLink(config, pipeline, loop)
     stop = asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
@@ -268,7 +275,11 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
                 "files": [str(f) for f in mcap.files], "error": mcap.error,
                 "records_lost": mcap.records_lost, "bad_records": mcap.bad_records}
             queue.flush()  # what waited goes in before a status on the wall clock
-            pipeline.tick(clock.now_ns())
+            zenoh_link.retry()
+            try:
+                pipeline.tick(clock.now_ns())
+            except Exception as err:
+                queue.fail(err, "writing the status")
             if notifier.watchdog_s is not None and queue.failure is None:
                 notifier.notify("WATCHDOG=1")
             if loop.time() >= next_status:
@@ -288,8 +299,11 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
             source.close()
         queue.flush()
         if queue.failure is None:
-            pipeline.finish()
-        pipeline.close()
+            try:
+                pipeline.finish()
+            except Exception as err:
+                queue.fail(err, "finishing")
+        pipeline.close()  # each sink's close is guarded: the log is finished whatever came
         notifier.close()
         never = [s for s in sources if not s.info.opens]
         if len(never) == len(sources):
@@ -304,7 +318,46 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
     return pipeline
 
 
-def _announce(config: Config, where: str, log_dir: Path, zenoh_sink: ZenohSink | None) -> None:
+class ZenohLink:
+    """The Zenoh sink, started with the daemon, or later: a client whose router is not up
+    yet (a robot booting before the router), or a listen port still taken, is tried again
+    every ``ZENOH_RETRY_S`` while fusion and logging go on."""
+
+    def __init__(self, config: Config, pipeline: Pipeline,
+                 loop: asyncio.AbstractEventLoop) -> None:
+        self.config = config
+        self.pipeline = pipeline
+        self.loop = loop
+        self.sink: ZenohSink | None = None
+        self._next_try = loop.time()
+        self._said = ""
+        if config.zenoh.get("enabled", True):
+            self.retry()
+
+    def retry(self) -> None:
+        if (self.sink is not None or not self.config.zenoh.get("enabled", True)
+                or self.loop.time() < self._next_try):
+            return
+        self._next_try = self.loop.time() + ZENOH_RETRY_S
+        c = self.config
+        try:
+            self.sink = ZenohSink(c.zenoh, c.zenoh_prefix, c.nav_frame_id)
+        except zenoh.ZError as err:
+            reason = zenoh_reason(err)
+            if reason != self._said:
+                self._said = reason
+                LOG.error("zenoh not started: %s; check [zenoh] listen/connect (is the router "
+                          "up?); trying again every %.0f s, fusion and the log go on", reason,
+                          ZENOH_RETRY_S)
+            self.pipeline.extra_status["zenoh"] = {"state": "not started", "error": reason}
+            return
+        self.pipeline.add_sink(self.sink)
+        self.pipeline.extra_status["zenoh"] = {"state": "up", "error": ""}
+        if self._said:
+            LOG.info("zenoh started: publishing on %s/pose", self.sink.prefix)
+
+
+def _announce(config: Config, where: str, log_dir: Path) -> None:
     """The start-up summary: config, sources, anchors, Zenoh, log."""
     LOG.info("starting uwbd %s with %s", __version__, where or "the built-in config")
     for s in config.sources:
@@ -316,13 +369,13 @@ def _announce(config: Config, where: str, log_dir: Path, zenoh_sink: ZenohSink |
     LOG.info("fusion: %s, range σ %.3f m, poses at %.0f Hz, status every %.1f s",
              f.mode.value, f.range_sigma_m, 1e9 / config.pose_period_ns,
              config.status_period_ns / 1e9)
-    if zenoh_sink is not None:
+    if config.zenoh.get("enabled", True):
         z = config.zenoh
         LOG.info("zenoh %s: keys %s/{pose,status,alive}; listen %s; connect %s; multicast "
-                 "scouting %s", z.get("mode", "peer"), zenoh_sink.prefix,
+                 "scouting %s", z.get("mode", "peer"), config.zenoh_prefix,
                  ", ".join(z.get("listen", [])) or "default", ", ".join(z.get("connect", []))
                  or "none", "on" if z.get("multicast_scouting", True) else "off")
-    elif not config.zenoh.get("enabled", True):
+    else:
         LOG.info("zenoh: disabled in the config")
     LOG.info("logs: %s", log_dir.resolve())
 

@@ -68,11 +68,13 @@ class Pipeline:
         self.filter = Filter(config.filter_config())
         self.poses = 0
         self.unknown_sources = 0
+        self.bad_records = 0  # decoded log records that are not frames (replay)
         self.extra_status: dict[str, Any] = {}  # e.g. port states, set by the runner
         self._last_pose_ns = -(2**63)
         self._period_ns: dict[str, int] = {}  # per source, learned sample period
         self._last_frame_ns: dict[str, int] = {}
         self._last_status_ns: int | None = None
+        self._latest_ns = -(2**63)  # the latest data (or wall-clock tick) time seen
 
     @property
     def next_pose_due_ns(self) -> int:
@@ -139,8 +141,8 @@ class Pipeline:
             self._frames(parser.flush())
         for frame in self.aligner.flush():
             self._fuse(frame)
-        if self._last_status_ns is not None:
-            self._emit_status(self._last_status_ns)
+        if self._last_status_ns is not None:  # at the latest data time: it counts all
+            self._emit_status(self._latest_ns)
 
     def close(self) -> None:
         for sink in self.sinks:
@@ -148,6 +150,18 @@ class Pipeline:
                 sink.close()
             except Exception as err:
                 self._sink_failed(sink.close, err)
+
+    def add_sink(self, sink: Sink) -> None:
+        """A sink that could only start later (Zenoh once its router is up)."""
+        self.sinks.append(sink)
+        self._raw.append(sink.raw)
+        self._frame.append(sink.frame)
+        self._pose.append(sink.pose)
+        self._status.append(sink.status)
+
+    def sink_failed(self, call: Any, err: Exception) -> None:
+        """A sink (or work done for one, ``call``) raised: counted and said, never passed on."""
+        self._sink_failed(call, err)
 
     def _sink_failed(self, call: Any, err: Exception) -> None:
         """Count and report a sink's exception; the first of each kind is a warning line."""
@@ -196,6 +210,7 @@ class Pipeline:
         self._tick(t_ns)
 
     def _tick(self, t_ns: int) -> None:
+        self._latest_ns = max(self._latest_ns, t_ns)
         if self._last_status_ns is None:
             self._last_status_ns = t_ns
         elif t_ns - self._last_status_ns >= self.config.status_period_ns:
@@ -227,6 +242,8 @@ class Pipeline:
         out["health"] = {k: v for k, v in out["health"].items() if v is not None}
         if self.unknown_sources:
             out["unknown_source_reads"] = self.unknown_sources
+        if self.bad_records:
+            out["bad_records"] = self.bad_records
         out.update(self.extra_status)
         for sink in self.sinks:
             problem = getattr(sink, "error", "")
