@@ -150,6 +150,9 @@ def test_replay_with_other_settings_records_the_config_used(tmp_path: Path,
     assert used.fusion["zupt"] is False and used.fusion["range_sigma_m"] == 0.3
     assert parse(read_log(tmp_path / "base.mcap").metadata["config_toml"]).fusion.get(
         "zupt", True) is True
+    # the source's truth goes along, so the replayed log can be scored in turn
+    truth = list(read_log(sim_log).json("/truth"))
+    assert list(read_log(tmp_path / "base.mcap").json("/truth")) == truth and truth
 
     def poses(name: str) -> list[Any]:
         return [d["pose"]["position"] for d in read_log(tmp_path / name).json("/pose")]

@@ -3,10 +3,12 @@
 The ``/raw/<source>`` messages go to :meth:`Pipeline.on_bytes` in log order with their
 logged receive times, so the poses equal those the live run computed, bit for bit. A log
 with no raw channels (an imported dataset) replays its decoded ``/imu`` and ``/uwb`` frames.
+The output log (``-o``) also gets the source's ``/truth``, so it can be scored in turn.
 """
 
 from __future__ import annotations
 
+import heapq
 import json
 from pathlib import Path
 
@@ -32,15 +34,22 @@ def replay(contents: LogContents, where: str, output: Path | None = None,
               if config_toml is None else parse(config_toml, f"{where} (with -c/--set)"))
     poses = PoseList()
     sinks: list[Sink] = [poses]
-    if output is not None:
-        sinks.append(McapSink(config, path=output))
+    out = None if output is None else McapSink(config, path=output)
+    if out is not None:
+        sinks.append(out)
     pipeline = Pipeline(config, sinks)
     raw = [m for m in contents.messages if m.topic.startswith(RAW_PREFIX)]
     items = raw or [m for m in contents.messages if m.topic in ("/imu", "/uwb")]
+    truth = [m for m in contents.messages if m.topic == "/truth"] if out is not None else []
     pace = monotonic_pacer(items[0].log_time_ns) if realtime and items else None
     try:
-        for m in tqdm(items, desc="replay", unit="read", disable=not progress, leave=False,
-                      mininterval=0.5):
+        for m in tqdm(heapq.merge(items, truth, key=lambda m: m.log_time_ns),
+                      total=len(items) + len(truth), desc="replay", unit="read",
+                      disable=not progress, leave=False, mininterval=0.5):
+            if m.topic == "/truth":
+                assert out is not None
+                out.json("/truth", m.log_time_ns, json.loads(m.data), "foxglove.PoseInFrame")
+                continue
             if pace is not None:
                 pace(m.log_time_ns)
             if raw:
