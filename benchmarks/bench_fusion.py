@@ -5,7 +5,9 @@
 Speed: the filter alone (frames built beforehand) on the issue's load, a 200 Hz IMU and
 8 anchors at 10 Hz, as a multiple of real time, per mode.
 Accuracy: position RMSE against ground truth for the baselines (pure INS, UWB least
-squares, the thesis's 4-state KF with a complementary attitude filter) and the loose and
+squares, the same with static-point filtering at rest, the thesis's 4-state KF with its
+dual-gain complementary attitude filter and static points, and that KF with the two gains
+swapped; ``uwbd.fusion.baselines.comparison_methods``) and the loose and
 tight error-state filters (generic defaults; on the simulator also tight with the config
 ``uwbd simulate`` writes, which holds the simulated sensors' specs), on simulator runs
 (mean over seeds; the first 8 s, the still start, left out) and on the real flight, scored

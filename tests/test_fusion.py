@@ -11,7 +11,6 @@ import pytest
 from scipy.stats import chi2
 
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
-from uwbd.fusion.baselines import ComplementaryAttitude, Kf4, PureIns, UwbLeastSquares
 from uwbd.fusion.eskf import N_CORE, TH_, Eskf, ImuNoise
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.gating import chi2_quantile
@@ -24,7 +23,6 @@ from uwbd.fusion.types import Pose
 from uwbd.tools.evaluate import (
     merge,
     run_filter,
-    run_method,
     run_smoother,
     score,
     score_poses,
@@ -365,31 +363,6 @@ def test_truth_spikes_are_found() -> None:
 def test_filter_rejects_an_improper_mounting_rotation() -> None:
     with pytest.raises(ValueError, match="mounting_rotation"):
         Filter(FilterConfig(mounting_rotation=((1, 0, 0), (0, 1, 0), (0, 0, -1))))  # type: ignore[arg-type]
-
-
-def test_baselines_run_as_their_methods_should(sim: Simulation) -> None:
-    cfg = config_for(sim)
-    t_ins, p_ins = run_method(PureIns(cfg), merge(sim.imu, sim.uwb))
-    t_ls, p_ls = run_method(UwbLeastSquares(cfg), merge(sim.imu, sim.uwb))
-    kf4 = Kf4(cfg)
-    t_kf, p_kf = run_method(kf4, merge(sim.imu, sim.uwb))
-    ins = score(t_ins, p_ins, sim.truth_t_ns, sim.truth_p_m, skip_s=6)
-    ls = score(t_ls, p_ls, sim.truth_t_ns, sim.truth_p_m, skip_s=6)
-    kf = score(t_kf, p_kf, sim.truth_t_ns, sim.truth_p_m, skip_s=6)
-    assert ls.rmse_xy_m < 0.25 and kf.rmse_xy_m < 0.4
-    assert ins.rmse_xy_m > ls.rmse_xy_m  # an uncorrected INS drifts
-    assert len(t_ls) > 0.9 * len(sim.uwb)
-    assert np.all(np.isfinite(p_kf))
-
-
-def test_complementary_filter_finds_roll_and_pitch_at_rest() -> None:
-    q = quat_from_euler(0.1, -0.05, 0.0)
-    f_b = quat_to_matrix(q).T @ np.array([0.0, 0.0, 9.80665])
-    att = ComplementaryAttitude(np.eye(3))
-    for k in range(2000):
-        att.predict(ImuSample(k * 5_000_000, tuple(f_b), (0.0, 0.0, 0.0)))  # type: ignore[arg-type]
-    roll, pitch, _ = euler_from_quat(att.q)
-    assert (roll, pitch) == pytest.approx((0.1, -0.05), abs=1e-3)
 
 
 @pytest.mark.parametrize("p", [0.9, 0.99, 0.997, 0.9999])

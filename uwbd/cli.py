@@ -358,6 +358,76 @@ def cmd_recover(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_calibrate_imu(args: argparse.Namespace) -> int:
+    """The accelerometer's scale and offset and the gyro's offset per axis from a six-position
+    static capture (:mod:`uwbd.tools.imu_calibration`); ``-o`` writes them as an ``[imu]``
+    snippet, ``--write-config`` into a copy of a config."""
+    from drivers.frames import ImuSample
+    from uwbd.config import parse as parse_config
+    from uwbd.fusion.eskf import GRAVITY_MPS2
+    from uwbd.tools.imu_calibration import MIN_STATIC_S, CalibrationError, calibrate
+
+    if args.gravity is not None and not 9.7 <= args.gravity <= 9.9:
+        raise UsageError(f"--gravity {args.gravity:g}: expected the local gravity, 9.7..9.9 "
+                         "m/s²")
+    if args.min_static is not None and not args.min_static > 0:
+        raise UsageError(f"--min-static {args.min_static:g}: expected a positive number of s")
+    path, contents = _open_log(args.log, "calibrating from")
+    snippet = Path(args.output) if args.output else None
+    if snippet is not None:
+        _writable_folder(snippet, "the [imu] snippet")
+    rewrite = None
+    if args.write_config:
+        base, out = Path(args.write_config[0]), Path(args.write_config[1])
+        text = _read_text(base)  # the config must load as it is
+        if out.exists() and out.resolve() == base.resolve():
+            raise UsageError(f"{out}: give another file to write, not the config itself")
+        _writable_folder(out, "the config")
+        rewrite = (base, text, out)
+    try:
+        rec = load_recording(contents, str(path))
+        logged_g = rec.config.imu_intrinsics.get("gravity_mps2")
+    except ConfigError:  # only its IMU samples are needed
+        rec, logged_g = load_recording(contents, str(path), ""), None
+    imu = [f for f in rec.frames if isinstance(f, ImuSample)]
+    if not imu:
+        raise UsageError(f"{path}: no IMU samples (topics: "
+                         f"{', '.join(sorted(contents.topics())) or 'none'})")
+    gravity = args.gravity if args.gravity is not None else logged_g or GRAVITY_MPS2
+    try:
+        cal = calibrate(imu, gravity, MIN_STATIC_S if args.min_static is None
+                        else args.min_static)
+    except CalibrationError as err:
+        raise UsageError(f"{path}: {err}") from err
+    problems = cal.problems()
+    if problems:
+        raise UsageError(f"{path}: the capture gives {'; '.join(problems)}: not a sensor's "
+                         "error (was it held still, in m/s²?)")
+    print(cal.summary(str(path)))
+    if snippet is not None:
+        _write_text(snippet, cal.snippet(str(path)))
+        print(f"wrote {snippet}: the [imu] keys (merge them into the config's [imu] section)")
+    if rewrite is not None:
+        base, text, out = rewrite
+        try:
+            new = apply_overrides(text, cal.overrides(), str(base))
+            parse_config(new, str(out))
+        except ConfigError as err:
+            raise UsageError(str(err)) from err
+        _write_text(out, new)
+        print(f"wrote {out}: {base} with imu.acc_scale, acc_offset_mps2, gyro_offset_rps and "
+              "gravity_mps2 set")
+    return 0
+
+
+def _write_text(target: Path, text: str) -> None:
+    try:
+        target.write_text(text, encoding="utf-8")
+    except OSError as err:
+        target.unlink(missing_ok=True)  # half a file claims nothing
+        raise RunError(f"cannot write {target}: {err.strerror or err}") from err
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     """A log as a ROS 2 bag folder (metadata.yaml + MCAP, CDR): see :mod:`uwbd.tools.ros2`."""
     path, contents = _open_log(args.log, "exporting")
@@ -387,6 +457,143 @@ def cmd_export(args: argparse.Namespace) -> int:
           f"{n.get('/uwbd/imu', 0)} IMU samples, {n.get('/uwbd/truth', 0)} truth poses; "
           f"topics {', '.join(sorted(n))}")
     return 0
+
+
+def cmd_survey(args: argparse.Namespace) -> int:
+    """The anchors' positions from a log's ranges (anchor-to-anchor, a moving tag's, or both):
+    :mod:`uwbd.tools.survey`; ``-o`` writes them as an ``[anchors]`` table,
+    ``--write-config`` into a copy of a config."""
+    from uwbd.config import parse as parse_config
+    from uwbd.config.schema import anchor_id
+
+    path, contents = _open_log(args.log, "surveying")
+    config_toml = _log_config(args, path, contents)
+    table_out = Path(args.output) if args.output else None
+    if table_out is not None:
+        _writable_folder(table_out, "the anchors")
+        if table_out.exists() and table_out.resolve() == path.resolve():
+            raise UsageError(f"{table_out}: give another file to write, not the log itself")
+    rewrite = None
+    if args.write_config:
+        base, out = Path(args.write_config[0]), Path(args.write_config[1])
+        text = _read_text(base)  # the config must load as it is
+        if out.exists() and out.resolve() in (base.resolve(), path.resolve()):
+            raise UsageError(f"{out}: give another file to write, not the "
+                             f"{'config' if out.resolve() == base.resolve() else 'log'} itself")
+        _writable_folder(out, "the config")
+        rewrite = (base, text, out)
+    if not 0 < args.prior_sigma < float("inf"):
+        raise UsageError(f"--prior-sigma {args.prior_sigma:g}: expected a positive number of m")
+
+    def anchor(option: str, value: str | None) -> int | None:
+        if value is None:
+            return None
+        found = anchor_id(value.strip())
+        if found is None:
+            raise UsageError(f"{option} {value}: an anchor id is an integer of 0 or more "
+                             "(3, 0x1151)")
+        return found
+
+    heights: dict[int, float] = {}
+    for item in args.height:
+        key, equals, value = item.partition("=")
+        try:
+            z = float(value)
+        except ValueError:
+            z = float("nan")
+        height_of = anchor("--height", key) if equals else None
+        if height_of is None or not -1e4 < z < 1e4:
+            raise UsageError(f"--height {item}: expected ID=Z (anchor id, height in m: 3=2.45)")
+        heights[height_of] = z
+    try:
+        from uwbd.tools.survey import (
+            Gauge,
+            Settings,
+            SurveyError,
+            anchors_document,
+            log_ranges,
+            survey,
+            table,
+            with_anchors,
+        )
+    except ImportError as err:
+        raise UsageError(f"survey needs the tools extra ({err.name} is missing): pip install "
+                         "'uwbd[tools]' (from a checkout: pip install '.[tools]')") from err
+    where = f"{path} (metadata)" if config_toml is None else f"{path} (with -c/--set)"
+    try:
+        config = parse_config(contents.metadata.get("config_toml", "") if config_toml is None
+                              else config_toml, where)
+    except ConfigError as err:
+        raise UsageError(str(err)) from err
+    uwb, pairs = log_ranges(contents)
+    if not uwb and not pairs:
+        raise UsageError(f"{path}: nothing to survey from: no UWB ranges (no tag ranges, no "
+                         "anchor-to-anchor ranges; topics: "
+                         f"{', '.join(sorted(contents.topics())) or 'none'})")
+    fc = config.filter_config()
+    settings = Settings(
+        gauge=Gauge(anchor("--origin", args.origin), anchor("--x-axis", args.x_axis),
+                    anchor("--y-side", args.y_side)),
+        heights_m=heights, prior_sigma_m=args.prior_sigma, range_sigma_m=fc.range_sigma_m,
+        range_offsets=args.range_offsets, offset_sigma_m=fc.range_bias_sigma_m,
+        tag_side=fc.tag_side, height_range_m=fc.height_range_m,
+        max_range_m=fc.gating.max_range_m)
+    try:
+        result = survey(config.anchors_m, uwb, pairs, settings)
+    except SurveyError as err:
+        raise UsageError(f"{path}: {err}") from err
+    print(_survey_summary(str(path), result, fc.range_sigma_m))
+    print(table(result))
+    for note in result.notes:
+        print(f"note: {note}")
+    header = (f"[anchors] surveyed by `uwbd survey` from {path} ({result.source})\n"
+              f"frame: {result.gauge}")
+    if table_out is not None:
+        _write_atomically(table_out, anchors_document(result, header))
+        print(f"wrote {table_out}: the surveyed [anchors] table (replace the config's with it)")
+    if rewrite is not None:
+        base, text, out = rewrite
+        try:
+            new = with_anchors(text, result, f"{base} with its {header}", str(base))
+        except SurveyError as err:
+            raise UsageError(str(err)) from err
+        _write_atomically(out, new)
+        print(f"wrote {out}: {base} with the surveyed anchors (its comments are not kept)")
+    return 0
+
+
+def _survey_summary(where: str, result: Any, range_sigma_m: float) -> str:
+    lines = [f"{where}: {len(result.anchors)} anchors from {result.source}"
+             + (f": {result.tag_ranges} tag ranges at {result.tag_positions} tag positions"
+                if result.tag_ranges else "")
+             + (f"; {len(result.pairs)} anchor pairs ({sum(p.n for p in result.pairs)} ranges, "
+                "median of each)" if result.pairs else "")
+             + f"; {result.seconds:.1f} s", f"frame: {result.gauge}"]
+    if result.tag_ranges:
+        lines.append(f"tag ranges: robust RMS residual {result.residual_rms_m:.3f} m "
+                     f"({result.sigma0:.2f} x the config's range σ {range_sigma_m:g} m); "
+                     f"{result.downweighted} more than 3 σ off, down-weighted (NLOS?)")
+    lines.append(f"1-σ (RMS over the anchors, 3-D): {result.layout_sigma_m:.3f} m for the "
+                 "anchors relative to each other"
+                 + (f", {result.frame_sigma_m:.3f} m for where the layout sits (the "
+                    "configured positions fix that: no range sees it)"
+                    if result.frame_sigma_m > 0.0005 else ""))
+    return "\n".join(lines)
+
+
+def _write_atomically(target: Path, text: str) -> None:
+    """``text`` into ``target`` whole or not at all (a temporary file renamed over it)."""
+    tmp = None
+    try:
+        with tempfile.NamedTemporaryFile("w", encoding="utf-8", dir=target.parent,
+                                         prefix=f".{target.name}.", delete=False) as f:
+            tmp = Path(f.name)
+            f.write(text)
+        os.replace(tmp, target)
+    except OSError as err:
+        if tmp is not None:
+            tmp.unlink(missing_ok=True)
+        raise RunError(f"cannot write {target}: {err.strerror or err}") from err
 
 
 def _load(path: str, warn: bool = False) -> Config:
@@ -600,6 +807,55 @@ def build_parser() -> argparse.ArgumentParser:
                    help="leave the first S seconds of truth out of the scores")
     _tuning(p)
     p.set_defaults(func=cmd_report)
+
+    p = add("calibrate-imu", help="IMU scale and offsets from a six-position static capture",
+            description="Compute the accelerometer's scale and offset and the gyro's offset "
+            "per sensor axis (a_true = (a_meas - acc_offset_mps2) / acc_scale) from a log of "
+            "the IMU held still with each axis up and then down in turn, a few seconds each, "
+            "in any order; print them with their uncertainties.")
+    p.add_argument("log")
+    p.add_argument("-o", "--output", metavar="FILE",
+                   help="write the [imu] keys found as a TOML snippet")
+    p.add_argument("--write-config", nargs=2, metavar=("CONFIG", "OUT"),
+                   help="write CONFIG with the [imu] keys set as OUT (its comments are not "
+                   "kept)")
+    p.add_argument("--gravity", type=float, metavar="MPS2",
+                   help="local gravity, m/s² (default: the log's imu.gravity_mps2, else "
+                   "9.80665)")
+    p.add_argument("--min-static", type=float, metavar="S",
+                   help="shortest still segment used, s (default 1.5)")
+    p.set_defaults(func=cmd_calibrate_imu)
+
+    p = add("survey", help="the anchors' positions from a log's ranges",
+            description="Estimate the anchor positions from a log: from anchor-to-anchor "
+            "ranges (TREK1000 ma reports) by multilateration, and from a moving tag's ranges "
+            "by one robust least-squares adjustment of the tag's path and the anchors, "
+            "starting from the config's anchors; print them with their 1-sigma and the "
+            "change from the config. By default each configured position counts as a "
+            "measurement (--prior-sigma): the output stays in the config's frame; "
+            "--origin/--x-axis/--y-side put it in the frame those anchors define.")
+    p.add_argument("log")
+    p.add_argument("-o", "--output", metavar="FILE",
+                   help="write the surveyed [anchors] table as a TOML file")
+    p.add_argument("--write-config", nargs=2, metavar=("CONFIG", "OUT"),
+                   help="write CONFIG with its [anchors] replaced by the surveyed ones as OUT "
+                   "(its comments are not kept)")
+    p.add_argument("--origin", metavar="ID", help="this anchor is at x = y = 0")
+    p.add_argument("--x-axis", metavar="ID", help="this anchor is on the +x axis (y = 0)")
+    p.add_argument("--y-side", metavar="ID",
+                   help="this anchor is on the +y side (default: the side the config puts "
+                   "the anchors on)")
+    p.add_argument("--height", action="append", default=[], metavar="ID=Z",
+                   help="hold this anchor's height at Z m (repeatable); anchor-to-anchor "
+                   "ranges between anchors on one plane take the heights from the config")
+    p.add_argument("--prior-sigma", type=float, default=0.2, metavar="M",
+                   help="how far the configured positions may be off, 1-sigma per axis "
+                   "(default 0.2 m)")
+    p.add_argument("--range-offsets", action="store_true",
+                   help="also estimate a range offset per anchor (its antenna delay; "
+                   "printed, not written)")
+    _tuning(p)
+    p.set_defaults(func=cmd_survey)
 
     p = add("demo", help="emulated sensors through drivers and fusion, live poses")
     _common(p)

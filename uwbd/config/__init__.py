@@ -19,7 +19,13 @@ Sections::
                          part with margin for vibration): acc_noise_mps2_rthz (0.01),
                          gyro_noise_rps_rthz (0.001), acc_bias_walk_mps3_rthz (0.001),
                          gyro_bias_walk_rps2_rthz (0.0001); the full scale the sensor is set
-                         to: acc_full_scale_mps2 (16 g), gyro_full_scale_rps (2000 °/s)
+                         to: acc_full_scale_mps2 (16 g), gyro_full_scale_rps (2000 °/s);
+                         intrinsics per sensor axis (``uwbd calibrate-imu`` writes them),
+                         a_true = (a_meas − acc_offset_mps2) / acc_scale: acc_scale ([1, 1,
+                         1], each 0.8..1.2), acc_offset_mps2 ([0, 0, 0], each within ±2),
+                         gyro_offset_rps ([0, 0, 0], each within ±0.5), gyro_deadband_rps
+                         (0: off; at most 0.1), and gravity_mps2 (9.80665; 9.7..9.9, a
+                         warning outside 9.77..9.84)
     [fusion]             mode, range_sigma_m, range_bias_states, range_bias_sigma_m (0.1:
                          each anchor's antenna delay), tag_delay_sigma_m (0.2: the tag's),
                          zupt, nhc, known_height_m, gate_probability, min_anchors, max_range_m,
@@ -36,7 +42,8 @@ Beyond types and ranges (the tables in :mod:`uwbd.config.schema`), the file must
 as a whole (:mod:`uwbd.config.checks`): with sources, one of them is UWB; a driver that
 reports ranges only (``nlink``) needs 3 anchors or more with ids it can report; anchors lie
 apart, within 10 km; Zenoh endpoints parse (and Zenoh itself accepts them); ``imu.mounting``
-is a rotation. A config without sources is one for replaying or importing logs.
+is a rotation, and each axis of the IMU's intrinsics plausible. A config without sources is
+one for replaying or importing logs.
 :func:`apply_overrides` sets keys from the command line (``fusion.zupt=false``) and returns
 the TOML actually used; :func:`to_toml` writes one for given settings.
 
@@ -48,6 +55,7 @@ writing TOML), :mod:`~uwbd.config.spelling` (how messages spell keys and values)
 
 from uwbd.config.checks import endpoint_problem
 from uwbd.config.model import (
+    IMU_INTRINSIC_KEYS,
     IMU_LIMIT_KEYS,
     IMU_NOISE_KEYS,
     MULTIPATH_SIGMA_M,
@@ -71,8 +79,9 @@ from uwbd.config.schema import (
 )
 
 __all__ = [
-    "G_MPS2", "IMU_DRIVERS", "IMU_LIMIT_KEYS", "IMU_NOISE_KEYS", "MAX_CONFIG_BYTES",
-    "MIN_ANCHOR_SPACING_M", "MULTIPATH_SIGMA_M", "NOISE_PLAUSIBLE_FACTOR", "ROTATION_TOLERANCE",
-    "STANDARD_BAUDS", "UWB_DRIVERS", "ZENOH_PROTOCOLS", "Config", "ConfigError", "SourceConfig",
-    "Vec3", "apply_overrides", "default_robot_name", "endpoint_problem", "load", "parse", "to_toml",
+    "G_MPS2", "IMU_DRIVERS", "IMU_INTRINSIC_KEYS", "IMU_LIMIT_KEYS", "IMU_NOISE_KEYS",
+    "MAX_CONFIG_BYTES", "MIN_ANCHOR_SPACING_M", "MULTIPATH_SIGMA_M", "NOISE_PLAUSIBLE_FACTOR",
+    "ROTATION_TOLERANCE", "STANDARD_BAUDS", "UWB_DRIVERS", "ZENOH_PROTOCOLS", "Config",
+    "ConfigError", "SourceConfig", "Vec3", "apply_overrides", "default_robot_name",
+    "endpoint_problem", "load", "parse", "to_toml",
 ]

@@ -17,11 +17,14 @@ import numpy as np
 
 from uwbd.config.model import Config, SourceConfig, Vec3, vec3
 from uwbd.config.schema import (
+    DEADBAND_PLAUSIBLE_RPS,
     DRIVERS,
     FULL_SCALE_PLAUSIBLE,
+    GRAVITY_PLAUSIBLE_MPS2,
     HOST_PORT_PROTOCOLS,
     HOSTNAME,
     IMU_DRIVERS,
+    INTRINSIC_BOUNDS,
     MIN_ANCHOR_SPACING_M,
     NOISE_DEFAULTS,
     NOISE_PLAUSIBLE_FACTOR,
@@ -205,6 +208,29 @@ def check_imu(r: Report, imu: Mapping[str, Any], lever: Vec3) -> None:
                    f"in {unit}?")
     if math.hypot(*lever) > 10.0:
         r.warn("imu.lever_arm_m", f"{math.hypot(*lever):.1f} m from the IMU to the antenna")
+    _check_intrinsics(r, imu)
+
+
+def _check_intrinsics(r: Report, imu: Mapping[str, Any]) -> None:
+    """Each axis of the scale and offsets within what a MEMS part can be off by (an error
+    naming the element: a unit slip, a capture that was not static, or the other sign
+    convention); gravity where the Earth's surface has it; a dead-band that loses turns."""
+    for key, bounds in INTRINSIC_BOUNDS.items():
+        for k, v in enumerate(imu.get(key, ())):
+            problem = bounds.problem(v)
+            if problem is not None:
+                r.error(f"imu.{key}[{k}]", problem + ("" if key != "acc_scale" else
+                        " (a gain: reading per true m/s², 1 for a perfect sensor)"))
+    lo, hi = GRAVITY_PLAUSIBLE_MPS2
+    g = imu.get("gravity_mps2")
+    if g is not None and not lo <= g <= hi:
+        r.warn("imu.gravity_mps2", f"{g:g} m/s² is outside {lo:g}..{hi:g}, gravity at the "
+               "Earth's surface (9.78 at the equator, 9.83 at the poles)")
+    band = imu.get("gyro_deadband_rps", 0.0)
+    if band > DEADBAND_PLAUSIBLE_RPS:
+        r.warn("imu.gyro_deadband_rps", f"{band:g} rad/s ({math.degrees(band):.1f} °/s): turns "
+               "slower than that are not seen at all (0, the default, leaves the gyro bias "
+               "to the filter)")
 
 
 def check_zenoh(r: Report, zenoh: Mapping[str, Any]) -> None:

@@ -9,9 +9,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from uwbd.fusion.eskf import ImuNoise
+from uwbd.fusion.eskf import GRAVITY_MPS2, ImuNoise
 from uwbd.fusion.gating import GatingPolicy
 from uwbd.fusion.imu_check import ImuLimits
+from uwbd.fusion.intrinsics import ImuIntrinsics
 from uwbd.fusion.robust import RobustPolicy
 from uwbd.fusion.settings import IDENTITY3, FilterConfig, Mode
 
@@ -20,6 +21,9 @@ Vec3 = tuple[float, float, float]
 IMU_NOISE_KEYS = {"acc_noise_mps2_rthz": "acc", "gyro_noise_rps_rthz": "gyro",
                   "acc_bias_walk_mps3_rthz": "acc_bias", "gyro_bias_walk_rps2_rthz": "gyro_bias"}
 IMU_LIMIT_KEYS = ("acc_full_scale_mps2", "gyro_full_scale_rps")  # ImuLimits fields
+# [imu] key -> ImuIntrinsics field (the same names): a_true = (a_meas − offset) / scale
+IMU_INTRINSIC_VECTORS = ("acc_scale", "acc_offset_mps2", "gyro_offset_rps")
+IMU_INTRINSIC_KEYS = (*IMU_INTRINSIC_VECTORS, "gyro_deadband_rps", "gravity_mps2")
 MULTIPATH_SIGMA_M = 0.07  # the default time-correlated range error (real installations)
 
 
@@ -62,6 +66,8 @@ class Config:
     lever_arm_m: Vec3 = (0.0, 0.0, 0.0)
     imu_noise: dict[str, float] = field(default_factory=dict)  # [imu] noise keys given
     imu_limits: dict[str, float] = field(default_factory=dict)  # [imu] full-scale keys given
+    # [imu] intrinsics and gravity given (IMU_INTRINSIC_KEYS), vectors as Vec3
+    imu_intrinsics: dict[str, Any] = field(default_factory=dict)
     fusion: dict[str, Any] = field(default_factory=dict)
     pipeline: dict[str, Any] = field(default_factory=dict)
     log: dict[str, Any] = field(default_factory=dict)
@@ -101,6 +107,11 @@ class Config:
     def status_period_ns(self) -> int:
         return int(self.pipeline.get("status_period_s", 1.0) * 1e9)
 
+    def intrinsics(self) -> ImuIntrinsics:
+        """The ``[imu]`` intrinsics given, the others at their defaults (identity)."""
+        given = self.imu_intrinsics
+        return ImuIntrinsics(**{k: given[k] for k in IMU_INTRINSIC_KEYS[:-1] if k in given})
+
     def filter_config(self) -> FilterConfig:
         f = self.fusion
         return FilterConfig(
@@ -116,6 +127,8 @@ class Config:
                                                         ImuLimits.acc_full_scale_mps2),
                 gyro_full_scale_rps=self.imu_limits.get("gyro_full_scale_rps",
                                                         ImuLimits.gyro_full_scale_rps)),
+            imu_intrinsics=self.intrinsics(),
+            gravity_mps2=self.imu_intrinsics.get("gravity_mps2", GRAVITY_MPS2),
             robust=RobustPolicy(enabled=f.get("robust", True)),
             multipath_states=f.get("multipath_sigma_m", MULTIPATH_SIGMA_M) > 0,
             multipath_sigma_m=f.get("multipath_sigma_m", MULTIPATH_SIGMA_M) or MULTIPATH_SIGMA_M,

@@ -21,6 +21,8 @@ from uwbd.config.checks import (
     mounting_rotation,
 )
 from uwbd.config.model import (
+    IMU_INTRINSIC_KEYS,
+    IMU_INTRINSIC_VECTORS,
     IMU_LIMIT_KEYS,
     IMU_NOISE_KEYS,
     Config,
@@ -91,6 +93,8 @@ def parse(text: str, where: str = "<config>") -> Config:
         lever_arm_m=lever,
         imu_noise={k: float(imu[k]) for k in IMU_NOISE_KEYS if k in imu},
         imu_limits={k: float(imu[k]) for k in IMU_LIMIT_KEYS if k in imu},
+        imu_intrinsics={k: vec3(imu[k]) if k in IMU_INTRINSIC_VECTORS else float(imu[k])
+                        for k in IMU_INTRINSIC_KEYS if k in imu},
         fusion=fusion, pipeline=tables["pipeline"], log=tables["log"], zenoh=zenoh,
         robot=tables["robot"], text=text,
         warnings=tuple(r.warnings))

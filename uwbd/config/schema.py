@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from drivers.nlink import N_SLOTS
-from uwbd.config.model import IMU_LIMIT_KEYS, IMU_NOISE_KEYS
+from uwbd.config.model import IMU_INTRINSIC_VECTORS, IMU_LIMIT_KEYS, IMU_NOISE_KEYS
 from uwbd.config.spelling import maybe, show, type_name
 from uwbd.fusion.eskf import ImuNoise
 from uwbd.fusion.filter import MAX_ANCHOR_COORD_M
@@ -101,7 +101,11 @@ _POSITIVE_RANGE = Range(0.0)
 SOURCE_SPEC = {"name": Key(STRING, non_empty=True), "driver": Key(STRING),
                "port": Key(STRING, non_empty=True), "baud": Key(INTEGER, _POSITIVE_RANGE)}
 _IMU_SPEC = {"mounting": Key(ROWS), "lever_arm_m": Key(VEC3),
-             **{k: Key(POSITIVE) for k in (*IMU_NOISE_KEYS, *IMU_LIMIT_KEYS)}}
+             **{k: Key(POSITIVE) for k in (*IMU_NOISE_KEYS, *IMU_LIMIT_KEYS)},
+             # each axis of these within INTRINSIC_BOUNDS (checks.check_imu, per element)
+             **{k: Key(VEC3) for k in IMU_INTRINSIC_VECTORS},
+             "gyro_deadband_rps": Key(NUMBER, Range(0.0, 0.1, lo_closed=True)),
+             "gravity_mps2": Key(NUMBER, Range(9.7, 9.9, lo_closed=True))}
 _FUSION_SPEC = {
     "mode": Key(STRING, choices=tuple(m.value for m in Mode)),
     "range_sigma_m": Key(NUMBER, Range(0.0, 5.0)),
@@ -188,6 +192,13 @@ FULL_SCALE_PLAUSIBLE = {  # the smallest and largest ranges MEMS parts offer, wi
     "acc_full_scale_mps2": (1.9 * G_MPS2, 70 * G_MPS2, "2 g", "64 g", "m/s²"),
     "gyro_full_scale_rps": (math.radians(120), math.radians(4100), "125 °/s", "4000 °/s",
                             "rad/s")}
+# [imu] intrinsics, per axis: a MEMS part's gain is within a few % of 1, its zero-g offset
+# within about 0.15 g, its zero-rate offset within about 20 °/s (datasheets, after soldering)
+INTRINSIC_BOUNDS = {"acc_scale": Range(0.8, 1.2, lo_closed=True),
+                    "acc_offset_mps2": Range(-2.0, 2.0, lo_closed=True),
+                    "gyro_offset_rps": Range(-0.5, 0.5, lo_closed=True)}
+GRAVITY_PLAUSIBLE_MPS2 = (9.77, 9.84)  # the Earth's surface: 9.78 (equator) .. 9.83 (poles)
+DEADBAND_PLAUSIBLE_RPS = 0.02  # above this a dead-band loses slow turns (1.1 °/s)
 # Zenoh 1.x link protocols (<protocol>/<address>[?<metadata>][#<config>])
 ZENOH_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial",
                    "vsock")

@@ -2,13 +2,16 @@
 
 * :class:`PureIns`: the filter's start-up, then the strapdown alone (no UWB after that).
 * :class:`UwbLeastSquares`: one Gauss-Newton fix per epoch, or per 0.1 s of single ranges.
+* :class:`StaticPoints`: the thesis's static-point filtering: those fixes, averaged while the
+  vehicle is at rest (a running mean from the start of the rest), one by one otherwise.
 * :class:`ComplementaryAttitude`: Mahony-style attitude from gyro, pulled towards the gravity
   direction of the accelerometer, whose signal first passes a 2nd-order Butterworth low-pass
-  (fs 200 Hz, fc 2 Hz by default, designed by scipy).
+  (fs 200 Hz, fc 2 Hz by default, designed by scipy), with the thesis's dual gain: one gain
+  while turning or accelerating, another otherwise (:class:`Gains`).
 * :class:`Kf4`: the thesis's loosely coupled filter: a 4-state ``[px py vx vy]`` Kalman
   filter (filterpy), driven by the horizontal acceleration that the complementary attitude
-  puts into the navigation frame, corrected by UWB fixes that pass the anchor-count check
-  and lie within 1 m of the prediction.
+  puts into the navigation frame, corrected by UWB fixes (the static point while at rest)
+  that pass the anchor-count check and lie within 1 m of the prediction.
 
 Each has ``predict(imu)``, ``update(uwb)`` and ``position()`` like the main filter.
 """
@@ -16,6 +19,7 @@ Each has ``predict(imu)``, ``update(uwb)`` and ``position()`` like the main filt
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
@@ -27,8 +31,65 @@ from uwbd.fusion.filter import Filter
 from uwbd.fusion.fixes import RangeWindow
 from uwbd.fusion.lsq import LsqFix
 from uwbd.fusion.mirror import MirrorSide
-from uwbd.fusion.rotation import Array, quat_from_rotvec, quat_mul, quat_to_matrix
+from uwbd.fusion.rest import ImuWindow, UwbStillness
+from uwbd.fusion.rotation import (
+    Array,
+    quat_from_euler,
+    quat_from_rotvec,
+    quat_mul,
+    quat_to_matrix,
+)
 from uwbd.fusion.settings import FilterConfig
+
+# -- motion state of the dual-gain attitude filter ------------------------------------------
+# Turning: |ω − b|, the rate low-passed over MOTION_TAU_S, above TURN_RATE_RPS (11 °/s). That
+# is well above what a still or steadily moving vehicle shows (gyro noise after the low-pass,
+# ~0.001 rad/s here; the bias left after the rest average, < 0.01 rad/s; the sway of a hand
+# or of a hovering drone, up to ~0.1 rad/s) and below deliberate turns (the simulator's
+# 0.3 rad/s, a ground robot's 0.3–1 rad/s).
+TURN_RATE_RPS = 0.2
+MOTION_TAU_S = 0.1  # the rate's low-pass: vibration out, a turn's start kept (< 0.2 s late)
+# Accelerating: | |f| − g_ref | above ACCEL_MPS2, f the Butterworth-low-passed specific force
+# (vibration out) and g_ref its size at rest (the accelerometer's scale error in: i-ASL's UM7
+# reads 10.36 m/s² at rest, 0.55 above g). 0.5 m/s² is above the accelerometer's noise after
+# the low-pass (~0.01 m/s²) and its bias drift (~0.1 m/s²). The size of f moves with vertical
+# acceleration one for one but with horizontal acceleration a_h only as a_h²/2g, so this test
+# sees horizontal accelerations above √(2 g · 0.5) ≈ 3.1 m/s² only (turns it leaves to the
+# gyro test; the simulator's ~2 m/s² starts and stops pass unseen); that is the thesis's
+# test, kept as it is.
+ACCEL_MPS2 = 0.5
+
+
+@dataclass(frozen=True)
+class Gains:
+    """The gain ``k_p`` on the accelerometer's gravity correction, per motion state.
+
+    Physically ``1/k_p`` is how long (s) the filter trusts its gyro integration before the
+    accelerometer's "up" has pulled the tilt most of the way (the correction's time
+    constant): a high gain follows the accelerometer within ~0.5 s (k_p 2), a low one averages
+    it over ~5 s (k_p 0.2). While the vehicle accelerates (speeds up, brakes, or turns: the
+    centripetal v·ω) the accelerometer measures that acceleration as well as gravity, its
+    "up" tilted by about ``a_h / g`` (0.1 rad for 1 m/s²), so a high gain then pulls the
+    attitude towards a wrong vertical; at rest or at steady speed in a straight line it
+    measures gravity alone, and a high gain there only makes the tilt follow its noise more
+    closely.
+
+    * :data:`THESIS_GAINS` (k_p 2 while turning or accelerating, 0.2 otherwise) is the
+      thesis as the issue words it: it leans on the accelerometer exactly while it is
+      disturbed; a reason for it could be quick correction when the gyro's scale-factor and
+      misalignment errors grow (during rotations).
+    * :data:`SWAPPED_GAINS` (0.2 while turning or accelerating, 2 otherwise) is the usual
+      adaptive-gain rule: ride the gyro through the disturbance, re-level quickly when the
+      accelerometer measures gravity alone.
+    * ``Gains(1.0, 1.0)``: one fixed gain (the baseline before the thesis's switching).
+    """
+
+    moving: float  # turning or accelerating
+    still: float  # otherwise (at rest, or at steady speed in a straight line)
+
+
+THESIS_GAINS = Gains(moving=2.0, still=0.2)
+SWAPPED_GAINS = Gains(moving=0.2, still=2.0)
 
 
 class PureIns:
@@ -84,19 +145,94 @@ class UwbLeastSquares:
         return None if self.fix is None else self.fix.position_m
 
 
+class StaticPoints:
+    """Static-point filtering of UWB fixes (the thesis): while the vehicle is at rest, the
+    running mean of the least-squares fixes since the rest began; while it moves, each fix
+    as it comes. At rest the fix noise (~0.1 m) then averages down and the position stands
+    still; when motion starts the IMU sees it within a sample or two and fixes are used one
+    by one again.
+
+    Rest is the thesis's zero-velocity test, the main filter's (:class:`.rest.ImuWindow`):
+    over the last ``static_window_s`` (0.5 s) the specific force steady and about ``g`` in
+    size, the rate small and steady. An IMU cannot tell rest from a constant velocity, and a
+    vehicle without vibration (the simulator's) looks at rest on every straight, so with
+    ``uwb_check`` (the default) the fixes of the last second must not show motion either
+    (:class:`.rest.UwbStillness`, as the main filter asks before a ZUPT).
+    """
+
+    def __init__(self, config: FilterConfig, uwb_check: bool = True) -> None:
+        self.lsq = UwbLeastSquares(config)
+        self.C_bs = np.array(config.mounting_rotation, dtype=float)
+        self.span_s = config.static_window_s
+        self.window = ImuWindow(config.static_window_s, config.rest)
+        self.stillness = UwbStillness() if uwb_check else None
+        self.point: Array | None = None  # the latest output: the mean at rest, else the fix
+        self.at_rest = False
+        self.n = 0  # fixes in the mean (0 while moving)
+        self.rest_fixes = 0  # fixes that went into a mean, over the whole run
+        self._sum = np.zeros(3)
+
+    def predict(self, imu: ImuSample) -> None:
+        self.window.add(imu.t_ns, tuple(self.C_bs @ np.asarray(imu.acc_mps2)),
+                        tuple(self.C_bs @ np.asarray(imu.gyro_rps)))
+
+    def update(self, uwb: UwbRanges) -> None:
+        self.lsq.update(uwb)
+        fix = self.lsq.fix
+        if fix is None:
+            return
+        p = fix.position_m
+        rest = self.window.static(self.span_s)
+        if self.stillness is not None:  # every fix (the main filter takes ~5 a second)
+            self.stillness.add(uwb.t_ns, fix)
+            self.stillness.forget_before(uwb.t_ns)
+            rest = rest and self.stillness.still(allow_noise=True)
+        if not rest:
+            self.at_rest, self.n, self._sum = False, 0, np.zeros(3)
+            self.point = np.array(p)
+            return
+        # running mean since the rest began: x̄_n = Σ p_i / n
+        self.at_rest = True
+        self._sum = self._sum + p
+        self.n += 1
+        self.rest_fixes += 1
+        self.point = self._sum / self.n
+
+    @property
+    def fix(self) -> LsqFix | None:
+        """The least-squares fix of the latest message, if it made one."""
+        return self.lsq.fix
+
+    def position(self) -> Array | None:
+        return None if self.lsq.fix is None else self.point
+
+
 class ComplementaryAttitude:
-    """Mahony complementary filter: ``q̇ = ½ q ⊗ (ω − b + k_p e)``, ``e = ĝ_b × a_lp``."""
+    """Mahony complementary filter: ``q̇ = ½ q ⊗ (ω − b + k_p e)``, ``e = f̂_lp × ĝ_b``, with
+    ``k_p`` switched by the motion state (:class:`Gains`, the motion tests at the module's
+    top): ``gains.moving`` while turning or accelerating, ``gains.still`` otherwise.
+
+    The attitude starts level with the first sample's specific force (roll and pitch from
+    gravity, yaw 0: the thesis's static start), whose size is also ``g_ref_mps2`` until the
+    user (:class:`Kf4`: the rest average) sets it."""
 
     def __init__(self, mounting: Array, fs_hz: float = 200.0, fc_hz: float = 2.0,
-                 kp: float = 1.0) -> None:
+                 gains: Gains = THESIS_GAINS) -> None:
         self.C_bs = mounting
         self.sos = butter(2, fc_hz, btype="low", fs=fs_hz, output="sos")
         self._zi: Array | None = None
-        self.kp = kp
+        self.gains = gains
+        self.kp = gains.still  # the gain of the latest step
+        self.turning = False
+        self.accelerating = False
+        self.moving_s = 0.0  # time spent turning or accelerating, and not
+        self.still_s = 0.0
         self.q = np.array([1.0, 0.0, 0.0, 0.0])
         self.gyro_bias = np.zeros(3)
+        self.g_ref_mps2: float | None = None
         self.t_ns: int | None = None
         self.acc_lp = np.zeros(3)
+        self.rate_lp = np.zeros(3)  # ω − b, low-passed over MOTION_TAU_S
 
     def predict(self, imu: ImuSample) -> Array:
         """Update the attitude; returns the low-passed specific force (body)."""
@@ -108,41 +244,79 @@ class ComplementaryAttitude:
         self.acc_lp = out[0]
         if self.t_ns is None:
             self.t_ns = imu.t_ns
+            self._level(acc)
             return self.acc_lp
         dt = (imu.t_ns - self.t_ns) / 1e9
         self.t_ns = imu.t_ns
         if not 0 < dt < 0.5:
             return self.acc_lp
+        w = gyro - self.gyro_bias
+        self._judge_motion(w, dt)
+        self.kp = self.gains.moving if self.turning or self.accelerating else self.gains.still
         g_body = quat_to_matrix(self.q).T @ np.array([0.0, 0.0, 1.0])  # "up" in body axes
         a = self.acc_lp / max(float(np.linalg.norm(self.acc_lp)), 1e-9)
         e = np.cross(a, g_body)
-        q = quat_mul(self.q, quat_from_rotvec((gyro - self.gyro_bias + self.kp * e) * dt))
+        q = quat_mul(self.q, quat_from_rotvec((w + self.kp * e) * dt))
         self.q = q / np.linalg.norm(q)
         return self.acc_lp
 
+    def _judge_motion(self, w: Array, dt: float) -> None:
+        """Turning and accelerating, as the module constants define them."""
+        alpha = 1.0 - math.exp(-dt / MOTION_TAU_S)
+        self.rate_lp = self.rate_lp + alpha * (w - self.rate_lp)
+        self.turning = float(np.linalg.norm(self.rate_lp)) > TURN_RATE_RPS
+        g_ref = GRAVITY_MPS2 if self.g_ref_mps2 is None else self.g_ref_mps2
+        self.accelerating = abs(float(np.linalg.norm(self.acc_lp)) - g_ref) > ACCEL_MPS2
+        if self.turning or self.accelerating:
+            self.moving_s += dt
+        else:
+            self.still_s += dt
+
+    def _level(self, f_b: Array) -> None:
+        """Roll and pitch from a specific force taken to be gravity alone (yaw 0):
+        "up" in body axes is ``(−sin θ, sin φ cos θ, cos φ cos θ)``."""
+        size = float(np.linalg.norm(f_b))
+        if not math.isfinite(size) or size < 1e-6:
+            return
+        self.g_ref_mps2 = size
+        roll = math.atan2(f_b[1], f_b[2])
+        pitch = math.atan2(-f_b[0], math.hypot(f_b[1], f_b[2]))
+        self.q = quat_from_euler(roll, pitch, 0.0)
+
 
 class Kf4:
-    """The thesis's 4-state KF (module doc). Static start: gyro bias averaged at rest."""
+    """The thesis's 4-state KF (module doc). Static start: the gyro bias, and the size of
+    gravity as the accelerometer measures it, are the means over the still start (every
+    sample until the IMU's rest test first fails; the KF itself starts at the first fix). With
+    ``static_points`` (the thesis) the fix it takes while at rest is the static point
+    (:class:`StaticPoints`), with the single fix's covariance (the mean's errors are not
+    independent from one update to the next: multipath and antenna delays are slow)."""
 
     def __init__(self, config: FilterConfig, gate_m: float = 1.0, min_anchors: int = 3,
-                 accel_noise_mps2: float = 0.5) -> None:
-        self.lsq = UwbLeastSquares(config)
-        self.attitude = ComplementaryAttitude(np.array(config.mounting_rotation, dtype=float))
+                 accel_noise_mps2: float = 0.5, gains: Gains = THESIS_GAINS,
+                 static_points: bool = True) -> None:
+        self.fixes = StaticPoints(config) if static_points else UwbLeastSquares(config)
+        self.attitude = ComplementaryAttitude(np.array(config.mounting_rotation, dtype=float),
+                                              gains=gains)
         self.gate_m = gate_m
         self.min_anchors = min_anchors
         self.accel_noise = accel_noise_mps2
         self.kf: KalmanFilter | None = None
         self.rejected = 0
-        self._gyro_rest: list[Array] = []
+        self.span_s = config.static_window_s
+        self.rest = ImuWindow(config.static_window_s, config.rest)
+        self.start_samples = 0  # IMU samples averaged over the still start
+        self._start_rest = True
+        self._gyro_sum = np.zeros(3)
+        self._acc_sum = 0.0
 
     def predict(self, imu: ImuSample) -> None:
         prev = self.attitude.t_ns
         f_b = self.attitude.predict(imu)
-        if self.kf is None:
-            self._gyro_rest.append(self.attitude.C_bs @ np.asarray(imu.gyro_rps))
-            self.attitude.gyro_bias = np.mean(self._gyro_rest[-400:], axis=0)
-            return
-        if prev is None:
+        self.fixes.predict(imu)
+        if self._start_rest:
+            self._still_start(imu)
+        if self.kf is None or prev is None:
             return
         dt = (imu.t_ns - prev) / 1e9
         if not 0 < dt < 0.5:
@@ -155,14 +329,29 @@ class Kf4:
         kf.Q = G @ G.T * self.accel_noise**2
         kf.predict(u=a_n[:2])
 
+    def _still_start(self, imu: ImuSample) -> None:
+        """Average gyro and |f| over the still start, which ends when a full rest window
+        first says motion."""
+        gyro = self.attitude.C_bs @ np.asarray(imu.gyro_rps)
+        acc = self.attitude.C_bs @ np.asarray(imu.acc_mps2)
+        self.rest.add(imu.t_ns, tuple(acc), tuple(gyro))
+        if self.rest.span_s() >= 0.9 * self.span_s and not self.rest.static(self.span_s):
+            self._start_rest = False
+            return
+        self.start_samples += 1
+        self._gyro_sum = self._gyro_sum + gyro
+        self._acc_sum += float(np.linalg.norm(acc))
+        self.attitude.gyro_bias = self._gyro_sum / self.start_samples
+        self.attitude.g_ref_mps2 = self._acc_sum / self.start_samples
+
     def update(self, uwb: UwbRanges) -> None:
         if sum(math.isfinite(r.range_m) for r in uwb.ranges) < self.min_anchors:
             return
-        self.lsq.update(uwb)
-        fix = self.lsq.fix
-        if fix is None:
+        self.fixes.update(uwb)
+        fix, point = self.fixes.fix, self.fixes.position()
+        if fix is None or point is None:
             return
-        z = fix.position_m[:2]
+        z = point[:2]
         if self.kf is None:
             self.kf = KalmanFilter(dim_x=4, dim_z=2, dim_u=2)
             self.kf.x = np.array([z[0], z[1], 0.0, 0.0])
@@ -175,13 +364,22 @@ class Kf4:
         self.kf.update(z, R=fix.covariance[:2, :2] + np.eye(2) * 1e-4)
 
     def position(self) -> Array | None:
-        fix = self.lsq.fix
-        if self.kf is None or fix is None:
+        point = self.fixes.position()
+        if self.kf is None or point is None:
             return None
-        return np.array([self.kf.x[0], self.kf.x[1], fix.position_m[2]])
+        return np.array([self.kf.x[0], self.kf.x[1], point[2]])
 
 
-def comparison_methods(config: FilterConfig) -> dict[str, PureIns | UwbLeastSquares | Kf4]:
-    """The baselines every report and benchmark compares uwbd's filters against."""
+Baseline = PureIns | UwbLeastSquares | StaticPoints | Kf4
+
+
+def comparison_methods(config: FilterConfig) -> dict[str, Baseline]:
+    """The baselines every report and benchmark compares uwbd's filters against (names fit
+    the report's 22-character column). "4-state KF (thesis)" has the thesis's gains as the
+    issue gives them; "4-state KF, Kp swapped" the other way round (:class:`Gains`), kept
+    beside it because it measured better (the simulator's runs, and tilt on the handheld
+    run)."""
     return {"pure INS": PureIns(config), "uwb least squares": UwbLeastSquares(config),
-            "4-state KF (thesis)": Kf4(config)}
+            "uwb LSQ + static point": StaticPoints(config),
+            "4-state KF (thesis)": Kf4(config),
+            "4-state KF, Kp swapped": Kf4(config, gains=SWAPPED_GAINS)}

@@ -58,10 +58,12 @@ class Eskf:
                  P0: Array, noise: ImuNoise, n_range_bias: int = 0,
                  b_g: Vector = (0.0, 0.0, 0.0),
                  b_a: Vector = (0.0, 0.0, 0.0), aux_tau_s: Array | None = None,
-                 aux_sigma: Array | None = None) -> None:
+                 aux_sigma: Array | None = None, gravity_mps2: float = GRAVITY_MPS2) -> None:
         """``n_range_bias`` range-model states follow ``P0``: by default random walks
         (``noise.range_bias``); where ``aux_tau_s`` is finite, first-order Gauss–Markov
-        processes with time constant ``τ`` and stationary σ ``aux_sigma`` (§3)."""
+        processes with time constant ``τ`` and stationary σ ``aux_sigma`` (§3).
+        ``gravity_mps2``: the local gravity the INS subtracts."""
+        self.gravity_mps2 = float(gravity_mps2)
         self.n = N_CORE + n_range_bias
         if P0.shape != (self.n, self.n):
             raise ValueError(f"P0 must be {self.n}x{self.n}, got {P0.shape}")
@@ -117,7 +119,7 @@ class Eskf:
         self._sum_w[1] += wy
         self._sum_w[2] += wz
         self._T += dt
-        az -= GRAVITY_MPS2
+        az -= self.gravity_mps2
         p, v = self.p, self.v
         p[0] += (v[0] + 0.5 * ax * dt) * dt
         p[1] += (v[1] + 0.5 * ay * dt) * dt

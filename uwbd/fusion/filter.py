@@ -5,7 +5,8 @@ frames in, same poses out), no I/O; no exception leaves them (a numerical failur
 foresaw is counted as ``internal_errors`` and restarts the filter). The top level below reads as
 the sequence it runs; each step's policy has a module of its own:
 
-* :mod:`.imu_check` — which IMU samples can be real (non-finite, clipped, impossible jumps);
+* :mod:`.imu_check` — which IMU samples can be real (non-finite, clipped, impossible jumps),
+  judged raw; then :mod:`.intrinsics` corrects them (scale, offsets) on the way to body axes;
 * :mod:`.rest` — the recent IMU window and the rest test (start, ZUPT);
 * :mod:`.fixes` and :mod:`.mirror` — UWB-only fixes from epochs or a window of single
   ranges, on the right side of a plane of anchors;
@@ -46,6 +47,7 @@ from uwbd.fusion.gating import GatingCounters, chi2_quantile, gate
 from uwbd.fusion.health import WAITING, Health, HealthMonitor
 from uwbd.fusion.imu_check import ImuCheck
 from uwbd.fusion.initialise import Start
+from uwbd.fusion.intrinsics import to_body
 from uwbd.fusion.lsq import LsqFix, coplanar
 from uwbd.fusion.measurements import (
     Rows,
@@ -96,6 +98,12 @@ class Filter(Recovery):
         if not np.allclose(C_bs @ C_bs.T, np.eye(3), atol=1e-6) or np.linalg.det(C_bs) < 0:
             raise ValueError("mounting_rotation must be a proper rotation matrix")
         self._C = tuple(tuple(float(x) for x in row) for row in C_bs)
+        (a, b, c), (d, e, f), (g, h, i) = self._C
+        # raw sensor axes -> corrected body axes, one affine map per sample (.intrinsics);
+        # with the intrinsics at their defaults both are the plain rotation _to_body
+        self._acc_to_body, self._gyro_to_body = to_body(
+            ((a, b, c), (d, e, f), (g, h, i)), config.imu_intrinsics, self._to_body)
+        self.intrinsics_applied = not config.imu_intrinsics.is_identity
         self.lever = np.array(config.lever_arm_m, dtype=float)
         self.ekf: Eskf | None = None
         self.counters: collections.Counter[str] = collections.Counter()
@@ -103,7 +111,8 @@ class Filter(Recovery):
         self.anchor_stats: dict[int, AnchorStats] = {}
         self.monitor = HealthMonitor(config.health)
         self.imu_check = ImuCheck(config.imu_limits)
-        self.window = ImuWindow(max(config.static_window_s, config.init_static_s), config.rest)
+        self.window = ImuWindow(max(config.static_window_s, config.init_static_s), config.rest,
+                                config.gravity_mps2)
         # the anchors known: configured, and those the device reports (learnt before the
         # start, so that the mirror side and the range-model states cover them)
         self._anchors: dict[int, Vec3] = dict(config.anchors_m)
@@ -206,8 +215,8 @@ class Filter(Recovery):
             self._first_t_ns = t_ns
         self._imu_t_ns = t_ns
         gap_s = 0.0 if prev is None else (t_ns - prev) / NS  # since the last sample of any kind
-        if not reason:
-            sample = (self._to_body(imu.acc_mps2), self._to_body(imu.gyro_rps))
+        if not reason:  # judged raw (full scale is the sensor's), then corrected
+            sample = (self._acc_to_body(imu.acc_mps2), self._gyro_to_body(imu.gyro_rps))
             self.window.add(t_ns, *sample)
             self._good_imu_ns = t_ns
         ekf = self.ekf

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from uwbd.fusion.alignment import velocity_fit
-from uwbd.fusion.eskf import GRAVITY_MPS2, N_CORE, Eskf
+from uwbd.fusion.eskf import N_CORE, Eskf
 from uwbd.fusion.lsq import LsqFix
 from uwbd.fusion.rest import ImuWindow
 from uwbd.fusion.rotation import Array, quat_from_euler, quat_to_matrix
@@ -81,7 +81,7 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
         p = np.mean([x for _, x in recent], axis=0) - R0 @ lever_m
         v, bg = np.zeros(3), np.asarray(gyro)
         # at rest |f| = g: what is left over lies along the vertical, as an accel bias
-        ba = (f_norm - GRAVITY_MPS2) * np.asarray(acc) / f_norm
+        ba = (f_norm - cfg.gravity_mps2) * np.asarray(acc) / f_norm
         sig_p, sig_v, sig_bg, how = sig_fix, 0.05, 0.005, "rest"
     elif waited_long and len(fixes) >= 2:
         last = [(t, x) for t, x in fixes if t >= fixes[-1][0] - NS]
@@ -115,7 +115,7 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
     tau = np.concatenate([np.full(n_bias, np.inf), np.full(n_multipath, cfg.multipath_tau_s)])
     sigma = np.concatenate([np.zeros(n_bias), np.full(n_multipath, cfg.multipath_sigma_m)])
     ekf = Eskf(p, v, q, P0, cfg.imu_noise, n_aux, b_g=bg, b_a=ba, aux_tau_s=tau,
-               aux_sigma=sigma)
+               aux_sigma=sigma, gravity_mps2=cfg.gravity_mps2)
     if carry is not None and len(carry.b_r_m) == n_aux:
         ekf.b_r = carry.b_r_m.copy()
     return ekf, how

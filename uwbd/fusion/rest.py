@@ -33,9 +33,11 @@ class RestLimits:
 
 
 class ImuWindow:
-    def __init__(self, length_s: float, limits: RestLimits) -> None:
+    def __init__(self, length_s: float, limits: RestLimits,
+                 gravity_mps2: float = GRAVITY_MPS2) -> None:
         self.length_ns = int(length_s * 1e9)
         self.limits = limits
+        self.gravity_mps2 = gravity_mps2
         self._samples: collections.deque[tuple[float, ...]] = collections.deque()
         self._memo_key: tuple[object, ...] = ()
         self._memo_ns = 0.0
@@ -92,7 +94,7 @@ class ImuWindow:
         acc, gyro = recent[:, 1:4], recent[:, 4:7]
         lim = self.limits
         return bool(np.linalg.norm(acc.std(axis=0)) < lim.acc_std_mps2
-                    and abs(np.linalg.norm(acc.mean(axis=0)) - GRAVITY_MPS2)
+                    and abs(np.linalg.norm(acc.mean(axis=0)) - self.gravity_mps2)
                     < lim.gravity_tolerance_mps2
                     and np.linalg.norm(gyro.mean(axis=0)) < lim.gyro_rps
                     and np.linalg.norm(gyro.std(axis=0)) < lim.gyro_rps)

@@ -7,10 +7,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum
 
-from uwbd.fusion.eskf import ImuNoise
+from uwbd.fusion.eskf import GRAVITY_MPS2, ImuNoise
 from uwbd.fusion.gating import GatingPolicy
 from uwbd.fusion.health import HealthLimits
 from uwbd.fusion.imu_check import ImuLimits
+from uwbd.fusion.intrinsics import ImuIntrinsics
 from uwbd.fusion.rest import RestLimits
 from uwbd.fusion.robust import RobustPolicy
 
@@ -33,6 +34,9 @@ class FilterConfig:
     lever_arm_m: Vec3 = (0.0, 0.0, 0.0)  # IMU -> UWB antenna, body axes
     imu_noise: ImuNoise = field(default_factory=ImuNoise)
     imu_limits: ImuLimits = field(default_factory=ImuLimits)
+    # scale, offsets (and a gyro dead-band) per sensor axis, applied before the mounting
+    imu_intrinsics: ImuIntrinsics = field(default_factory=ImuIntrinsics)
+    gravity_mps2: float = GRAVITY_MPS2  # local gravity: INS, start at rest, rest test
     range_sigma_m: float = 0.10
     acc_bias_sigma_mps2: float = 0.1  # initial; the vertical part is set from |f| - g at rest
     gate_probability: float = 0.997  # per-measurement χ² gate (3 σ for a scalar)

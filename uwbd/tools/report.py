@@ -1,11 +1,15 @@
 """``uwbd report log.mcap``: every method on one recording, scored against its ground truth.
 
-Methods: pure INS, UWB least squares, the thesis's 4-state KF, the loose and tight
+Methods: pure INS, UWB least squares, the same with the thesis's static-point filtering
+(fixes averaged while at rest), the thesis's 4-state KF (dual-gain complementary attitude,
+static points at rest) and its variant with the two gains swapped, the loose and tight
 error-state filters with the log's own config, and the tight filter RTS-smoothed (what a
-log allows offline). Printed: position RMSE (XY, Z, 3D) and
-position NEES/3 per method, the tight filter's mean NIS per accepted range, and, where the
-truth has motion-capture spikes, the same table without them. Written: ``trajectory.png``
-(XY paths) and ``error.png`` (horizontal error over time).
+log allows offline); see :mod:`uwbd.fusion.baselines`. Printed: position RMSE (XY, Z, 3D)
+and position NEES/3 per method, the tight filter's mean NIS per accepted range, how often
+the baselines' motion tests fired (the share of time at the attitude's turning or
+accelerating gain, the share of fixes averaged at rest), and, where the truth has
+motion-capture spikes, the same table without them. Written: ``trajectory.png`` (XY paths)
+and ``error.png`` (horizontal error over time).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from tqdm import tqdm
 
-from uwbd.fusion.baselines import comparison_methods
+from uwbd.fusion.baselines import Baseline, Kf4, StaticPoints, comparison_methods
 from uwbd.fusion.rotation import Array
 from uwbd.fusion.settings import Mode
 from uwbd.tools.evaluate import (
@@ -47,12 +51,13 @@ def run_all(rec: Recording, progress: bool = False
     methods = comparison_methods(cfg)
     bar = tqdm(total=len(methods) + len(Mode) + 1, desc="report", unit="method",
                disable=not progress, leave=False)
+    extra: dict[str, float] = {}
     for name, method in methods.items():
         bar.set_postfix_str(name)
         t, p = run_method(method, rec.frames)
         tracks[name] = (t, p, None)
+        extra.update(_motion_shares(name, method, len(t)))
         bar.update()
-    extra: dict[str, float] = {}
     for mode in Mode:
         bar.set_postfix_str(f"{mode.value} ESKF")
         poses, reports, _ = run_filter(dataclasses.replace(cfg, mode=mode), rec.frames)
@@ -69,6 +74,19 @@ def run_all(rec: Recording, progress: bool = False
                                                   rec.frames)
     bar.close()
     return tracks, extra
+
+
+def _motion_shares(name: str, method: Baseline, n_positions: int) -> dict[str, float]:
+    """How often a baseline's motion tests fired (nan: it never ran)."""
+    if isinstance(method, Kf4):
+        att = method.attitude
+        total_s = att.moving_s + att.still_s
+        return {f"{name}: share of time at the turning/accelerating gain":
+                att.moving_s / total_s if total_s > 0 else math.nan}
+    if isinstance(method, StaticPoints):
+        return {f"{name}: share of fixes averaged at rest":
+                method.rest_fixes / n_positions if n_positions else math.nan}
+    return {}
 
 
 def report(rec: Recording, out_dir: Path, skip_s: float = 0.0, progress: bool = False) -> str:
