@@ -113,7 +113,9 @@ def test_every_json_channel_has_a_schema_foxglove_reads_and_every_record_fits(
     expected = {"/pose": "foxglove.PoseInFrame", "/tf": "foxglove.FrameTransform",
                 "/anchors": "foxglove.SceneUpdate", "/trajectory": "foxglove.PosesInFrame",
                 "/imu": "uwbd.ImuSample", "/uwb": "uwbd.UwbRanges", "/status": "uwbd.Status",
-                "/raw/imu": "uwbd.Raw", "/raw/uwb": "uwbd.Raw"}
+                "/raw/imu": "uwbd.Raw", "/raw/uwb": "uwbd.Raw",
+                # the source's truth, which replay carries over
+                "/truth": "foxglove.PoseInFrame", "/truth/trajectory": "foxglove.PosesInFrame"}
     assert {t: c[1] for t, c in channels.items()} == expected
     messages = messages_by_topic(replayed)
     checked = 0
