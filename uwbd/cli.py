@@ -575,8 +575,9 @@ def _survey_summary(where: str, result: Any, range_sigma_m: float) -> str:
                      f"{result.downweighted} more than 3 σ off, down-weighted (NLOS?)")
     lines.append(f"1-σ (RMS over the anchors, 3-D): {result.layout_sigma_m:.3f} m for the "
                  "anchors relative to each other"
-                 + (f", {result.frame_sigma_m:.3f} m for where the layout sits (the "
-                    "configured positions fix that: no range sees it)"
+                 + (f", {result.frame_sigma_m:.3f} m for where the layout sits"
+                    + (" in height and tilt" if result.user_frame else "")
+                    + " (the configured positions fix that: no range sees it)"
                     if result.frame_sigma_m > 0.0005 else ""))
     return "\n".join(lines)
 
