@@ -405,7 +405,7 @@ def cmd_calibrate_imu(args: argparse.Namespace) -> int:
                          "error (was it held still, in m/s²?)")
     print(cal.summary(str(path)))
     if snippet is not None:
-        _write_text(snippet, cal.snippet(str(path)))
+        _write_atomically(snippet, cal.snippet(str(path)))
         print(f"wrote {snippet}: the [imu] keys (merge them into the config's [imu] section)")
     if rewrite is not None:
         base, text, out = rewrite
@@ -414,18 +414,10 @@ def cmd_calibrate_imu(args: argparse.Namespace) -> int:
             parse_config(new, str(out))
         except ConfigError as err:
             raise UsageError(str(err)) from err
-        _write_text(out, new)
+        _write_atomically(out, new)
         print(f"wrote {out}: {base} with imu.acc_scale, acc_offset_mps2, gyro_offset_rps and "
               "gravity_mps2 set")
     return 0
-
-
-def _write_text(target: Path, text: str) -> None:
-    try:
-        target.write_text(text, encoding="utf-8")
-    except OSError as err:
-        target.unlink(missing_ok=True)  # half a file claims nothing
-        raise RunError(f"cannot write {target}: {err.strerror or err}") from err
 
 
 def cmd_export(args: argparse.Namespace) -> int:
@@ -815,11 +807,8 @@ def build_parser() -> argparse.ArgumentParser:
             "the IMU held still with each axis up and then down in turn, a few seconds each, "
             "in any order; print them with their uncertainties.")
     p.add_argument("log")
-    p.add_argument("-o", "--output", metavar="FILE",
-                   help="write the [imu] keys found as a TOML snippet")
-    p.add_argument("--write-config", nargs=2, metavar=("CONFIG", "OUT"),
-                   help="write CONFIG with the [imu] keys set as OUT (its comments are not "
-                   "kept)")
+    _config_outputs(p, "the [imu] keys found as a TOML snippet",
+                    "with the [imu] keys set")
     p.add_argument("--gravity", type=float, metavar="MPS2",
                    help="local gravity, m/s² (default: the log's imu.gravity_mps2, else "
                    "9.80665)")
@@ -836,11 +825,8 @@ def build_parser() -> argparse.ArgumentParser:
             "measurement (--prior-sigma): the output stays in the config's frame; "
             "--origin/--x-axis/--y-side put it in the frame those anchors define.")
     p.add_argument("log")
-    p.add_argument("-o", "--output", metavar="FILE",
-                   help="write the surveyed [anchors] table as a TOML file")
-    p.add_argument("--write-config", nargs=2, metavar=("CONFIG", "OUT"),
-                   help="write CONFIG with its [anchors] replaced by the surveyed ones as OUT "
-                   "(its comments are not kept)")
+    _config_outputs(p, "the surveyed [anchors] table as a TOML file",
+                    "with its [anchors] replaced by the surveyed ones")
     p.add_argument("--origin", metavar="ID", help="this anchor is at x = y = 0")
     p.add_argument("--x-axis", metavar="ID", help="this anchor is on the +x axis (y = 0)")
     p.add_argument("--y-side", metavar="ID",
@@ -871,6 +857,13 @@ def _foxglove_option(p: argparse.ArgumentParser) -> None:
                    help=f"serve the channels live to Foxglove over its WebSocket protocol "
                         f"(default {FOXGLOVE_DEFAULT}: this machine only; 0.0.0.0:PORT serves "
                         "the network); needs the foxglove extra")
+
+
+def _config_outputs(p: argparse.ArgumentParser, snippet: str, changed: str) -> None:
+    """``-o FILE`` (a TOML snippet) and ``--write-config CONFIG OUT`` (the whole config)."""
+    p.add_argument("-o", "--output", metavar="FILE", help=f"write {snippet}")
+    p.add_argument("--write-config", nargs=2, metavar=("CONFIG", "OUT"),
+                   help=f"write CONFIG {changed} as OUT (its comments are not kept)")
 
 
 def _tuning(p: argparse.ArgumentParser) -> None:
