@@ -29,6 +29,7 @@ from uwbd import __version__, journal
 from uwbd.codec import frame_to_dict
 from uwbd.config import Config, ConfigError, apply_overrides, default_robot_name
 from uwbd.config import load as load_config
+from uwbd.fusion import native
 from uwbd.logs.mcaplog import LogContents, not_a_log, read_log, recover
 from uwbd.logs.replay import replay
 from uwbd.service.daemon import PipelineError
@@ -689,7 +690,8 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="uwbd", description=__doc__.splitlines()[0])
-    ap.add_argument("--version", action="version", version=f"uwbd {__version__}")
+    ap.add_argument("--version", action="version",
+                    version=f"uwbd {__version__} (fusion: {native.implementation})")
     talk = argparse.ArgumentParser(add_help=False)
     talk.add_argument("-v", "--verbose", action="count", default=0,
                       help="say more (debug lines)")

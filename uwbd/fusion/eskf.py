@@ -3,6 +3,10 @@
 Symbols follow the derivation: ``p v q b_g b_a b_r`` nominal, ``δx`` error, ``F Φ Q_d P H R
 S K y``. The per-IMU-sample path (:meth:`Eskf.predict`) is plain float arithmetic; the
 covariance is propagated once per update interval (:meth:`Eskf.propagate`).
+
+This file is the reference: :meth:`Eskf.predict`, :meth:`Eskf.propagate` and
+:meth:`Eskf.sequential_update` run a line-by-line C translation (``_core.c``) when it is
+built (:mod:`.native`), and the code here otherwise.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from uwbd.fusion import native
 from uwbd.fusion.rotation import Array, quat_mul, quat_to_matrix, skew
 
 GRAVITY_MPS2 = 9.80665
@@ -97,10 +102,17 @@ class Eskf:
         self._markov_var = (np.zeros(0) if aux_sigma is None
                             else np.asarray(aux_sigma)[self._markov] ** 2)
         self._decay_epoch = np.ones(n_range_bias)
+        self._core = native.core  # None: the pure-Python code below
 
     # -- nominal propagation: every IMU sample -------------------------------------------
     def predict(self, acc_b: Vector, gyro_b: Vector, dt: float) -> None:
         """Integrate one IMU sample over ``dt`` seconds (docs/ekf.md §2)."""
+        if self._core is not None:
+            self.q = self._core.predict(self.p, self.v, self.q, self.b_g, self.b_a,
+                                        self._sum_fn, self._sum_w, acc_b, gyro_b, dt,
+                                        self.gravity_mps2)
+            self._T += dt
+            return
         wx, wy, wz = (gyro_b[0] - self.b_g[0]) * dt, (gyro_b[1] - self.b_g[1]) * dt, \
             (gyro_b[2] - self.b_g[2]) * dt
         fx, fy, fz = acc_b[0] - self.b_a[0], acc_b[1] - self.b_a[1], acc_b[2] - self.b_a[2]
@@ -183,22 +195,27 @@ class Eskf:
         T = self._T
         if T <= 0.0:
             return
-        R = self.R
-        f_n = np.array(self._sum_fn) / T
-        w = np.array(self._sum_w) / T
-        F = self._F_template.copy()
-        F[V_, TH_] = -skew(f_n) @ R  # −R [f]× = −[R f]× R
-        F[V_, BA_] = -R
-        F[TH_, TH_] = -skew(w)
-        A = F * T
-        Phi = self._I_core + A + 0.5 * (A @ A)
-        self._Phi_epoch = Phi @ self._Phi_epoch
         for i in range(3):
             self._dv_epoch[i] += self._sum_fn[i]
-        P = self.P
-        P[:N_CORE, :] = Phi @ P[:N_CORE, :]
-        P[:, :N_CORE] = P[:, :N_CORE] @ Phi.T
-        P[self._diag] += self._q_rate * T
+        if self._core is not None:
+            P = self.P = np.ascontiguousarray(self.P)
+            self._core.propagate_core(P, self._Phi_epoch, self.q, self._sum_fn, self._sum_w,
+                                      T, self._q_rate)
+        else:
+            R = self.R
+            f_n = np.array(self._sum_fn) / T
+            w = np.array(self._sum_w) / T
+            F = self._F_template.copy()
+            F[V_, TH_] = -skew(f_n) @ R  # −R [f]× = −[R f]× R
+            F[V_, BA_] = -R
+            F[TH_, TH_] = -skew(w)
+            A = F * T
+            Phi = self._I_core + A + 0.5 * (A @ A)
+            self._Phi_epoch = Phi @ self._Phi_epoch
+            P = self.P
+            P[:N_CORE, :] = Phi @ P[:N_CORE, :]
+            P[:, :N_CORE] = P[:, :N_CORE] @ Phi.T
+            P[self._diag] += self._q_rate * T
         self._markov_step(P, T)
         self.P = 0.5 * (P + P.T)
         self._reset_interval()
@@ -279,6 +296,26 @@ class Eskf:
         A row whose ``S`` is not finite or falls below ``R_i`` (``P`` lost its positive
         semi-definiteness along ``h``) is skipped and marked ``numerical``.
         """
+        if self._core is not None:
+            P = np.array(self.P, dtype=float, order="C")  # kept only if a row is fused
+            dx = np.zeros(self.n)
+            c0, c1 = (0, 0) if considered is None else (considered.start, considered.stop)
+            rows = [Row(*r) for r in self._core.sequential_update(
+                P, np.ascontiguousarray(H, dtype=float), np.ascontiguousarray(y, dtype=float),
+                np.ascontiguousarray(R, dtype=float), decide, c0, c1, dx)]
+            fused = any(r.weight > 0.0 for r in rows)
+        else:
+            P, dx, rows, fused = self._sequential_rows(H, y, R, decide, considered)
+        if fused:
+            self.P = 0.5 * (P + P.T)
+            self.inject(dx)
+        return rows
+
+    def _sequential_rows(self, H: Array, y: Array, R: Array,
+                         decide: Callable[[int, float, float], float],
+                         considered: slice | None) -> tuple[Array, Array, list[Row], bool]:
+        """The rows of :meth:`sequential_update` in Python: the posterior ``P`` and ``δx``
+        (not yet injected), the rows, and whether any was fused."""
         P = self.P
         dx = np.zeros(self.n)
         rows = []
@@ -303,10 +340,7 @@ class Eskf:
             dx += k * nu
             M = np.outer(k, u - 0.5 * s * k)  # k uᵀ + u kᵀ − S k kᵀ = M + Mᵀ
             P = P - M - M.T
-        if fused:
-            self.P = 0.5 * (P + P.T)
-            self.inject(dx)
-        return rows
+        return P, dx, rows, fused
 
     def update(self, H: Array, y: Array, R: Array) -> Array:
         """Every row fused with full weight: returns the injected ``δx``."""

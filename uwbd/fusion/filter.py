@@ -84,6 +84,7 @@ NUMERICAL_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError)
 # the covariance is kept finite: no error state may be less certain than this (σ per state)
 MAX_SIGMA = np.array([1e3] * 3 + [1e2] * 3 + [math.pi] * 3 + [0.5] * 3 + [5.0] * 3)
 MAX_RANGE_BIAS_SIGMA_M = 5.0
+MAX_OBSERVABLE_YAW_SIGMA = math.radians(10)  # the heading counts as known below this σ
 
 
 class Filter(Recovery):
@@ -148,6 +149,8 @@ class Filter(Recovery):
         self._aligned = False
         self._gate_1 = chi2_quantile(config.gate_probability, 1)
         self._gate_3 = chi2_quantile(config.gate_probability, 3)
+        self._pose_T = np.zeros((6, TH_.stop))  # pose(): (p, v, θ) -> (p, R θ)
+        self._pose_T[:3, P_] = np.eye(3)
 
     def _layout(self) -> None:
         """What follows from the anchors: the mirror side of a plane of them, the height
@@ -338,31 +341,39 @@ class Filter(Recovery):
 
     def heading_observable(self) -> bool:
         ekf = self.ekf
-        return ekf is not None and self._aligned and ekf.yaw_sigma_rad() < math.radians(10)
+        return ekf is not None and self._aligned and ekf.yaw_sigma_rad() < MAX_OBSERVABLE_YAW_SIGMA
 
     def pose(self) -> Pose | None:
         """The pose now, or ``None`` before the start, while restarting, or when any of
-        its numbers is not finite (which also restarts the filter)."""
+        its numbers is not finite (which also restarts the filter).
+
+        It runs for every pose: the covariance over position and the attitude error turned
+        into the navigation frame is one product, ``T P Tᵀ`` with ``T = [[I, 0, 0], [0, 0,
+        R]]`` over (p, v, θ) (measured: half the time of the same in plain floats)."""
         ekf = self.ekf
-        if ekf is None or self.t_ns is None:
+        t_ns = self.t_ns
+        if ekf is None or t_ns is None:
             return None
-        R = ekf.R
-        cov = np.zeros((6, 6))
-        cov[:3, :3] = ekf.P[P_, P_]
-        cov[:3, 3:] = ekf.P[P_, TH_] @ R.T
-        cov[3:, :3] = cov[:3, 3:].T
-        cov[3:, 3:] = R @ ekf.P[TH_, TH_] @ R.T
-        covariance = tuple(cov.ravel().tolist())
         w, x, y, z = ekf.q
-        if not math.isfinite(sum(ekf.p) + sum(ekf.v) + w + x + y + z + sum(covariance)):
-            self._restart_not_finite(self.t_ns)
+        T = self._pose_T
+        T[3:, TH_] = ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+                      (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+                      (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
+        M = T @ ekf.P[:TH_.stop, :TH_.stop] @ T.T
+        cov = (0.5 * (M + M.T)).ravel().tolist()  # symmetric to the bit, as ROS expects
+        covariance = tuple(cov)
+        p, v = ekf.p, ekf.v
+        if not math.isfinite(sum(p) + sum(v) + w + x + y + z + sum(covariance)):
+            self._restart_not_finite(t_ns)
             return None
-        health = self.health()
+        # the heading's σ is the nav-z attitude error's (yaw_sigma_rad)
+        observable = self._aligned and math.sqrt(max(cov[35], 0.0)) < MAX_OBSERVABLE_YAW_SIGMA
+        sigma_xy = math.sqrt(max(cov[0] + cov[7], 0.0))
+        health = self.monitor.assess(t_ns, True, observable, sigma_xy, True)
         return Pose(
-            t_ns=self.t_ns, position_m=(ekf.p[0], ekf.p[1], ekf.p[2]),
-            velocity_mps=(ekf.v[0], ekf.v[1], ekf.v[2]), orientation_xyzw=(x, y, z, w),
-            covariance=covariance, status=health.summary(),
-            heading_observable=self.heading_observable(), health=health,
+            t_ns=t_ns, position_m=(p[0], p[1], p[2]), velocity_mps=(v[0], v[1], v[2]),
+            orientation_xyzw=(x, y, z, w), covariance=covariance, status=health.summary(),
+            heading_observable=observable, health=health,
         )
 
     def diagnostics(self) -> dict[str, Any]:

@@ -80,6 +80,26 @@ def pose_to_message(pose: Pose, frame_id: str = NAV_FRAME_ID) -> dict[str, Any]:
         "health": known(pose.health.as_dict())}, frame_id)
 
 
+class _Encoded:
+    """The last pose encoded (a one-entry memo for :func:`pose_json`)."""
+
+    pose: Pose | None = None
+    frame_id = ""
+    data = b""
+
+
+def pose_json(pose: Pose, frame_id: str = NAV_FRAME_ID) -> bytes:
+    """:func:`pose_to_message` as JSON bytes, encoded once for all sinks: the sinks the
+    pipeline hands one pose to in turn (log, Zenoh, live viewer) share the bytes of the
+    first one's call (a pose is immutable; the last one is kept, with its frame)."""
+    last = _Encoded
+    if pose is last.pose and frame_id == last.frame_id:
+        return last.data
+    data = strict_json(pose_to_message(pose, frame_id))
+    last.pose, last.frame_id, last.data = pose, frame_id, data
+    return data
+
+
 def known(record: dict[str, Any]) -> dict[str, Any]:
     """``record`` without its ``None`` values: a value not known is left out, not ``null``
     (Foxglove's schemas have no nullable fields)."""
@@ -164,10 +184,15 @@ class LogWriter:
             self.view.observe(frame)
         self._add(channel, frame.t_ns, frame_to_json(frame))
 
-    def pose(self, pose: Pose, topic: str = "/pose") -> None:
+    def pose(self, pose: Pose, data: bytes | None = None) -> None:
+        """``/pose`` (``data``: its bytes, when :func:`pose_json` made them already), and
+        the viewer channels that follow it."""
         view = self.view
-        self.json(topic, pose.t_ns, pose_to_message(pose, view.nav_frame_id),
-                  "foxglove.PoseInFrame", POSE_SCHEMA)
+        channel = self._channels.get("/pose")
+        if channel is None:
+            channel = self._channel("/pose", "json", "foxglove.PoseInFrame", POSE_SCHEMA)
+        self._add(channel, pose.t_ns,
+                  pose_json(pose, view.nav_frame_id) if data is None else data)
         self.json("/tf", pose.t_ns, view.transform(pose), "foxglove.FrameTransform")
         trajectory = view.trajectory(pose)
         if trajectory is not None:

@@ -12,7 +12,7 @@ from uwbd import journal
 from uwbd.config import Config
 from uwbd.fusion.types import Pose
 from uwbd.logs.foxglove import FoxgloveView
-from uwbd.logs.mcaplog import LogWriter, SourceInfo, finish_cut
+from uwbd.logs.mcaplog import LogWriter, SourceInfo, finish_cut, pose_json
 
 FLUSH_PERIOD_NS = 1_000_000_000  # the log is handed to the OS about once a second
 WRITE_BEHIND_NS = 100_000_000  # records wait this long in memory, then are written together
@@ -196,7 +196,8 @@ class McapSink:
         self._write(frame.t_ns, "frame", frame)
 
     def pose(self, pose: Pose) -> None:
-        self._write(pose.t_ns, "pose", pose)
+        # encoded now, once with the other sinks (pose_json), written behind
+        self._write(pose.t_ns, "pose", pose, pose_json(pose, self.view.nav_frame_id))
 
     def status(self, t_ns: int, status: dict[str, Any]) -> None:
         self.json("/status", t_ns, status, "uwbd.Status")

@@ -33,6 +33,7 @@ import zenoh
 from drivers.dwm1001_tlv import LOC_GET_REQUEST
 from uwbd import __version__, journal
 from uwbd.config import Config, SourceConfig
+from uwbd.fusion import native
 from uwbd.logs.sink import McapSink
 from uwbd.service.narrator import Narrator
 from uwbd.service.notify import Notifier
@@ -359,7 +360,8 @@ class ZenohLink:
 
 def _announce(config: Config, where: str, log_dir: Path) -> None:
     """The start-up summary: config, sources, anchors, Zenoh, log."""
-    LOG.info("starting uwbd %s with %s", __version__, where or "the built-in config")
+    LOG.info("starting uwbd %s with %s (fusion: %s)", __version__,
+             where or "the built-in config", native.implementation)
     for s in config.sources:
         LOG.info("source %s: %s on %s at %d baud", s.name, s.driver, s.port, s.baud)
     anchors = "; ".join(f"{a} ({x:.2f}, {y:.2f}, {z:.2f})"

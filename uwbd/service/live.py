@@ -29,7 +29,7 @@ from uwbd.codec import frame_to_json, strict_json
 from uwbd.config import Config
 from uwbd.fusion.types import Pose
 from uwbd.logs import foxglove as fx
-from uwbd.logs.mcaplog import pose_to_message
+from uwbd.logs.mcaplog import pose_json
 
 DEFAULT_ENDPOINT = "127.0.0.1:8765"
 SCENE_PERIOD_NS = 1_000_000_000
@@ -119,7 +119,7 @@ class FoxgloveLive:
     def pose(self, pose: Pose) -> None:
         t_ns, view = pose.t_ns, self.view
         if self._pose.has_sinks():
-            self._pose.log(strict_json(pose_to_message(pose, view.nav_frame_id)), log_time=t_ns)
+            self._pose.log(pose_json(pose, view.nav_frame_id), log_time=t_ns)
         if self._tf.has_sinks():
             self._tf.log(strict_json(view.transform(pose)), log_time=t_ns)
         trajectory = view.trajectory(pose)  # kept whether or not anyone watches

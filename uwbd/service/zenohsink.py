@@ -21,7 +21,7 @@ import zenoh
 from drivers.frames import Frame
 from uwbd.codec import strict_json
 from uwbd.fusion.types import Pose
-from uwbd.logs.mcaplog import pose_to_message
+from uwbd.logs.mcaplog import pose_json
 
 
 def zenoh_reason(err: Exception) -> str:
@@ -65,7 +65,7 @@ class ZenohSink:
         """Frames stay in the log."""
 
     def pose(self, pose: Pose) -> None:
-        self._pose.put(strict_json(pose_to_message(pose, self.frame_id)))
+        self._pose.put(pose_json(pose, self.frame_id))
 
     def status(self, t_ns: int, status: dict[str, Any]) -> None:
         self._status_bytes = strict_json(status)

@@ -1,0 +1,14 @@
+"""The C core (uwbd/fusion/_core.c) is built here; everything else is in pyproject.toml.
+
+``optional=True``: where no C compiler is found the install goes on without it and uwbd
+runs its pure-Python reference (``uwbd version`` says which one runs).
+"""
+
+from setuptools import Extension, setup
+
+setup(ext_modules=[Extension(
+    "uwbd.fusion._core", ["uwbd/fusion/_core.c"],
+    # a * b + c rounded as Python rounds it (no fused multiply-add): the same bits
+    extra_compile_args=["-O2", "-ffp-contract=off", "-fno-fast-math"],
+    optional=True,
+)])

@@ -1,0 +1,170 @@
+"""The C core against its pure-Python reference (uwbd/fusion/eskf.py): each kernel on
+random states, and whole filter runs (simulator presets, both real datasets) pose by pose."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from uwbd.config import parse
+from uwbd.fusion import native
+from uwbd.fusion.eskf import N_CORE, ImuNoise, Row
+from uwbd.fusion.eskf import Eskf as _Eskf
+from uwbd.fusion.settings import FilterConfig
+from uwbd.fusion.types import Pose
+from uwbd.tools.evaluate import merge, run_filter
+from uwbd.tools.importer import INROL_LEVER_ARM_M, INROL_MOUNTING, load_iasl, load_inrol
+from uwbd.tools.logtools import simulation_toml
+from uwbd.tools.simulator import Z_DOWN, SimConfig, ceiling_room, handheld_async, simulate
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+needs_core = pytest.mark.skipif(native.core is None, reason=f"C core: {native.implementation}")
+pytestmark = needs_core
+POSITION_TOLERANCE_M = 1e-9
+
+
+def twin(n_aux: int, seed: int) -> tuple[_Eskf, _Eskf]:
+    """Two filters in the same random state, one on the C core, one on the reference."""
+    rng = np.random.default_rng(seed)
+    n = N_CORE + n_aux
+    A = rng.normal(size=(n, n)) * 0.1
+    P0 = A @ A.T + 0.01 * np.eye(n)
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    args = (rng.normal(size=3) * 5, rng.normal(size=3), q, P0, ImuNoise(), n_aux,
+            rng.normal(size=3) * 1e-3, rng.normal(size=3) * 0.05)
+    tau = np.where(np.arange(n_aux) % 2 == 0, np.inf, 3.0) if n_aux else None
+    sigma = np.full(n_aux, 0.1) if n_aux else None
+    fast = _Eskf(*args, aux_tau_s=tau, aux_sigma=sigma)
+    with native.pure_python():
+        slow = _Eskf(*args, aux_tau_s=tau, aux_sigma=sigma)
+    assert fast._core is not None and slow._core is None
+    return fast, slow
+
+
+def imu_stream(seed: int, count: int) -> list[tuple[tuple[float, ...], tuple[float, ...]]]:
+    rng = np.random.default_rng(seed)
+    gravity = np.array([0.0, 0.0, 9.81])
+    return [(tuple((rng.normal(size=3) + gravity).tolist()),
+             tuple((rng.normal(size=3) * 0.5).tolist())) for _ in range(count)]
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31), st.integers(0, 8))
+def test_predict_and_propagate_match_the_reference(seed: int, n_aux: int) -> None:
+    fast, slow = twin(n_aux, seed)
+    for k, (acc, gyro) in enumerate(imu_stream(seed, 60)):
+        for f in (fast, slow):
+            f.predict(acc, gyro, 0.005)
+            if k % 20 == 19:
+                f.propagate()
+        # the nominal state is the same to the bit: the same operations, no fused multiply-add
+        assert (fast.p, fast.v, fast.q) == (slow.p, slow.v, slow.q)
+    np.testing.assert_allclose(fast.P, slow.P, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(fast.take_epoch()[0], slow.take_epoch()[0], rtol=1e-12,
+                               atol=1e-15)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31), st.integers(0, 8), st.integers(1, 12),
+       st.sampled_from([None, slice(6, 12), slice(6, 15)]))
+def test_sequential_update_matches_the_reference(seed: int, n_aux: int, m: int,
+                                                 considered: slice | None) -> None:
+    fast, slow = twin(n_aux, seed)
+    rng = np.random.default_rng(seed + 1)
+    H = rng.normal(size=(m, fast.n))
+    y = rng.normal(size=m)
+    R = rng.uniform(0.001, 0.1, size=m)
+    R[rng.random(m) < 0.1] = -1.0  # a variance below zero: the row is numerical, skipped
+    calls: list[list[tuple[int, float, float]]] = [[], []]
+
+    def decider(log: list[tuple[int, float, float]]) -> Callable[[int, float, float], float]:
+        def decide(i: int, nu: float, s: float) -> float:
+            log.append((i, nu, s))
+            return (0.0, 0.3, 1.0)[i % 3]  # rejected, de-weighted, fused
+        return decide
+
+    rows_fast = fast.sequential_update(H, y, R, decider(calls[0]), considered)
+    rows_slow = slow.sequential_update(H, y, R, decider(calls[1]), considered)
+    assert all(isinstance(r, Row) for r in rows_fast)
+    assert [r.numerical for r in rows_fast] == [r.numerical for r in rows_slow]
+    np.testing.assert_allclose([r[:3] for r in rows_fast], [r[:3] for r in rows_slow],
+                               rtol=1e-9, atol=1e-12)
+    assert [c[0] for c in calls[0]] == [c[0] for c in calls[1]]
+    np.testing.assert_allclose(fast.P, slow.P, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(fast.p + fast.v + fast.q, slow.p + slow.v + slow.q,
+                               rtol=1e-9, atol=1e-12)
+
+
+def test_an_error_in_decide_leaves_the_state_alone() -> None:
+    fast, _ = twin(4, 7)
+    P, p = fast.P.copy(), list(fast.p)
+
+    def decide(i: int, nu: float, s: float) -> float:
+        if i == 2:
+            raise ValueError("boom")
+        return 1.0
+
+    with pytest.raises(ValueError, match="boom"):
+        fast.sequential_update(np.eye(3, fast.n), np.ones(3), np.full(3, 0.01), decide)
+    assert np.array_equal(fast.P, P) and fast.p == p
+
+
+def compare_runs(cfg: FilterConfig, frames: list[object]) -> list[Pose]:
+    poses, _, _ = run_filter(cfg, frames)  # type: ignore[arg-type]
+    with native.pure_python():
+        reference, _, _ = run_filter(cfg, frames)  # type: ignore[arg-type]
+    assert len(poses) == len(reference) > 0
+    assert [q.t_ns for q in poses] == [q.t_ns for q in reference]
+    a = np.array([q.position_m for q in poses])
+    b = np.array([q.position_m for q in reference])
+    worst = float(np.abs(a - b).max())
+    assert worst <= POSITION_TOLERANCE_M, f"positions differ by up to {worst:.3g} m"
+    assert [q.status for q in poses] == [q.status for q in reference]
+    return poses
+
+
+@pytest.mark.parametrize("preset", ["seed", "handheld", "ceiling"])
+def test_filter_runs_match_the_reference(preset: str) -> None:
+    sim_cfg = {"seed": SimConfig(seed=2, segments=((4.0, 0.0, 0.0, 0.0),
+                                                   (16.0, 1.0, 0.3, 0.0))),
+               "handheld": handheld_async(1), "ceiling": ceiling_room(1)}[preset]
+    sim = simulate(sim_cfg)
+    frames = list(merge(sim.imu, sim.uwb))
+    if preset != "seed":
+        frames = frames[: len(frames) // 3]  # the start and a first stretch of motion
+    compare_runs(parse(simulation_toml(sim)).filter_config(), frames)
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="shared/data not beside the repository")
+@pytest.mark.parametrize("name", ["iasl-s1", "inrol-env1"])
+def test_real_runs_match_the_reference(name: str) -> None:
+    load, mounting, lever, seconds = {
+        "iasl-s1": (load_iasl, Z_DOWN, (0.0, 0.0, 0.0), 40.0),
+        "inrol-env1": (load_inrol, INROL_MOUNTING, INROL_LEVER_ARM_M, 25.0)}[name]
+    ds = load(DATA / name)
+    frames = list(merge(ds.imu, ds.uwb))
+    end_ns = frames[0].t_ns + int(seconds * 1e9)
+    cfg = FilterConfig(anchors_m=ds.anchors_m, mounting_rotation=mounting, lever_arm_m=lever)
+    poses = compare_runs(cfg, [f for f in frames if f.t_ns < end_ns])
+    assert any(math.isfinite(q.position_m[0]) for q in poses)
+
+
+def test_the_environment_variable_forces_pure_python() -> None:
+    code = "from uwbd.fusion import native; print(native.core is None, native.implementation)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, env={**os.environ, native.PURE_PYTHON_ENV: "1"}).stdout
+    assert out.startswith("True pure Python (UWBD_PURE_PYTHON is set)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, env={k: v for k, v in os.environ.items()
+                                          if k != native.PURE_PYTHON_ENV}).stdout
+    assert out.startswith("False C core")

@@ -1,0 +1,434 @@
+/* uwbd.fusion._core: the error-state EKF's per-sample and per-epoch algebra in C.
+ *
+ * The reference is the pure-Python code in uwbd/fusion/eskf.py (docs/ekf.md); every
+ * function here is a line-by-line translation of one there, named alike, and the tests
+ * compare the two (tests/test_core.py). Built by the package's own build (setup.py) with
+ * -ffp-contract=off, so that `a * b + c` rounds as Python rounds it; predict() is then
+ * the same to the bit. Matrices arrive as numpy arrays through the buffer protocol
+ * (C-contiguous float64): no numpy headers are needed to build.
+ *
+ * UWBD_PURE_PYTHON=1 in the environment makes uwbd ignore this module.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <string.h>
+
+#define N_CORE 15
+
+/* -- helpers ---------------------------------------------------------------------------- */
+
+/* A C-contiguous float64 buffer of `count` doubles (count < 0: any size). */
+static int get_doubles(PyObject *obj, Py_buffer *view, Py_ssize_t count, int writable,
+                       const char *what)
+{
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, view, flags) < 0)
+        return -1;
+    if (view->itemsize != 8 || view->format == NULL || strcmp(view->format, "d") != 0) {
+        PyErr_Format(PyExc_TypeError, "%s: a float64 array is needed", what);
+        PyBuffer_Release(view);
+        return -1;
+    }
+    if (count >= 0 && view->len != count * 8) {
+        PyErr_Format(PyExc_ValueError, "%s: %zd numbers expected, got %zd", what, count,
+                     view->len / 8);
+        PyBuffer_Release(view);
+        return -1;
+    }
+    return 0;
+}
+
+/* Three (or four) floats out of a list or tuple of floats. */
+static int get_vec(PyObject *seq, double *out, Py_ssize_t n, const char *what)
+{
+    PyObject *fast = PySequence_Fast(seq, what);
+    if (fast == NULL)
+        return -1;
+    if (PySequence_Fast_GET_SIZE(fast) != n) {
+        PyErr_Format(PyExc_ValueError, "%s: %zd numbers expected", what, n);
+        Py_DECREF(fast);
+        return -1;
+    }
+    PyObject **items = PySequence_Fast_ITEMS(fast);
+    for (Py_ssize_t i = 0; i < n; i++) {
+        out[i] = PyFloat_AsDouble(items[i]);
+        if (out[i] == -1.0 && PyErr_Occurred()) {
+            Py_DECREF(fast);
+            return -1;
+        }
+    }
+    Py_DECREF(fast);
+    return 0;
+}
+
+/* Store doubles back into an existing list, item by item (the list is mutated in place,
+ * as the Python code's `p[0] += ...` does). */
+static int set_list(PyObject *list, const double *v, Py_ssize_t n)
+{
+    if (!PyList_Check(list) || PyList_GET_SIZE(list) != n) {
+        PyErr_SetString(PyExc_TypeError, "a list of the state's length is needed");
+        return -1;
+    }
+    for (Py_ssize_t i = 0; i < n; i++) {
+        PyObject *f = PyFloat_FromDouble(v[i]);
+        if (f == NULL)
+            return -1;
+        PyList_SetItem(list, i, f); /* steals f, drops the old item */
+    }
+    return 0;
+}
+
+/* q ⊗ Exp(θ), normalised: eskf._turned */
+static void turned(const double q[4], double tx, double ty, double tz, double out[4])
+{
+    double angle = sqrt(tx * tx + ty * ty + tz * tz);
+    double dw, s;
+    if (angle < 1e-9) {
+        dw = 1.0;
+        s = 0.5;
+    } else {
+        dw = cos(0.5 * angle);
+        s = sin(0.5 * angle) / angle;
+    }
+    double dx = s * tx, dy = s * ty, dz = s * tz;
+    double qw = q[0], qx = q[1], qy = q[2], qz = q[3];
+    double nw = qw * dw - qx * dx - qy * dy - qz * dz;
+    double nx = qw * dx + qx * dw + qy * dz - qz * dy;
+    double ny = qw * dy - qx * dz + qy * dw + qz * dx;
+    double nz = qw * dz + qx * dy - qy * dx + qz * dw;
+    double norm = sqrt(nw * nw + nx * nx + ny * ny + nz * nz);
+    out[0] = nw / norm;
+    out[1] = nx / norm;
+    out[2] = ny / norm;
+    out[3] = nz / norm;
+}
+
+static void quat_to_matrix(const double q[4], double R[3][3])
+{
+    double w = q[0], x = q[1], y = q[2], z = q[3];
+    R[0][0] = 1 - 2 * (y * y + z * z);
+    R[0][1] = 2 * (x * y - w * z);
+    R[0][2] = 2 * (x * z + w * y);
+    R[1][0] = 2 * (x * y + w * z);
+    R[1][1] = 1 - 2 * (x * x + z * z);
+    R[1][2] = 2 * (y * z - w * x);
+    R[2][0] = 2 * (x * z - w * y);
+    R[2][1] = 2 * (y * z + w * x);
+    R[2][2] = 1 - 2 * (x * x + y * y);
+}
+
+/* -- predict: every IMU sample ---------------------------------------------------------- */
+
+/* predict(p, v, q, b_g, b_a, sum_fn, sum_w, acc_b, gyro_b, dt, gravity) -> new q (list)
+ * p, v, sum_fn, sum_w are updated in place; Eskf.predict in eskf.py, step by step. */
+static PyObject *core_predict(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 11) {
+        PyErr_SetString(PyExc_TypeError, "predict takes 11 arguments");
+        return NULL;
+    }
+    double p[3], v[3], q[4], bg[3], ba[3], sfn[3], sw[3], acc[3], gyro[3];
+    if (get_vec(args[0], p, 3, "p") || get_vec(args[1], v, 3, "v") ||
+        get_vec(args[2], q, 4, "q") || get_vec(args[3], bg, 3, "b_g") ||
+        get_vec(args[4], ba, 3, "b_a") || get_vec(args[5], sfn, 3, "sum_fn") ||
+        get_vec(args[6], sw, 3, "sum_w") || get_vec(args[7], acc, 3, "acc_b") ||
+        get_vec(args[8], gyro, 3, "gyro_b"))
+        return NULL;
+    double dt = PyFloat_AsDouble(args[9]);
+    double g = PyFloat_AsDouble(args[10]);
+    if (PyErr_Occurred())
+        return NULL;
+    double wx = (gyro[0] - bg[0]) * dt, wy = (gyro[1] - bg[1]) * dt, wz = (gyro[2] - bg[2]) * dt;
+    double fx = acc[0] - ba[0], fy = acc[1] - ba[1], fz = acc[2] - ba[2];
+    double qw = q[0], qx = q[1], qy = q[2], qz = q[3];
+    double ax = (1 - 2 * (qy * qy + qz * qz)) * fx + 2 * (qx * qy - qw * qz) * fy
+        + 2 * (qx * qz + qw * qy) * fz;
+    double ay = 2 * (qx * qy + qw * qz) * fx + (1 - 2 * (qx * qx + qz * qz)) * fy
+        + 2 * (qy * qz - qw * qx) * fz;
+    double az = 2 * (qx * qz - qw * qy) * fx + 2 * (qy * qz + qw * qx) * fy
+        + (1 - 2 * (qx * qx + qy * qy)) * fz;
+    sfn[0] += ax * dt;
+    sfn[1] += ay * dt;
+    sfn[2] += az * dt;
+    sw[0] += wx;
+    sw[1] += wy;
+    sw[2] += wz;
+    az -= g;
+    p[0] += (v[0] + 0.5 * ax * dt) * dt;
+    p[1] += (v[1] + 0.5 * ay * dt) * dt;
+    p[2] += (v[2] + 0.5 * az * dt) * dt;
+    v[0] += ax * dt;
+    v[1] += ay * dt;
+    v[2] += az * dt;
+    double qn[4];
+    turned(q, wx, wy, wz, qn);
+    if (set_list(args[0], p, 3) || set_list(args[1], v, 3) || set_list(args[5], sfn, 3) ||
+        set_list(args[6], sw, 3))
+        return NULL;
+    return Py_BuildValue("[dddd]", qn[0], qn[1], qn[2], qn[3]);
+}
+
+/* -- propagate: once per update interval ------------------------------------------------ */
+
+/* propagate_core(P, Phi_epoch, q, sum_fn, sum_w, T, q_rate)
+ * The core part of Eskf.propagate, in place on P (n×n) and Phi_epoch (15×15):
+ * F from the mean specific force and rate over T, Φ = I + A + A²/2 with A = F T,
+ * Φ_epoch ← Φ Φ_epoch, P ← Φ P Φᵀ on the core rows and columns, P += diag(q_rate) T.
+ * Symmetrising and the Gauss–Markov step stay in Python (they run on the whole P). */
+static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 7) {
+        PyErr_SetString(PyExc_TypeError, "propagate_core takes 7 arguments");
+        return NULL;
+    }
+    double q[4], sfn[3], sw[3];
+    if (get_vec(args[2], q, 4, "q") || get_vec(args[3], sfn, 3, "sum_fn") ||
+        get_vec(args[4], sw, 3, "sum_w"))
+        return NULL;
+    double T = PyFloat_AsDouble(args[5]);
+    if (PyErr_Occurred())
+        return NULL;
+    Py_buffer Pb, Eb, Qb;
+    if (get_doubles(args[0], &Pb, -1, 1, "P") < 0)
+        return NULL;
+    Py_ssize_t n = (Py_ssize_t)sqrt((double)(Pb.len / 8));
+    if (n * n * 8 != Pb.len || n < N_CORE) {
+        PyBuffer_Release(&Pb);
+        PyErr_SetString(PyExc_ValueError, "P must be square, at least 15x15");
+        return NULL;
+    }
+    if (get_doubles(args[1], &Eb, N_CORE * N_CORE, 1, "Phi_epoch") < 0) {
+        PyBuffer_Release(&Pb);
+        return NULL;
+    }
+    if (get_doubles(args[6], &Qb, n, 0, "q_rate") < 0) {
+        PyBuffer_Release(&Pb);
+        PyBuffer_Release(&Eb);
+        return NULL;
+    }
+    double *P = (double *)Pb.buf, *E = (double *)Eb.buf;
+    const double *qr = (const double *)Qb.buf;
+    double R[3][3];
+    quat_to_matrix(q, R);
+    double f[3] = {sfn[0] / T, sfn[1] / T, sfn[2] / T};
+    double w[3] = {sw[0] / T, sw[1] / T, sw[2] / T};
+    /* A = F T: P_V = I, V_TH = -[f]x R, V_BA = -R, TH_TH = -[w]x, TH_BG = -I */
+    double A[N_CORE][N_CORE];
+    memset(A, 0, sizeof A);
+    double sk[3][3] = {{0, -f[2], f[1]}, {f[2], 0, -f[0]}, {-f[1], f[0], 0}};
+    for (int i = 0; i < 3; i++) {
+        A[i][3 + i] = T;
+        A[6 + i][9 + i] = -T;
+        for (int j = 0; j < 3; j++) {
+            double s = 0.0;
+            for (int k = 0; k < 3; k++)
+                s += sk[i][k] * R[k][j];
+            A[3 + i][6 + j] = -s * T;
+            A[3 + i][12 + j] = -R[i][j] * T;
+        }
+    }
+    double sw_[3][3] = {{0, -w[2], w[1]}, {w[2], 0, -w[0]}, {-w[1], w[0], 0}};
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            A[6 + i][6 + j] = -sw_[i][j] * T;
+    double Phi[N_CORE][N_CORE];
+    for (int i = 0; i < N_CORE; i++)
+        for (int j = 0; j < N_CORE; j++) {
+            double s = 0.0;
+            for (int k = 0; k < N_CORE; k++)
+                s += A[i][k] * A[k][j];
+            Phi[i][j] = (i == j ? 1.0 : 0.0) + A[i][j] + 0.5 * s;
+        }
+    /* Φ_epoch ← Φ Φ_epoch */
+    double tmp[N_CORE * N_CORE];
+    for (int i = 0; i < N_CORE; i++)
+        for (int j = 0; j < N_CORE; j++) {
+            double s = 0.0;
+            for (int k = 0; k < N_CORE; k++)
+                s += Phi[i][k] * E[k * N_CORE + j];
+            tmp[i * N_CORE + j] = s;
+        }
+    memcpy(E, tmp, sizeof tmp);
+    /* P[:15, :] ← Φ P[:15, :] (15×n), then P[:, :15] ← P[:, :15] Φᵀ (n×15) */
+    double *rows = PyMem_Malloc(sizeof(double) * N_CORE * n);
+    if (rows == NULL) {
+        PyBuffer_Release(&Pb);
+        PyBuffer_Release(&Eb);
+        PyBuffer_Release(&Qb);
+        return PyErr_NoMemory();
+    }
+    for (int i = 0; i < N_CORE; i++)
+        for (Py_ssize_t j = 0; j < n; j++) {
+            double s = 0.0;
+            for (int k = 0; k < N_CORE; k++)
+                s += Phi[i][k] * P[k * n + j];
+            rows[i * n + j] = s;
+        }
+    memcpy(P, rows, sizeof(double) * N_CORE * n);
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double row[N_CORE];
+        for (int j = 0; j < N_CORE; j++) {
+            double s = 0.0;
+            for (int k = 0; k < N_CORE; k++)
+                s += P[i * n + k] * Phi[j][k];
+            row[j] = s;
+        }
+        memcpy(P + i * n, row, sizeof row);
+    }
+    PyMem_Free(rows);
+    for (Py_ssize_t i = 0; i < n; i++)
+        P[i * n + i] += qr[i] * T;
+    PyBuffer_Release(&Pb);
+    PyBuffer_Release(&Eb);
+    PyBuffer_Release(&Qb);
+    Py_RETURN_NONE;
+}
+
+/* -- sequential scalar update: every UWB epoch ------------------------------------------ */
+
+/* sequential_update(P, H, y, R, decide, c0, c1, dx) -> list of (ν, S, w, numerical)
+ * Eskf.sequential_update, in the O(n²)-per-row form, in place on P (n×n, a copy the caller
+ * keeps only if a row was fused) and dx (n):
+ * for each row, u = P h, S = h u + R_i, ν = y_i − h dx; decide(i, ν, S) gives the
+ * weight; k = u / (S + R_i (1/w − 1)), zero on [c0, c1) (considered states);
+ * dx += k ν; P ← P − M − Mᵀ with M = k (u − S k / 2)ᵀ. The caller symmetrises P and
+ * injects dx when any row was fused (a weight > 0). */
+static PyObject *core_sequential_update(PyObject *self, PyObject *const *args,
+                                        Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 8) {
+        PyErr_SetString(PyExc_TypeError, "sequential_update takes 8 arguments");
+        return NULL;
+    }
+    PyObject *decide = args[4];
+    Py_ssize_t c0 = PyLong_AsSsize_t(args[5]), c1 = PyLong_AsSsize_t(args[6]);
+    if (PyErr_Occurred())
+        return NULL;
+    Py_buffer Pb, Hb, yb, Rb, Db;
+    if (get_doubles(args[0], &Pb, -1, 1, "P") < 0)
+        return NULL;
+    Py_ssize_t n = (Py_ssize_t)sqrt((double)(Pb.len / 8));
+    if (n * n * 8 != Pb.len) {
+        PyBuffer_Release(&Pb);
+        PyErr_SetString(PyExc_ValueError, "P must be square");
+        return NULL;
+    }
+    if (get_doubles(args[7], &Db, n, 1, "dx") < 0) {
+        PyBuffer_Release(&Pb);
+        return NULL;
+    }
+    if (get_doubles(args[2], &yb, -1, 0, "y") < 0) {
+        PyBuffer_Release(&Pb);
+        PyBuffer_Release(&Db);
+        return NULL;
+    }
+    Py_ssize_t m = yb.len / 8;
+    if (get_doubles(args[1], &Hb, m * n, 0, "H") < 0) {
+        PyBuffer_Release(&Pb);
+        PyBuffer_Release(&Db);
+        PyBuffer_Release(&yb);
+        return NULL;
+    }
+    if (get_doubles(args[3], &Rb, m, 0, "R") < 0) {
+        PyBuffer_Release(&Pb);
+        PyBuffer_Release(&Db);
+        PyBuffer_Release(&yb);
+        PyBuffer_Release(&Hb);
+        return NULL;
+    }
+    double *P = (double *)Pb.buf, *dx = (double *)Db.buf;
+    const double *H = (const double *)Hb.buf, *y = (const double *)yb.buf;
+    const double *Rv = (const double *)Rb.buf;
+    PyObject *rows = PyList_New(m);
+    double *u = PyMem_Malloc(sizeof(double) * 3 * n);
+    if (rows == NULL || u == NULL) {
+        Py_XDECREF(rows);
+        PyMem_Free(u);
+        rows = PyErr_NoMemory();
+        goto done;
+    }
+    double *k = u + n, *g = u + 2 * n;
+    for (Py_ssize_t i = 0; i < m; i++) {
+        const double *h = H + i * n;
+        for (Py_ssize_t a = 0; a < n; a++) {
+            double s = 0.0;
+            for (Py_ssize_t b = 0; b < n; b++)
+                s += P[a * n + b] * h[b];
+            u[a] = s;
+        }
+        double r = Rv[i];
+        double hu = 0.0, hdx = 0.0;
+        for (Py_ssize_t a = 0; a < n; a++) {
+            hu += h[a] * u[a];
+            hdx += h[a] * dx[a];
+        }
+        double s = hu + r;
+        double nu = y[i] - hdx;
+        double weight = 0.0;
+        int numerical = !(isfinite(s) && isfinite(nu)) || s < r * (1 - 1e-9);
+        if (!numerical) {
+            PyObject *res = PyObject_CallFunction(decide, "ndd", i, nu, s);
+            if (res == NULL) {
+                Py_CLEAR(rows);
+                goto done;
+            }
+            weight = PyFloat_AsDouble(res);
+            Py_DECREF(res);
+            if (weight == -1.0 && PyErr_Occurred()) {
+                Py_CLEAR(rows);
+                goto done;
+            }
+        }
+        PyObject *row = Py_BuildValue("(dddO)", nu, s, weight,
+                                      numerical ? Py_True : Py_False);
+        if (row == NULL) {
+            Py_CLEAR(rows);
+            goto done;
+        }
+        PyList_SET_ITEM(rows, i, row);
+        if (numerical || weight <= 0.0)
+            continue;
+        double denom = s + r * (1.0 / weight - 1.0);
+        for (Py_ssize_t a = 0; a < n; a++)
+            k[a] = (a >= c0 && a < c1) ? 0.0 : u[a] / denom;
+        for (Py_ssize_t a = 0; a < n; a++)
+            dx[a] += k[a] * nu;
+        /* M = k gᵀ with g = u − S k/2; P ← (P − M) − Mᵀ, rounded as numpy rounds it */
+        double half_s = 0.5 * s;
+        for (Py_ssize_t a = 0; a < n; a++)
+            g[a] = u[a] - half_s * k[a];
+        for (Py_ssize_t a = 0; a < n; a++)
+            for (Py_ssize_t b = 0; b < n; b++)
+                P[a * n + b] = (P[a * n + b] - k[a] * g[b]) - k[b] * g[a];
+    }
+done:
+    PyMem_Free(u);
+    PyBuffer_Release(&Pb);
+    PyBuffer_Release(&Db);
+    PyBuffer_Release(&yb);
+    PyBuffer_Release(&Hb);
+    PyBuffer_Release(&Rb);
+    return rows;
+}
+
+static PyMethodDef core_methods[] = {
+    {"predict", (PyCFunction)(void (*)(void))core_predict, METH_FASTCALL,
+     "Eskf.predict: one IMU sample (p, v, sums in place; returns the new q)."},
+    {"propagate_core", (PyCFunction)(void (*)(void))core_propagate, METH_FASTCALL,
+     "Eskf.propagate's core rows and columns, in place on P and Phi_epoch."},
+    {"sequential_update", (PyCFunction)(void (*)(void))core_sequential_update, METH_FASTCALL,
+     "Eskf.sequential_update's scalar rows, in place on P and dx; returns the rows."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef core_module = {
+    PyModuleDef_HEAD_INIT, "_core",
+    "The error-state EKF's hot algebra in C (uwbd/fusion/eskf.py is the reference).", -1,
+    core_methods, NULL, NULL, NULL, NULL,
+};
+
+PyMODINIT_FUNC PyInit__core(void) { return PyModule_Create(&core_module); }
