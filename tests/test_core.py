@@ -19,6 +19,7 @@ from uwbd.config import parse
 from uwbd.fusion import native
 from uwbd.fusion.eskf import N_CORE, ImuNoise, Row
 from uwbd.fusion.eskf import Eskf as _Eskf
+from uwbd.fusion.lsq import multilaterate
 from uwbd.fusion.settings import FilterConfig
 from uwbd.fusion.types import Pose
 from uwbd.tools.evaluate import merge, run_filter
@@ -117,6 +118,30 @@ def test_an_error_in_decide_leaves_the_state_alone() -> None:
     with pytest.raises(ValueError, match="boom"):
         fast.sequential_update(np.eye(3, fast.n), np.ones(3), np.full(3, 0.01), decide)
     assert np.array_equal(fast.P, P) and fast.p == p
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**31), st.integers(3, 9), st.booleans(), st.booleans())
+def test_multilateration_matches_the_reference(seed: int, k: int, height_held: bool,
+                                              outlier: bool) -> None:
+    rng = np.random.default_rng(seed)
+    anchors = rng.uniform(-10, 10, size=(k, 3)) * (1.0, 1.0, 0.3)
+    tag = rng.uniform(-5, 5, size=3)
+    ranges = np.linalg.norm(anchors - tag, axis=1) + rng.normal(0, 0.05, size=k)
+    if outlier:
+        ranges[0] += 2.0  # NLOS: the outlier test drops it, given enough anchors
+    args = dict(x0=None if seed % 2 else tag + 0.5, fixed_z=float(tag[2]) if height_held
+                else None)
+    fast = multilaterate(anchors, ranges, 0.1, **args)  # type: ignore[arg-type]
+    with native.pure_python():
+        slow = multilaterate(anchors, ranges, 0.1, **args)  # type: ignore[arg-type]
+    assert (fast is None) == (slow is None)
+    if fast is not None and slow is not None:
+        assert fast.iterations == slow.iterations
+        assert np.array_equal(fast.used, slow.used)
+        np.testing.assert_allclose(fast.position_m, slow.position_m, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(fast.covariance, slow.covariance, rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(fast.residuals_m, slow.residuals_m, rtol=0, atol=1e-9)
 
 
 def compare_runs(cfg: FilterConfig, frames: list[object]) -> list[Pose]:

@@ -1,6 +1,8 @@
-/* uwbd.fusion._core: the error-state EKF's per-sample and per-epoch algebra in C.
+/* uwbd.fusion._core: the error-state EKF's per-sample and per-epoch algebra in C, and the
+ * Gauss–Newton multilateration of the UWB-only fixes.
  *
- * The reference is the pure-Python code in uwbd/fusion/eskf.py (docs/ekf.md); every
+ * The reference is the pure-Python code in uwbd/fusion/eskf.py (docs/ekf.md) and
+ * uwbd/fusion/lsq.py; every
  * function here is a line-by-line translation of one there, named alike, and the tests
  * compare the two (tests/test_core.py). Built by the package's own build (setup.py) with
  * -ffp-contract=off, so that `a * b + c` rounds as Python rounds it; predict() is then
@@ -415,6 +417,226 @@ done:
     return rows;
 }
 
+/* -- Gauss–Newton multilateration: every UWB fix ----------------------------------------- */
+
+/* Solve the dims×dims system A z = b (dims 2 or 3) by Gaussian elimination with partial
+ * pivoting, as LAPACK's LU does; -1 when a pivot is exactly zero (numpy: LinAlgError). */
+static int solve_small(int dims, double A[3][3], double b[3], double z[3])
+{
+    double M[3][4];
+    for (int i = 0; i < dims; i++) {
+        for (int j = 0; j < dims; j++)
+            M[i][j] = A[i][j];
+        M[i][dims] = b[i];
+    }
+    for (int c = 0; c < dims; c++) {
+        int piv = c;
+        for (int r = c + 1; r < dims; r++)
+            if (fabs(M[r][c]) > fabs(M[piv][c]))
+                piv = r;
+        if (M[piv][c] == 0.0)
+            return -1;
+        if (piv != c)
+            for (int j = 0; j <= dims; j++) {
+                double t = M[c][j];
+                M[c][j] = M[piv][j];
+                M[piv][j] = t;
+            }
+        for (int r = c + 1; r < dims; r++) {
+            double f = M[r][c] / M[c][c];
+            for (int j = c; j <= dims; j++)
+                M[r][j] -= f * M[c][j];
+        }
+    }
+    for (int i = dims - 1; i >= 0; i--) {
+        double s = M[i][dims];
+        for (int j = i + 1; j < dims; j++)
+            s -= M[i][j] * z[j];
+        z[i] = s / M[i][i];
+    }
+    return 0;
+}
+
+static int normal_matrix(const double *anchors, Py_ssize_t k, const double x[3], int dims,
+                         const double *ranges, double JtJ[3][3], double Jtr[3])
+{
+    for (int i = 0; i < 3; i++) {
+        Jtr[i] = 0.0;
+        for (int j = 0; j < 3; j++)
+            JtJ[i][j] = 0.0;
+    }
+    for (Py_ssize_t a = 0; a < k; a++) {
+        double d[3], dist;
+        for (int i = 0; i < 3; i++)
+            d[i] = x[i] - anchors[3 * a + i];
+        dist = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+        if (dist < 1e-6)
+            return -1;
+        double r = ranges == NULL ? 0.0 : dist - ranges[a];
+        for (int i = 0; i < dims; i++) {
+            double ji = d[i] / dist;
+            Jtr[i] += ji * r;
+            for (int j = 0; j < dims; j++)
+                JtJ[i][j] += ji * (d[j] / dist);
+        }
+    }
+    return 0;
+}
+
+/* out (3×3, row-major) = A⁻¹ in its top-left dims×dims, zero elsewhere */
+static int inverse(int dims, double A[3][3], double *out)
+{
+    for (int i = 0; i < 9; i++)
+        out[i] = 0.0;
+    for (int c = 0; c < dims; c++) {
+        double e[3] = {0.0, 0.0, 0.0}, col[3];
+        e[c] = 1.0;
+        if (solve_small(dims, A, e, col) < 0)
+            return -1;
+        for (int r = 0; r < dims; r++)
+            out[3 * r + c] = col[r];
+    }
+    return 0;
+}
+
+/* gauss_newton(anchors (k×3), ranges (k), x (3, in place), dims, max_iterations,
+ *              converged_m, accept_last_m, out (3×3)) -> iterations, or 0 for no fix
+ * lsq._solve's iteration: steps (JᵀJ) δ = −Jᵀ r on the first `dims` coordinates until a
+ * step is below converged_m; after max_iterations a last step above accept_last_m is no
+ * fix; a range from an anchor closer than 1 µm or a singular JᵀJ is no fix either. `out`
+ * gets (JᵀJ)⁻¹ of the last step in its top-left dims×dims, the rest zero: the fix's
+ * covariance over σ². */
+static PyObject *core_gauss_newton(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 8) {
+        PyErr_SetString(PyExc_TypeError, "gauss_newton takes 8 arguments");
+        return NULL;
+    }
+    int dims = (int)PyLong_AsLong(args[3]);
+    long max_iter = PyLong_AsLong(args[4]);
+    double converged = PyFloat_AsDouble(args[5]), accept_last = PyFloat_AsDouble(args[6]);
+    if (PyErr_Occurred())
+        return NULL;
+    if (dims != 2 && dims != 3) {
+        PyErr_SetString(PyExc_ValueError, "dims must be 2 or 3");
+        return NULL;
+    }
+    Py_buffer Ab, rb, xb, ob;
+    if (get_doubles(args[7], &ob, 9, 1, "out") < 0)
+        return NULL;
+    if (get_doubles(args[1], &rb, -1, 0, "ranges") < 0) {
+        PyBuffer_Release(&ob);
+        return NULL;
+    }
+    Py_ssize_t k = rb.len / 8;
+    if (get_doubles(args[0], &Ab, 3 * k, 0, "anchors") < 0) {
+        PyBuffer_Release(&rb);
+        PyBuffer_Release(&ob);
+        return NULL;
+    }
+    if (get_doubles(args[2], &xb, 3, 1, "x") < 0) {
+        PyBuffer_Release(&rb);
+        PyBuffer_Release(&Ab);
+        PyBuffer_Release(&ob);
+        return NULL;
+    }
+    const double *anchors = (const double *)Ab.buf, *ranges = (const double *)rb.buf;
+    double *x = (double *)xb.buf;
+    long iteration = 0, result = 0;
+    double JtJ[3][3], *out = (double *)ob.buf;
+    for (;;) {
+        iteration++;
+        double Jtr[3], step[3];
+        if (normal_matrix(anchors, k, x, dims, ranges, JtJ, Jtr) < 0)
+            break;
+        for (int i = 0; i < dims; i++)
+            Jtr[i] = -Jtr[i];
+        if (solve_small(dims, JtJ, Jtr, step) < 0)
+            break;
+        double norm = 0.0;
+        for (int i = 0; i < dims; i++) {
+            x[i] += step[i];
+            norm += step[i] * step[i];
+        }
+        norm = sqrt(norm);
+        if (norm < converged) {
+            result = iteration;
+            break;
+        }
+        if (iteration == max_iter) {
+            result = norm > accept_last ? 0 : iteration;
+            break;
+        }
+    }
+    if (result && inverse(dims, JtJ, out) < 0)
+        result = 0;
+    PyBuffer_Release(&rb);
+    PyBuffer_Release(&Ab);
+    PyBuffer_Release(&xb);
+    PyBuffer_Release(&ob);
+    return PyLong_FromLong(result);
+}
+
+/* leverages(anchors (k×3), x (3), dims) -> [h_ii] or None if JᵀJ is singular
+ * The leverage of each range at x, h_ii = J_i (JᵀJ)⁻¹ J_iᵀ with J the unit vectors from the
+ * anchors (their first dims coordinates): multilaterate's studentised residuals. */
+static PyObject *core_leverages(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "leverages takes 3 arguments");
+        return NULL;
+    }
+    int dims = (int)PyLong_AsLong(args[2]);
+    if (PyErr_Occurred())
+        return NULL;
+    if (dims != 2 && dims != 3) {
+        PyErr_SetString(PyExc_ValueError, "dims must be 2 or 3");
+        return NULL;
+    }
+    Py_buffer Ab, xb;
+    if (get_doubles(args[0], &Ab, -1, 0, "anchors") < 0)
+        return NULL;
+    if (get_doubles(args[1], &xb, 3, 0, "x") < 0) {
+        PyBuffer_Release(&Ab);
+        return NULL;
+    }
+    const double *anchors = (const double *)Ab.buf, *x = (const double *)xb.buf;
+    Py_ssize_t k = Ab.len / 24;
+    double JtJ[3][3], unused[3], inv[9];
+    PyObject *out = NULL;
+    if (normal_matrix(anchors, k, x, dims, NULL, JtJ, unused) < 0 ||
+        inverse(dims, JtJ, inv) < 0) {
+        out = Py_NewRef(Py_None);
+        goto done;
+    }
+    out = PyList_New(k);
+    if (out == NULL)
+        goto done;
+    for (Py_ssize_t a = 0; a < k; a++) {
+        double d[3], dist, u[3], h = 0.0;
+        for (int i = 0; i < 3; i++)
+            d[i] = x[i] - anchors[3 * a + i];
+        dist = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+        for (int i = 0; i < dims; i++)
+            u[i] = d[i] / dist;
+        for (int i = 0; i < dims; i++)
+            for (int j = 0; j < dims; j++)
+                h += u[i] * inv[3 * i + j] * u[j];
+        PyObject *f = PyFloat_FromDouble(h);
+        if (f == NULL) {
+            Py_CLEAR(out);
+            goto done;
+        }
+        PyList_SET_ITEM(out, a, f);
+    }
+done:
+    PyBuffer_Release(&Ab);
+    PyBuffer_Release(&xb);
+    return out;
+}
+
 static PyMethodDef core_methods[] = {
     {"predict", (PyCFunction)(void (*)(void))core_predict, METH_FASTCALL,
      "Eskf.predict: one IMU sample (p, v, sums in place; returns the new q)."},
@@ -422,6 +644,10 @@ static PyMethodDef core_methods[] = {
      "Eskf.propagate's core rows and columns, in place on P and Phi_epoch."},
     {"sequential_update", (PyCFunction)(void (*)(void))core_sequential_update, METH_FASTCALL,
      "Eskf.sequential_update's scalar rows, in place on P and dx; returns the rows."},
+    {"gauss_newton", (PyCFunction)(void (*)(void))core_gauss_newton, METH_FASTCALL,
+     "lsq._solve's Gauss-Newton iteration, in place on x; the iterations, 0: no fix."},
+    {"leverages", (PyCFunction)(void (*)(void))core_leverages, METH_FASTCALL,
+     "Each range's leverage at x (multilaterate's outlier test); None if singular."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -13,6 +13,9 @@ solves ``(JᵀJ) δ = −Jᵀ r``; the covariance of the fix is ``σ² (JᵀJ)�
   and the fix is solved again. 5 σ by default: NLOS excess is typically >= 0.5 m, while
   uncalibrated antenna delays bias good ranges by 0.1-0.25 m, which 3 σ (at σ = 0.1 m)
   would throw away, weakening the geometry (measured: worse on the real flight).
+
+The iteration and the leverages run in the C core when it is built (:mod:`.native`); the
+code here is the reference it translates.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from uwbd.fusion import native
 from uwbd.fusion.rotation import Array
 
 MAX_ITERATIONS = 20
@@ -62,8 +66,7 @@ def multilaterate(anchors_m: Array, ranges_m: Array, sigma_m: float = 0.1,
     if fix is None or used.sum() <= dims + 1:
         return fix
     # studentised residuals: r_i / (σ √(1 − h_ii)), h_ii the leverage of range i
-    J = _jacobian(anchors_m[used], fix.position_m, dims)
-    lev = np.einsum("ij,jk,ik->i", J, np.linalg.pinv(J.T @ J), J)
+    lev = _leverages(anchors_m[used], fix.position_m, dims)
     student = np.abs(fix.residuals_m[used]) / (sigma_m * np.sqrt(np.clip(1 - lev, 1e-6, None)))
     worst = int(np.argmax(student))
     if student[worst] <= outlier_sigma:
@@ -72,9 +75,17 @@ def multilaterate(anchors_m: Array, ranges_m: Array, sigma_m: float = 0.1,
     return _solve(anchors_m, ranges_m, used, sigma_m, fix.position_m, fixed_z, side) or fix
 
 
-def _jacobian(anchors: Array, x: Array, dims: int) -> Array:
+def _leverages(anchors: Array, x: Array, dims: int) -> Array:
+    """``h_ii = J_i (JᵀJ)⁺ J_iᵀ`` of each range at ``x``."""
+    core = native.core
+    if core is not None:
+        lev = core.leverages(np.ascontiguousarray(anchors, dtype=float),
+                             np.ascontiguousarray(x, dtype=float), dims)
+        if lev is not None:  # else singular: the pseudo-inverse below
+            return np.array(lev)
     diff = x - anchors
-    return (diff / np.linalg.norm(diff, axis=1, keepdims=True))[:, :dims]
+    J = (diff / np.linalg.norm(diff, axis=1, keepdims=True))[:, :dims]
+    return np.einsum("ij,jk,ik->i", J, np.linalg.pinv(J.T @ J), J)
 
 
 def _initial_guess(anchors: Array, ranges: Array, fixed_z: float | None, side: int) -> Array:
@@ -100,10 +111,35 @@ def _solve(anchors_all: Array, ranges_all: Array, used: Array, sigma_m: float,
     anchors, ranges = anchors_all[used], ranges_all[used]
     if len(ranges) < dims:
         return None
-    x = (np.array(x0, dtype=float) if x0 is not None
-         else _initial_guess(anchors, ranges, fixed_z, side))
+    x = np.array(x0 if x0 is not None else _initial_guess(anchors, ranges, fixed_z, side),
+                 dtype=float)
     if fixed_z is not None:
         x[2] = fixed_z
+    core = native.core
+    if core is not None:
+        inverse = np.zeros((3, 3))
+        iteration = core.gauss_newton(np.ascontiguousarray(anchors, dtype=float),
+                                      np.ascontiguousarray(ranges, dtype=float), x,
+                                      dims, MAX_ITERATIONS, CONVERGED_M, ACCEPT_LAST_STEP_M,
+                                      inverse)
+        if iteration == 0:
+            return None
+        cov = sigma_m**2 * inverse
+    else:
+        solved = _iterate(anchors, ranges, x, dims)
+        if solved is None:
+            return None
+        iteration, cov = solved
+        cov *= sigma_m**2
+    residuals = np.full(len(ranges_all), np.nan)
+    residuals[used] = np.linalg.norm(x - anchors, axis=1) - ranges
+    rms = float(np.sqrt(np.mean(residuals[used] ** 2)))
+    return LsqFix(x, cov, residuals, used.copy(), rms, iteration)
+
+
+def _iterate(anchors: Array, ranges: Array, x: Array, dims: int) -> tuple[int, Array] | None:
+    """Gauss–Newton from ``x`` (in place): the iterations and ``(JᵀJ)⁻¹`` of the last step
+    (top-left ``dims``), or ``None`` for no fix."""
     iteration = 0
     while True:
         iteration += 1
@@ -125,12 +161,9 @@ def _solve(anchors_all: Array, ranges_all: Array, used: Array, sigma_m: float,
             if float(np.linalg.norm(step)) > ACCEPT_LAST_STEP_M:
                 return None  # diverging or oscillating: no fix
             break
-    residuals = np.full(len(ranges_all), np.nan)
-    residuals[used] = np.linalg.norm(x - anchors, axis=1) - ranges
-    cov = np.zeros((3, 3))
-    cov[:dims, :dims] = sigma_m**2 * np.linalg.inv(JtJ)
-    rms = float(np.sqrt(np.mean(residuals[used] ** 2)))
-    return LsqFix(x, cov, residuals, used.copy(), rms, iteration)
+    inverse = np.zeros((3, 3))
+    inverse[:dims, :dims] = np.linalg.inv(JtJ)
+    return iteration, inverse
 
 
 def common_offset(anchors_m: Array, ranges_m: Array, x0: Array) -> tuple[float, Array] | None:
