@@ -1,6 +1,6 @@
 """Daemon figures, measured side by side in one run.
 
-    python benchmarks/bench_daemon.py [--seconds 15] [--runs 3]
+    python benchmarks/bench_daemon.py [--seconds 15] [--runs 3] [--replay-s 586]
 
 * latency: serial read → Zenoh receive. A pose's ``t_ns`` is the receive time of the read
   that produced it (``time.time_ns()`` in the daemon), so a subscriber on the same host takes
@@ -8,14 +8,19 @@
 * CPU (% of one core) and RSS of the ``uwbd run`` process, with the emulator (a process of
   its own, ``uwbd emulate``) feeding a 200 Hz WitMotion IMU and a 10 Hz Nooploop tag over
   pseudo-terminals, from ``/proc``; each run and the median of the runs;
-* replay speed: a 60 s simulated log through ``uwbd replay``'s pipeline, as a multiple of
-  real time, without and with writing the output log.
+* replay speed: a simulated log (about 10 minutes of a 200 Hz IMU and 6 anchors at 10 Hz)
+  through ``uwbd replay``'s pipeline, as a multiple of real time, without and with writing
+  the output log.
+
+Each figure is taken twice in the same run, on the C core and on the pure-Python reference
+(``UWBD_PURE_PYTHON=1``), and their ratio printed.
 Everything stays on this machine: Zenoh on a unix socket, no scouting.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -29,10 +34,11 @@ import numpy as np
 import zenoh
 
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M
+from uwbd.fusion import native
 from uwbd.logs.mcaplog import read_log
 from uwbd.logs.replay import replay
 from uwbd.tools.logtools import write_simulation
-from uwbd.tools.simulator import SimConfig, simulate
+from uwbd.tools.simulator import DEFAULT_SEGMENTS, SimConfig, simulate
 
 TICKS = os.sysconf("SC_CLK_TCK")
 
@@ -74,8 +80,8 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def live(seconds: float, run: int) -> tuple[float, float, float]:
-    """One live measurement; prints it and returns (p50 ms, p99 ms, CPU %)."""
+def live(seconds: float, run: int, pure: bool) -> tuple[float, float, float, float]:
+    """One live measurement; prints it and returns (p50 ms, p99 ms, CPU %, RSS MB)."""
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         sock = tmp / "z.sock"
@@ -92,9 +98,13 @@ def live(seconds: float, run: int) -> tuple[float, float, float]:
                 time.sleep(0.05)
             cfg = tmp / "cfg.toml"
             cfg.write_text(config_text(str(tmp / "imu"), str(tmp / "uwb"), sock))
+            env = {k: v for k, v in os.environ.items() if k != native.PURE_PYTHON_ENV}
+            if pure:
+                env[native.PURE_PYTHON_ENV] = "1"
             daemon = subprocess.Popen(
                 [sys.executable, "-m", "uwbd", "run", "-c", str(cfg), "--log-dir",
-                 str(tmp / "logs")], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                 str(tmp / "logs")], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                env=env)
             while not sock.exists():
                 time.sleep(0.05)
             session = zenoh.open(zenoh.Config.from_json5(json.dumps({
@@ -123,14 +133,16 @@ def live(seconds: float, run: int) -> tuple[float, float, float]:
         lat_ms = np.array(latencies) / 1e6
         p50, p99 = np.percentile(lat_ms, 50), np.percentile(lat_ms, 99)
         cpu = 100 * (cpu1 - cpu0) / (t1 - t0)
-        print(f"live run {run}, {seconds:.0f} s steady state: serial read -> Zenoh receive "
+        print(f"live run {run} ({'pure Python' if pure else 'C core'}), {seconds:.0f} s: "
+              "serial read -> Zenoh receive "
               f"p50 {p50:.2f} ms, p99 {p99:.2f} ms, max {lat_ms.max():.2f} ms over "
               f"{len(lat_ms)} poses; daemon CPU {cpu:.1f} % of one core, RSS {rss:.0f} MB")
-        return float(p50), float(p99), cpu
+        return float(p50), float(p99), cpu, rss
 
 
-def replay_speed() -> None:
-    sim = simulate(SimConfig(seed=1))
+def replay_speed(replay_s: float) -> None:
+    loops = max(1, round(replay_s / sum(seg[0] for seg in DEFAULT_SEGMENTS)))
+    sim = simulate(SimConfig(seed=1, segments=DEFAULT_SEGMENTS * loops))
     duration_s = (sim.truth_t_ns[-1] - sim.truth_t_ns[0]) / 1e9
     with tempfile.TemporaryDirectory() as tmp_name:
         path = Path(tmp_name) / "sim.mcap"
@@ -138,11 +150,16 @@ def replay_speed() -> None:
         contents = read_log(path)
         output = Path(tmp_name) / "o.mcap"
         for label, out in (("poses only", None), ("writing the output log", output)):
-            t0 = time.perf_counter()
-            pipeline, _ = replay(contents, str(path), out)
-            elapsed = time.perf_counter() - t0
-            print(f"replay, {duration_s:.0f} s simulated log, {label}: "
-                  f"{duration_s / elapsed:.0f} x real time ({pipeline.poses} poses)")
+            speed = {}
+            for impl in ("C core", "pure Python"):
+                with native.pure_python() if impl == "pure Python" else contextlib.nullcontext():
+                    t0 = time.perf_counter()
+                    pipeline, _ = replay(contents, str(path), out)
+                    elapsed = time.perf_counter() - t0
+                speed[impl] = duration_s / elapsed
+                print(f"replay, {duration_s:.0f} s simulated log, {label}, {impl}: "
+                      f"{speed[impl]:.0f} x real time ({pipeline.poses} poses)")
+            print(f"  C core / pure Python: {speed['C core'] / speed['pure Python']:.2f}")
 
 
 def main() -> None:
@@ -150,12 +167,23 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=15.0, help="steady-state window")
     ap.add_argument("--runs", type=int, default=3,
                     help="live runs (a shared VM's CPU figures vary by ±1 point run to run)")
+    ap.add_argument("--replay-s", type=float, default=586.0,
+                    help="length of the replayed log (whole loops of the default path)")
     args = ap.parse_args()
     print("live: 200 Hz WitMotion IMU + 10 Hz Nooploop tag (6 anchors) on ptys")
-    results = np.array([live(args.seconds, k + 1) for k in range(args.runs)])
-    p50, p99, cpu = np.median(results, axis=0)
-    print(f"live, median of {args.runs}: p50 {p50:.2f} ms, p99 {p99:.2f} ms, CPU {cpu:.1f} %")
-    replay_speed()
+    medians = {}
+    # alternated run by run, so that drifts of a shared VM hit both alike
+    runs: dict[bool, list[tuple[float, float, float, float]]] = {False: [], True: []}
+    for k in range(args.runs):
+        for pure in (False, True):
+            runs[pure].append(live(args.seconds, k + 1, pure))
+    for pure in (False, True):
+        medians[pure] = np.median(np.array(runs[pure]), axis=0)
+        p50, p99, cpu, rss = medians[pure]
+        print(f"live, {'pure Python' if pure else 'C core'}, median of {args.runs}: "
+              f"p50 {p50:.2f} ms, p99 {p99:.2f} ms, CPU {cpu:.1f} %, RSS {rss:.0f} MB")
+    print(f"  CPU, C core / pure Python: {medians[False][2] / medians[True][2]:.2f}")
+    replay_speed(args.replay_s)
 
 
 if __name__ == "__main__":

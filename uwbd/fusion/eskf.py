@@ -103,6 +103,8 @@ class Eskf:
                             else np.asarray(aux_sigma)[self._markov] ** 2)
         self._decay_epoch = np.ones(n_range_bias)
         self._core = native.core  # None: the pure-Python code below
+        self._clamp_key: tuple[int, float] | None = None
+        self._clamp_limit = np.zeros(0)
 
     # -- nominal propagation: every IMU sample -------------------------------------------
     def predict(self, acc_b: Vector, gyro_b: Vector, dt: float) -> None:
@@ -371,7 +373,12 @@ class Eskf:
         """Variances within bounds and none negative; True if anything was clamped. Scaling
         a row and its column keeps ``P`` positive semi-definite."""
         d = np.diag(self.P)
-        limit = np.concatenate([max_core_sigma, np.full(self.n - N_CORE, max_aux_sigma)])**2
+        key = (id(max_core_sigma), max_aux_sigma)
+        if self._clamp_key != key:  # the same bounds every epoch: made once
+            self._clamp_key = key
+            self._clamp_limit = np.concatenate(
+                [max_core_sigma, np.full(self.n - N_CORE, max_aux_sigma)])**2
+        limit = self._clamp_limit
         if not ((d > limit).any() or (d < 0).any()):
             return False
         scale = np.sqrt(np.minimum(1.0, limit / np.maximum(d, 1e-300)))
