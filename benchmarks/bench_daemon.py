@@ -38,7 +38,7 @@ from uwbd.fusion import native
 from uwbd.logs.mcaplog import read_log
 from uwbd.logs.replay import replay
 from uwbd.tools.logtools import write_simulation
-from uwbd.tools.simulator import DEFAULT_SEGMENTS, SimConfig, simulate
+from uwbd.tools.simulator import SimConfig, segments_for, simulate
 
 TICKS = os.sysconf("SC_CLK_TCK")
 
@@ -141,8 +141,7 @@ def live(seconds: float, run: int, pure: bool) -> tuple[float, float, float, flo
 
 
 def replay_speed(replay_s: float) -> None:
-    loops = max(1, round(replay_s / sum(seg[0] for seg in DEFAULT_SEGMENTS)))
-    sim = simulate(SimConfig(seed=1, segments=DEFAULT_SEGMENTS * loops))
+    sim = simulate(SimConfig(seed=1, segments=segments_for(replay_s)))
     duration_s = (sim.truth_t_ns[-1] - sim.truth_t_ns[0]) / 1e9
     with tempfile.TemporaryDirectory() as tmp_name:
         path = Path(tmp_name) / "sim.mcap"
@@ -168,7 +167,7 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=3,
                     help="live runs (a shared VM's CPU figures vary by ±1 point run to run)")
     ap.add_argument("--replay-s", type=float, default=586.0,
-                    help="length of the replayed log (whole loops of the default path)")
+                    help="length of the replayed log (the default path repeated)")
     args = ap.parse_args()
     print("live: 200 Hz WitMotion IMU + 10 Hz Nooploop tag (6 anchors) on ptys")
     medians = {}

@@ -154,8 +154,8 @@ def test_malformed_config_is_one_clear_line_and_exit_2(tmp_path: Path, text: str
 
 
 def test_replay_of_a_simulated_log_is_deterministic(tmp_path: Path) -> None:
-    subprocess.run([*UWBD, "simulate", "-o", "s.mcap", "--seed", "3"], cwd=tmp_path,
-                   check=True, capture_output=True, timeout=60)
+    subprocess.run([*UWBD, "simulate", "-o", "s.mcap", "--duration", "25", "--seed", "3"],
+                   cwd=tmp_path, check=True, capture_output=True, timeout=60)
     outs = []
     for name in ("a.mcap", "b.mcap"):
         r = subprocess.run([*UWBD, "replay", "s.mcap", "-o", name], cwd=tmp_path,
@@ -255,8 +255,8 @@ def test_unwritable_log_directory_stops_the_log_not_the_fusion(tmp_path: Path) -
     """The log directory cannot be created (its parent is a file): poses keep flowing and
     the status says why nothing is logged."""
     sim_log = tmp_path / "s.mcap"
-    subprocess.run([*UWBD, "simulate", "-o", str(sim_log), "--seed", "4"], check=True,
-                   capture_output=True, timeout=60)
+    subprocess.run([*UWBD, "simulate", "-o", str(sim_log), "--duration", "25", "--seed", "4"],
+                   check=True, capture_output=True, timeout=60)
     contents = read_log(sim_log)
     blocker = tmp_path / "not-a-dir"
     blocker.write_text("")
@@ -310,8 +310,8 @@ def test_dwm1001_tlv_source_polls_loc_get(tmp_path: Path) -> None:
 def test_samples_of_one_read_get_their_own_times(tmp_path: Path) -> None:
     """Two IMU cycles in one read (the port was read late) must both reach the filter."""
     sim_log = tmp_path / "s.mcap"
-    subprocess.run([*UWBD, "simulate", "-o", str(sim_log), "--seed", "6"], check=True,
-                   capture_output=True, timeout=60)
+    subprocess.run([*UWBD, "simulate", "-o", str(sim_log), "--duration", "25", "--seed", "6"],
+                   check=True, capture_output=True, timeout=60)
     contents = read_log(sim_log)
     config = parse(contents.metadata["config_toml"])
     raw = [m for m in contents.messages if m.topic.startswith("/raw/")]

@@ -30,7 +30,8 @@ def test_the_daemon_and_its_log_tools_run_without_the_tools_extra(tmp_path: Path
     demo = uwbd("demo", "--duration", "3", env=env, cwd=tmp_path)
     assert demo.returncode == 0 and "Traceback" not in demo.stderr, demo.stderr
     assert "pose (" in demo.stdout
-    sim = uwbd("simulate", "-o", "s.mcap", "--seed", "1", env=env, cwd=tmp_path)
+    sim = uwbd("simulate", "-o", "s.mcap", "--duration", "25", "--seed", "1", env=env,
+               cwd=tmp_path)
     assert sim.returncode == 0, sim.stderr
     replay = uwbd("replay", "s.mcap", env=env, cwd=tmp_path)
     assert replay.returncode == 0 and "poses" in replay.stdout, replay.stderr

@@ -362,7 +362,8 @@ def test_no_input_makes_the_filter_raise_or_publish_a_non_finite_pose(
         if pose is not None:
             assert all(map(math.isfinite, pose.position_m + pose.velocity_mps
                            + pose.orientation_xyzw + pose.covariance))
-    assert flt.counters["internal_errors"] == 0, flt.last_internal_error  # every bad value met a check first
+    # every bad value met a check first
+    assert flt.counters["internal_errors"] == 0, flt.last_internal_error
 
 
 def test_rest_is_not_seen_in_slow_steady_motion() -> None:

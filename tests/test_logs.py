@@ -5,11 +5,13 @@ from __future__ import annotations
 import json
 import math
 import os
+import struct
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+import zstandard
 from mcap.reader import make_reader
 
 from drivers.frames import ImuSample, UwbRanges
@@ -221,3 +223,46 @@ def test_json_never_carries_nan() -> None:
     assert json.loads(strict_json({"a": math.nan, "b": [1.0, math.inf], "c": {"d": -math.inf}})) \
         == {"a": None, "b": [1.0, None], "c": {"d": None}}
     assert b"NaN" not in strict_json({"x": [math.nan] * 3})
+
+
+def test_chunks_and_their_indexes_point_at_the_right_records(tmp_path: Path) -> None:
+    """uwbd's own chunk writer (uwbd.logs.chunked) against the MCAP spec: the library's
+    seeking reader finds every message through the summary, each chunk index gives its
+    chunk's time span, and every message index entry points at a message record of its
+    channel with its log time inside the decompressed chunk."""
+    path = tmp_path / "x.mcap"
+    with LogWriter(path, chunk_bytes=2000) as w:  # small chunks: many of them
+        for i in range(500):
+            w.json(f"/t{i % 3}", 1000 + (i * 37) % 5000, {"i": i})  # out of time order
+    data = path.read_bytes()
+    with path.open("rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        assert sum(1 for _ in reader.iter_messages()) == 500
+    assert summary.statistics.message_count == 500
+    assert dict(summary.statistics.channel_message_counts) == {1: 167, 2: 167, 3: 166}
+    assert (summary.statistics.message_start_time, summary.statistics.message_end_time) \
+        == (1000, 5995)
+    assert len(summary.chunk_indexes) > 5
+    checked = 0
+    for ci in summary.chunk_indexes:
+        at = ci.chunk_start_offset + 9  # opcode, record length
+        start, end, size, _crc = struct.unpack_from("<QQQI", data, at)
+        at += 28 + 4 + struct.unpack_from("<I", data, at + 28)[0]  # compression name
+        length = struct.unpack_from("<Q", data, at)[0]
+        records = zstandard.decompress(data[at + 8:at + 8 + length], max_output_size=size)
+        assert (start, end) == (ci.message_start_time, ci.message_end_time)
+        times = []
+        for channel, offset in ci.message_index_offsets.items():
+            body_len = struct.unpack_from("<Q", data, offset + 1)[0]
+            ch, n = struct.unpack_from("<HI", data, offset + 9)
+            assert data[offset] == 0x07 and ch == channel and 6 + n == body_len
+            for k in range(n // 16):
+                t, o = struct.unpack_from("<QQ", data, offset + 15 + 16 * k)
+                op, _, mch, _, log_t, pub_t = struct.unpack_from("<BQHIQQ", records, o)
+                assert (op, mch, log_t, pub_t) == (0x05, channel, t, t)
+                times.append(t)
+                checked += 1
+        assert (min(times), max(times)) == (start, end)
+    assert checked == 500

@@ -48,7 +48,7 @@ from uwbd.tools.importer import (
     load_inrol,
 )
 from uwbd.tools.logtools import load_recording, write_dataset, write_simulation
-from uwbd.tools.simulator import Z_DOWN, SimConfig, simulate
+from uwbd.tools.simulator import Z_DOWN, SimConfig, segments_for, simulate
 
 READ_CHUNK_BYTES = 65536
 LOG = journal.get("cli")
@@ -181,7 +181,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     out = Path(args.output)
     _writable_folder(out, "the log")
     driver = _driver(args.uwb)
-    sim = simulate(SimConfig(seed=args.seed))
+    if args.duration is not None and not args.duration > 0:
+        raise UsageError(f"--duration {args.duration}: give a positive number of seconds")
+    sim = simulate(SimConfig(seed=args.seed) if args.duration is None else
+                   SimConfig(seed=args.seed, segments=segments_for(args.duration)))
     try:
         write_simulation(sim, out, driver)
     except OSError as err:
@@ -786,6 +789,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", default="sim.mcap", help="log to write (default sim.mcap)")
     p.add_argument("--uwb", default="nlink", help="UWB wire format in the log (default nlink)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--duration", type=float, metavar="S",
+                   help="length of the run: the default path (59 s) cut or repeated")
     p.set_defaults(func=cmd_simulate)
 
     p = add("import", help="turn a recorded dataset into an MCAP log")

@@ -417,6 +417,56 @@ done:
     return rows;
 }
 
+/* reset_covariance(P, dtheta) — after a fused update, in place on P (n×n):
+ * P ← (P + Pᵀ)/2, then the error reset P ← G P Gᵀ with G = I except its attitude block
+ * I − ½[δθ]× (eskf: sequential_update's symmetrising and Eskf.inject's covariance part). */
+static PyObject *core_reset_covariance(PyObject *self, PyObject *const *args,
+                                       Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "reset_covariance takes 2 arguments");
+        return NULL;
+    }
+    double th[3];
+    if (get_vec(args[1], th, 3, "dtheta"))
+        return NULL;
+    Py_buffer Pb;
+    if (get_doubles(args[0], &Pb, -1, 1, "P") < 0)
+        return NULL;
+    Py_ssize_t n = (Py_ssize_t)sqrt((double)(Pb.len / 8));
+    if (n * n * 8 != Pb.len || n < N_CORE) {
+        PyBuffer_Release(&Pb);
+        PyErr_SetString(PyExc_ValueError, "P must be square, at least 15x15");
+        return NULL;
+    }
+    double *P = (double *)Pb.buf;
+    for (Py_ssize_t a = 0; a < n; a++)
+        for (Py_ssize_t b = a + 1; b < n; b++) {
+            double m = 0.5 * (P[a * n + b] + P[b * n + a]);
+            P[a * n + b] = m;
+            P[b * n + a] = m;
+        }
+    /* G_th = I − ½[δθ]× */
+    double G[3][3] = {{1.0, 0.5 * th[2], -0.5 * th[1]},
+                      {-0.5 * th[2], 1.0, 0.5 * th[0]},
+                      {0.5 * th[1], -0.5 * th[0], 1.0}};
+    const Py_ssize_t t0 = 6;
+    for (Py_ssize_t b = 0; b < n; b++) { /* rows: P[TH, :] ← G P[TH, :] */
+        double c0 = P[t0 * n + b], c1 = P[(t0 + 1) * n + b], c2 = P[(t0 + 2) * n + b];
+        for (int i = 0; i < 3; i++)
+            P[(t0 + i) * n + b] = G[i][0] * c0 + G[i][1] * c1 + G[i][2] * c2;
+    }
+    for (Py_ssize_t a = 0; a < n; a++) { /* columns: P[:, TH] ← P[:, TH] Gᵀ */
+        double *row = P + a * n + t0;
+        double c0 = row[0], c1 = row[1], c2 = row[2];
+        for (int i = 0; i < 3; i++)
+            row[i] = c0 * G[i][0] + c1 * G[i][1] + c2 * G[i][2];
+    }
+    PyBuffer_Release(&Pb);
+    Py_RETURN_NONE;
+}
+
 /* -- Gauss–Newton multilateration: every UWB fix ----------------------------------------- */
 
 /* Solve the dims×dims system A z = b (dims 2 or 3) by Gaussian elimination with partial
@@ -644,6 +694,8 @@ static PyMethodDef core_methods[] = {
      "Eskf.propagate's core rows and columns, in place on P and Phi_epoch."},
     {"sequential_update", (PyCFunction)(void (*)(void))core_sequential_update, METH_FASTCALL,
      "Eskf.sequential_update's scalar rows, in place on P and dx; returns the rows."},
+    {"reset_covariance", (PyCFunction)(void (*)(void))core_reset_covariance, METH_FASTCALL,
+     "After a fused update: P symmetrised and reset by G, in place."},
     {"gauss_newton", (PyCFunction)(void (*)(void))core_gauss_newton, METH_FASTCALL,
      "lsq._solve's Gauss-Newton iteration, in place on x; the iterations, 0: no fix."},
     {"leverages", (PyCFunction)(void (*)(void))core_leverages, METH_FASTCALL,

@@ -305,9 +305,12 @@ class Eskf:
             rows = [Row(*r) for r in self._core.sequential_update(
                 P, np.ascontiguousarray(H, dtype=float), np.ascontiguousarray(y, dtype=float),
                 np.ascontiguousarray(R, dtype=float), decide, c0, c1, dx)]
-            fused = any(r.weight > 0.0 for r in rows)
-        else:
-            P, dx, rows, fused = self._sequential_rows(H, y, R, decide, considered)
+            if any(r.weight > 0.0 for r in rows):
+                self.P = P
+                self._inject_nominal(dx)
+                self._core.reset_covariance(P, dx[TH_])  # symmetrised, then G P Gᵀ
+            return rows
+        P, dx, rows, fused = self._sequential_rows(H, y, R, decide, considered)
         if fused:
             self.P = 0.5 * (P + P.T)
             self.inject(dx)
@@ -352,6 +355,14 @@ class Eskf:
 
     def inject(self, dx: Array) -> None:
         """Closed-loop correction of the nominal state, then the error reset ``P ← G P Gᵀ``."""
+        self._inject_nominal(dx)
+        # G = I except its attitude block I − ½[δθ]×: only those rows and columns change
+        G_th = np.eye(3) - 0.5 * skew(dx[TH_])
+        P = self.P
+        P[TH_, :] = G_th @ P[TH_, :]
+        P[:, TH_] = P[:, TH_] @ G_th.T
+
+    def _inject_nominal(self, dx: Array) -> None:
         self.last_dx = dx
         d = dx.tolist()  # plain floats: numpy scalars would slow every later predict() ~3×
         p, v, b_g, b_a = self.p, self.v, self.b_g, self.b_a
@@ -362,11 +373,6 @@ class Eskf:
             b_a[i] += d[12 + i]
         self.b_r += dx[N_CORE:]
         self.q = _turned(self.q, d[6], d[7], d[8])
-        # G = I except its attitude block I − ½[δθ]×: only those rows and columns change
-        G_th = np.eye(3) - 0.5 * skew(dx[TH_])
-        P = self.P
-        P[TH_, :] = G_th @ P[TH_, :]
-        P[:, TH_] = P[:, TH_] @ G_th.T
 
     # -- keeping P sane ----------------------------------------------------------------------
     def clamp_covariance(self, max_core_sigma: Array, max_aux_sigma: float) -> bool:

@@ -46,6 +46,7 @@ from uwbd import __version__
 from uwbd.codec import frame_to_json, strict_json
 from uwbd.fusion.types import Pose
 from uwbd.logs import foxglove as fx
+from uwbd.logs.chunked import ChunkedWriter
 
 RAW_ENCODING = fx.LEGACY_RAW_ENCODING  # the old schemaless /raw/* encoding, still read
 METADATA_NAME = "uwbd"
@@ -128,8 +129,8 @@ class LogWriter:
         self.path = path
         self.view = view if view is not None else fx.FoxgloveView.from_toml(config_toml)
         self._file: IO[bytes] = path.open("wb")
-        self._w = Writer(self._file, chunk_size=chunk_bytes, compression=CompressionType.ZSTD)
-        self._w.start(profile="", library=f"uwbd {__version__}")
+        self._w = ChunkedWriter(self._file, chunk_bytes)
+        self._w.start(library=f"uwbd {__version__}")
         self._w.add_metadata(METADATA_NAME, {
             "version": __version__, "config_toml": config_toml,
             "sources": json.dumps([vars(s) for s in sources]), "robot": robot,
@@ -164,8 +165,7 @@ class LogWriter:
             self.json("/anchors", t_ns, self.view.scene(t_ns), "foxglove.SceneUpdate")
         self._sequence += 1
         self.unflushed += 1
-        self._w.add_message(channel, log_time=t_ns, publish_time=t_ns, data=data,
-                            sequence=self._sequence)
+        self._w.add_message(channel, t_ns, data, self._sequence)
 
     def raw(self, source: str, t_ns: int, data: bytes) -> None:
         topic = f"/raw/{source}"
@@ -214,8 +214,7 @@ class LogWriter:
 
     def flush(self) -> None:
         """Close the open chunk and hand it to the OS (about once a second)."""
-        self._w.flush()  # type: ignore[no-untyped-call]
-        self._file.flush()
+        self._w.flush()
         self.flushed_bytes = self._file.tell()
         self.unflushed = 0
 
@@ -227,7 +226,7 @@ class LogWriter:
 
     def close(self) -> None:
         if not self._file.closed:
-            self._w.finish()  # type: ignore[no-untyped-call]
+            self._w.finish()
             self._file.close()
 
     def __enter__(self) -> LogWriter:

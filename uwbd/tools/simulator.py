@@ -502,6 +502,24 @@ HANDHELD_SEGMENTS: tuple[tuple[float, float, float, float], ...] = (
 )
 
 
+def segments_for(duration_s: float,
+                 segments: tuple[tuple[float, float, float, float], ...] = DEFAULT_SEGMENTS
+                 ) -> tuple[tuple[float, float, float, float], ...]:
+    """``segments`` repeated or cut to last ``duration_s`` seconds in all (the last one
+    shortened)."""
+    if duration_s <= 0:
+        raise ValueError("the duration must be positive")
+    out: list[tuple[float, float, float, float]] = []
+    left = duration_s
+    while left > 1e-9:
+        for seg in segments:
+            if left <= 1e-9:
+                break
+            out.append((min(seg[0], left), *seg[1:]))
+            left -= seg[0]
+    return tuple(out)
+
+
 def seed_layout(seed: int = 0) -> SimConfig:
     """The default run: 6 anchors over a 25 x 60 m area, 10 Hz epochs, 200 Hz IMU."""
     return SimConfig(seed=seed)
