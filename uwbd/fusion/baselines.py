@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
-from scipy.signal import butter, sosfilt, sosfilt_zi
+from scipy.signal import butter, sosfilt_zi
 
 from drivers.frames import ImuSample, UwbRanges
 from uwbd.fusion.eskf import GRAVITY_MPS2
@@ -220,7 +220,8 @@ class ComplementaryAttitude:
                  gains: Gains = THESIS_GAINS) -> None:
         self.C_bs = mounting
         self.sos = butter(2, fc_hz, btype="low", fs=fs_hz, output="sos")
-        self._zi: Array | None = None
+        self._sections = self.sos.tolist()
+        self._zi: list[list[list[float]]] | None = None  # per section, 2 states per axis
         self.gains = gains
         self.kp = gains.still  # the gain of the latest step
         self.turning = False
@@ -238,10 +239,9 @@ class ComplementaryAttitude:
         """Update the attitude; returns the low-passed specific force (body)."""
         acc = self.C_bs @ np.asarray(imu.acc_mps2)
         gyro = self.C_bs @ np.asarray(imu.gyro_rps)
-        if self._zi is None:
-            self._zi = sosfilt_zi(self.sos)[:, :, None] * acc[None, None, :]
-        out, self._zi = sosfilt(self.sos, acc[None, :], axis=0, zi=self._zi)
-        self.acc_lp = out[0]
+        if self._zi is None:  # the filter's steady state for this first sample
+            self._zi = (sosfilt_zi(self.sos)[:, :, None] * acc[None, None, :]).tolist()
+        self.acc_lp = np.array(_sosfilt_step(self._sections, self._zi, acc.tolist()))
         if self.t_ns is None:
             self.t_ns = imu.t_ns
             self._level(acc)
@@ -255,7 +255,9 @@ class ComplementaryAttitude:
         self.kp = self.gains.moving if self.turning or self.accelerating else self.gains.still
         g_body = quat_to_matrix(self.q).T @ np.array([0.0, 0.0, 1.0])  # "up" in body axes
         a = self.acc_lp / max(float(np.linalg.norm(self.acc_lp)), 1e-9)
-        e = np.cross(a, g_body)
+        e = np.array([a[1] * g_body[2] - a[2] * g_body[1],  # a × g (np.cross costs 20×)
+                      a[2] * g_body[0] - a[0] * g_body[2],
+                      a[0] * g_body[1] - a[1] * g_body[0]])
         q = quat_mul(self.q, quat_from_rotvec((w + self.kp * e) * dt))
         self.q = q / np.linalg.norm(q)
         return self.acc_lp
@@ -282,6 +284,21 @@ class ComplementaryAttitude:
         roll = math.atan2(f_b[1], f_b[2])
         pitch = math.atan2(-f_b[0], math.hypot(f_b[1], f_b[2]))
         self.q = quat_from_euler(roll, pitch, 0.0)
+
+
+def _sosfilt_step(sections: list[list[float]], zi: list[list[list[float]]],
+                  x: list[float]) -> list[float]:
+    """One sample through ``scipy.signal.sosfilt``'s cascade (transposed direct form II,
+    its operations in its order, so the same numbers), ``zi`` updated in place: per sample
+    a call into scipy costs ~50 µs, this ~3."""
+    out = list(x)
+    for (b0, b1, b2, _a0, a1, a2), (z0, z1) in zip(sections, zi, strict=True):
+        for k, xk in enumerate(out):
+            y = b0 * xk + z0[k]
+            z0[k] = b1 * xk - a1 * y + z1[k]
+            z1[k] = b2 * xk - a2 * y
+            out[k] = y
+    return out
 
 
 class Kf4:
