@@ -20,6 +20,7 @@ from uwbd.fusion import native
 from uwbd.fusion.eskf import N_CORE, ImuNoise, Row
 from uwbd.fusion.eskf import Eskf as _Eskf
 from uwbd.fusion.lsq import multilaterate
+from uwbd.fusion.measurements import range_rows
 from uwbd.fusion.settings import FilterConfig
 from uwbd.fusion.types import Pose
 from uwbd.tools.evaluate import merge, run_filter
@@ -142,6 +143,28 @@ def test_multilateration_matches_the_reference(seed: int, k: int, height_held: b
         np.testing.assert_allclose(fast.position_m, slow.position_m, rtol=0, atol=1e-9)
         np.testing.assert_allclose(fast.covariance, slow.covariance, rtol=1e-9, atol=1e-15)
         np.testing.assert_allclose(fast.residuals_m, slow.residuals_m, rtol=0, atol=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31), st.integers(1, 8))
+def test_range_rows_match_the_reference(seed: int, k: int) -> None:
+    fast, _ = twin(2 * 8, seed)
+    rng = np.random.default_rng(seed)
+    ids = [int(a) for a in rng.choice(8, size=k, replace=False)]
+    anchors = rng.uniform(-10, 10, size=(k, 3))
+    ranges = rng.uniform(1, 15, size=k)
+    var = rng.uniform(0.001, 0.1, size=k)
+    lever = rng.normal(size=3) * 0.2
+    fast.b_r[:] = rng.normal(size=16) * 0.1
+    delay = {a: N_CORE + a for a in range(8)}
+    multipath = {a: N_CORE + 8 + a for a in range(0, 8, 2)}  # every other anchor
+    rows = range_rows(fast, lever, ids, anchors, ranges, var, (delay, multipath))
+    with native.pure_python():
+        reference = range_rows(fast, lever, ids, anchors, ranges, var, (delay, multipath))
+    assert rows.keys == reference.keys
+    np.testing.assert_allclose(rows.H, reference.H, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(rows.y, reference.y, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(rows.R, reference.R)
 
 
 def compare_runs(cfg: FilterConfig, frames: list[object]) -> list[Pose]:

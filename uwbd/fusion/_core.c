@@ -467,6 +467,106 @@ static PyObject *core_reset_covariance(PyObject *self, PyObject *const *args,
     Py_RETURN_NONE;
 }
 
+/* -- measurement rows: every UWB message ------------------------------------------------ */
+
+/* range_rows(p, q, lever, anchors (k×3), ranges (k), b_r (n−15), columns, H (k×n), y (k))
+ * -> the smallest antenna-to-anchor distance. measurements.range_rows: per range, with
+ * p_ant = p + R l and u = (p_ant − a)/|p_ant − a|, the row h = [u, 0, u (−R [l]×), 0, …,
+ * 1 at each of its range-model states] and y = r − |p_ant − a| − Σ b. `columns` holds, per
+ * range, the tuple of its range-model state columns. H must arrive zeroed. */
+static PyObject *core_range_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 9) {
+        PyErr_SetString(PyExc_TypeError, "range_rows takes 9 arguments");
+        return NULL;
+    }
+    double pos[3], q[4], lever[3];
+    if (get_vec(args[0], pos, 3, "p") || get_vec(args[1], q, 4, "q") ||
+        get_vec(args[2], lever, 3, "lever"))
+        return NULL;
+    PyObject *columns = args[6];
+    Py_buffer Ab, rb, bb, Hb, yb;
+    int got = 0;
+    PyObject *result = NULL;
+    if (get_doubles(args[4], &rb, -1, 0, "ranges") < 0)
+        return NULL;
+    got = 1;
+    Py_ssize_t k = rb.len / 8;
+    if (get_doubles(args[3], &Ab, 3 * k, 0, "anchors") < 0)
+        goto done;
+    got = 2;
+    if (get_doubles(args[5], &bb, -1, 0, "b_r") < 0)
+        goto done;
+    got = 3;
+    Py_ssize_t n = N_CORE + bb.len / 8;
+    if (get_doubles(args[7], &Hb, k * n, 1, "H") < 0)
+        goto done;
+    got = 4;
+    if (get_doubles(args[8], &yb, k, 1, "y") < 0)
+        goto done;
+    got = 5;
+    if (!PyTuple_Check(columns) || PyTuple_GET_SIZE(columns) != k) {
+        PyErr_SetString(PyExc_TypeError, "columns: a tuple with one tuple per range");
+        goto done;
+    }
+    const double *anchors = (const double *)Ab.buf, *ranges = (const double *)rb.buf;
+    const double *b_r = (const double *)bb.buf;
+    double *H = (double *)Hb.buf, *y = (double *)yb.buf;
+    double R[3][3];
+    quat_to_matrix(q, R);
+    double p_ant[3];
+    for (int i = 0; i < 3; i++)
+        p_ant[i] = pos[i] + (R[i][0] * lever[0] + R[i][1] * lever[1] + R[i][2] * lever[2]);
+    /* M = −R [l]× */
+    double sk[3][3] = {{0, -lever[2], lever[1]}, {lever[2], 0, -lever[0]},
+                       {-lever[1], lever[0], 0}};
+    double M[3][3];
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            M[i][j] = -(R[i][0] * sk[0][j] + R[i][1] * sk[1][j] + R[i][2] * sk[2][j]);
+    double closest = INFINITY;
+    for (Py_ssize_t a = 0; a < k; a++) {
+        double d[3];
+        for (int i = 0; i < 3; i++)
+            d[i] = p_ant[i] - anchors[3 * a + i];
+        double dist = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+        if (dist < closest)
+            closest = dist;
+        double *h = H + a * n;
+        double u[3] = {d[0] / dist, d[1] / dist, d[2] / dist};
+        for (int i = 0; i < 3; i++) {
+            h[i] = u[i];
+            h[6 + i] = u[0] * M[0][i] + u[1] * M[1][i] + u[2] * M[2][i];
+        }
+        double model = dist;
+        PyObject *cols = PyTuple_GET_ITEM(columns, a);
+        if (!PyTuple_Check(cols)) {
+            PyErr_SetString(PyExc_TypeError, "columns: a tuple with one tuple per range");
+            goto done;
+        }
+        for (Py_ssize_t c = 0; c < PyTuple_GET_SIZE(cols); c++) {
+            Py_ssize_t col = PyLong_AsSsize_t(PyTuple_GET_ITEM(cols, c));
+            if (col < N_CORE || col >= n) {
+                if (!PyErr_Occurred())
+                    PyErr_SetString(PyExc_ValueError, "a range-model column out of range");
+                goto done;
+            }
+            h[col] = 1.0;
+            model += b_r[col - N_CORE];
+        }
+        y[a] = ranges[a] - model;
+    }
+    result = PyFloat_FromDouble(closest);
+done:
+    if (got >= 1) PyBuffer_Release(&rb);
+    if (got >= 2) PyBuffer_Release(&Ab);
+    if (got >= 3) PyBuffer_Release(&bb);
+    if (got >= 4) PyBuffer_Release(&Hb);
+    if (got >= 5) PyBuffer_Release(&yb);
+    return result;
+}
+
 /* -- Gauss–Newton multilateration: every UWB fix ----------------------------------------- */
 
 /* Solve the dims×dims system A z = b (dims 2 or 3) by Gaussian elimination with partial
@@ -696,6 +796,8 @@ static PyMethodDef core_methods[] = {
      "Eskf.sequential_update's scalar rows, in place on P and dx; returns the rows."},
     {"reset_covariance", (PyCFunction)(void (*)(void))core_reset_covariance, METH_FASTCALL,
      "After a fused update: P symmetrised and reset by G, in place."},
+    {"range_rows", (PyCFunction)(void (*)(void))core_range_rows, METH_FASTCALL,
+     "measurements.range_rows into H and y; returns the smallest distance."},
     {"gauss_newton", (PyCFunction)(void (*)(void))core_gauss_newton, METH_FASTCALL,
      "lsq._solve's Gauss-Newton iteration, in place on x; the iterations, 0: no fix."},
     {"leverages", (PyCFunction)(void (*)(void))core_leverages, METH_FASTCALL,

@@ -12,6 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from uwbd.fusion import native
 from uwbd.fusion.eskf import N_CORE, P_, TH_, V_, Eskf
 from uwbd.fusion.lsq import LsqFix
 from uwbd.fusion.rotation import Array, skew
@@ -42,7 +43,19 @@ class Rows(NamedTuple):
 def range_rows(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array, ranges: Array,
                var: Array, state_index: tuple[Mapping[int, int], ...]) -> Rows:
     """One row per range: ``h = |p + R l − a| + Σ b`` over the range-model states that
-    ``state_index`` gives the anchor (antenna delay, multipath)."""
+    ``state_index`` gives the anchor (antenna delay, multipath). The C core builds them when
+    it is built (:mod:`.native`); the code below is its reference."""
+    core = native.core
+    if core is not None and len(ids):
+        columns = tuple(tuple(c for index in state_index if (c := index.get(a)) is not None)
+                        for a in ids)
+        H = np.zeros((len(ids), ekf.n))
+        y = np.empty(len(ids))
+        closest = core.range_rows(ekf.p, ekf.q, lever_m, np.ascontiguousarray(anchors, float),
+                                  np.ascontiguousarray(ranges, float),
+                                  np.ascontiguousarray(ekf.b_r, float), columns, H, y)
+        if closest >= 1e-3:  # else an antenna on an anchor: the code below drops that range
+            return Rows(H, y, var, [("range", str(a)) for a in ids])
     R = ekf.R
     p_ant = np.array(ekf.p) + R @ lever_m
     diff = p_ant - anchors
