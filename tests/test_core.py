@@ -107,6 +107,16 @@ def test_sequential_update_matches_the_reference(seed: int, n_aux: int, m: int,
                                rtol=1e-9, atol=1e-12)
 
 
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31), st.integers(0, 8), st.floats(-3.2, 3.2))
+def test_heading_turns_match_the_reference(seed: int, n_aux: int, dpsi: float) -> None:
+    fast, slow = twin(n_aux, seed)
+    for f in (fast, slow):
+        f.rotate_heading(dpsi, 0.05)
+    assert fast.q == slow.q
+    np.testing.assert_allclose(fast.P, slow.P, rtol=1e-9, atol=1e-14)
+
+
 def test_an_error_in_decide_leaves_the_state_alone() -> None:
     fast, _ = twin(4, 7)
     P, p = fast.P.copy(), list(fast.p)

@@ -417,6 +417,62 @@ done:
     return rows;
 }
 
+/* P ← T P Tᵀ with T = I but for its attitude block G: only the attitude rows and columns
+ * change (rows P[θ, :] ← G P[θ, :], then columns P[:, θ] ← P[:, θ] Gᵀ). */
+static void transform_attitude(double *P, Py_ssize_t n, const double G[3][3])
+{
+    const Py_ssize_t t0 = 6;
+    for (Py_ssize_t b = 0; b < n; b++) {
+        double c0 = P[t0 * n + b], c1 = P[(t0 + 1) * n + b], c2 = P[(t0 + 2) * n + b];
+        for (int i = 0; i < 3; i++)
+            P[(t0 + i) * n + b] = G[i][0] * c0 + G[i][1] * c1 + G[i][2] * c2;
+    }
+    for (Py_ssize_t a = 0; a < n; a++) {
+        double *row = P + a * n + t0;
+        double c0 = row[0], c1 = row[1], c2 = row[2];
+        for (int i = 0; i < 3; i++)
+            row[i] = c0 * G[i][0] + c1 * G[i][1] + c2 * G[i][2];
+    }
+}
+
+/* A square float64 matrix of at least 15×15 (the filter's P), its side in *n. */
+static int get_P(PyObject *obj, Py_buffer *view, Py_ssize_t *n)
+{
+    if (get_doubles(obj, view, -1, 1, "P") < 0)
+        return -1;
+    *n = (Py_ssize_t)sqrt((double)(view->len / 8));
+    if (*n * *n * 8 != view->len || *n < N_CORE) {
+        PyBuffer_Release(view);
+        PyErr_SetString(PyExc_ValueError, "P must be square, at least 15x15");
+        return -1;
+    }
+    return 0;
+}
+
+/* turn_attitude_covariance(P, G) — P ← T P Tᵀ in place, T = I but its attitude block, the
+ * 3×3 G given row by row (Eskf.rotate_heading, both of its turns). */
+static PyObject *core_turn_attitude_covariance(PyObject *self, PyObject *const *args,
+                                               Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "turn_attitude_covariance takes 2 arguments");
+        return NULL;
+    }
+    double g[9], G[3][3];
+    if (get_vec(args[1], g, 9, "G"))
+        return NULL;
+    for (int i = 0; i < 9; i++)
+        G[i / 3][i % 3] = g[i];
+    Py_buffer Pb;
+    Py_ssize_t n;
+    if (get_P(args[0], &Pb, &n) < 0)
+        return NULL;
+    transform_attitude((double *)Pb.buf, n, G);
+    PyBuffer_Release(&Pb);
+    Py_RETURN_NONE;
+}
+
 /* reset_covariance(P, dtheta) — after a fused update, in place on P (n×n):
  * P ← (P + Pᵀ)/2, then the error reset P ← G P Gᵀ with G = I except its attitude block
  * I − ½[δθ]× (eskf: sequential_update's symmetrising and Eskf.inject's covariance part). */
@@ -432,14 +488,9 @@ static PyObject *core_reset_covariance(PyObject *self, PyObject *const *args,
     if (get_vec(args[1], th, 3, "dtheta"))
         return NULL;
     Py_buffer Pb;
-    if (get_doubles(args[0], &Pb, -1, 1, "P") < 0)
+    Py_ssize_t n;
+    if (get_P(args[0], &Pb, &n) < 0)
         return NULL;
-    Py_ssize_t n = (Py_ssize_t)sqrt((double)(Pb.len / 8));
-    if (n * n * 8 != Pb.len || n < N_CORE) {
-        PyBuffer_Release(&Pb);
-        PyErr_SetString(PyExc_ValueError, "P must be square, at least 15x15");
-        return NULL;
-    }
     double *P = (double *)Pb.buf;
     for (Py_ssize_t a = 0; a < n; a++)
         for (Py_ssize_t b = a + 1; b < n; b++) {
@@ -451,18 +502,7 @@ static PyObject *core_reset_covariance(PyObject *self, PyObject *const *args,
     double G[3][3] = {{1.0, 0.5 * th[2], -0.5 * th[1]},
                       {-0.5 * th[2], 1.0, 0.5 * th[0]},
                       {0.5 * th[1], -0.5 * th[0], 1.0}};
-    const Py_ssize_t t0 = 6;
-    for (Py_ssize_t b = 0; b < n; b++) { /* rows: P[TH, :] ← G P[TH, :] */
-        double c0 = P[t0 * n + b], c1 = P[(t0 + 1) * n + b], c2 = P[(t0 + 2) * n + b];
-        for (int i = 0; i < 3; i++)
-            P[(t0 + i) * n + b] = G[i][0] * c0 + G[i][1] * c1 + G[i][2] * c2;
-    }
-    for (Py_ssize_t a = 0; a < n; a++) { /* columns: P[:, TH] ← P[:, TH] Gᵀ */
-        double *row = P + a * n + t0;
-        double c0 = row[0], c1 = row[1], c2 = row[2];
-        for (int i = 0; i < 3; i++)
-            row[i] = c0 * G[i][0] + c1 * G[i][1] + c2 * G[i][2];
-    }
+    transform_attitude(P, n, G);
     PyBuffer_Release(&Pb);
     Py_RETURN_NONE;
 }
@@ -794,6 +834,8 @@ static PyMethodDef core_methods[] = {
      "Eskf.propagate's core rows and columns, in place on P and Phi_epoch."},
     {"sequential_update", (PyCFunction)(void (*)(void))core_sequential_update, METH_FASTCALL,
      "Eskf.sequential_update's scalar rows, in place on P and dx; returns the rows."},
+    {"turn_attitude_covariance", (PyCFunction)(void (*)(void))core_turn_attitude_covariance,
+     METH_FASTCALL, "P <- T P T^T for T = I but its attitude block G, in place."},
     {"reset_covariance", (PyCFunction)(void (*)(void))core_reset_covariance, METH_FASTCALL,
      "After a fused update: P symmetrised and reset by G, in place."},
     {"range_rows", (PyCFunction)(void (*)(void))core_range_rows, METH_FASTCALL,

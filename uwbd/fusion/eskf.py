@@ -179,10 +179,18 @@ class Eskf:
                      np.array(self.q))
         self.q = (q / np.linalg.norm(q)).tolist()
         R = self.R
+        k = TH_.start + 2  # nav-frame yaw error
+        if self._core is not None:  # the same, on the attitude rows and columns only
+            P = self.P = np.ascontiguousarray(self.P)
+            self._core.turn_attitude_covariance(P, R.ravel().tolist())
+            P[k, :] = 0.0
+            P[:, k] = 0.0
+            P[k, k] = yaw_sigma_rad**2
+            self._core.turn_attitude_covariance(P, R.T.ravel().tolist())
+            return
         T = self._I.copy()  # body-frame attitude error -> nav-frame attitude error
         T[TH_, TH_] = R
         P = T @ self.P @ T.T
-        k = TH_.start + 2  # nav-frame yaw error
         P[k, :] = 0.0
         P[:, k] = 0.0
         P[k, k] = yaw_sigma_rad**2
