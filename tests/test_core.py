@@ -188,6 +188,8 @@ def compare_runs(cfg: FilterConfig, frames: list[object]) -> list[Pose]:
     worst = float(np.abs(a - b).max())
     assert worst <= POSITION_TOLERANCE_M, f"positions differ by up to {worst:.3g} m"
     assert [q.status for q in poses] == [q.status for q in reference]
+    np.testing.assert_allclose([q.covariance for q in poses],
+                               [q.covariance for q in reference], rtol=1e-6, atol=1e-12)
     return poses
 
 

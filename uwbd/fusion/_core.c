@@ -827,6 +827,91 @@ done:
     return out;
 }
 
+/* -- outputs and checks ----------------------------------------------------------------- */
+
+/* pose_covariance(P, q) -> 36 floats: Filter.pose's covariance over position and the
+ * attitude error turned into the navigation frame, [[Ppp, Ppθ Rᵀ], [R Pθp, R Pθθ Rᵀ]],
+ * row-major, made symmetric as (M + Mᵀ)/2. */
+static PyObject *core_pose_covariance(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "pose_covariance takes 2 arguments");
+        return NULL;
+    }
+    double q[4];
+    if (get_vec(args[1], q, 4, "q"))
+        return NULL;
+    Py_buffer Pb;
+    Py_ssize_t n;
+    if (get_P(args[0], &Pb, &n) < 0)
+        return NULL;
+    const double *P = (const double *)Pb.buf;
+    double R[3][3];
+    quat_to_matrix(q, R);
+    /* T (6×9) = [[I, 0, 0], [0, 0, R]] over (p, v, θ); M = T P Tᵀ */
+    static const int src[3] = {0, 1, 2};
+    double TP[6][9];
+    for (int j = 0; j < 9; j++) {
+        for (int i = 0; i < 3; i++)
+            TP[i][j] = P[src[i] * n + j];
+        for (int i = 0; i < 3; i++)
+            TP[3 + i][j] = R[i][0] * P[6 * n + j] + R[i][1] * P[7 * n + j]
+                + R[i][2] * P[8 * n + j];
+    }
+    double M[6][6];
+    for (int i = 0; i < 6; i++) {
+        for (int j = 0; j < 3; j++)
+            M[i][j] = TP[i][j];
+        for (int j = 0; j < 3; j++)
+            M[i][3 + j] = TP[i][6] * R[j][0] + TP[i][7] * R[j][1] + TP[i][8] * R[j][2];
+    }
+    PyObject *out = PyTuple_New(36);
+    if (out == NULL) {
+        PyBuffer_Release(&Pb);
+        return NULL;
+    }
+    for (int i = 0; i < 6; i++)
+        for (int j = 0; j < 6; j++) {
+            PyObject *f = PyFloat_FromDouble(0.5 * (M[i][j] + M[j][i]));
+            if (f == NULL) {
+                Py_DECREF(out);
+                PyBuffer_Release(&Pb);
+                return NULL;
+            }
+            PyTuple_SET_ITEM(out, 6 * i + j, f);
+        }
+    PyBuffer_Release(&Pb);
+    return out;
+}
+
+/* diagonal_out_of_bounds(P, limit) -> bool: a variance above its limit or below zero
+ * (Eskf.clamp_covariance's test; NaN is neither, as in numpy's comparisons). */
+static PyObject *core_diagonal_out_of_bounds(PyObject *self, PyObject *const *args,
+                                             Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "diagonal_out_of_bounds takes 2 arguments");
+        return NULL;
+    }
+    Py_buffer Pb, Lb;
+    Py_ssize_t n;
+    if (get_P(args[0], &Pb, &n) < 0)
+        return NULL;
+    if (get_doubles(args[1], &Lb, n, 0, "limit") < 0) {
+        PyBuffer_Release(&Pb);
+        return NULL;
+    }
+    const double *P = (const double *)Pb.buf, *L = (const double *)Lb.buf;
+    int out = 0;
+    for (Py_ssize_t i = 0; i < n && !out; i++)
+        out = P[i * n + i] > L[i] || P[i * n + i] < 0.0;
+    PyBuffer_Release(&Pb);
+    PyBuffer_Release(&Lb);
+    return PyBool_FromLong(out);
+}
+
 static PyMethodDef core_methods[] = {
     {"predict", (PyCFunction)(void (*)(void))core_predict, METH_FASTCALL,
      "Eskf.predict: one IMU sample (p, v, sums in place; returns the new q)."},
@@ -840,6 +925,10 @@ static PyMethodDef core_methods[] = {
      "After a fused update: P symmetrised and reset by G, in place."},
     {"range_rows", (PyCFunction)(void (*)(void))core_range_rows, METH_FASTCALL,
      "measurements.range_rows into H and y; returns the smallest distance."},
+    {"pose_covariance", (PyCFunction)(void (*)(void))core_pose_covariance, METH_FASTCALL,
+     "Filter.pose's 6x6 covariance (position, nav-frame attitude), row-major."},
+    {"diagonal_out_of_bounds", (PyCFunction)(void (*)(void))core_diagonal_out_of_bounds,
+     METH_FASTCALL, "Any variance of P above its limit or below zero."},
     {"gauss_newton", (PyCFunction)(void (*)(void))core_gauss_newton, METH_FASTCALL,
      "lsq._solve's Gauss-Newton iteration, in place on x; the iterations, 0: no fix."},
     {"leverages", (PyCFunction)(void (*)(void))core_leverages, METH_FASTCALL,

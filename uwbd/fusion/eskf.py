@@ -386,14 +386,18 @@ class Eskf:
     def clamp_covariance(self, max_core_sigma: Array, max_aux_sigma: float) -> bool:
         """Variances within bounds and none negative; True if anything was clamped. Scaling
         a row and its column keeps ``P`` positive semi-definite."""
-        d = np.diag(self.P)
         key = (id(max_core_sigma), max_aux_sigma)
         if self._clamp_key != key:  # the same bounds every epoch: made once
             self._clamp_key = key
             self._clamp_limit = np.concatenate(
                 [max_core_sigma, np.full(self.n - N_CORE, max_aux_sigma)])**2
         limit = self._clamp_limit
-        if not ((d > limit).any() or (d < 0).any()):
+        if self._core is not None:
+            self.P = np.ascontiguousarray(self.P)
+            if not self._core.diagonal_out_of_bounds(self.P, limit):
+                return False
+        d = np.diag(self.P)
+        if self._core is None and not ((d > limit).any() or (d < 0).any()):
             return False
         scale = np.sqrt(np.minimum(1.0, limit / np.maximum(d, 1e-300)))
         self.P = self.P * scale[:, None] * scale[None, :]

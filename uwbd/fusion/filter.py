@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from drivers.frames import AnchorRanges, ImuSample, UwbRanges
+from uwbd.fusion import native
 from uwbd.fusion.alignment import HeadingAligner
 from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, Eskf
 from uwbd.fusion.fixes import RangeWindow
@@ -355,13 +356,18 @@ class Filter(Recovery):
         if ekf is None or t_ns is None:
             return None
         w, x, y, z = ekf.q
-        T = self._pose_T
-        T[3:, TH_] = ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
-                      (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
-                      (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
-        M = T @ ekf.P[:TH_.stop, :TH_.stop] @ T.T
-        cov = (0.5 * (M + M.T)).ravel().tolist()  # symmetric to the bit, as ROS expects
-        covariance = tuple(cov)
+        core = native.core
+        if core is not None:
+            ekf.P = np.ascontiguousarray(ekf.P)
+            covariance = core.pose_covariance(ekf.P, ekf.q)
+        else:
+            T = self._pose_T
+            T[3:, TH_] = ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+                          (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+                          (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
+            M = T @ ekf.P[:TH_.stop, :TH_.stop] @ T.T
+            covariance = tuple((0.5 * (M + M.T)).ravel().tolist())  # symmetric, as ROS expects
+        cov = covariance
         p, v = ekf.p, ekf.v
         if not math.isfinite(sum(p) + sum(v) + w + x + y + z + sum(covariance)):
             self._restart_not_finite(t_ns)
