@@ -33,7 +33,6 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from drivers.emulator.scenario import DEFAULT_ANCHORS_M
 from uwbd.fusion import native
 from uwbd.logs.mcaplog import read_log
 from uwbd.logs.replay import replay
@@ -41,31 +40,21 @@ from uwbd.tools.logtools import write_simulation
 from uwbd.tools.simulator import SimConfig, segments_for, simulate
 
 TICKS = os.sysconf("SC_CLK_TCK")
+DEMO_CONFIG = Path(__file__).resolve().parents[1] / "config" / "demo.toml"
 
 
 def config_text(imu: str, uwb: str, sock: Path) -> str:
-    anchors = "\n".join(f'"{i}" = [{x}, {y}, {z}]' for i, (x, y, z) in enumerate(DEFAULT_ANCHORS_M))
-    return f"""
-[[sources]]
-name = "imu"
-driver = "wit"
-port = "{imu}"
-baud = 921600
-
-[[sources]]
-name = "uwb"
-driver = "nlink"
-port = "{uwb}"
-baud = 921600
-
-[anchors]
-{anchors}
-
-[zenoh]
-prefix = "uwbd/bench"
-listen = ["unixsock-stream/{sock}"]
-multicast_scouting = false
-"""
+    """``config/demo.toml`` (the emulated sensors' specs: with the generic defaults the
+    heading σ of the emulated circle stays near 11°, above the 10° of "heading known", and
+    the filter would be measured while "aligning") on these ports and this Zenoh socket."""
+    text = DEMO_CONFIG.read_text()
+    for old, new in (("/tmp/uwbd-emu/imu", imu), ("/tmp/uwbd-emu/uwb", uwb),
+                     ("unixsock-stream//tmp/uwbd-emu/zenoh.sock", f"unixsock-stream/{sock}"),
+                     ('prefix = "uwbd/demo"', 'prefix = "uwbd/bench"')):
+        if old not in text:
+            raise SystemExit(f"{DEMO_CONFIG}: no {old!r} to replace; update bench_daemon.py")
+        text = text.replace(old, new)
+    return text
 
 
 def cpu_seconds(pid: int) -> float:
