@@ -16,7 +16,9 @@ from mcap.reader import make_reader
 
 from drivers.frames import ImuSample, UwbRanges
 from uwbd.codec import strict_json
+from uwbd.config import parse
 from uwbd.logs.mcaplog import LogWriter, SourceInfo, read_log
+from uwbd.logs.sink import McapSink
 from uwbd.tools.importer import INROL_EPOCH_NS
 from uwbd.tools.logtools import load_recording, write_simulation
 from uwbd.tools.simulator import EPOCH_NS, SimConfig, simulate
@@ -266,3 +268,29 @@ def test_chunks_and_their_indexes_point_at_the_right_records(tmp_path: Path) -> 
                 checked += 1
         assert (min(times), max(times)) == (start, end)
     assert checked == 500
+
+
+def test_two_writers_in_one_folder_in_the_same_second_keep_both_logs(tmp_path: Path) -> None:
+    """Two daemons of one robot name logging into one folder, started in the same second:
+    each gets a file of its own, also when the other made the name it chose between its
+    check and its open (the file is created exclusively); neither replaces the other's."""
+    config = parse("")
+    first = McapSink(config, directory=tmp_path)
+    first.raw("imu", EPOCH_NS, b"\x55\x51" + bytes(9))
+    first.close()
+    (taken,) = first.files
+
+    class Raced(McapSink):  # its first name check ran before the other made the file
+        calls = 0
+
+        def _next_name(self, t_ns: int) -> Path:
+            self.calls += 1
+            return taken if self.calls == 1 else super()._next_name(t_ns)
+
+    second = Raced(config, directory=tmp_path)
+    second.raw("imu", EPOCH_NS + 1, b"\x55\x51" + bytes(10))
+    second.close()
+    assert not second.error and len(second.files) == 1 and second.files[0] != taken
+    assert [len(read_log(f).messages) for f in (taken, second.files[0])] == [1, 1]
+    assert read_log(taken).messages[0].data.endswith(bytes(9)) \
+        and not read_log(taken).messages[0].data.endswith(bytes(10))

@@ -125,10 +125,11 @@ class LogWriter:
 
     def __init__(self, path: Path, config_toml: str = "", sources: tuple[SourceInfo, ...] = (),
                  chunk_bytes: int = CHUNK_BYTES, robot: str = "",
-                 view: fx.FoxgloveView | None = None) -> None:
+                 view: fx.FoxgloveView | None = None, exclusive: bool = False) -> None:
+        """``exclusive``: never replace a file (``FileExistsError`` if ``path`` exists)."""
         self.path = path
         self.view = view if view is not None else fx.FoxgloveView.from_toml(config_toml)
-        self._file: IO[bytes] = path.open("wb")
+        self._file: IO[bytes] = path.open("xb" if exclusive else "wb")
         self._w = ChunkedWriter(self._file, chunk_bytes)
         self._w.start(library=f"uwbd {__version__}")
         self._w.add_metadata(METADATA_NAME, {

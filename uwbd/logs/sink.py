@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -96,8 +97,19 @@ class McapSink:
             try:
                 if self.directory is not None:
                     self.directory.mkdir(parents=True, exist_ok=True)
-                log = self._log = LogWriter(path, self.config.text, sources,
-                                            robot=self.config.robot_name, view=self.view)
+                for _ in range(100):
+                    try:  # in a folder, a file another process made meanwhile is kept
+                        log = self._log = LogWriter(
+                            path, self.config.text, sources, robot=self.config.robot_name,
+                            view=self.view, exclusive=self.directory is not None)
+                        break
+                    except FileExistsError:
+                        path = self._next_name(t_ns)
+                else:
+                    raise FileExistsError(errno.EEXIST, "100 names taken", str(path))
+            except FileExistsError as err:
+                self._fail(f"cannot write log {path}: {err.strerror or err}", t_ns)
+                return None
             except OSError as err:
                 with contextlib.suppress(OSError):
                     path.unlink(missing_ok=True)  # half a header is no log
