@@ -30,7 +30,6 @@ from uwbd.tools.simulator import Z_DOWN, SimConfig, ceiling_room, handheld_async
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 needs_core = pytest.mark.skipif(native.core is None, reason=f"C core: {native.implementation}")
-pytestmark = needs_core
 POSITION_TOLERANCE_M = 1e-9
 
 
@@ -60,6 +59,7 @@ def imu_stream(seed: int, count: int) -> list[tuple[tuple[float, ...], tuple[flo
              tuple((rng.normal(size=3) * 0.5).tolist())) for _ in range(count)]
 
 
+@needs_core
 @settings(max_examples=30, deadline=None)
 @given(st.integers(0, 2**31), st.integers(0, 8))
 def test_predict_and_propagate_match_the_reference(seed: int, n_aux: int) -> None:
@@ -76,6 +76,7 @@ def test_predict_and_propagate_match_the_reference(seed: int, n_aux: int) -> Non
                                atol=1e-15)
 
 
+@needs_core
 @settings(max_examples=30, deadline=None)
 @given(st.integers(0, 2**31), st.integers(0, 8), st.integers(1, 12),
        st.sampled_from([None, slice(6, 12), slice(6, 15)]))
@@ -107,6 +108,7 @@ def test_sequential_update_matches_the_reference(seed: int, n_aux: int, m: int,
                                rtol=1e-9, atol=1e-12)
 
 
+@needs_core
 @settings(max_examples=30, deadline=None)
 @given(st.integers(0, 2**31), st.integers(0, 8), st.floats(-3.2, 3.2))
 def test_heading_turns_match_the_reference(seed: int, n_aux: int, dpsi: float) -> None:
@@ -117,6 +119,7 @@ def test_heading_turns_match_the_reference(seed: int, n_aux: int, dpsi: float) -
     np.testing.assert_allclose(fast.P, slow.P, rtol=1e-9, atol=1e-14)
 
 
+@needs_core
 def test_an_error_in_decide_leaves_the_state_alone() -> None:
     fast, _ = twin(4, 7)
     P, p = fast.P.copy(), list(fast.p)
@@ -131,6 +134,7 @@ def test_an_error_in_decide_leaves_the_state_alone() -> None:
     assert np.array_equal(fast.P, P) and fast.p == p
 
 
+@needs_core
 @settings(max_examples=60, deadline=None)
 @given(st.integers(0, 2**31), st.integers(3, 9), st.booleans(), st.booleans())
 def test_multilateration_matches_the_reference(seed: int, k: int, height_held: bool,
@@ -155,6 +159,7 @@ def test_multilateration_matches_the_reference(seed: int, k: int, height_held: b
         np.testing.assert_allclose(fast.residuals_m, slow.residuals_m, rtol=0, atol=1e-9)
 
 
+@needs_core
 @settings(max_examples=40, deadline=None)
 @given(st.integers(0, 2**31), st.integers(1, 8))
 def test_range_rows_match_the_reference(seed: int, k: int) -> None:
@@ -193,6 +198,7 @@ def compare_runs(cfg: FilterConfig, frames: list[object]) -> list[Pose]:
     return poses
 
 
+@needs_core
 @pytest.mark.parametrize("preset", ["seed", "handheld", "ceiling"])
 def test_filter_runs_match_the_reference(preset: str) -> None:
     sim_cfg = {"seed": SimConfig(seed=2, segments=((4.0, 0.0, 0.0, 0.0),
@@ -205,6 +211,7 @@ def test_filter_runs_match_the_reference(preset: str) -> None:
     compare_runs(parse(simulation_toml(sim)).filter_config(), frames)
 
 
+@needs_core
 @pytest.mark.skipif(not DATA.is_dir(), reason="shared/data not beside the repository")
 @pytest.mark.parametrize("name", ["iasl-s1", "inrol-env1"])
 def test_real_runs_match_the_reference(name: str) -> None:
@@ -219,6 +226,18 @@ def test_real_runs_match_the_reference(name: str) -> None:
     assert any(math.isfinite(q.position_m[0]) for q in poses)
 
 
+def test_the_c_core_is_built() -> None:
+    """The install builds the C core (gcc and the Python headers are all it needs); a
+    missing one would otherwise only skip the comparisons above. To test a pure-Python
+    install on purpose, set UWBD_PURE_PYTHON=1."""
+    if os.environ.get(native.PURE_PYTHON_ENV, "") not in ("", "0"):
+        pytest.skip("UWBD_PURE_PYTHON is set: the pure-Python install is under test")
+    assert native.core is not None, (
+        f"{native.implementation}: install gcc and the Python headers (python3-dev) and "
+        "reinstall, or set UWBD_PURE_PYTHON=1 to test without the C core")
+
+
+@needs_core
 def test_the_environment_variable_forces_pure_python() -> None:
     code = "from uwbd.fusion import native; print(native.core is None, native.implementation)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
