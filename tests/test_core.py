@@ -120,6 +120,35 @@ def test_heading_turns_match_the_reference(seed: int, n_aux: int, dpsi: float) -
 
 
 @needs_core
+@pytest.mark.parametrize("considered", [slice(15, None), slice(-6, None), slice(6, 12)])
+def test_odd_weights_and_considered_slices_match_the_reference(considered: slice) -> None:
+    """A NaN weight is no fusion (in both), and any slice of states can be considered."""
+    fast, slow = twin(6, 3)
+    H = np.random.default_rng(3).normal(size=(4, fast.n))
+    weights = iter([math.nan, 1.0, 0.5, math.nan] * 2)
+
+    def decide(i: int, nu: float, s: float) -> float:
+        return next(weights)
+
+    for f in (fast, slow):
+        f.sequential_update(H, np.ones(4), np.full(4, 0.01), decide, considered)
+    assert all(map(math.isfinite, fast.p + fast.v + fast.q))
+    np.testing.assert_allclose(fast.P, slow.P, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(fast.p + fast.v + fast.q, slow.p + slow.v + slow.q,
+                               rtol=1e-9, atol=1e-12)
+
+
+@needs_core
+def test_non_finite_ranges_give_no_fix_in_either() -> None:
+    anchors = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [10, 10, 3], [5, 5, 4]])
+    ranges = np.array([7.0, 7.0, 7.0, math.nan, 7.0])
+    fast = multilaterate(anchors, ranges, 0.1)
+    with native.pure_python():
+        slow = multilaterate(anchors, ranges, 0.1)
+    assert fast is None and slow is None
+
+
+@needs_core
 def test_an_error_in_decide_leaves_the_state_alone() -> None:
     fast, _ = twin(4, 7)
     P, p = fast.P.copy(), list(fast.p)

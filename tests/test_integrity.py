@@ -395,3 +395,21 @@ def test_a_device_quality_widens_that_range_noise() -> None:
     s_high = np.median([r.innovation_var for r in fused if r.key != "0"])
     sigma2 = datasheet(sim).range_sigma_m ** 2
     assert s_low - sigma2 * 5 > -0.2 * sigma2 and s_high < 2 * sigma2
+
+
+@pytest.mark.parametrize("position", [(0.0, 0.0, math.nan), (math.nan, 0.0, 0.0),
+                                      (1.0, math.inf, 2.0), (0.0, 0.0, 2e4)])
+def test_a_reported_anchor_position_with_any_bad_coordinate_is_refused(
+        position: tuple[float, float, float]) -> None:
+    """Each coordinate is checked (``max`` of absolute values passed a NaN that was not
+    first, which later broke the anchors' plane test)."""
+    flt = Filter(datasheet(_HOSTILE_BASE))
+    for f in list(merge(_HOSTILE_BASE.imu, _HOSTILE_BASE.uwb))[:400]:
+        if isinstance(f, ImuSample):
+            flt.predict(f)
+        else:
+            flt.update(f)
+    t_ns = _HOSTILE_BASE.uwb[40].t_ns + 1
+    reports = flt.update(UwbRanges(t_ns, (AnchorRange(42, 5.0, None, position),)))
+    assert [r.reason for r in reports] == ["anchor_position_invalid"]
+    assert flt.counters["internal_errors"] == 0 and 42 not in flt._anchors

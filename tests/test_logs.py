@@ -294,3 +294,21 @@ def test_two_writers_in_one_folder_in_the_same_second_keep_both_logs(tmp_path: P
     assert [len(read_log(f).messages) for f in (taken, second.files[0])] == [1, 1]
     assert read_log(taken).messages[0].data.endswith(bytes(9)) \
         and not read_log(taken).messages[0].data.endswith(bytes(10))
+
+
+def test_a_record_out_of_range_is_refused_and_the_file_stays_whole(tmp_path: Path) -> None:
+    """A time MCAP cannot hold (negative) is refused before it touches the chunk: the
+    records around it, the indexes and the summary stay right."""
+    path = tmp_path / "x.mcap"
+    with LogWriter(path) as w:
+        w.json("/a", 1000, {"i": 0})
+        with pytest.raises(struct.error):
+            w.json("/a", -5, {"i": 1})
+        w.json("/b", 2000, {"i": 2})
+        w.flush()
+        w.json("/a", 3000, {"i": 3})
+    with path.open("rb") as f:
+        reader = make_reader(f)
+        got = [(c.topic, m.log_time) for _, c, m in reader.iter_messages()]
+    assert got == [("/a", 1000), ("/b", 2000), ("/a", 3000)]
+    assert [m.log_time_ns for m in read_log(path).messages] == [1000, 2000, 3000]

@@ -139,9 +139,18 @@ static PyObject *core_predict(PyObject *self, PyObject *const *args, Py_ssize_t 
         get_vec(args[8], gyro, 3, "gyro_b"))
         return NULL;
     double dt = PyFloat_AsDouble(args[9]);
-    double g = PyFloat_AsDouble(args[10]);
-    if (PyErr_Occurred())
+    if (dt == -1.0 && PyErr_Occurred())
         return NULL;
+    double g = PyFloat_AsDouble(args[10]);
+    if (g == -1.0 && PyErr_Occurred())
+        return NULL;
+    /* every target a list of 3 before anything is written */
+    const int targets[4] = {0, 1, 5, 6};
+    for (int i = 0; i < 4; i++)
+        if (!PyList_Check(args[targets[i]]) || PyList_GET_SIZE(args[targets[i]]) != 3) {
+            PyErr_SetString(PyExc_TypeError, "p, v, sum_fn and sum_w must be lists of 3");
+            return NULL;
+        }
     double wx = (gyro[0] - bg[0]) * dt, wy = (gyro[1] - bg[1]) * dt, wz = (gyro[2] - bg[2]) * dt;
     double fx = acc[0] - ba[0], fy = acc[1] - ba[1], fz = acc[2] - ba[2];
     double qw = q[0], qx = q[1], qy = q[2], qz = q[3];
@@ -349,9 +358,8 @@ static PyObject *core_sequential_update(PyObject *self, PyObject *const *args,
     double *u = PyMem_Malloc(sizeof(double) * 3 * n);
     if (rows == NULL || u == NULL) {
         Py_XDECREF(rows);
-        PyMem_Free(u);
         rows = PyErr_NoMemory();
-        goto done;
+        goto done; /* frees u */
     }
     double *k = u + n, *g = u + 2 * n;
     for (Py_ssize_t i = 0; i < m; i++) {
@@ -392,7 +400,7 @@ static PyObject *core_sequential_update(PyObject *self, PyObject *const *args,
             goto done;
         }
         PyList_SET_ITEM(rows, i, row);
-        if (numerical || weight <= 0.0)
+        if (numerical || !(weight > 0.0)) /* 0, negative or NaN: not fused */
             continue;
         double denom = s + r * (1.0 / weight - 1.0);
         for (Py_ssize_t a = 0; a < n; a++)
@@ -436,9 +444,9 @@ static void transform_attitude(double *P, Py_ssize_t n, const double G[3][3])
 }
 
 /* A square float64 matrix of at least 15×15 (the filter's P), its side in *n. */
-static int get_P(PyObject *obj, Py_buffer *view, Py_ssize_t *n)
+static int get_P(PyObject *obj, Py_buffer *view, Py_ssize_t *n, int writable)
 {
-    if (get_doubles(obj, view, -1, 1, "P") < 0)
+    if (get_doubles(obj, view, -1, writable, "P") < 0)
         return -1;
     *n = (Py_ssize_t)sqrt((double)(view->len / 8));
     if (*n * *n * 8 != view->len || *n < N_CORE) {
@@ -466,7 +474,7 @@ static PyObject *core_turn_attitude_covariance(PyObject *self, PyObject *const *
         G[i / 3][i % 3] = g[i];
     Py_buffer Pb;
     Py_ssize_t n;
-    if (get_P(args[0], &Pb, &n) < 0)
+    if (get_P(args[0], &Pb, &n, 1) < 0)
         return NULL;
     transform_attitude((double *)Pb.buf, n, G);
     PyBuffer_Release(&Pb);
@@ -489,7 +497,7 @@ static PyObject *core_reset_covariance(PyObject *self, PyObject *const *args,
         return NULL;
     Py_buffer Pb;
     Py_ssize_t n;
-    if (get_P(args[0], &Pb, &n) < 0)
+    if (get_P(args[0], &Pb, &n, 1) < 0)
         return NULL;
     double *P = (double *)Pb.buf;
     for (Py_ssize_t a = 0; a < n; a++)
@@ -571,7 +579,7 @@ static PyObject *core_range_rows(PyObject *self, PyObject *const *args, Py_ssize
         for (int i = 0; i < 3; i++)
             d[i] = p_ant[i] - anchors[3 * a + i];
         double dist = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
-        if (dist < closest)
+        if (isnan(dist) || dist < closest) /* NaN sticks: the caller's test fails */
             closest = dist;
         double *h = H + a * n;
         double u[3] = {d[0] / dist, d[1] / dist, d[2] / dist};
@@ -703,13 +711,24 @@ static PyObject *core_gauss_newton(PyObject *self, PyObject *const *args, Py_ssi
         PyErr_SetString(PyExc_TypeError, "gauss_newton takes 8 arguments");
         return NULL;
     }
-    int dims = (int)PyLong_AsLong(args[3]);
+    long dims = PyLong_AsLong(args[3]);
+    if (dims == -1 && PyErr_Occurred())
+        return NULL;
     long max_iter = PyLong_AsLong(args[4]);
-    double converged = PyFloat_AsDouble(args[5]), accept_last = PyFloat_AsDouble(args[6]);
-    if (PyErr_Occurred())
+    if (max_iter == -1 && PyErr_Occurred())
+        return NULL;
+    double converged = PyFloat_AsDouble(args[5]);
+    if (converged == -1.0 && PyErr_Occurred())
+        return NULL;
+    double accept_last = PyFloat_AsDouble(args[6]);
+    if (accept_last == -1.0 && PyErr_Occurred())
         return NULL;
     if (dims != 2 && dims != 3) {
         PyErr_SetString(PyExc_ValueError, "dims must be 2 or 3");
+        return NULL;
+    }
+    if (max_iter < 1) {
+        PyErr_SetString(PyExc_ValueError, "max_iterations must be at least 1");
         return NULL;
     }
     Py_buffer Ab, rb, xb, ob;
@@ -755,7 +774,7 @@ static PyObject *core_gauss_newton(PyObject *self, PyObject *const *args, Py_ssi
             break;
         }
         if (iteration == max_iter) {
-            result = norm > accept_last ? 0 : iteration;
+            result = norm <= accept_last ? iteration : 0; /* NaN: no fix */
             break;
         }
     }
@@ -778,8 +797,8 @@ static PyObject *core_leverages(PyObject *self, PyObject *const *args, Py_ssize_
         PyErr_SetString(PyExc_TypeError, "leverages takes 3 arguments");
         return NULL;
     }
-    int dims = (int)PyLong_AsLong(args[2]);
-    if (PyErr_Occurred())
+    long dims = PyLong_AsLong(args[2]);
+    if (dims == -1 && PyErr_Occurred())
         return NULL;
     if (dims != 2 && dims != 3) {
         PyErr_SetString(PyExc_ValueError, "dims must be 2 or 3");
@@ -790,6 +809,12 @@ static PyObject *core_leverages(PyObject *self, PyObject *const *args, Py_ssize_
         return NULL;
     if (get_doubles(args[1], &xb, 3, 0, "x") < 0) {
         PyBuffer_Release(&Ab);
+        return NULL;
+    }
+    if (Ab.len % 24 != 0) {
+        PyBuffer_Release(&Ab);
+        PyBuffer_Release(&xb);
+        PyErr_SetString(PyExc_ValueError, "anchors: k x 3 numbers expected");
         return NULL;
     }
     const double *anchors = (const double *)Ab.buf, *x = (const double *)xb.buf;
@@ -844,7 +869,7 @@ static PyObject *core_pose_covariance(PyObject *self, PyObject *const *args, Py_
         return NULL;
     Py_buffer Pb;
     Py_ssize_t n;
-    if (get_P(args[0], &Pb, &n) < 0)
+    if (get_P(args[0], &Pb, &n, 0) < 0)
         return NULL;
     const double *P = (const double *)Pb.buf;
     double R[3][3];
@@ -897,7 +922,7 @@ static PyObject *core_diagonal_out_of_bounds(PyObject *self, PyObject *const *ar
     }
     Py_buffer Pb, Lb;
     Py_ssize_t n;
-    if (get_P(args[0], &Pb, &n) < 0)
+    if (get_P(args[0], &Pb, &n, 0) < 0)
         return NULL;
     if (get_doubles(args[1], &Lb, n, 0, "limit") < 0) {
         PyBuffer_Release(&Pb);

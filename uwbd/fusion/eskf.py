@@ -309,7 +309,9 @@ class Eskf:
         if self._core is not None:
             P = np.array(self.P, dtype=float, order="C")  # kept only if a row is fused
             dx = np.zeros(self.n)
-            c0, c1 = (0, 0) if considered is None else (considered.start, considered.stop)
+            c0, c1, step = (0, 0, 1) if considered is None else considered.indices(self.n)
+            if step != 1:
+                raise ValueError("considered states: a slice of step 1")
             rows = [Row(*r) for r in self._core.sequential_update(
                 P, np.ascontiguousarray(H, dtype=float), np.ascontiguousarray(y, dtype=float),
                 np.ascontiguousarray(R, dtype=float), decide, c0, c1, dx)]
@@ -344,7 +346,7 @@ class Eskf:
                 continue
             w = decide(i, nu, s)
             rows.append(Row(nu, s, w, False))
-            if w <= 0.0:
+            if not w > 0.0:  # 0, negative or NaN: not fused
                 continue
             fused = True
             k = u / (s + r * (1.0 / w - 1.0))  # s − r + r/w

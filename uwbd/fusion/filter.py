@@ -416,7 +416,8 @@ class Filter(Recovery):
         ids, anchors, ranges, scale = [], [], [], []
         for r in epoch.ranges:
             pos = self.cfg.anchors_m.get(r.anchor_id, r.anchor_position_m)
-            if pos is None or not max(map(abs, pos)) <= MAX_ANCHOR_COORD_M:  # NaN fails too
+            # every coordinate finite and in range (max() would let a NaN after the first by)
+            if pos is None or not all(abs(c) <= MAX_ANCHOR_COORD_M for c in pos):
                 why = "unknown_anchor" if pos is None else "anchor_position_invalid"
                 self.gating.rejections[why] += 1
                 reports.append(FusionReport(epoch.t_ns, "range", str(r.anchor_id), math.nan,

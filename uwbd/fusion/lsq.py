@@ -158,8 +158,8 @@ def _iterate(anchors: Array, ranges: Array, x: Array, dims: int) -> tuple[int, A
         if float(np.linalg.norm(step)) < CONVERGED_M:
             break
         if iteration == MAX_ITERATIONS:
-            if float(np.linalg.norm(step)) > ACCEPT_LAST_STEP_M:
-                return None  # diverging or oscillating: no fix
+            if not float(np.linalg.norm(step)) <= ACCEPT_LAST_STEP_M:
+                return None  # diverging, oscillating or NaN: no fix
             break
     inverse = np.zeros((3, 3))
     inverse[:dims, :dims] = np.linalg.inv(JtJ)

@@ -88,12 +88,14 @@ class ChunkedWriter:
     def add_message(self, channel_id: int, log_time: int, data: bytes, sequence: int) -> None:
         """A message with ``publish_time = log_time``."""
         chunk = self._chunk
+        # packed first: a value out of range (struct.error) leaves the chunk as it was
+        head = _MESSAGE.pack(Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id,
+                             sequence, log_time, log_time)
         index = self._index.get(channel_id)
         if index is None:
             index = self._index[channel_id] = []
         index.append((log_time, len(chunk)))
-        chunk += _MESSAGE.pack(Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id,
-                               sequence, log_time, log_time)
+        chunk += head
         chunk += data
         if self._chunk_messages == 0:
             self._chunk_start = self._chunk_end = log_time
@@ -156,14 +158,13 @@ class ChunkedWriter:
                       compression="zstd", data=compressed)
         chunk_offset = self._out.tell()
         record = _record(chunk)
-        self._out.write(record)
         index_offset = chunk_offset + len(record)
         offsets: dict[int, int] = {}
         indexes = bytearray()
         for channel_id, entries in self._index.items():
             offsets[channel_id] = index_offset + len(indexes)
             indexes += _record(MessageIndex(channel_id=channel_id, records=entries))
-        self._out.write(indexes)
+        self._out.write(record + indexes)  # made whole first, written in one go
         self._chunk_indexes.append(ChunkIndex(
             message_start_time=self._chunk_start, message_end_time=self._chunk_end,
             chunk_start_offset=chunk_offset, chunk_length=len(record),

@@ -164,7 +164,7 @@ class LogWriter:
         if self._scene_version != self.view.anchors_version:
             self._scene_version = self.view.anchors_version
             self.json("/anchors", t_ns, self.view.scene(t_ns), "foxglove.SceneUpdate")
-        self._sequence += 1
+        self._sequence = (self._sequence + 1) & 0xFFFFFFFF  # MCAP's sequence is 32 bits
         self.unflushed += 1
         self._w.add_message(channel, t_ns, data, self._sequence)
 

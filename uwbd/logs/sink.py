@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import struct
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -172,7 +173,7 @@ class McapSink:
                     self._flushed(log)
             except OSError as err:
                 self._fail(f"writing {log.path}: {err.strerror or err}", t_ns)
-            except (TypeError, ValueError) as err:  # a record that cannot be encoded
+            except (TypeError, ValueError, struct.error) as err:  # a record that cannot be encoded
                 self.bad_records += 1
                 if self.bad_records == 1:
                     LOG.warning("a %s record could not be written to %s (%s); it is skipped",
