@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import datetime as dt
 import math
+import struct
 from collections.abc import Mapping
 from typing import Any
 
@@ -60,6 +61,8 @@ PAYLOADS: dict[int, Layout] = {
     QUAT: Layout((Field("quaternion_wire", "i16", 4, QUAT_DIV),)),
 }
 _PAYLOAD_OFFSET = 2
+# the common read: an accel and a gyro packet (header, type, four int16, sum8 each)
+_CYCLE = struct.Struct("<BB4hBBB4hB")
 
 
 
@@ -122,6 +125,11 @@ class WitParser(BufferedParser):
 
     def feed(self, data: bytes, t_ns: int = 0) -> list[ImuSample]:
         self.stats.bytes_in += len(data)
+        if (len(data) == _CYCLE.size and not self._buf and self._closing_type == GYRO
+                and self._last_type == GYRO and self._cycle_max < 0 and not self._cycle):
+            sample = self._common_cycle(data, t_ns)
+            if sample is not None:
+                return [sample]
         buf = self._buf + data if self._buf else data
         scan: Scan = scan_fixed(buf, PACKET_LEN, HEADER, KNOWN_TYPES)
         note_scan(self.stats, scan, self._base, "wit packet")
@@ -130,6 +138,23 @@ class WitParser(BufferedParser):
             self._packet(buf[p + 1], buf, p + _PAYLOAD_OFFSET, t_ns, out)
         self._keep_tail(buf, scan.keep_from)
         return out
+
+    def _common_cycle(self, data: bytes, t_ns: int) -> ImuSample | None:
+        """The common read, whole and alone: an accel and a gyro packet, the cycle the
+        parser expects next (the closing type learned is gyro, the last cycle closed). The
+        same sample, counters and state as the general path below, at a quarter of the cost
+        (one unpack); ``None`` for anything else, which the general path then takes."""
+        h0, t0, ax, ay, az, _temp_a, s0, h1, t1, gx, gy, gz, temp_g, s1 = _CYCLE.unpack(data)
+        if not (h0 == h1 == HEADER and t0 == ACC and t1 == GYRO
+                and sum(data[:10]) & 0xFF == s0 and sum(data[11:21]) & 0xFF == s1):
+            return None
+        self._base += len(data)
+        self._cycle_t_ns = t_ns
+        self.stats.frames += 1
+        # the gyro packet's temperature is the cycle's, as in _close
+        return ImuSample(t_ns=t_ns, acc_mps2=(ax / ACC_DIV, ay / ACC_DIV, az / ACC_DIV),
+                         gyro_rps=(gx / GYRO_DIV, gy / GYRO_DIV, gz / GYRO_DIV),
+                         temperature_c=temp_g / TEMP_DIV)
 
     def flush(self) -> list[ImuSample]:
         """End of input: emit the pending cycle, if complete, and count leftover bytes."""
