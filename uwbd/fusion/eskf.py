@@ -103,7 +103,7 @@ class Eskf:
                             else np.asarray(aux_sigma)[self._markov] ** 2)
         self._decay_epoch = np.ones(n_range_bias)
         self._core = native.core  # None: the pure-Python code below
-        self._clamp_key: tuple[int, float] | None = None
+        self._clamp_key: tuple[Array, float] | None = None
         self._clamp_limit = np.zeros(0)
 
     # -- nominal propagation: every IMU sample -------------------------------------------
@@ -388,9 +388,9 @@ class Eskf:
     def clamp_covariance(self, max_core_sigma: Array, max_aux_sigma: float) -> bool:
         """Variances within bounds and none negative; True if anything was clamped. Scaling
         a row and its column keeps ``P`` positive semi-definite."""
-        key = (id(max_core_sigma), max_aux_sigma)
-        if self._clamp_key != key:  # the same bounds every epoch: made once
-            self._clamp_key = key
+        key = self._clamp_key
+        if key is None or key[0] is not max_core_sigma or key[1] != max_aux_sigma:
+            self._clamp_key = (max_core_sigma, max_aux_sigma)  # the same every epoch: made once
             self._clamp_limit = np.concatenate(
                 [max_core_sigma, np.full(self.n - N_CORE, max_aux_sigma)])**2
         limit = self._clamp_limit

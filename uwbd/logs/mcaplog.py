@@ -189,10 +189,7 @@ class LogWriter:
         """``/pose`` (``data``: its bytes, when :func:`pose_json` made them already), and
         the viewer channels that follow it."""
         view = self.view
-        channel = self._channels.get("/pose")
-        if channel is None:
-            channel = self._channel("/pose", "json", "foxglove.PoseInFrame", POSE_SCHEMA)
-        self._add(channel, pose.t_ns,
+        self._add(self._json_channel("/pose", "foxglove.PoseInFrame", POSE_SCHEMA), pose.t_ns,
                   pose_json(pose, view.nav_frame_id) if data is None else data)
         self.json("/tf", pose.t_ns, view.transform(pose), "foxglove.FrameTransform")
         trajectory = view.trajectory(pose)
@@ -203,15 +200,19 @@ class LogWriter:
              schema: dict[str, Any] | None = None) -> None:
         """A JSON record; ``schema`` defaults to uwbd's schema named ``schema_name``
         (:data:`uwbd.logs.foxglove.SCHEMAS`), and ``/truth`` brings ``/truth/trajectory``."""
-        channel = self._channels.get(topic)
-        if channel is None:
-            channel = self._channel(topic, "json", schema_name,
-                                    schema if schema is not None else fx.SCHEMAS.get(schema_name))
-        self._add(channel, t_ns, strict_json(obj))
+        self._add(self._json_channel(topic, schema_name, schema), t_ns, strict_json(obj))
         if topic == "/truth":
             trajectory = self.view.truth_trajectory(t_ns, obj)
             if trajectory is not None:
                 self.json("/truth/trajectory", t_ns, trajectory, "foxglove.PosesInFrame")
+
+    def _json_channel(self, topic: str, schema_name: str,
+                      schema: dict[str, Any] | None) -> int:
+        channel = self._channels.get(topic)
+        if channel is None:
+            channel = self._channel(topic, "json", schema_name,
+                                    schema if schema is not None else fx.SCHEMAS.get(schema_name))
+        return channel
 
     def flush(self) -> None:
         """Close the open chunk and hand it to the OS (about once a second)."""
