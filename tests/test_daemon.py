@@ -188,7 +188,9 @@ def test_poses_status_and_liveliness_over_zenoh(tmp_path: Path, emulator) -> Non
                                          lambda s: poses.append(json.loads(s.payload.to_bytes())))
         time.sleep(0.5)
         emulator.start()
-        time.sleep(3.0)
+        deadline = time.monotonic() + 5.0  # the emulator sends for 6 s; a loaded machine is slow
+        while len(poses) <= 50 and time.monotonic() < deadline:
+            time.sleep(0.1)
         alive = [str(r.ok.key_expr) for r in session.liveliness().get("uwbd/**", timeout=2.0)
                  if r.ok is not None]
         status = [json.loads(r.ok.payload.to_bytes())

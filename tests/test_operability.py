@@ -306,7 +306,9 @@ def test_log_stops_on_a_full_disk_finishes_the_file_and_resumes(tmp_path: Path) 
         said = stopped + resumed + rest
         # the daemon's running commentary, as the journal gets it
         assert b"first pose: (" in said and b"poses/s; ranges " in said
-        assert b"filter waiting -> aligning" in said
+        # the phase: with the first pose, and each change (a status may or may not have
+        # caught the filter still waiting before its first pose: that depends on timing)
+        assert b" m, aligning" in said or b"filter waiting -> aligning" in said
         files = sorted(logs.glob("*.mcap"))
         assert len(files) >= 2
         for path in files:  # every file finished: no crash recovery needed

@@ -27,7 +27,6 @@ from mcap.records import (
     Footer,
     Header,
     McapRecord,
-    MessageIndex,
     Metadata,
     MetadataIndex,
     Schema,
@@ -39,6 +38,10 @@ from mcap.writer import MCAP0_MAGIC
 # opcode, record length, channel id, sequence, log time, publish time: then the data
 _MESSAGE = struct.Struct("<BQHIQQ")
 _MESSAGE_FIXED = _MESSAGE.size - 9  # the record's content before its data
+_MESSAGE_INDEX = struct.Struct("<BQHI")  # opcode, record length, channel id, array bytes
+# zstd level 1: the same ratio as the default 3 on these logs (JSON and device bytes, ~6x)
+# at three quarters of the time (measured on 64 kB chunks)
+ZSTD_LEVEL = 1
 
 
 class ChunkedWriter:
@@ -48,7 +51,8 @@ class ChunkedWriter:
         self._out = stream
         self._chunk_size = chunk_size
         self._chunk = bytearray()  # the open chunk's records, uncompressed
-        self._index: dict[int, list[tuple[int, int]]] = {}  # channel -> (log time, offset)
+        self._zstd = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
+        self._index: dict[int, list[int]] = {}  # channel -> log time, offset, log time, …
         self._chunk_start = self._chunk_end = 0  # its messages' time span
         self._chunk_messages = 0
         self._schemas: list[Schema] = []
@@ -94,7 +98,7 @@ class ChunkedWriter:
         index = self._index.get(channel_id)
         if index is None:
             index = self._index[channel_id] = []
-        index.append((log_time, len(chunk)))
+        index += (log_time, len(chunk))
         chunk += head
         chunk += data
         if self._chunk_messages == 0:
@@ -152,7 +156,7 @@ class ChunkedWriter:
         if self._chunk_messages == 0:
             return  # schemas and channels wait for the chunk of their first message
         data = bytes(self._chunk)
-        compressed = zstandard.compress(data)
+        compressed = self._zstd.compress(data)
         chunk = Chunk(message_start_time=self._chunk_start, message_end_time=self._chunk_end,
                       uncompressed_size=len(data), uncompressed_crc=zlib.crc32(data),
                       compression="zstd", data=compressed)
@@ -163,7 +167,7 @@ class ChunkedWriter:
         indexes = bytearray()
         for channel_id, entries in self._index.items():
             offsets[channel_id] = index_offset + len(indexes)
-            indexes += _record(MessageIndex(channel_id=channel_id, records=entries))
+            indexes += _message_index(channel_id, entries)
         self._out.write(record + indexes)  # made whole first, written in one go
         self._chunk_indexes.append(ChunkIndex(
             message_start_time=self._chunk_start, message_end_time=self._chunk_end,
@@ -180,6 +184,15 @@ class ChunkedWriter:
         self._chunk = bytearray()
         self._index = {}
         self._chunk_messages = 0
+
+
+def _message_index(channel_id: int, flat: list[int]) -> bytes:
+    """A Message Index record (opcode 0x07: channel id u16, then its (log time, offset) u64
+    pairs as an array with a u32 byte length), packed at once: ``mcap``'s record class makes
+    two calls a message (a third of the writer's time)."""
+    size = 8 * len(flat)
+    return _MESSAGE_INDEX.pack(Opcode.MESSAGE_INDEX, 2 + 4 + size, channel_id, size) \
+        + struct.pack(f"<{len(flat)}Q", *flat)
 
 
 def _record(record: McapRecord) -> bytes:

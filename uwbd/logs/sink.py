@@ -160,11 +160,14 @@ class McapSink:
         if not behind or (not everything and behind[-1][0] - behind[0][0] < WRITE_BEHIND_NS):
             return
         self._behind = []
+        log = None
         for t_ns, action, args in behind:
-            log = self._writer(t_ns)
-            if log is None:
-                self.records_lost += 1
-                continue
+            # the writer (and with it rotation) is looked at again only when a flush is due
+            if log is None or self._due_flush(t_ns):
+                log = self._writer(t_ns)
+                if log is None:
+                    self.records_lost += 1
+                    continue
             try:
                 getattr(log, action)(*args)
                 if self._due_flush(t_ns):
@@ -173,6 +176,7 @@ class McapSink:
                     self._flushed(log)
             except OSError as err:
                 self._fail(f"writing {log.path}: {err.strerror or err}", t_ns)
+                log = None
             except (TypeError, ValueError, struct.error) as err:  # a record that cannot be encoded
                 self.bad_records += 1
                 if self.bad_records == 1:

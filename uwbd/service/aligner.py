@@ -34,10 +34,14 @@ class Aligner:
 
     def push(self, frame: Frame) -> list[Frame]:
         """Take one frame; returns the frames that may go to the filter now, in order."""
-        if frame.t_ns < self._released_ns:
+        t_ns = frame.t_ns
+        if t_ns < self._released_ns:
             self.late += 1
             return []
-        self._clock_ns = max(self._clock_ns, frame.t_ns)
+        if self.wait_ns == 0 and not self._heap:  # what the heap would do, without it
+            self._clock_ns = self._released_ns = t_ns  # t_ns >= released >= any clock seen
+            return [frame]
+        self._clock_ns = max(self._clock_ns, t_ns)
         heapq.heappush(self._heap, (frame.t_ns, next(self._order), frame))
         out = []
         while self._heap and (self._heap[0][0] <= self._clock_ns - self.wait_ns

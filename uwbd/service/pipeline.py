@@ -71,6 +71,8 @@ class Pipeline:
         self.bad_records = 0  # decoded log records that are not frames (replay)
         self.extra_status: dict[str, Any] = {}  # e.g. port states, set by the runner
         self._last_pose_ns = -(2**63)
+        self._pose_period_ns = config.pose_period_ns  # a property: read once, not per sample
+        self._status_period_ns = config.status_period_ns
         self._period_ns: dict[str, int] = {}  # per source, learned sample period
         self._last_frame_ns: dict[str, int] = {}
         self._last_status_ns: int | None = None
@@ -79,7 +81,7 @@ class Pipeline:
     @property
     def next_pose_due_ns(self) -> int:
         """From this data time on, the next IMU sample brings a pose out."""
-        return self._last_pose_ns + self.config.pose_period_ns
+        return self._last_pose_ns + self._pose_period_ns
 
     def on_bytes(self, source: str, t_ns: int, data: bytes) -> None:
         """One read of ``data`` from ``source`` whose last byte arrived at ``t_ns``."""
@@ -188,7 +190,7 @@ class Pipeline:
         flt = self.filter
         if isinstance(frame, ImuSample):
             flt.predict(frame)
-            if frame.t_ns - self._last_pose_ns < self.config.pose_period_ns:
+            if frame.t_ns - self._last_pose_ns < self._pose_period_ns:
                 return
         elif isinstance(frame, UwbRanges):
             flt.update(frame)
@@ -213,7 +215,7 @@ class Pipeline:
         self._latest_ns = max(self._latest_ns, t_ns)
         if self._last_status_ns is None:
             self._last_status_ns = t_ns
-        elif t_ns - self._last_status_ns >= self.config.status_period_ns:
+        elif t_ns - self._last_status_ns >= self._status_period_ns:
             self._last_status_ns = t_ns
             self._emit_status(t_ns)
 
