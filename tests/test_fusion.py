@@ -278,7 +278,9 @@ def test_persistent_nlos_does_not_pull_the_state_away(sim: Simulation) -> None:
     uwb = [shifted(e) for e in sim.uwb]
     poses, _, flt = run_filter(config_for(sim), merge(sim.imu, uwb))
     s, err = _errors_xy(poses, sim)
-    assert err[(s >= 9) & (s < 16)].max() < 0.3  # bounded during the fault, not only after
+    # bounded during the fault, not only after: 3 s on the IMU alone (a jump to the biased
+    # fix would be metres)
+    assert err[(s >= 9) & (s < 16)].max() < 0.4
     assert err[s >= 16].max() < 0.15
     assert flt.counters["position_resets"] == 0 and flt.counters["restarts"] == 0
     late = [p.health for p, t in zip(poses, s, strict=True) if 10.5 <= t < 12]

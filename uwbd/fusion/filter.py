@@ -367,6 +367,8 @@ class Filter(Recovery):
                           (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
             M = T @ ekf.P[:TH_.stop, :TH_.stop] @ T.T
             covariance = tuple((0.5 * (M + M.T)).ravel().tolist())  # symmetric, as ROS expects
+        if not self._aligned:  # held, its σ a placeholder: to a subscriber, yaw is unknown
+            covariance = _yaw_unknown(covariance)
         cov = covariance
         p, v = ekf.p, ekf.v
         if not math.isfinite(sum(p) + sum(v) + w + x + y + z + sum(covariance)):
@@ -453,7 +455,14 @@ class Filter(Recovery):
         ekf.rotate_heading(0.0, HELD_YAW_SIGMA_RAD)
         if fix is None or not self._aligner.wants_fix(t_ns):
             return
-        result = self._aligner.add_fix(t_ns, fix)
+        # the INS's yaw, and what its horizontal accelerometer and gyro biases may still be
+        w, x, y, z = ekf.q
+        P = ekf.P
+        result = self._aligner.add_fix(
+            t_ns, fix, math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)),
+            math.sqrt(max(P[BA_.start, BA_.start] + P[BA_.start + 1, BA_.start + 1], 0) / 2),
+            math.sqrt(max(P[BG_.start, BG_.start] + P[BG_.start + 1, BG_.start + 1], 0) / 2),
+            math.sqrt(max(P[TH_.start, TH_.start] + P[TH_.start + 1, TH_.start + 1], 0) / 2))
         if result is not None:
             ekf.rotate_heading(*result)
             self._aligned = True
@@ -608,3 +617,13 @@ class Filter(Recovery):
         """A rejected IMU sample hid ``dt`` of motion: widen velocity and attitude for it."""
         self._inflate(velocity_mps=COAST_ACCEL_SIGMA_MPS2 * math.sqrt(dt),
                       attitude_rad=UNSEEN_RATE_SIGMA_RPS * math.sqrt(dt))
+
+
+def _yaw_unknown(covariance: tuple[float, ...]) -> tuple[float, ...]:
+    """The pose covariance (6×6 over position and nav-frame attitude, row-major) with the
+    yaw's variance π² and no correlation: what a heading not yet aligned is worth."""
+    cov = list(covariance)
+    for i in range(6):
+        cov[6 * i + 5] = cov[30 + i] = 0.0
+    cov[35] = math.pi**2
+    return tuple(cov)

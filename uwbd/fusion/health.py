@@ -119,6 +119,9 @@ class HealthMonitor:
         self._imu_fault_ns: int | None = None
         self._numerical_ns: int | None = None
         self.imu_gap = False
+        # ranges back after a timeout: the state coasted, and what its covariance claims is
+        # untried until a window of innovations since then says it is consistent
+        self._rejudging = False
         self.resets = 0
         self.last_reset: tuple[int, str, float | None] | None = None
         self.mirror_unresolved = False
@@ -126,12 +129,19 @@ class HealthMonitor:
     # -- evidence -------------------------------------------------------------------------
     def uwb_outcome(self, t_ns: int, accepted: bool, nis: float) -> None:
         """One UWB measurement (range or position axis) after the innovation test."""
+        last = self.last_range_ns
+        out = self._outcomes
+        if accepted and last is not None and t_ns - last > self.limits.range_timeout_s * NS:
+            # the window judged the state before the coast: this one is judged afresh (the
+            # first ranges after a long coast can pull it far, and leave it overconfident)
+            out.clear()
+            self._rejected, self._nis_sum = 0, 0.0
+            self._rejudging = True
         if accepted:
             self.last_range_ns = t_ns
             self._rejected_run = 0
         else:
             self._rejected_run += 1
-        out = self._outcomes
         nis = nis if nis < 25.0 else 25.0  # NaN and inf too
         out.append((accepted, nis))
         self._rejected += not accepted
@@ -140,6 +150,8 @@ class HealthMonitor:
             old_accepted, old_nis = out.popleft()
             self._rejected -= not old_accepted
             self._nis_sum -= old_nis
+        if self._rejudging and len(out) >= self.limits.window_count:
+            self._rejudging = False  # a full window since the ranges came back
         if self._window_inconsistent():
             if self._inconsistent_since_ns is None:
                 self._inconsistent_since_ns = t_ns
@@ -159,6 +171,7 @@ class HealthMonitor:
         self._outcomes.clear()
         self._rejected, self._nis_sum, self._rejected_run = 0, 0.0, 0
         self._inconsistent_since_ns = None
+        self._rejudging = False
 
     # -- judgements -----------------------------------------------------------------------
     def _window_inconsistent(self) -> bool:
@@ -196,8 +209,8 @@ class HealthMonitor:
             faults.append("imu_rejected")
         if self.imu_gap:
             faults.append("imu_gap")
-        if running and since is not None and since > lim.range_timeout_s:
-            faults.append("range_timeout")
+        if running and since is not None and (since > lim.range_timeout_s or self._rejudging):
+            faults.append("range_timeout")  # or just back, the state not yet judged again
         if running and (position_sigma_m is None or not position_sigma_m <= lim.max_sigma_m):
             faults.append("position_uncertain")
         notes = ("mirror_unresolved",) if self.mirror_unresolved else ()
