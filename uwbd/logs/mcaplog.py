@@ -32,7 +32,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import IO, Any
+from typing import IO, Any, NamedTuple
 
 import zstandard
 from mcap.data_stream import RecordBuilder
@@ -47,6 +47,7 @@ from uwbd.codec import frame_to_json, strict_json
 from uwbd.fusion.types import Pose
 from uwbd.logs import foxglove as fx
 from uwbd.logs.chunked import ChunkedWriter
+from uwbd.logs.scan import UnusualRecordError, scan
 
 RAW_ENCODING = fx.LEGACY_RAW_ENCODING  # the old schemaless /raw/* encoding, still read
 METADATA_NAME = "uwbd"
@@ -239,8 +240,7 @@ class LogWriter:
         self.close()
 
 
-@dataclass(frozen=True)
-class LogMessage:
+class LogMessage(NamedTuple):
     topic: str
     log_time_ns: int
     data: bytes
@@ -284,7 +284,52 @@ def not_a_log(path: Path) -> str:
 def read_log(path: Path) -> LogContents:
     """Read a (possibly unfinished) uwbd log by a linear scan. ``/raw/*`` messages come out as
     the bytes read from the port, whether the log wrote them as ``uwbd.Raw`` protobuf
-    messages or, before, schemaless (``uwbd.raw``)."""
+    messages or, before, schemaless (``uwbd.raw``).
+
+    A whole file is read by :func:`uwbd.logs.scan.scan` (one ``struct`` call a message);
+    any other (cut short, damaged, compressed otherwise) by the ``mcap`` library's reader,
+    which says where it ends."""
+    with path.open("rb") as f:
+        buf = f.read()
+    try:
+        return _read_whole(buf)
+    except UnusualRecordError:
+        return _read_by_library(path)
+
+
+def _read_whole(buf: bytes) -> LogContents:
+    out = LogContents()
+    topics: dict[int, str] = {}
+    raw_protobuf: set[int] = set()
+    schemas: dict[int, str] = {}
+    messages = out.messages
+    for event in scan(buf):
+        kind = event[0]
+        if kind == "messages":
+            for channel, log_time, record in event[1]:
+                data = record
+                if channel in raw_protobuf:
+                    # uwbd.Raw as uwbd writes it (tag, one-byte length, bytes), else in full
+                    if len(data) >= 2 and data[0] == 0x0A and data[1] == len(data) - 2 < 0x80:
+                        data = data[2:]
+                    else:
+                        with contextlib.suppress(ValueError):  # not one: left as it is
+                            data = fx.decode_raw(data)
+                messages.append(LogMessage(topics.get(channel, "?"), log_time, data))
+        elif kind == "schema":
+            schemas[event[1]] = event[2]
+        elif kind == "channel":
+            _, ident, schema_id, topic, encoding = event
+            topics[ident] = topic
+            if (encoding == fx.RAW_MESSAGE_ENCODING
+                    and schemas.get(schema_id) == fx.RAW_SCHEMA_NAME):
+                raw_protobuf.add(ident)
+        elif event[1] == METADATA_NAME:
+            out.metadata = dict(event[2])
+    return out
+
+
+def _read_by_library(path: Path) -> LogContents:
     out = LogContents()
     channels: dict[int, str] = {}
     raw_protobuf: set[int] = set()  # channels of uwbd.Raw messages (new logs)
