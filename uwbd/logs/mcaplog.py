@@ -138,6 +138,8 @@ class LogWriter:
             "sources": json.dumps([vars(s) for s in sources]), "robot": robot,
             "host": socket.gethostname()})
         self._channels: dict[str, int] = {}
+        self._by_source: dict[str, int] = {}  # /raw/<source>'s channel
+        self._by_frame_type: dict[type, int] = {}
         self._schemas: dict[tuple[str, str, bytes], int] = {}
         self._sequence = 0
         self._scene_version = 0  # the anchors last written to this file
@@ -170,19 +172,21 @@ class LogWriter:
         self._w.add_message(channel, t_ns, data, self._sequence)
 
     def raw(self, source: str, t_ns: int, data: bytes) -> None:
-        topic = f"/raw/{source}"
-        channel = self._channels.get(topic)
+        channel = self._by_source.get(source)
         if channel is None:
-            channel = self._channel(topic, fx.RAW_MESSAGE_ENCODING, fx.RAW_SCHEMA_NAME,
-                                    schema_encoding="protobuf", schema_data=fx.RAW_DESCRIPTOR)
+            channel = self._by_source[source] = self._channel(
+                f"/raw/{source}", fx.RAW_MESSAGE_ENCODING, fx.RAW_SCHEMA_NAME,
+                schema_encoding="protobuf", schema_data=fx.RAW_DESCRIPTOR)
         self._add(channel, t_ns, fx.encode_raw(data))
 
     def frame(self, frame: Frame) -> None:
-        topic, schema = fx.frame_channel(type(frame))
-        channel = self._channels.get(topic)
+        kind = type(frame)
+        channel = self._by_frame_type.get(kind)
         if channel is None:
-            channel = self._channel(topic, "json", schema["title"], schema)
-        if type(frame) is UwbRanges:
+            topic, schema = fx.frame_channel(kind)
+            channel = self._by_frame_type[kind] = self._channel(topic, "json", schema["title"],
+                                                                schema)
+        if kind is UwbRanges:
             self.view.observe(frame)
         self._add(channel, frame.t_ns, frame_to_json(frame))
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import struct
+from collections.abc import Callable
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -66,7 +67,7 @@ class McapSink:
         self._log: LogWriter | None = None
         self._opened_ns = 0
         self._flushed_ns = 0
-        self._behind: list[tuple[int, str, tuple[Any, ...]]] = []
+        self._behind: list[tuple[int, Callable[..., None], tuple[Any, ...]]] = []
         self._max_behind_ns = MAX_BEHIND_NS if paced else WRITE_BEHIND_NS
         self.view = FoxgloveView.from_config(config)
 
@@ -144,8 +145,9 @@ class McapSink:
             k += 1
         return path
 
-    def _write(self, t_ns: int, action: str, *args: Any) -> None:
-        if self._paused(t_ns):
+    def _write(self, t_ns: int, action: Callable[..., None], *args: Any) -> None:
+        """``action`` (a :class:`LogWriter` method) with ``args``, written behind."""
+        if self.error and self._paused(t_ns):
             self.records_lost += 1  # logging has stopped: keep nothing until the next try
             return
         behind = self._behind
@@ -163,14 +165,16 @@ class McapSink:
         log = None
         for t_ns, action, args in behind:
             # the writer (and with it rotation) is looked at again only when a flush is due
-            if log is None or self._due_flush(t_ns):
+            due = t_ns - self._flushed_ns >= FLUSH_PERIOD_NS
+            if log is None or due:
                 log = self._writer(t_ns)
                 if log is None:
                     self.records_lost += 1
                     continue
+                due = t_ns - self._flushed_ns >= FLUSH_PERIOD_NS  # a new file: not yet
             try:
-                getattr(log, action)(*args)
-                if self._due_flush(t_ns):
+                action(log, *args)
+                if due:
                     log.flush()
                     self._flushed_ns = t_ns
                     self._flushed(log)
@@ -181,7 +185,7 @@ class McapSink:
                 self.bad_records += 1
                 if self.bad_records == 1:
                     LOG.warning("a %s record could not be written to %s (%s); it is skipped",
-                                action, log.path, err)
+                                action.__name__, log.path, err)
 
     def _fail(self, reason: str, t_ns: int) -> None:
         """Logging pauses: the cut file is finished with what reached it; a directory sink
@@ -207,14 +211,14 @@ class McapSink:
                         else "nothing more is written")
 
     def raw(self, source: str, t_ns: int, data: bytes) -> None:
-        self._write(t_ns, "raw", source, t_ns, data)
+        self._write(t_ns, LogWriter.raw, source, t_ns, data)
 
     def frame(self, frame: Frame) -> None:
-        self._write(frame.t_ns, "frame", frame)
+        self._write(frame.t_ns, LogWriter.frame, frame)
 
     def pose(self, pose: Pose) -> None:
         # encoded now, once with the other sinks (pose_json), written behind
-        self._write(pose.t_ns, "pose", pose, pose_json(pose, self.view.nav_frame_id))
+        self._write(pose.t_ns, LogWriter.pose, pose, pose_json(pose, self.view.nav_frame_id))
 
     def status(self, t_ns: int, status: dict[str, Any]) -> None:
         self.json("/status", t_ns, status, "uwbd.Status")
@@ -222,7 +226,7 @@ class McapSink:
     def json(self, topic: str, t_ns: int, obj: dict[str, Any], schema_name: str = "") -> None:
         """Any other JSON record (e.g. ``/truth`` when the truth is known); its schema is
         uwbd's of that name (:data:`uwbd.logs.foxglove.SCHEMAS`)."""
-        self._write(t_ns, "json", topic, t_ns, obj, schema_name)
+        self._write(t_ns, LogWriter.json, topic, t_ns, obj, schema_name)
 
     def _close_current(self) -> None:
         if self._log is not None:
