@@ -300,66 +300,71 @@ static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_
 
 /* -- sequential scalar update: every UWB epoch ------------------------------------------ */
 
-/* sequential_update(P, H, y, R, decide, c0, c1, dx) -> list of (ν, S, w, numerical)
- * Eskf.sequential_update, in the O(n²)-per-row form, in place on P (n×n, a copy the caller
- * keeps only if a row was fused) and dx (n):
- * for each row, u = P h, S = h u + R_i, ν = y_i − h dx; decide(i, ν, S) gives the
- * weight; k = u / (S + R_i (1/w − 1)), zero on [c0, c1) (considered states);
- * dx += k ν; P ← P − M − Mᵀ with M = k (u − S k / 2)ᵀ. The caller symmetrises P and
- * injects dx when any row was fused (a weight > 0). */
-static PyObject *core_sequential_update(PyObject *self, PyObject *const *args,
-                                        Py_ssize_t nargs)
+/* The weight of one row (Filter._fuse's decide, robust.RobustPolicy.weight) when the
+ * caller hands the policy as a tuple (gating.RowPolicy): kinds[i] 'p' a position axis
+ * (fix_ok decides), 'r' a range (χ² gate, then the Geman–McClure weight), any other a
+ * gated pseudo-measurement of weight 1. */
+typedef struct {
+    const char *kinds;
+    Py_ssize_t count;
+    double gate_1, c_long, c_short;
+    int robust, fix_ok;
+} RowPolicy;
+
+static int get_policy(PyObject *obj, RowPolicy *pol)
 {
-    (void)self;
-    if (nargs != 8) {
-        PyErr_SetString(PyExc_TypeError, "sequential_update takes 8 arguments");
-        return NULL;
+    if (!PyTuple_Check(obj) || PyTuple_GET_SIZE(obj) != 6 ||
+        !PyBytes_Check(PyTuple_GET_ITEM(obj, 0))) {
+        PyErr_SetString(PyExc_TypeError,
+                        "decide: a callable or (kinds, gate_1, robust, c_long, c_short, fix_ok)");
+        return -1;
     }
-    PyObject *decide = args[4];
-    Py_ssize_t c0 = PyLong_AsSsize_t(args[5]), c1 = PyLong_AsSsize_t(args[6]);
-    if (PyErr_Occurred())
-        return NULL;
-    Py_buffer Pb, Hb, yb, Rb, Db;
-    if (get_doubles(args[0], &Pb, -1, 1, "P") < 0)
-        return NULL;
-    Py_ssize_t n = (Py_ssize_t)sqrt((double)(Pb.len / 8));
-    if (n * n * 8 != Pb.len) {
-        PyBuffer_Release(&Pb);
-        PyErr_SetString(PyExc_ValueError, "P must be square");
-        return NULL;
-    }
-    if (get_doubles(args[7], &Db, n, 1, "dx") < 0) {
-        PyBuffer_Release(&Pb);
-        return NULL;
-    }
-    if (get_doubles(args[2], &yb, -1, 0, "y") < 0) {
-        PyBuffer_Release(&Pb);
-        PyBuffer_Release(&Db);
-        return NULL;
-    }
-    Py_ssize_t m = yb.len / 8;
-    if (get_doubles(args[1], &Hb, m * n, 0, "H") < 0) {
-        PyBuffer_Release(&Pb);
-        PyBuffer_Release(&Db);
-        PyBuffer_Release(&yb);
-        return NULL;
-    }
-    if (get_doubles(args[3], &Rb, m, 0, "R") < 0) {
-        PyBuffer_Release(&Pb);
-        PyBuffer_Release(&Db);
-        PyBuffer_Release(&yb);
-        PyBuffer_Release(&Hb);
-        return NULL;
-    }
-    double *P = (double *)Pb.buf, *dx = (double *)Db.buf;
-    const double *H = (const double *)Hb.buf, *y = (const double *)yb.buf;
-    const double *Rv = (const double *)Rb.buf;
+    PyObject *kinds = PyTuple_GET_ITEM(obj, 0);
+    pol->kinds = PyBytes_AS_STRING(kinds);
+    pol->count = PyBytes_GET_SIZE(kinds);
+    pol->gate_1 = PyFloat_AsDouble(PyTuple_GET_ITEM(obj, 1));
+    pol->robust = PyObject_IsTrue(PyTuple_GET_ITEM(obj, 2));
+    pol->c_long = PyFloat_AsDouble(PyTuple_GET_ITEM(obj, 3));
+    pol->c_short = PyFloat_AsDouble(PyTuple_GET_ITEM(obj, 4));
+    pol->fix_ok = PyObject_IsTrue(PyTuple_GET_ITEM(obj, 5));
+    if (PyErr_Occurred() || pol->robust < 0 || pol->fix_ok < 0)
+        return -1;
+    return 0;
+}
+
+static double policy_weight(const RowPolicy *pol, Py_ssize_t i, double nu, double s)
+{
+    char kind = pol->kinds[i];
+    if (kind == 'p')
+        return pol->fix_ok ? 1.0 : 0.0;
+    double e2 = nu * nu / s;
+    if (e2 > pol->gate_1)
+        return 0.0;
+    if (kind != 'r' || !pol->robust)
+        return 1.0;
+    double e = nu / sqrt(s);
+    double c = e > 0 ? pol->c_long : pol->c_short;
+    double c2 = c * c;
+    return pow(c2 / (c2 + e * e), 2.0); /* Python's float ** 2 */
+}
+
+/* The rows of Eskf.sequential_update, in the O(n²)-per-row form, in place on P (n×n) and
+ * dx (n): for each row, u = P h, S = h u + R_i, ν = y_i − h dx; the weight w from
+ * `decide(i, ν, S)` (a callable) or the policy above; k = u / (S + R_i (1/w − 1)), zero on
+ * [c0, c1) (considered states); dx += k ν; P ← P − M − Mᵀ with M = k (u − S k / 2)ᵀ.
+ * Returns the list of (ν, S, w, numerical) and in *fused whether any weight was > 0. */
+static PyObject *scalar_rows(double *P, double *dx, Py_ssize_t n, const double *H,
+                             const double *y, const double *Rv, Py_ssize_t m,
+                             PyObject *decide, const RowPolicy *pol, Py_ssize_t c0,
+                             Py_ssize_t c1, int *fused)
+{
+    *fused = 0;
     PyObject *rows = PyList_New(m);
     double *u = PyMem_Malloc(sizeof(double) * 3 * n);
     if (rows == NULL || u == NULL) {
         Py_XDECREF(rows);
-        rows = PyErr_NoMemory();
-        goto done; /* frees u */
+        PyMem_Free(u);
+        return PyErr_NoMemory();
     }
     double *k = u + n, *g = u + 2 * n;
     for (Py_ssize_t i = 0; i < m; i++) {
@@ -380,28 +385,31 @@ static PyObject *core_sequential_update(PyObject *self, PyObject *const *args,
         double nu = y[i] - hdx;
         double weight = 0.0;
         int numerical = !(isfinite(s) && isfinite(nu)) || s < r * (1 - 1e-9);
-        if (!numerical) {
+        if (!numerical && pol != NULL) {
+            weight = policy_weight(pol, i, nu, s);
+        } else if (!numerical) {
             PyObject *res = PyObject_CallFunction(decide, "ndd", i, nu, s);
             if (res == NULL) {
                 Py_CLEAR(rows);
-                goto done;
+                break;
             }
             weight = PyFloat_AsDouble(res);
             Py_DECREF(res);
             if (weight == -1.0 && PyErr_Occurred()) {
                 Py_CLEAR(rows);
-                goto done;
+                break;
             }
         }
         PyObject *row = Py_BuildValue("(dddO)", nu, s, weight,
                                       numerical ? Py_True : Py_False);
         if (row == NULL) {
             Py_CLEAR(rows);
-            goto done;
+            break;
         }
         PyList_SET_ITEM(rows, i, row);
         if (numerical || !(weight > 0.0)) /* 0, negative or NaN: not fused */
             continue;
+        *fused = 1;
         double denom = s + r * (1.0 / weight - 1.0);
         for (Py_ssize_t a = 0; a < n; a++)
             k[a] = (a >= c0 && a < c1) ? 0.0 : u[a] / denom;
@@ -415,13 +423,7 @@ static PyObject *core_sequential_update(PyObject *self, PyObject *const *args,
             for (Py_ssize_t b = 0; b < n; b++)
                 P[a * n + b] = (P[a * n + b] - k[a] * g[b]) - k[b] * g[a];
     }
-done:
     PyMem_Free(u);
-    PyBuffer_Release(&Pb);
-    PyBuffer_Release(&Db);
-    PyBuffer_Release(&yb);
-    PyBuffer_Release(&Hb);
-    PyBuffer_Release(&Rb);
     return rows;
 }
 
@@ -481,6 +483,23 @@ static PyObject *core_turn_attitude_covariance(PyObject *self, PyObject *const *
     Py_RETURN_NONE;
 }
 
+/* P ← (P + Pᵀ)/2, then the error reset P ← G P Gᵀ with G = I except its attitude block
+ * I − ½[δθ]× (in place; n×n). */
+static void reset_P(double *P, Py_ssize_t n, const double th[3])
+{
+    for (Py_ssize_t a = 0; a < n; a++)
+        for (Py_ssize_t b = a + 1; b < n; b++) {
+            double m = 0.5 * (P[a * n + b] + P[b * n + a]);
+            P[a * n + b] = m;
+            P[b * n + a] = m;
+        }
+    /* G_th = I − ½[δθ]× */
+    double G[3][3] = {{1.0, 0.5 * th[2], -0.5 * th[1]},
+                      {-0.5 * th[2], 1.0, 0.5 * th[0]},
+                      {0.5 * th[1], -0.5 * th[0], 1.0}};
+    transform_attitude(P, n, G);
+}
+
 /* reset_covariance(P, dtheta) — after a fused update, in place on P (n×n):
  * P ← (P + Pᵀ)/2, then the error reset P ← G P Gᵀ with G = I except its attitude block
  * I − ½[δθ]× (eskf: sequential_update's symmetrising and Eskf.inject's covariance part). */
@@ -499,20 +518,114 @@ static PyObject *core_reset_covariance(PyObject *self, PyObject *const *args,
     Py_ssize_t n;
     if (get_P(args[0], &Pb, &n, 1) < 0)
         return NULL;
-    double *P = (double *)Pb.buf;
-    for (Py_ssize_t a = 0; a < n; a++)
-        for (Py_ssize_t b = a + 1; b < n; b++) {
-            double m = 0.5 * (P[a * n + b] + P[b * n + a]);
-            P[a * n + b] = m;
-            P[b * n + a] = m;
-        }
-    /* G_th = I − ½[δθ]× */
-    double G[3][3] = {{1.0, 0.5 * th[2], -0.5 * th[1]},
-                      {-0.5 * th[2], 1.0, 0.5 * th[0]},
-                      {0.5 * th[1], -0.5 * th[0], 1.0}};
-    transform_attitude(P, n, G);
+    reset_P((double *)Pb.buf, n, th);
     PyBuffer_Release(&Pb);
     Py_RETURN_NONE;
+}
+
+/* update_and_inject(P, H, y, R, decide, c0, c1, dx, p, v, q, b_g, b_a, b_r) -> (rows, q)
+ * The whole of Eskf.sequential_update on the C core: scalar_rows on a copy of P; when a
+ * row was fused, P takes the copy, symmetrised and reset (reset_P), and the nominal state
+ * takes dx (Eskf._inject_nominal: p, v, b_g, b_a lists and the b_r array in place, the new
+ * q returned); else P and the state are left as they were and q is None. dx (n, zeros)
+ * receives the correction. */
+static PyObject *core_update_and_inject(PyObject *self, PyObject *const *args,
+                                        Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 14) {
+        PyErr_SetString(PyExc_TypeError, "update_and_inject takes 14 arguments");
+        return NULL;
+    }
+    PyObject *decide = args[4];
+    Py_ssize_t c0 = PyLong_AsSsize_t(args[5]), c1 = PyLong_AsSsize_t(args[6]);
+    if (PyErr_Occurred())
+        return NULL;
+    RowPolicy policy, *pol = NULL;
+    if (!PyCallable_Check(decide)) {
+        if (get_policy(decide, &policy) < 0)
+            return NULL;
+        pol = &policy;
+    }
+    double pos[3], vel[3], q[4], bg[3], ba[3];
+    if (get_vec(args[8], pos, 3, "p") || get_vec(args[9], vel, 3, "v") ||
+        get_vec(args[10], q, 4, "q") || get_vec(args[11], bg, 3, "b_g") ||
+        get_vec(args[12], ba, 3, "b_a"))
+        return NULL;
+    const int targets[4] = {8, 9, 11, 12};
+    for (int i = 0; i < 4; i++)
+        if (!PyList_Check(args[targets[i]])) {
+            PyErr_SetString(PyExc_TypeError, "p, v, b_g and b_a must be lists");
+            return NULL;
+        }
+    Py_buffer view[6]; /* P, dx, y, H, R, b_r */
+    int got = 0;
+    PyObject *result = NULL, *rows = NULL;
+    double *work = NULL;
+    Py_ssize_t n = 0, m = 0;
+    if (get_P(args[0], &view[0], &n, 1) < 0)
+        return NULL;
+    got = 1;
+    if (get_doubles(args[7], &view[1], n, 1, "dx") < 0)
+        goto done;
+    got = 2;
+    if (get_doubles(args[2], &view[2], -1, 0, "y") < 0)
+        goto done;
+    got = 3;
+    m = view[2].len / 8;
+    if (get_doubles(args[1], &view[3], m * n, 0, "H") < 0)
+        goto done;
+    got = 4;
+    if (get_doubles(args[3], &view[4], m, 0, "R") < 0)
+        goto done;
+    got = 5;
+    if (get_doubles(args[13], &view[5], n - N_CORE, 1, "b_r") < 0)
+        goto done;
+    got = 6;
+    if (pol != NULL && pol->count != m) {
+        PyErr_SetString(PyExc_ValueError, "decide: one kind per row");
+        goto done;
+    }
+    work = PyMem_Malloc(sizeof(double) * n * n);
+    if (work == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    double *P = (double *)view[0].buf, *dx = (double *)view[1].buf;
+    memcpy(work, P, sizeof(double) * n * n);
+    int fused;
+    rows = scalar_rows(work, dx, n, (const double *)view[3].buf, (const double *)view[2].buf,
+                       (const double *)view[4].buf, m, decide, pol, c0, c1, &fused);
+    if (rows == NULL)
+        goto done;
+    if (!fused) {
+        result = Py_BuildValue("(OO)", rows, Py_None);
+        goto done;
+    }
+    for (int i = 0; i < 3; i++) {
+        pos[i] += dx[i];
+        vel[i] += dx[3 + i];
+        bg[i] += dx[9 + i];
+        ba[i] += dx[12 + i];
+    }
+    double qn[4];
+    turned(q, dx[6], dx[7], dx[8], qn);
+    if (set_list(args[8], pos, 3) || set_list(args[9], vel, 3) || set_list(args[11], bg, 3) ||
+        set_list(args[12], ba, 3))
+        goto done;
+    double *b_r = (double *)view[5].buf;
+    for (Py_ssize_t a = N_CORE; a < n; a++)
+        b_r[a - N_CORE] += dx[a];
+    const double th[3] = {dx[6], dx[7], dx[8]};
+    reset_P(work, n, th);
+    memcpy(P, work, sizeof(double) * n * n);
+    result = Py_BuildValue("(O[dddd])", rows, qn[0], qn[1], qn[2], qn[3]);
+done:
+    Py_XDECREF(rows);
+    PyMem_Free(work);
+    for (int i = 0; i < got; i++)
+        PyBuffer_Release(&view[i]);
+    return result;
 }
 
 /* -- measurement rows: every UWB message ------------------------------------------------ */
@@ -942,8 +1055,8 @@ static PyMethodDef core_methods[] = {
      "Eskf.predict: one IMU sample (p, v, sums in place; returns the new q)."},
     {"propagate_core", (PyCFunction)(void (*)(void))core_propagate, METH_FASTCALL,
      "Eskf.propagate's core rows and columns, in place on P and Phi_epoch."},
-    {"sequential_update", (PyCFunction)(void (*)(void))core_sequential_update, METH_FASTCALL,
-     "Eskf.sequential_update's scalar rows, in place on P and dx; returns the rows."},
+    {"update_and_inject", (PyCFunction)(void (*)(void))core_update_and_inject, METH_FASTCALL,
+     "Eskf.sequential_update whole: the rows, then P reset and the state corrected."},
     {"turn_attitude_covariance", (PyCFunction)(void (*)(void))core_turn_attitude_covariance,
      METH_FASTCALL, "P <- T P T^T for T = I but its attitude block G, in place."},
     {"reset_covariance", (PyCFunction)(void (*)(void))core_reset_covariance, METH_FASTCALL,

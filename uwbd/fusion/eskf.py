@@ -19,6 +19,7 @@ from typing import NamedTuple
 import numpy as np
 
 from uwbd.fusion import native
+from uwbd.fusion.robust import RowPolicy
 from uwbd.fusion.rotation import Array, quat_mul, quat_to_matrix, skew
 
 GRAVITY_MPS2 = 9.80665
@@ -287,7 +288,7 @@ class Eskf:
 
     # -- measurement update --------------------------------------------------------------
     def sequential_update(self, H: Array, y: Array, R: Array,
-                          decide: Callable[[int, float, float], float],
+                          decide: Callable[[int, float, float], float] | RowPolicy,
                           considered: slice | None = None) -> list[Row]:
         """Fuse rows ``H`` (m×n), residuals ``y`` at the prior, noise variances ``R``, one
         scalar at a time (docs/ekf.md §5), then inject and reset.
@@ -295,8 +296,9 @@ class Eskf:
         For row ``i``, at the state the rows before it left: innovation ``ν = y_i − H_i δx``
         with variance ``S = H_i P H_iᵀ + R_i``; ``decide(i, ν, S)`` returns the weight ``w``
         (0 skips the row, 1 is the plain Kalman update, ``0 < w < 1`` de-weights it: the gain
-        is computed with ``R_i / w``). The covariance always follows the Joseph form with the
-        nominal ``R_i``, which is right for any gain::
+        is computed with ``R_i / w``; a :class:`~uwbd.fusion.robust.RowPolicy` is such a
+        function that the C core reads without calling back). The covariance always follows
+        the Joseph form with the nominal ``R_i``, which is right for any gain::
 
             P ← (I − k h) P (I − k h)ᵀ + R_i k kᵀ = P − k uᵀ − u kᵀ + S k kᵀ,  u = P hᵀ
 
@@ -306,20 +308,20 @@ class Eskf:
         A row whose ``S`` is not finite or falls below ``R_i`` (``P`` lost its positive
         semi-definiteness along ``h``) is skipped and marked ``numerical``.
         """
-        if self._core is not None:
-            P = np.array(self.P, dtype=float, order="C")  # kept only if a row is fused
+        if self._core is not None:  # the rows, the injection and the reset in one call
             dx = np.zeros(self.n)
             c0, c1, step = (0, 0, 1) if considered is None else considered.indices(self.n)
             if step != 1:
                 raise ValueError("considered states: a slice of step 1")
-            rows = [Row(*r) for r in self._core.sequential_update(
+            P = self.P = np.ascontiguousarray(self.P, dtype=float)
+            raw, q = self._core.update_and_inject(
                 P, np.ascontiguousarray(H, dtype=float), np.ascontiguousarray(y, dtype=float),
-                np.ascontiguousarray(R, dtype=float), decide, c0, c1, dx)]
-            if any(r.weight > 0.0 for r in rows):
-                self.P = P
-                self._inject_nominal(dx)
-                self._core.reset_covariance(P, dx[TH_])  # symmetrised, then G P Gᵀ
-            return rows
+                np.ascontiguousarray(R, dtype=float), decide, c0, c1, dx, self.p, self.v,
+                self.q, self.b_g, self.b_a, self.b_r)
+            if q is not None:  # a row was fused: P and the state are corrected
+                self.q = q
+                self.last_dx = dx
+            return [Row(*r) for r in raw]
         P, dx, rows, fused = self._sequential_rows(H, y, R, decide, considered)
         if fused:
             self.P = 0.5 * (P + P.T)
@@ -327,7 +329,7 @@ class Eskf:
         return rows
 
     def _sequential_rows(self, H: Array, y: Array, R: Array,
-                         decide: Callable[[int, float, float], float],
+                         decide: Callable[[int, float, float], float] | RowPolicy,
                          considered: slice | None) -> tuple[Array, Array, list[Row], bool]:
         """The rows of :meth:`sequential_update` in Python: the posterior ``P`` and ``δx``
         (not yet injected), the rows, and whether any was fused."""

@@ -66,7 +66,7 @@ from uwbd.fusion.recovery import (
     Recovery,
 )
 from uwbd.fusion.rest import ImuWindow, UwbStillness
-from uwbd.fusion.robust import AnchorStats, quality_scale
+from uwbd.fusion.robust import AnchorStats, RowPolicy, quality_scale
 from uwbd.fusion.rotation import Array
 from uwbd.fusion.settings import FilterConfig, Mode
 from uwbd.fusion.smoother import EpochRecord, Nominal
@@ -564,16 +564,10 @@ class Filter(Recovery):
                 fix_ok = float(y[idx] @ np.linalg.solve(Sl, y[idx])) <= self._gate_3
             except np.linalg.LinAlgError:
                 fix_ok = False
-        gate_1, robust = self._gate_1, self.cfg.robust
-
-        def decide(i: int, nu: float, s: float) -> float:
-            kind = keys[i][0]
-            if kind == "position":
-                return 1.0 if fix_ok else 0.0
-            e2 = nu * nu / s
-            if e2 > gate_1:
-                return 0.0
-            return robust.weight(nu / math.sqrt(s)) if kind == "range" else 1.0
+        gate_1 = self._gate_1
+        # the first letter of each row's kind: "r"ange, "p"osition, any other gated plainly
+        decide = RowPolicy.of(bytes(ord(kind[0]) for kind, _ in keys), gate_1, self.cfg.robust,
+                              fix_ok)
 
         # while the heading is held, moving, its linearisation is void: attitude and gyro
         # biases must not soak up what the unknown heading does to the velocity; without the

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 
 @dataclass(frozen=True)
@@ -33,6 +33,39 @@ class RobustPolicy:
     def weight(self, e: float) -> float:
         if not self.enabled:
             return 1.0
+        c = self.c_long if e > 0 else self.c_short
+        c2 = c * c
+        return (c2 / (c2 + e * e)) ** 2
+
+
+class RowPolicy(NamedTuple):
+    """How :meth:`uwbd.fusion.eskf.Eskf.sequential_update` weighs each row of one update:
+    ``kinds`` one byte a row — ``r`` a range (the χ² gate ``gate_1``, then the robust
+    weight), ``p`` a position-fix axis (the fix as a whole passed its 3-D gate: ``fix_ok``),
+    any other a pseudo-measurement (gated, weight 1). A tuple, so that the C core reads it
+    without calling back; called as ``policy(i, ν, S)`` it is the reference."""
+
+    kinds: bytes
+    gate_1: float
+    robust: bool
+    c_long: float
+    c_short: float
+    fix_ok: bool
+
+    @staticmethod
+    def of(kinds: bytes, gate_1: float, robust: RobustPolicy, fix_ok: bool) -> RowPolicy:
+        return RowPolicy(kinds, gate_1, robust.enabled, robust.c_long, robust.c_short, fix_ok)
+
+    def __call__(self, i: int, nu: float, s: float) -> float:
+        kind = self.kinds[i]
+        if kind == 0x70:  # "p"
+            return 1.0 if self.fix_ok else 0.0
+        e2 = nu * nu / s
+        if e2 > self.gate_1:
+            return 0.0
+        if kind != 0x72 or not self.robust:  # "r"
+            return 1.0
+        e = nu / math.sqrt(s)
         c = self.c_long if e > 0 else self.c_short
         c2 = c * c
         return (c2 / (c2 + e * e)) ** 2
