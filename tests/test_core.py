@@ -230,9 +230,10 @@ def test_range_rows_match_the_reference(seed: int, k: int) -> None:
     fast.b_r[:] = rng.normal(size=16) * 0.1
     delay = {a: N_CORE + a for a in range(8)}
     multipath = {a: N_CORE + 8 + a for a in range(0, 8, 2)}  # every other anchor
-    rows = range_rows(fast, lever, ids, anchors, ranges, var, (delay, multipath))
+    columns = {a: (delay[a], multipath[a]) if a in multipath else (delay[a],) for a in delay}
+    rows = range_rows(fast, lever, ids, anchors, ranges, var, columns)
     with native.pure_python():
-        reference = range_rows(fast, lever, ids, anchors, ranges, var, (delay, multipath))
+        reference = range_rows(fast, lever, ids, anchors, ranges, var, columns)
     assert rows.keys == reference.keys
     np.testing.assert_allclose(rows.H, reference.H, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(rows.y, reference.y, rtol=1e-12, atol=1e-12)

@@ -84,6 +84,7 @@ class Eskf:
         # alignment), over however many propagate() calls
         self._Phi_epoch = np.eye(N_CORE)
         self._dv_epoch = [0.0, 0.0, 0.0]
+        self._epoch_propagated = False  # Φ and the decays differ from I and 1
         # constants of propagate() and update()
         self._I = np.eye(self.n)
         self._I_core = np.eye(N_CORE)
@@ -167,8 +168,10 @@ class Eskf:
             Phi[:N_CORE, :N_CORE] = self._Phi_epoch
             Phi[N_CORE:, N_CORE:] = np.diag(self._decay_epoch)
         dv = self._dv_epoch
-        self._Phi_epoch, self._dv_epoch = np.eye(N_CORE), [0.0, 0.0, 0.0]
-        self._decay_epoch = np.ones(self.n - N_CORE)
+        self._dv_epoch = [0.0, 0.0, 0.0]
+        if self._epoch_propagated:  # else both are still identity and ones
+            self._epoch_propagated = False
+            self._Phi_epoch, self._decay_epoch = np.eye(N_CORE), np.ones(self.n - N_CORE)
         return Phi, (dv[0], dv[1], dv[2])
 
     def rotate_heading(self, dpsi: float, yaw_sigma_rad: float) -> None:
@@ -208,6 +211,7 @@ class Eskf:
             return
         for i in range(3):
             self._dv_epoch[i] += self._sum_fn[i]
+        self._epoch_propagated = True
         if self._core is not None:
             P = self.P = np.ascontiguousarray(self.P)
             self._core.propagate_core(P, self._Phi_epoch, self.q, self._sum_fn, self._sum_w,
@@ -235,6 +239,7 @@ class Eskf:
         """Gauss–Markov states decay towards 0 over ``T``; Q keeps their σ stationary."""
         m = self._markov
         if len(m):
+            self._epoch_propagated = True  # the decays are no longer ones
             phi = np.exp(-T / self._tau[m])
             k = N_CORE + m
             P[k, :] *= phi[:, None]

@@ -124,6 +124,7 @@ class Filter(Recovery):
                                   config.range_sigma_m, self.mirror, None)
         self._bias_index: dict[int, int] = {}
         self._mp_index: dict[int, int] = {}
+        self._range_columns: dict[int, tuple[int, ...]] = {}
         self._new_anchors = False
         self._layout()
         self.t_ns: int | None = None  # time of the nominal state
@@ -176,6 +177,9 @@ class Filter(Recovery):
         first = N_CORE + len(self._bias_index)
         self._mp_index = ({a: first + i for i, a in enumerate(ids)}
                           if cfg.multipath_states and tight else {})
+        # each anchor's range-model state columns, for its range rows
+        self._range_columns = {a: tuple(c for index in (self._bias_index, self._mp_index)
+                                        if (c := index.get(a)) is not None) for a in ids}
 
     # -- inputs ---------------------------------------------------------------------------
     def predict(self, imu: ImuSample) -> None:
@@ -501,7 +505,7 @@ class Filter(Recovery):
         if self.cfg.mode is Mode.TIGHT:
             return range_rows(ekf, self.lever, ids, anchors, ranges,
                               self.cfg.range_sigma_m**2 * r_scale,
-                              (self._bias_index, self._mp_index))
+                              self._range_columns)
         if fix is None:
             return Rows.empty(ekf.n)
         return position_rows(ekf, self.lever, fix, 3 if self._fixed_z is None else 2)

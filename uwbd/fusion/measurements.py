@@ -41,21 +41,21 @@ class Rows(NamedTuple):
 
 
 def range_rows(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array, ranges: Array,
-               var: Array, state_index: tuple[Mapping[int, int], ...]) -> Rows:
-    """One row per range: ``h = |p + R l − a| + Σ b`` over the range-model states that
-    ``state_index`` gives the anchor (antenna delay, multipath). The C core builds them when
-    it is built (:mod:`.native`); the code below is its reference."""
+               var: Array, columns: Mapping[int, tuple[int, ...]]) -> Rows:
+    """One row per range: ``h = |p + R l − a| + Σ b`` over the range-model states whose
+    columns ``columns`` gives the anchor (antenna delay, multipath; none if absent). The C
+    core builds them when it is built (:mod:`.native`); the code below is its reference."""
     core = native.core
+    keys = [_RANGE_KEYS.get(a) or _range_key(a) for a in ids]
     if core is not None and len(ids):
-        columns = tuple(tuple(c for index in state_index if (c := index.get(a)) is not None)
-                        for a in ids)
         H = np.zeros((len(ids), ekf.n))
         y = np.empty(len(ids))
         closest = core.range_rows(ekf.p, ekf.q, lever_m, np.ascontiguousarray(anchors, float),
                                   np.ascontiguousarray(ranges, float),
-                                  np.ascontiguousarray(ekf.b_r, float), columns, H, y)
+                                  np.ascontiguousarray(ekf.b_r, float),
+                                  tuple(columns.get(a, ()) for a in ids), H, y)
         if closest >= 1e-3:  # else an antenna on an anchor: the code below drops that range
-            return Rows(H, y, var, [("range", str(a)) for a in ids])
+            return Rows(H, y, var, keys)
     R = ekf.R
     p_ant = np.array(ekf.p) + R @ lever_m
     diff = p_ant - anchors
@@ -63,6 +63,7 @@ def range_rows(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array, ranges
     keep = dist >= 1e-3  # the antenna on an anchor: no line of sight to linearise
     if not keep.all():
         ids = [a for a, k in zip(ids, keep, strict=True) if k]
+        keys = [k for k, kept in zip(keys, keep, strict=True) if kept]
         diff, dist, ranges, var = diff[keep], dist[keep], ranges[keep], var[keep]
     U = diff / dist[:, None]
     H = np.zeros((len(ids), ekf.n))
@@ -70,12 +71,18 @@ def range_rows(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array, ranges
     H[:, TH_] = U @ (-R @ skew(lever_m))
     h = dist
     for i, anchor_id in enumerate(ids):
-        for index in state_index:
-            k = index.get(anchor_id)
-            if k is not None:
-                H[i, k] = 1.0
-                h[i] += ekf.b_r[k - N_CORE]
-    return Rows(H, ranges - h, var, [("range", str(a)) for a in ids])
+        for k in columns.get(anchor_id, ()):
+            H[i, k] = 1.0
+            h[i] += ekf.b_r[k - N_CORE]
+    return Rows(H, ranges - h, var, keys)
+
+
+_RANGE_KEYS: dict[int, tuple[str, str]] = {}  # anchor id -> its rows' (kind, key)
+
+
+def _range_key(anchor_id: int) -> tuple[str, str]:
+    key = _RANGE_KEYS[anchor_id] = ("range", str(anchor_id))
+    return key
 
 
 def position_rows(ekf: Eskf, lever_m: Array, fix: LsqFix, axes: int) -> Rows:
