@@ -31,6 +31,7 @@ from __future__ import annotations
 import bisect
 import collections
 import math
+import statistics
 
 import numpy as np
 
@@ -130,7 +131,7 @@ class HeadingAligner:
         # rotation-like pair of columns, so projecting them out commutes with turning every
         # point alike and the best ψ is the angle between what is left of both sides
         n = len(tau)
-        sigma_v = self._fix_sigma_m * math.sqrt(12 / float(np.median(n_fit))) / (FIT_NS / 1e9)
+        sigma_v = self._fix_sigma_m * math.sqrt(12 / statistics.median(n_fit)) / (FIT_NS / 1e9)
         S = np.zeros((2 * n + 6, 2))  # Rot(ψ) v_ins = S (cos ψ, sin ψ)
         A = np.zeros((2 * n + 6, 8))
         y = np.zeros(2 * n + 6)
