@@ -111,16 +111,20 @@ class ImuWindow:
         if not samples or (samples[-1][0] - samples[0][0]) < 0.9 * span_s * 1e9:
             return False
         a = self.as_array()
-        recent = a[a[:, 0] >= a[-1, 0] - span_s * 1e9]
+        # the samples at or after the span's start (times ascend: one search), as one block
+        recent = a[int(np.searchsorted(a[:, 0], a[-1, 0] - span_s * 1e9)):, 1:]
         if len(recent) < 3:
             return False
-        acc, gyro = recent[:, 1:4], recent[:, 4:7]
+        # mean and std (population) per axis, in numpy's own steps for them
+        mean = recent.sum(axis=0) / len(recent)
+        dev = recent - mean
+        ax, ay, az, gx, gy, gz = mean.tolist()
+        sax, say, saz, sgx, sgy, sgz = np.sqrt((dev * dev).sum(axis=0) / len(recent)).tolist()
         lim = self.limits
-        return bool(np.linalg.norm(acc.std(axis=0)) < lim.acc_std_mps2
-                    and abs(np.linalg.norm(acc.mean(axis=0)) - self.gravity_mps2)
-                    < lim.gravity_tolerance_mps2
-                    and np.linalg.norm(gyro.mean(axis=0)) < lim.gyro_rps
-                    and np.linalg.norm(gyro.std(axis=0)) < lim.gyro_rps)
+        return (math.hypot(sax, say, saz) < lim.acc_std_mps2
+                and abs(math.hypot(ax, ay, az) - self.gravity_mps2) < lim.gravity_tolerance_mps2
+                and math.hypot(gx, gy, gz) < lim.gyro_rps
+                and math.hypot(sgx, sgy, sgz) < lim.gyro_rps)
 
 
 STILL_S, STILL_MPS = 1, 0.15  # at rest the UWB fixes of this long move slower than this
