@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from uwbd.fusion.alignment import velocity_fit
 from uwbd.fusion.eskf import GRAVITY_MPS2
 from uwbd.fusion.lsq import LsqFix
 from uwbd.fusion.rotation import Array
@@ -163,9 +162,29 @@ class UwbStillness:
         n = len(fixes)
         if n < MIN_STILL_FIXES:
             return True
-        v, _ = velocity_fit(list(fixes))
+        vx, vy = _velocity_xy(fixes)
         limit = STILL_MPS
         if allow_noise:
             span_s = max((fixes[-1][0] - fixes[0][0]) / 1e9, 1e-3)
             limit = max(limit, 3.0 * self._sigma_m * math.sqrt(12.0 / n) / span_s)
-        return math.hypot(v[0], v[1]) < limit
+        return math.hypot(vx, vy) < limit
+
+
+def _velocity_xy(fixes: collections.deque[tuple[int, Array]]) -> tuple[float, float]:
+    """:func:`uwbd.fusion.alignment.velocity_fit`'s horizontal velocity in floats, on times
+    from the first fix (exact, where Unix-epoch ns as float64 lose 256 ns): it runs at every
+    update, on a handful of fixes."""
+    t0 = fixes[0][0]
+    ts = [(t - t0) / 1e9 for t, _ in fixes]
+    xs = [float(p[0]) for _, p in fixes]
+    ys = [float(p[1]) for _, p in fixes]
+    n = len(ts)
+    tm, xm, ym = sum(ts) / n, sum(xs) / n, sum(ys) / n
+    stt = sxt = syt = 0.0
+    for t, x, y in zip(ts, xs, ys, strict=True):
+        dt = t - tm
+        stt += dt * dt
+        sxt += dt * (x - xm)
+        syt += dt * (y - ym)
+    stt = max(stt, 1e-9)
+    return sxt / stt, syt / stt

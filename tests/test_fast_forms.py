@@ -1,6 +1,6 @@
-"""The heading aligner's arithmetic against the plain forms it stands for: every span's
-velocity fit at once, the interpolation of the INS history, the fits leaving out each span
-(the jackknife) in one batched QR."""
+"""The filter's faster forms against the plain ones they stand for: the heading aligner's
+(every span's velocity fit at once, the interpolation of the INS history, the fits leaving
+out each span — the jackknife — in one batched QR) and the UWB stillness test's velocity."""
 
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ from uwbd.fusion.alignment import (
     _turns_leaving_out_each_span,
     velocity_fit,
 )
+from uwbd.fusion.rest import _velocity_xy
 
 T0_NS = 1_700_000_000 * 10**9
 
@@ -70,3 +71,13 @@ def test_the_jackknife_in_one_batch_equals_one_fit_per_span(seed: int, n: int) -
             assert math.isnan(turn)
         else:
             assert math.remainder(turn - ref[0], math.tau) == pytest.approx(0, abs=1e-9)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.integers(0, 2**31), st.integers(2, 12))
+def test_the_stillness_velocity_equals_the_line_fit(seed: int, n: int) -> None:
+    rng = np.random.default_rng(seed)
+    t = T0_NS + np.cumsum(rng.integers(150_000_000, 250_000_000, size=n))
+    fixes = collections.deque((int(tk), rng.normal(size=3)) for tk in t)
+    reference, _ = velocity_fit([(tk - int(t[0]), p) for tk, p in fixes])
+    np.testing.assert_allclose(_velocity_xy(fixes), reference, rtol=1e-9, atol=1e-12)
