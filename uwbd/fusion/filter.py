@@ -592,25 +592,27 @@ class Filter(Recovery):
             considered = ATTITUDE_AND_GYRO_BIAS  # at rest the heading does not matter
         outcome = ekf.sequential_update(H, y, R, decide, considered)
         reports = []
-        counters, monitor = self.counters, self.monitor
-        for (kind, key), row in zip(keys, outcome, strict=True):
-            ok = row.weight > 0.0
-            reason = "" if ok else ("numerical" if row.numerical else "innovation_gate")
-            ratio = row.innovation**2 / row.variance / gate_1 if row.variance > 0 else math.nan
-            reports.append(FusionReport(t_ns, kind, key, row.innovation, row.variance, ratio,
-                                        ok, reason))
-            counters[f"{kind}_{'accepted' if ok else 'rejected'}"] += 1
-            if row.numerical:
+        counters, monitor, anchor_stats = self.counters, self.monitor, self.anchor_stats
+        for (kind, key), (innovation, variance, weight, numerical) in zip(keys, outcome,
+                                                                          strict=True):
+            ok = weight > 0.0
+            reason = "" if ok else ("numerical" if numerical else "innovation_gate")
+            ratio = innovation**2 / variance / gate_1 if variance > 0 else math.nan
+            reports.append(FusionReport(t_ns, kind, key, innovation, variance, ratio, ok,
+                                        reason))
+            counters[_OUTCOME_COUNTERS[kind, ok]] += 1
+            if numerical:
                 counters["numerical_skips"] += 1
                 monitor.numerical_fault(t_ns)
             if kind in ("range", "position"):
                 monitor.uwb_outcome(t_ns, ok, ratio * gate_1)
             if kind == "range":
-                stats = self.anchor_stats.get(int(key))
+                anchor = int(key)
+                stats = anchor_stats.get(anchor)
                 if stats is None:
-                    stats = self.anchor_stats[int(key)] = AnchorStats()
-                stats.add(row.innovation / math.sqrt(row.variance) if row.variance > 0
-                          else math.nan, row.weight)
+                    stats = anchor_stats[anchor] = AnchorStats()
+                stats.add(innovation / math.sqrt(variance) if variance > 0 else math.nan,
+                          weight)
         self._keep_covariance_sane()
         return reports
 
@@ -624,6 +626,12 @@ class Filter(Recovery):
         """A rejected IMU sample hid ``dt`` of motion: widen velocity and attitude for it."""
         self._inflate(velocity_mps=COAST_ACCEL_SIGMA_MPS2 * math.sqrt(dt),
                       attitude_rad=UNSEEN_RATE_SIGMA_RPS * math.sqrt(dt))
+
+
+# the fusion counter of each kind of row and its outcome ("range_accepted", …)
+_OUTCOME_COUNTERS = {(kind, ok): f"{kind}_{'accepted' if ok else 'rejected'}"
+                     for kind in ("range", "position", "zupt", "nhc", "height")
+                     for ok in (True, False)}
 
 
 def _yaw_unknown(covariance: tuple[float, ...]) -> tuple[float, ...]:
