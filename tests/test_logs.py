@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from mcap.reader import make_reader
 
 from drivers.frames import ImuSample, UwbRanges
-from uwbd.codec import strict_json
+from uwbd.codec import frame_to_json, strict_json
 from uwbd.config import parse
 from uwbd.logs import mcaplog
 from uwbd.logs.mcaplog import LogWriter, SourceInfo, read_log
@@ -376,3 +376,21 @@ def test_a_damaged_or_cut_log_reads_as_the_library_reads_it(
     else:
         assert str(damaged) in contents.error
         assert [tuple(m) for m in contents.messages] == messages
+
+
+@given(st.builds(ImuSample, st.integers(0, 2**62), st.tuples(*[st.floats()] * 3),
+                 st.tuples(*[st.floats()] * 3), st.none() | st.floats(),
+                 st.none() | st.tuples(*[st.floats(-180, 180)] * 3),
+                 st.none() | st.tuples(*[st.integers(-2**15, 2**15)] * 3),
+                 st.none() | st.tuples(*[st.floats(-1, 1)] * 4),
+                 st.none() | st.integers(0, 2**62)))
+def test_an_imu_record_holds_its_fields_in_order_whichever_are_set(sample: ImuSample) -> None:
+    """The common record (accelerometer and gyro only) has a path of its own: the same
+    bytes as every other (NaN as null, a field without a value left out)."""
+    expected: dict[str, object] = {"type": "ImuSample", "timestamp": {
+        "sec": sample.t_ns // 10**9, "nsec": sample.t_ns % 10**9}}
+    for name in ("t_ns", "acc_mps2", "gyro_rps", "temperature_c", "angle_deg", "mag_raw",
+                 "quaternion_wire", "device_time_ns"):
+        if getattr(sample, name) is not None:
+            expected[name] = getattr(sample, name)
+    assert frame_to_json(sample) == strict_json(expected)

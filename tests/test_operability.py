@@ -589,3 +589,33 @@ def test_a_damaged_chunk_is_said_and_what_came_before_is_used(tmp_path: Path,
     fixed = uwbd("recover", str(damaged), "-o", str(tmp_path / "fixed.mcap"))
     assert fixed.returncode == 0 and "damaged near byte" in fixed.stdout, fixed.stderr
     assert not read_log(tmp_path / "fixed.mcap").truncated
+
+
+def test_a_damaged_truth_record_is_counted_and_the_replay_goes_on(tmp_path: Path,
+                                                                   sim_log: Path) -> None:
+    """A /truth record that is not JSON (a damaged or foreign log): ``replay -o`` says so
+    once, counts it, and writes everything else (it raised before)."""
+    contents = read_log(sim_log)
+    spoilt = [k for k, m in enumerate(contents.messages) if m.topic == "/truth"][10]
+    damaged = tmp_path / "damaged.mcap"
+    with damaged.open("wb") as f:
+        w = Writer(f)
+        w.start()
+        w.add_metadata("uwbd", contents.metadata)
+        channels: dict[str, int] = {}
+        for k, m in enumerate(contents.messages):
+            if m.topic not in channels:
+                encoding = "json" if m.topic == "/truth" else "uwbd.raw"
+                channels[m.topic] = w.register_channel(m.topic, encoding, 0)
+            data = b"{not json" if k == spoilt else m.data
+            w.add_message(channels[m.topic], log_time=m.log_time_ns,
+                          publish_time=m.log_time_ns, data=data)
+        w.finish()
+    out = tmp_path / "out.mcap"
+    result = uwbd("replay", str(damaged), "-o", str(out))
+    assert result.returncode == 0, result.stderr
+    assert "/truth record" in result.stderr and "not JSON; skipped" in result.stderr
+    truth_in = sum(m.topic == "/truth" for m in contents.messages)
+    replayed = read_log(out)
+    assert sum(m.topic == "/truth" for m in replayed.messages) == truth_in - 1
+    assert list(replayed.json("/status"))[-1]["bad_records"] == 1

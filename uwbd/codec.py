@@ -29,10 +29,20 @@ def frame_to_json(frame: Frame) -> bytes:
     The decoded log channels take one per frame, so the common case (every number finite)
     skips the walk that replaces NaN with ``null``."""
     t_ns = frame.t_ns
-    out: dict[str, Any] = {"type": type(frame).__name__,
+    kind = type(frame)
+    if (isinstance(frame, ImuSample) and frame.temperature_c is None
+            and frame.angle_deg is None and frame.mag_raw is None
+            and frame.quaternion_wire is None and frame.device_time_ns is None):
+        # the common IMU record (accelerometer and gyro only), its keys in the same order
+        return strict_json({"type": "ImuSample",
+                            "timestamp": {"sec": t_ns // 1_000_000_000,
+                                          "nsec": t_ns % 1_000_000_000},
+                            "t_ns": t_ns, "acc_mps2": frame.acc_mps2,
+                            "gyro_rps": frame.gyro_rps})
+    out: dict[str, Any] = {"type": kind.__name__,
                            "timestamp": {"sec": t_ns // 1_000_000_000,
                                          "nsec": t_ns % 1_000_000_000}}
-    for f in _FIELDS[type(frame)]:
+    for f in _FIELDS[kind]:
         value = getattr(frame, f)
         if value is None:
             continue

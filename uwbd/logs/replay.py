@@ -11,7 +11,9 @@ from __future__ import annotations
 import heapq
 import json
 from pathlib import Path
+from typing import Any
 
+import orjson
 from tqdm import tqdm
 
 from uwbd import journal
@@ -48,7 +50,14 @@ def replay(contents: LogContents, where: str, output: Path | None = None,
                       disable=not progress, leave=False, mininterval=0.5):
             if m.topic == "/truth":
                 assert out is not None
-                out.json("/truth", m.log_time_ns, json.loads(m.data), "foxglove.PoseInFrame")
+                record = _json_record(m.data)
+                if record is None:
+                    pipeline.bad_records += 1  # a damaged record: counted, the rest go on
+                    if pipeline.bad_records == 1:
+                        LOG.warning("%s: a /truth record at %d ns is not JSON; skipped", where,
+                                    m.log_time_ns)
+                    continue
+                out.json("/truth", m.log_time_ns, record, "foxglove.PoseInFrame")
                 continue
             if pace is not None:
                 pace(m.log_time_ns)
@@ -68,3 +77,16 @@ def replay(contents: LogContents, where: str, output: Path | None = None,
     finally:  # an interrupted replay (Ctrl-C under --realtime) still finishes -o
         pipeline.close()
     return pipeline, poses
+
+
+def _json_record(data: bytes) -> dict[str, Any] | None:
+    """A JSON object record (orjson; the json module for what orjson refuses, such as
+    ``NaN`` in logs written before every record was strict), ``None`` if it is none."""
+    try:
+        obj = orjson.loads(data)
+    except orjson.JSONDecodeError:
+        try:
+            obj = json.loads(data)
+        except ValueError:
+            return None
+    return obj if isinstance(obj, dict) else None
