@@ -240,6 +240,58 @@ def test_range_rows_match_the_reference(seed: int, k: int) -> None:
     np.testing.assert_array_equal(rows.R, reference.R)
 
 
+@needs_core
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31), st.integers(1, 8), st.integers(0, 3), st.booleans(),
+       st.sampled_from([None, slice(6, 12)]))
+def test_a_tight_epoch_in_one_call_matches_rows_then_update(seed: int, k: int, extra: int,
+                                                            robust: bool,
+                                                            considered: slice | None) -> None:
+    """fuse_ranges (range rows, extra rows, weights, injection, reset in C) against the
+    reference: range_rows, the rows stacked, sequential_update in Python."""
+    fast, slow = twin(2 * 8, seed)
+    rng = np.random.default_rng(seed)
+    for f in (fast, slow):
+        f.b_r[:] = np.random.default_rng(seed + 3).normal(size=16) * 0.1
+    ids = [int(a) for a in rng.choice(8, size=k, replace=False)]
+    anchors = rng.uniform(-10, 10, size=(k, 3))
+    ranges = np.linalg.norm(anchors - fast.p, axis=1) + rng.normal(size=k) * 0.3
+    var = rng.uniform(0.001, 0.1, size=k)
+    lever = rng.normal(size=3) * 0.2
+    columns = {a: (N_CORE + a, N_CORE + 8 + a) for a in range(8)}
+    H_extra = rng.normal(size=(extra, fast.n))
+    y_extra, R_extra = rng.normal(size=extra) * 0.1, rng.uniform(0.001, 0.1, size=extra)
+    kinds = b"r" * k + b"z" * extra
+    policy = RowPolicy.of(kinds, 6.63, RobustPolicy(enabled=robust), True)
+    rows_fast = fast.fuse_ranges(lever, anchors, ranges, var, tuple(columns[a] for a in ids),
+                                 (H_extra, y_extra, R_extra), policy, considered)
+    assert rows_fast is not None
+    with native.pure_python():
+        reference = range_rows(slow, lever, ids, anchors, ranges, var, columns)
+    rows_slow = slow.sequential_update(np.vstack([reference.H, H_extra]),
+                                       np.concatenate([reference.y, y_extra]),
+                                       np.concatenate([reference.R, R_extra]), policy,
+                                       considered)
+    np.testing.assert_allclose([r[:3] for r in rows_fast], [r[:3] for r in rows_slow],
+                               rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(fast.P, slow.P, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(fast.p + fast.v + fast.q + fast.b_g + fast.b_a,
+                               slow.p + slow.v + slow.q + slow.b_g + slow.b_a,
+                               rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(fast.b_r, slow.b_r, rtol=1e-9, atol=1e-12)
+
+
+@needs_core
+def test_a_tight_epoch_with_an_antenna_on_an_anchor_is_left_to_the_reference() -> None:
+    fast, _ = twin(0, 5)
+    P, p = fast.P.copy(), list(fast.p)
+    anchors = np.array([fast.p, [5.0, 0.0, 0.0]])  # the first anchor at the antenna
+    rows = fast.fuse_ranges(np.zeros(3), anchors, np.array([0.0, 5.0]), np.full(2, 0.01),
+                            ((), ()), (np.zeros((0, fast.n)), np.zeros(0), np.zeros(0)),
+                            RowPolicy.of(b"rr", 6.63, RobustPolicy(), True), None)
+    assert rows is None and np.array_equal(fast.P, P) and fast.p == p
+
+
 def compare_runs(cfg: FilterConfig, frames: list[object]) -> list[Pose]:
     poses, _, _ = run_filter(cfg, frames)  # type: ignore[arg-type]
     with native.pure_python():

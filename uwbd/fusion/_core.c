@@ -523,12 +523,91 @@ static PyObject *core_reset_covariance(PyObject *self, PyObject *const *args,
     Py_RETURN_NONE;
 }
 
+/* The nominal state a fused update corrects: p, v, q, b_g, b_a from the caller's lists
+ * (p, v, b_g and b_a are written back in place; q is returned anew, as in Python). */
+typedef struct {
+    double p[3], v[3], q[4], bg[3], ba[3];
+    PyObject *p_list, *v_list, *bg_list, *ba_list;
+} Nominal;
+
+static int get_nominal(PyObject *const *args, Nominal *s)
+{
+    if (get_vec(args[0], s->p, 3, "p") || get_vec(args[1], s->v, 3, "v") ||
+        get_vec(args[2], s->q, 4, "q") || get_vec(args[3], s->bg, 3, "b_g") ||
+        get_vec(args[4], s->ba, 3, "b_a"))
+        return -1;
+    s->p_list = args[0], s->v_list = args[1], s->bg_list = args[3], s->ba_list = args[4];
+    if (!PyList_Check(s->p_list) || !PyList_Check(s->v_list) || !PyList_Check(s->bg_list) ||
+        !PyList_Check(s->ba_list)) {
+        PyErr_SetString(PyExc_TypeError, "p, v, b_g and b_a must be lists");
+        return -1;
+    }
+    return 0;
+}
+
+/* The whole of Eskf.sequential_update: scalar_rows on a copy of P; when a row was fused,
+ * P takes the copy, symmetrised and reset (reset_P), and the nominal state takes dx
+ * (Eskf._inject_nominal: the lists and b_r in place); returns (rows, the new q) — or
+ * (rows, None) with P and the state left as they were when no row was fused. */
+static PyObject *update_state(double *P, double *dx, double *b_r, Py_ssize_t n,
+                              const double *H, const double *y, const double *R, Py_ssize_t m,
+                              PyObject *decide, const RowPolicy *pol, Py_ssize_t c0,
+                              Py_ssize_t c1, Nominal *s)
+{
+    if (pol != NULL && pol->count != m) {
+        PyErr_SetString(PyExc_ValueError, "decide: one kind per row");
+        return NULL;
+    }
+    double *work = PyMem_Malloc(sizeof(double) * n * n);
+    if (work == NULL)
+        return PyErr_NoMemory();
+    memcpy(work, P, sizeof(double) * n * n);
+    int fused;
+    PyObject *result = NULL;
+    PyObject *rows = scalar_rows(work, dx, n, H, y, R, m, decide, pol, c0, c1, &fused);
+    if (rows == NULL)
+        goto done;
+    if (!fused) {
+        result = Py_BuildValue("(OO)", rows, Py_None);
+        goto done;
+    }
+    for (int i = 0; i < 3; i++) {
+        s->p[i] += dx[i];
+        s->v[i] += dx[3 + i];
+        s->bg[i] += dx[9 + i];
+        s->ba[i] += dx[12 + i];
+    }
+    double qn[4];
+    turned(s->q, dx[6], dx[7], dx[8], qn);
+    if (set_list(s->p_list, s->p, 3) || set_list(s->v_list, s->v, 3) ||
+        set_list(s->bg_list, s->bg, 3) || set_list(s->ba_list, s->ba, 3))
+        goto done;
+    for (Py_ssize_t a = N_CORE; a < n; a++)
+        b_r[a - N_CORE] += dx[a];
+    const double th[3] = {dx[6], dx[7], dx[8]};
+    reset_P(work, n, th);
+    memcpy(P, work, sizeof(double) * n * n);
+    result = Py_BuildValue("(O[dddd])", rows, qn[0], qn[1], qn[2], qn[3]);
+done:
+    Py_XDECREF(rows);
+    PyMem_Free(work);
+    return result;
+}
+
+/* The weight policy of a call: a callable (called back) or a RowPolicy tuple (read). */
+static int get_decide(PyObject *decide, RowPolicy *policy, const RowPolicy **pol)
+{
+    *pol = NULL;
+    if (PyCallable_Check(decide))
+        return 0;
+    if (get_policy(decide, policy) < 0)
+        return -1;
+    *pol = policy;
+    return 0;
+}
+
 /* update_and_inject(P, H, y, R, decide, c0, c1, dx, p, v, q, b_g, b_a, b_r) -> (rows, q)
- * The whole of Eskf.sequential_update on the C core: scalar_rows on a copy of P; when a
- * row was fused, P takes the copy, symmetrised and reset (reset_P), and the nominal state
- * takes dx (Eskf._inject_nominal: p, v, b_g, b_a lists and the b_r array in place, the new
- * q returned); else P and the state are left as they were and q is None. dx (n, zeros)
- * receives the correction. */
+ * update_state on rows given; dx (n, zeros) receives the correction. */
 static PyObject *core_update_and_inject(PyObject *self, PyObject *const *args,
                                         Py_ssize_t nargs)
 {
@@ -537,31 +616,17 @@ static PyObject *core_update_and_inject(PyObject *self, PyObject *const *args,
         PyErr_SetString(PyExc_TypeError, "update_and_inject takes 14 arguments");
         return NULL;
     }
-    PyObject *decide = args[4];
     Py_ssize_t c0 = PyLong_AsSsize_t(args[5]), c1 = PyLong_AsSsize_t(args[6]);
     if (PyErr_Occurred())
         return NULL;
-    RowPolicy policy, *pol = NULL;
-    if (!PyCallable_Check(decide)) {
-        if (get_policy(decide, &policy) < 0)
-            return NULL;
-        pol = &policy;
-    }
-    double pos[3], vel[3], q[4], bg[3], ba[3];
-    if (get_vec(args[8], pos, 3, "p") || get_vec(args[9], vel, 3, "v") ||
-        get_vec(args[10], q, 4, "q") || get_vec(args[11], bg, 3, "b_g") ||
-        get_vec(args[12], ba, 3, "b_a"))
+    RowPolicy policy;
+    const RowPolicy *pol;
+    Nominal state;
+    if (get_decide(args[4], &policy, &pol) < 0 || get_nominal(args + 8, &state) < 0)
         return NULL;
-    const int targets[4] = {8, 9, 11, 12};
-    for (int i = 0; i < 4; i++)
-        if (!PyList_Check(args[targets[i]])) {
-            PyErr_SetString(PyExc_TypeError, "p, v, b_g and b_a must be lists");
-            return NULL;
-        }
     Py_buffer view[6]; /* P, dx, y, H, R, b_r */
     int got = 0;
-    PyObject *result = NULL, *rows = NULL;
-    double *work = NULL;
+    PyObject *result = NULL;
     Py_ssize_t n = 0, m = 0;
     if (get_P(args[0], &view[0], &n, 1) < 0)
         return NULL;
@@ -582,47 +647,11 @@ static PyObject *core_update_and_inject(PyObject *self, PyObject *const *args,
     if (get_doubles(args[13], &view[5], n - N_CORE, 1, "b_r") < 0)
         goto done;
     got = 6;
-    if (pol != NULL && pol->count != m) {
-        PyErr_SetString(PyExc_ValueError, "decide: one kind per row");
-        goto done;
-    }
-    work = PyMem_Malloc(sizeof(double) * n * n);
-    if (work == NULL) {
-        PyErr_NoMemory();
-        goto done;
-    }
-    double *P = (double *)view[0].buf, *dx = (double *)view[1].buf;
-    memcpy(work, P, sizeof(double) * n * n);
-    int fused;
-    rows = scalar_rows(work, dx, n, (const double *)view[3].buf, (const double *)view[2].buf,
-                       (const double *)view[4].buf, m, decide, pol, c0, c1, &fused);
-    if (rows == NULL)
-        goto done;
-    if (!fused) {
-        result = Py_BuildValue("(OO)", rows, Py_None);
-        goto done;
-    }
-    for (int i = 0; i < 3; i++) {
-        pos[i] += dx[i];
-        vel[i] += dx[3 + i];
-        bg[i] += dx[9 + i];
-        ba[i] += dx[12 + i];
-    }
-    double qn[4];
-    turned(q, dx[6], dx[7], dx[8], qn);
-    if (set_list(args[8], pos, 3) || set_list(args[9], vel, 3) || set_list(args[11], bg, 3) ||
-        set_list(args[12], ba, 3))
-        goto done;
-    double *b_r = (double *)view[5].buf;
-    for (Py_ssize_t a = N_CORE; a < n; a++)
-        b_r[a - N_CORE] += dx[a];
-    const double th[3] = {dx[6], dx[7], dx[8]};
-    reset_P(work, n, th);
-    memcpy(P, work, sizeof(double) * n * n);
-    result = Py_BuildValue("(O[dddd])", rows, qn[0], qn[1], qn[2], qn[3]);
+    result = update_state((double *)view[0].buf, (double *)view[1].buf,
+                          (double *)view[5].buf, n, (const double *)view[3].buf,
+                          (const double *)view[2].buf, (const double *)view[4].buf, m,
+                          args[4], pol, c0, c1, &state);
 done:
-    Py_XDECREF(rows);
-    PyMem_Free(work);
     for (int i = 0; i < got; i++)
         PyBuffer_Release(&view[i]);
     return result;
@@ -630,50 +659,19 @@ done:
 
 /* -- measurement rows: every UWB message ------------------------------------------------ */
 
-/* range_rows(p, q, lever, anchors (k×3), ranges (k), b_r (n−15), columns, H (k×n), y (k))
- * -> the smallest antenna-to-anchor distance. measurements.range_rows: per range, with
- * p_ant = p + R l and u = (p_ant − a)/|p_ant − a|, the row h = [u, 0, u (−R [l]×), 0, …,
- * 1 at each of its range-model states] and y = r − |p_ant − a| − Σ b. `columns` holds, per
- * range, the tuple of its range-model state columns. H must arrive zeroed. */
-static PyObject *core_range_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+/* measurements.range_rows: per range, with p_ant = p + R l and u = (p_ant − a)/|p_ant − a|,
+ * the row h = [u, 0, u (−R [l]×), 0, …, 1 at each of its range-model states] and
+ * y = r − |p_ant − a| − Σ b, into H (k×n, zeroed) and y. `columns` holds, per range, the
+ * tuple of its range-model state columns. *closest: the smallest distance (NaN sticks). */
+static int fill_range_rows(const double pos[3], const double q[4], const double lever[3],
+                           const double *anchors, const double *ranges, Py_ssize_t k,
+                           const double *b_r, Py_ssize_t n, PyObject *columns, double *H,
+                           double *y, double *closest)
 {
-    (void)self;
-    if (nargs != 9) {
-        PyErr_SetString(PyExc_TypeError, "range_rows takes 9 arguments");
-        return NULL;
-    }
-    double pos[3], q[4], lever[3];
-    if (get_vec(args[0], pos, 3, "p") || get_vec(args[1], q, 4, "q") ||
-        get_vec(args[2], lever, 3, "lever"))
-        return NULL;
-    PyObject *columns = args[6];
-    Py_buffer Ab, rb, bb, Hb, yb;
-    int got = 0;
-    PyObject *result = NULL;
-    if (get_doubles(args[4], &rb, -1, 0, "ranges") < 0)
-        return NULL;
-    got = 1;
-    Py_ssize_t k = rb.len / 8;
-    if (get_doubles(args[3], &Ab, 3 * k, 0, "anchors") < 0)
-        goto done;
-    got = 2;
-    if (get_doubles(args[5], &bb, -1, 0, "b_r") < 0)
-        goto done;
-    got = 3;
-    Py_ssize_t n = N_CORE + bb.len / 8;
-    if (get_doubles(args[7], &Hb, k * n, 1, "H") < 0)
-        goto done;
-    got = 4;
-    if (get_doubles(args[8], &yb, k, 1, "y") < 0)
-        goto done;
-    got = 5;
     if (!PyTuple_Check(columns) || PyTuple_GET_SIZE(columns) != k) {
         PyErr_SetString(PyExc_TypeError, "columns: a tuple with one tuple per range");
-        goto done;
+        return -1;
     }
-    const double *anchors = (const double *)Ab.buf, *ranges = (const double *)rb.buf;
-    const double *b_r = (const double *)bb.buf;
-    double *H = (double *)Hb.buf, *y = (double *)yb.buf;
     double R[3][3];
     quat_to_matrix(q, R);
     double p_ant[3];
@@ -686,14 +684,14 @@ static PyObject *core_range_rows(PyObject *self, PyObject *const *args, Py_ssize
     for (int i = 0; i < 3; i++)
         for (int j = 0; j < 3; j++)
             M[i][j] = -(R[i][0] * sk[0][j] + R[i][1] * sk[1][j] + R[i][2] * sk[2][j]);
-    double closest = INFINITY;
+    *closest = INFINITY;
     for (Py_ssize_t a = 0; a < k; a++) {
         double d[3];
         for (int i = 0; i < 3; i++)
             d[i] = p_ant[i] - anchors[3 * a + i];
         double dist = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
-        if (isnan(dist) || dist < closest) /* NaN sticks: the caller's test fails */
-            closest = dist;
+        if (isnan(dist) || dist < *closest) /* NaN sticks: the caller's test fails */
+            *closest = dist;
         double *h = H + a * n;
         double u[3] = {d[0] / dist, d[1] / dist, d[2] / dist};
         for (int i = 0; i < 3; i++) {
@@ -704,27 +702,150 @@ static PyObject *core_range_rows(PyObject *self, PyObject *const *args, Py_ssize
         PyObject *cols = PyTuple_GET_ITEM(columns, a);
         if (!PyTuple_Check(cols)) {
             PyErr_SetString(PyExc_TypeError, "columns: a tuple with one tuple per range");
-            goto done;
+            return -1;
         }
         for (Py_ssize_t c = 0; c < PyTuple_GET_SIZE(cols); c++) {
             Py_ssize_t col = PyLong_AsSsize_t(PyTuple_GET_ITEM(cols, c));
             if (col < N_CORE || col >= n) {
                 if (!PyErr_Occurred())
                     PyErr_SetString(PyExc_ValueError, "a range-model column out of range");
-                goto done;
+                return -1;
             }
             h[col] = 1.0;
             model += b_r[col - N_CORE];
         }
         y[a] = ranges[a] - model;
     }
-    result = PyFloat_FromDouble(closest);
+    return 0;
+}
+
+/* range_rows(p, q, lever, anchors (k×3), ranges (k), b_r (n−15), columns, H (k×n), y (k))
+ * -> the smallest antenna-to-anchor distance (fill_range_rows). */
+static PyObject *core_range_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 9) {
+        PyErr_SetString(PyExc_TypeError, "range_rows takes 9 arguments");
+        return NULL;
+    }
+    double pos[3], q[4], lever[3];
+    if (get_vec(args[0], pos, 3, "p") || get_vec(args[1], q, 4, "q") ||
+        get_vec(args[2], lever, 3, "lever"))
+        return NULL;
+    Py_buffer view[5]; /* ranges, anchors, b_r, H, y */
+    int got = 0;
+    PyObject *result = NULL;
+    if (get_doubles(args[4], &view[0], -1, 0, "ranges") < 0)
+        return NULL;
+    got = 1;
+    Py_ssize_t k = view[0].len / 8;
+    if (get_doubles(args[3], &view[1], 3 * k, 0, "anchors") < 0)
+        goto done;
+    got = 2;
+    if (get_doubles(args[5], &view[2], -1, 0, "b_r") < 0)
+        goto done;
+    got = 3;
+    Py_ssize_t n = N_CORE + view[2].len / 8;
+    if (get_doubles(args[7], &view[3], k * n, 1, "H") < 0)
+        goto done;
+    got = 4;
+    if (get_doubles(args[8], &view[4], k, 1, "y") < 0)
+        goto done;
+    got = 5;
+    double closest;
+    if (fill_range_rows(pos, q, lever, (const double *)view[1].buf,
+                        (const double *)view[0].buf, k, (const double *)view[2].buf, n,
+                        args[6], (double *)view[3].buf, (double *)view[4].buf, &closest) == 0)
+        result = PyFloat_FromDouble(closest);
 done:
-    if (got >= 1) PyBuffer_Release(&rb);
-    if (got >= 2) PyBuffer_Release(&Ab);
-    if (got >= 3) PyBuffer_Release(&bb);
-    if (got >= 4) PyBuffer_Release(&Hb);
-    if (got >= 5) PyBuffer_Release(&yb);
+    for (int i = 0; i < got; i++)
+        PyBuffer_Release(&view[i]);
+    return result;
+}
+
+/* fuse_ranges(P, dx, p, v, q, b_g, b_a, b_r, lever, anchors (k×3), ranges (k), var (k),
+ *             columns, H_extra (m×n), y_extra (m), R_extra (m), decide, c0, c1)
+ * -> (rows, q) or None
+ * A tight epoch in one call: the range rows (fill_range_rows), then the extra rows (ZUPT,
+ * NHC, height), through update_state. None, with nothing changed, when an antenna is
+ * within 1 mm of an anchor or a distance is NaN (the caller takes the reference, which
+ * drops such a range). */
+static PyObject *core_fuse_ranges(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 19) {
+        PyErr_SetString(PyExc_TypeError, "fuse_ranges takes 19 arguments");
+        return NULL;
+    }
+    Py_ssize_t c0 = PyLong_AsSsize_t(args[17]), c1 = PyLong_AsSsize_t(args[18]);
+    if (PyErr_Occurred())
+        return NULL;
+    RowPolicy policy;
+    const RowPolicy *pol;
+    Nominal state;
+    double lever[3];
+    if (get_decide(args[16], &policy, &pol) < 0 || get_nominal(args + 2, &state) < 0 ||
+        get_vec(args[8], lever, 3, "lever"))
+        return NULL;
+    Py_buffer view[9]; /* P, dx, b_r, ranges, anchors, var, y_extra, H_extra, R_extra */
+    int got = 0;
+    PyObject *result = NULL;
+    double *H = NULL;
+    Py_ssize_t n = 0;
+    if (get_P(args[0], &view[0], &n, 1) < 0)
+        return NULL;
+    got = 1;
+    if (get_doubles(args[1], &view[1], n, 1, "dx") < 0)
+        goto done;
+    got = 2;
+    if (get_doubles(args[7], &view[2], n - N_CORE, 1, "b_r") < 0)
+        goto done;
+    got = 3;
+    if (get_doubles(args[10], &view[3], -1, 0, "ranges") < 0)
+        goto done;
+    got = 4;
+    Py_ssize_t k = view[3].len / 8;
+    if (get_doubles(args[9], &view[4], 3 * k, 0, "anchors") < 0)
+        goto done;
+    got = 5;
+    if (get_doubles(args[11], &view[5], k, 0, "var") < 0)
+        goto done;
+    got = 6;
+    if (get_doubles(args[14], &view[6], -1, 0, "y_extra") < 0)
+        goto done;
+    got = 7;
+    Py_ssize_t e = view[6].len / 8, m = k + e;
+    if (get_doubles(args[13], &view[7], e * n, 0, "H_extra") < 0)
+        goto done;
+    got = 8;
+    if (get_doubles(args[15], &view[8], e, 0, "R_extra") < 0)
+        goto done;
+    got = 9;
+    H = PyMem_Calloc((size_t)(m * n + 2 * m), sizeof(double));
+    if (H == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    double *y = H + m * n, *R = y + m, closest;
+    if (fill_range_rows(state.p, state.q, lever, (const double *)view[4].buf,
+                        (const double *)view[3].buf, k, (const double *)view[2].buf, n,
+                        args[12], H, y, &closest) < 0)
+        goto done;
+    if (!(closest >= 1e-3)) {
+        result = Py_NewRef(Py_None);
+        goto done;
+    }
+    memcpy(R, view[5].buf, sizeof(double) * k);
+    memcpy(H + k * n, view[7].buf, sizeof(double) * e * n);
+    memcpy(y + k, view[6].buf, sizeof(double) * e);
+    memcpy(R + k, view[8].buf, sizeof(double) * e);
+    result = update_state((double *)view[0].buf, (double *)view[1].buf,
+                          (double *)view[2].buf, n, H, y, R, m, args[16], pol, c0, c1,
+                          &state);
+done:
+    PyMem_Free(H);
+    for (int i = 0; i < got; i++)
+        PyBuffer_Release(&view[i]);
     return result;
 }
 
@@ -1061,6 +1182,8 @@ static PyMethodDef core_methods[] = {
      METH_FASTCALL, "P <- T P T^T for T = I but its attitude block G, in place."},
     {"reset_covariance", (PyCFunction)(void (*)(void))core_reset_covariance, METH_FASTCALL,
      "After a fused update: P symmetrised and reset by G, in place."},
+    {"fuse_ranges", (PyCFunction)(void (*)(void))core_fuse_ranges, METH_FASTCALL,
+     "A tight epoch: the range rows and the extra rows fused in one call (or None)."},
     {"range_rows", (PyCFunction)(void (*)(void))core_range_rows, METH_FASTCALL,
      "measurements.range_rows into H and y; returns the smallest distance."},
     {"pose_covariance", (PyCFunction)(void (*)(void))core_pose_covariance, METH_FASTCALL,

@@ -315,23 +315,55 @@ class Eskf:
         """
         if self._core is not None:  # the rows, the injection and the reset in one call
             dx = np.zeros(self.n)
-            c0, c1, step = (0, 0, 1) if considered is None else considered.indices(self.n)
-            if step != 1:
-                raise ValueError("considered states: a slice of step 1")
+            c0, c1 = self._considered_columns(considered)
             P = self.P = np.ascontiguousarray(self.P, dtype=float)
-            raw, q = self._core.update_and_inject(
+            return self._corrected(dx, self._core.update_and_inject(
                 P, np.ascontiguousarray(H, dtype=float), np.ascontiguousarray(y, dtype=float),
                 np.ascontiguousarray(R, dtype=float), decide, c0, c1, dx, self.p, self.v,
-                self.q, self.b_g, self.b_a, self.b_r)
-            if q is not None:  # a row was fused: P and the state are corrected
-                self.q = q
-                self.last_dx = dx
-            return [Row(*r) for r in raw]
+                self.q, self.b_g, self.b_a, self.b_r))
         P, dx, rows, fused = self._sequential_rows(H, y, R, decide, considered)
         if fused:
             self.P = 0.5 * (P + P.T)
             self.inject(dx)
         return rows
+
+    def fuse_ranges(self, lever_m: Array, anchors: Array, ranges: Array, var: Array,
+                    columns: tuple[tuple[int, ...], ...], extra: tuple[Array, Array, Array],
+                    decide: RowPolicy, considered: slice | None) -> list[Row] | None:
+        """A tight epoch on the C core in one call: the rows of
+        :func:`uwbd.fusion.measurements.range_rows` (``columns``: each range's range-model
+        state columns), then ``extra`` rows ``(H, y, R)``, through :meth:`sequential_update`.
+        ``None``, with nothing changed, where the core is not built or a range needs the
+        reference (an antenna within 1 mm of its anchor): the caller runs those two then."""
+        if self._core is None:
+            return None
+        dx = np.zeros(self.n)
+        c0, c1 = self._considered_columns(considered)
+        P = self.P = np.ascontiguousarray(self.P, dtype=float)
+        H, y, R = extra
+        out = self._core.fuse_ranges(
+            P, dx, self.p, self.v, self.q, self.b_g, self.b_a, self.b_r, lever_m,
+            np.ascontiguousarray(anchors, dtype=float), np.ascontiguousarray(ranges, dtype=float),
+            np.ascontiguousarray(var, dtype=float), columns,
+            np.ascontiguousarray(H, dtype=float), np.ascontiguousarray(y, dtype=float),
+            np.ascontiguousarray(R, dtype=float), decide, c0, c1)
+        return None if out is None else self._corrected(dx, out)
+
+    def _considered_columns(self, considered: slice | None) -> tuple[int, int]:
+        c0, c1, step = (0, 0, 1) if considered is None else considered.indices(self.n)
+        if step != 1:
+            raise ValueError("considered states: a slice of step 1")
+        return c0, c1
+
+    def _corrected(self, dx: Array, out: tuple[list[tuple[float, float, float, bool]],
+                                              list[float] | None]) -> list[Row]:
+        """The C core's (rows, new q): when a row was fused, P and the state are corrected
+        already; the new attitude and ``δx`` are kept here."""
+        raw, q = out
+        if q is not None:
+            self.q = q
+            self.last_dx = dx
+        return [Row(*r) for r in raw]
 
     def _sequential_rows(self, H: Array, y: Array, R: Array,
                          decide: Callable[[int, float, float], float] | RowPolicy,

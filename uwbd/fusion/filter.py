@@ -42,7 +42,7 @@ import numpy as np
 from drivers.frames import AnchorRanges, ImuSample, UwbRanges
 from uwbd.fusion import native
 from uwbd.fusion.alignment import HeadingAligner
-from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, Eskf
+from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, Eskf, Row
 from uwbd.fusion.fixes import RangeWindow
 from uwbd.fusion.gating import GatingCounters, chi2_quantile, gate
 from uwbd.fusion.health import WAITING, Health, HealthMonitor
@@ -55,6 +55,7 @@ from uwbd.fusion.measurements import (
     height_rows,
     nhc_rows,
     position_rows,
+    range_keys,
     range_rows,
     zupt_rows,
 )
@@ -312,10 +313,8 @@ class Filter(Recovery):
             # otherwise weigh 17 times what they do with 10 Hz epochs
             self._constraints_ns = uwb.t_ns
             constraints = self._constraints()
-        rows = Rows.stack([self._measurement_rows(ids, anchors, ranges, r_scale, fix),
-                           *constraints])
         prior = self._snapshot() if self.records is not None else None
-        reports += self._fuse(uwb.t_ns, rows)
+        reports += self._fuse_epoch(uwb.t_ns, ids, anchors, ranges, r_scale, fix, constraints)
         self._fade(uwb.t_ns, ids, anchors, ranges)
         if self._check_divergence(uwb.t_ns, ids, anchors, ranges):
             linked = False
@@ -559,6 +558,26 @@ class Filter(Recovery):
             rows.append(height_rows(ekf, cfg.known_height_m, cfg.height_sigma_m))
         return rows
 
+    def _fuse_epoch(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
+                    r_scale: Array, fix: LsqFix | None,
+                    constraints: list[Rows]) -> list[FusionReport]:
+        """The epoch's rows fused: tight, on the C core, in one call (:meth:`Eskf.fuse_ranges`);
+        else (or where that call declines) built here and fused by :meth:`_fuse`."""
+        ekf = self.ekf
+        assert ekf is not None
+        if ids and self.cfg.mode is Mode.TIGHT and ekf._core is not None:
+            extra = Rows.stack(constraints) if constraints else Rows.empty(ekf.n)
+            keys = range_keys(ids) + extra.keys
+            outcome = ekf.fuse_ranges(
+                self.lever, anchors, ranges, self.cfg.range_sigma_m**2 * r_scale,
+                tuple(self._range_columns.get(a, ()) for a in ids), extra[:3],
+                self._row_policy(keys, True), self._considered())
+            if outcome is not None:
+                return self._outcomes(t_ns, keys, outcome)
+        return self._fuse(t_ns, Rows.stack([self._measurement_rows(ids, anchors, ranges,
+                                                                   r_scale, fix),
+                                            *constraints]))
+
     def _fuse(self, t_ns: int, rows: Rows) -> list[FusionReport]:
         """Sequential scalar updates; each range gated (χ²) and weighted (robust); a loose
         fix gated as one 3-D measurement."""
@@ -577,20 +596,31 @@ class Filter(Recovery):
                 fix_ok = float(y[idx] @ np.linalg.solve(Sl, y[idx])) <= self._gate_3
             except np.linalg.LinAlgError:
                 fix_ok = False
-        gate_1 = self._gate_1
-        # the first letter of each row's kind: "r"ange, "p"osition, any other gated plainly
-        decide = RowPolicy.of(bytes(ord(kind[0]) for kind, _ in keys), gate_1, self.cfg.robust,
-                              fix_ok)
+        outcome = ekf.sequential_update(H, y, R, self._row_policy(keys, fix_ok),
+                                        self._considered())
+        return self._outcomes(t_ns, keys, outcome)
 
-        # while the heading is held, moving, its linearisation is void: attitude and gyro
-        # biases must not soak up what the unknown heading does to the velocity; without the
-        # IMU (coasting through a gap) nothing observes the attitude and the IMU's biases
-        considered = None
+    def _row_policy(self, keys: list[tuple[str, str]], fix_ok: bool) -> RowPolicy:
+        # the first letter of each row's kind: "r"ange, "p"osition, any other gated plainly
+        return RowPolicy.of(bytes(ord(kind[0]) for kind, _ in keys), self._gate_1,
+                            self.cfg.robust, fix_ok)
+
+    def _considered(self) -> slice | None:
+        """The states an update may not correct. While the heading is held, moving, its
+        linearisation is void: attitude and gyro biases must not soak up what the unknown
+        heading does to the velocity; without the IMU (coasting through a gap) nothing
+        observes the attitude and the IMU's biases."""
         if not self._imu_fresh():
-            considered = ATTITUDE_AND_IMU_BIASES
-        elif not self._aligned and not self._at_rest:
-            considered = ATTITUDE_AND_GYRO_BIAS  # at rest the heading does not matter
-        outcome = ekf.sequential_update(H, y, R, decide, considered)
+            return ATTITUDE_AND_IMU_BIASES
+        if not self._aligned and not self._at_rest:
+            return ATTITUDE_AND_GYRO_BIAS  # at rest the heading does not matter
+        return None
+
+    def _outcomes(self, t_ns: int, keys: list[tuple[str, str]],
+                  outcome: list[Row]) -> list[FusionReport]:
+        """Each row's report, counters, health evidence and anchor statistics; then the
+        covariance kept within bounds."""
+        gate_1 = self._gate_1
         reports = []
         counters, monitor, anchor_stats = self.counters, self.monitor, self.anchor_stats
         for (kind, key), (innovation, variance, weight, numerical) in zip(keys, outcome,

@@ -46,7 +46,7 @@ def range_rows(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array, ranges
     columns ``columns`` gives the anchor (antenna delay, multipath; none if absent). The C
     core builds them when it is built (:mod:`.native`); the code below is its reference."""
     core = native.core
-    keys = [_RANGE_KEYS.get(a) or _range_key(a) for a in ids]
+    keys = range_keys(ids)
     if core is not None and len(ids):
         H = np.zeros((len(ids), ekf.n))
         y = np.empty(len(ids))
@@ -78,6 +78,11 @@ def range_rows(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array, ranges
 
 
 _RANGE_KEYS: dict[int, tuple[str, str]] = {}  # anchor id -> its rows' (kind, key)
+
+
+def range_keys(ids: list[int]) -> list[tuple[str, str]]:
+    """What each range row is, ``("range", "<anchor id>")``: made once per anchor."""
+    return [_RANGE_KEYS.get(a) or _range_key(a) for a in ids]
 
 
 def _range_key(anchor_id: int) -> tuple[str, str]:
