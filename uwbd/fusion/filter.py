@@ -120,6 +120,9 @@ class Filter(Recovery):
         # the anchors known: configured, and those the device reports (learnt before the
         # start, so that the mirror side and the range-model states cover them)
         self._anchors: dict[int, Vec3] = dict(config.anchors_m)
+        # the configured anchors whose every coordinate is finite and in range (_resolve)
+        self._configured = {a: pos for a, pos in config.anchors_m.items()
+                            if all(abs(c) <= MAX_ANCHOR_COORD_M for c in pos)}
         self.mirror = MirrorSide(np.zeros((0, 3)))
         self._fixed_z: float | None = None
         self.ranges = RangeWindow(config.range_window_s, config.fix_interval_s,
@@ -428,7 +431,15 @@ class Filter(Recovery):
         """Anchor positions for each range (configured first, else as the device sends),
         and the factor on each range's variance from the device's quality."""
         ids, anchors, ranges, scale = [], [], [], []
+        configured = self._configured
         for r in epoch.ranges:
+            pos = configured.get(r.anchor_id)
+            if pos is not None and r.quality is None:  # the common case: checked once
+                ids.append(r.anchor_id)
+                anchors.append(pos)
+                ranges.append(r.range_m)
+                scale.append(1.0)
+                continue
             pos = self.cfg.anchors_m.get(r.anchor_id, r.anchor_position_m)
             # every coordinate finite and in range (max() would let a NaN after the first by)
             if pos is None or not all(abs(c) <= MAX_ANCHOR_COORD_M for c in pos):
