@@ -109,6 +109,13 @@ def test_sequential_update_matches_the_reference(seed: int, n_aux: int, m: int,
                                rtol=1e-9, atol=1e-12)
 
 
+class _ReadNotCalled(RowPolicy):
+    """A policy the C core must read, never call back."""
+
+    def __call__(self, i: int, nu: float, s: float) -> float:
+        raise AssertionError("the C core called the policy back")
+
+
 @needs_core
 @settings(max_examples=40, deadline=None)
 @given(st.integers(0, 2**31), st.integers(0, 8), st.text("rpzn", min_size=1, max_size=10),
@@ -117,8 +124,9 @@ def test_the_row_policy_in_c_matches_its_reference(seed: int, n_aux: int, kinds:
                                                    robust: bool, fix_ok: bool,
                                                    scale: float) -> None:
     """Ranges gated and de-weighted, position axes by their fix, pseudo-measurements gated:
-    the C core reads the policy tuple itself, the reference calls it; the same weights and
-    the same corrected state (numpy's sums round differently in the last bits)."""
+    the C core reads the policy tuple itself; called back on the same rows it gives the same
+    weights to the bit, and the pure-Python update the same state (numpy's sums round
+    differently in the last bits)."""
     fast, slow = twin(n_aux, seed)
     rng = np.random.default_rng(seed + 2)
     m = len(kinds)
@@ -126,7 +134,11 @@ def test_the_row_policy_in_c_matches_its_reference(seed: int, n_aux: int, kinds:
     y = rng.normal(size=m) * scale  # from well inside the gate to far outside it
     R = rng.uniform(0.001, 0.1, size=m)
     policy = RowPolicy.of(kinds.encode(), 6.63, RobustPolicy(enabled=robust), fix_ok)
-    rows_fast = fast.sequential_update(H, y, R, policy, None)
+    twin_fast, _ = twin(n_aux, seed)  # the same rows, the policy called back from C
+    called = twin_fast.sequential_update(H, y, R, policy.__call__, None)
+    rows_fast = fast.sequential_update(H, y, R, _ReadNotCalled(*policy), None)
+    assert [r.weight for r in rows_fast] == [r.weight for r in called]  # to the bit
+    assert fast.p == twin_fast.p and fast.q == twin_fast.q
     rows_slow = slow.sequential_update(H, y, R, policy, None)
     np.testing.assert_allclose([r.weight for r in rows_fast], [r.weight for r in rows_slow],
                                rtol=1e-9)

@@ -345,7 +345,8 @@ static double policy_weight(const RowPolicy *pol, Py_ssize_t i, double nu, doubl
     double e = nu / sqrt(s);
     double c = e > 0 ? pol->c_long : pol->c_short;
     double c2 = c * c;
-    return pow(c2 / (c2 + e * e), 2.0); /* Python's float ** 2 */
+    double w = c2 / (c2 + e * e);
+    return w * w;
 }
 
 /* The rows of Eskf.sequential_update, in the O(n²)-per-row form, in place on P (n×n) and
@@ -594,12 +595,18 @@ done:
     return result;
 }
 
-/* The weight policy of a call: a callable (called back) or a RowPolicy tuple (read). */
+/* The weight policy of a call: a RowPolicy tuple (read here; it is callable too, as the
+ * Python reference) or any other callable (called back for every row). */
 static int get_decide(PyObject *decide, RowPolicy *policy, const RowPolicy **pol)
 {
     *pol = NULL;
-    if (PyCallable_Check(decide))
-        return 0;
+    if (!PyTuple_Check(decide)) {
+        if (PyCallable_Check(decide))
+            return 0;
+        PyErr_SetString(PyExc_TypeError,
+                        "decide: a callable or (kinds, gate_1, robust, c_long, c_short, fix_ok)");
+        return -1;
+    }
     if (get_policy(decide, policy) < 0)
         return -1;
     *pol = policy;

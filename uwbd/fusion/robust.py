@@ -30,13 +30,6 @@ class RobustPolicy:
     c_long: float = 2.5
     c_short: float = 4.0
 
-    def weight(self, e: float) -> float:
-        if not self.enabled:
-            return 1.0
-        c = self.c_long if e > 0 else self.c_short
-        c2 = c * c
-        return (c2 / (c2 + e * e)) ** 2
-
 
 class RowPolicy(NamedTuple):
     """How :meth:`uwbd.fusion.eskf.Eskf.sequential_update` weighs each row of one update:
@@ -68,7 +61,8 @@ class RowPolicy(NamedTuple):
         e = nu / math.sqrt(s)
         c = self.c_long if e > 0 else self.c_short
         c2 = c * c
-        return (c2 / (c2 + e * e)) ** 2
+        w = c2 / (c2 + e * e)
+        return w * w  # not ** 2: libm's pow may round differently from the C core's product
 
 
 def quality_scale(quality: float | None) -> float:
