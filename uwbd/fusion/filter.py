@@ -154,6 +154,8 @@ class Filter(Recovery):
         self._aligner = HeadingAligner(config.align_window_s, config.align_min_dv_mps,
                                        config.range_sigma_m)
         self._aligned = False
+        self._policies: dict[tuple[str, bool], RowPolicy] = {}
+        self._empty_rows: dict[int, Rows] = {}
         self._gate_1 = chi2_quantile(config.gate_probability, 1)
         self._gate_3 = chi2_quantile(config.gate_probability, 3)
         self._pose_T = np.zeros((6, TH_.stop))  # pose(): (p, v, θ) -> (p, R θ)
@@ -577,7 +579,7 @@ class Filter(Recovery):
         ekf = self.ekf
         assert ekf is not None
         if ids and self.cfg.mode is Mode.TIGHT and ekf._core is not None:
-            extra = Rows.stack(constraints) if constraints else Rows.empty(ekf.n)
+            extra = Rows.stack(constraints) if constraints else self._no_rows(ekf.n)
             keys = range_keys(ids) + extra.keys
             outcome = ekf.fuse_ranges(
                 self.lever, anchors, ranges, self.cfg.range_sigma_m**2 * r_scale,
@@ -613,8 +615,18 @@ class Filter(Recovery):
 
     def _row_policy(self, keys: list[tuple[str, str]], fix_ok: bool) -> RowPolicy:
         # the first letter of each row's kind: "r"ange, "p"osition, any other gated plainly
-        return RowPolicy.of(bytes(ord(kind[0]) for kind, _ in keys), self._gate_1,
-                            self.cfg.robust, fix_ok)
+        kinds = "".join([kind[0] for kind, _ in keys])
+        policy = self._policies.get((kinds, fix_ok))
+        if policy is None:  # a few shapes of update recur: each made once
+            policy = self._policies[kinds, fix_ok] = RowPolicy.of(
+                kinds.encode(), self._gate_1, self.cfg.robust, fix_ok)
+        return policy
+
+    def _no_rows(self, n: int) -> Rows:
+        rows = self._empty_rows.get(n)
+        if rows is None:
+            rows = self._empty_rows[n] = Rows.empty(n)
+        return rows
 
     def _considered(self) -> slice | None:
         """The states an update may not correct. While the heading is held, moving, its
