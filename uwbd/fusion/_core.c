@@ -183,6 +183,17 @@ static PyObject *core_predict(PyObject *self, PyObject *const *args, Py_ssize_t 
 
 /* -- propagate: once per update interval ------------------------------------------------ */
 
+/* The columns of each row of M (15×15) that are not zero, in order, and how many. */
+static void nonzeros(const double M[N_CORE][N_CORE], int nz[N_CORE][N_CORE], int count[N_CORE])
+{
+    for (int i = 0; i < N_CORE; i++) {
+        count[i] = 0;
+        for (int k = 0; k < N_CORE; k++)
+            if (M[i][k] != 0.0)
+                nz[i][count[i]++] = k;
+    }
+}
+
 /* propagate_core(P, Phi_epoch, q, sum_fn, sum_w, T, q_rate)
  * The core part of Eskf.propagate, in place on P (n×n) and Phi_epoch (15×15):
  * F from the mean specific force and rate over T, Φ = I + A + A²/2 with A = F T,
@@ -245,21 +256,26 @@ static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_
     for (int i = 0; i < 3; i++)
         for (int j = 0; j < 3; j++)
             A[6 + i][6 + j] = -sw_[i][j] * T;
+    /* A and Φ are about half zeros: each product runs over the nonzero terms of a row only,
+     * in the same order (a ±0 term leaves a finite sum as it is: the same numbers) */
+    int nz[N_CORE][N_CORE], count[N_CORE];
+    nonzeros(A, nz, count);
     double Phi[N_CORE][N_CORE];
     for (int i = 0; i < N_CORE; i++)
         for (int j = 0; j < N_CORE; j++) {
             double s = 0.0;
-            for (int k = 0; k < N_CORE; k++)
-                s += A[i][k] * A[k][j];
+            for (int c = 0; c < count[i]; c++)
+                s += A[i][nz[i][c]] * A[nz[i][c]][j];
             Phi[i][j] = (i == j ? 1.0 : 0.0) + A[i][j] + 0.5 * s;
         }
+    nonzeros(Phi, nz, count);
     /* Φ_epoch ← Φ Φ_epoch */
     double tmp[N_CORE * N_CORE];
     for (int i = 0; i < N_CORE; i++)
         for (int j = 0; j < N_CORE; j++) {
             double s = 0.0;
-            for (int k = 0; k < N_CORE; k++)
-                s += Phi[i][k] * E[k * N_CORE + j];
+            for (int c = 0; c < count[i]; c++)
+                s += Phi[i][nz[i][c]] * E[nz[i][c] * N_CORE + j];
             tmp[i * N_CORE + j] = s;
         }
     memcpy(E, tmp, sizeof tmp);
@@ -274,8 +290,8 @@ static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_
     for (int i = 0; i < N_CORE; i++)
         for (Py_ssize_t j = 0; j < n; j++) {
             double s = 0.0;
-            for (int k = 0; k < N_CORE; k++)
-                s += Phi[i][k] * P[k * n + j];
+            for (int c = 0; c < count[i]; c++)
+                s += Phi[i][nz[i][c]] * P[nz[i][c] * n + j];
             rows[i * n + j] = s;
         }
     memcpy(P, rows, sizeof(double) * N_CORE * n);
@@ -283,8 +299,8 @@ static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_
         double row[N_CORE];
         for (int j = 0; j < N_CORE; j++) {
             double s = 0.0;
-            for (int k = 0; k < N_CORE; k++)
-                s += P[i * n + k] * Phi[j][k];
+            for (int c = 0; c < count[j]; c++)
+                s += P[i * n + nz[j][c]] * Phi[j][nz[j][c]];
             row[j] = s;
         }
         memcpy(P + i * n, row, sizeof row);
