@@ -1,6 +1,6 @@
 """Daemon figures, measured side by side in one run.
 
-    python benchmarks/bench_daemon.py [--seconds 15] [--runs 3] [--replay-s 586]
+    python benchmarks/bench_daemon.py [--seconds 15] [--runs 3] [--replay-s 586] [--replay-only]
 
 * latency: serial read → Zenoh receive. A pose's ``t_ns`` is the receive time of the read
   that produced it (``time.time_ns()`` in the daemon), so a subscriber on the same host takes
@@ -10,7 +10,8 @@
   pseudo-terminals, from ``/proc``; each run and the median of the runs;
 * replay speed: a simulated log (about 10 minutes of a 200 Hz IMU and 6 anchors at 10 Hz)
   through ``uwbd replay``'s pipeline, as a multiple of real time, without and with writing
-  the output log.
+  the output log; then the whole ``uwbd replay`` process (start-up, imports, reading the
+  log, the replay), as a user runs it.
 
 Each figure is taken twice in the same run, on the C core and on the pure-Python reference
 (``UWBD_PURE_PYTHON=1``), and their ratio printed.
@@ -148,6 +149,21 @@ def replay_speed(replay_s: float) -> None:
                 print(f"replay, {duration_s:.0f} s simulated log, {label}, {impl}: "
                       f"{speed[impl]:.0f} x real time ({pipeline.poses} poses)")
             print(f"  C core / pure Python: {speed['C core'] / speed['pure Python']:.2f}")
+        # the whole process, as a user runs it: start-up, imports, reading the log, replay
+        for label, extra in (("poses only", []), ("writing the output log", ["-o", str(output)])):
+            whole = {}
+            for impl in ("C core", "pure Python"):
+                env = {k: v for k, v in os.environ.items() if k != native.PURE_PYTHON_ENV}
+                if impl == "pure Python":
+                    env[native.PURE_PYTHON_ENV] = "1"
+                output.unlink(missing_ok=True)
+                t0 = time.perf_counter()
+                subprocess.run([sys.executable, "-m", "uwbd", "replay", str(path), *extra],
+                               check=True, env=env, stdout=subprocess.DEVNULL)
+                whole[impl] = time.perf_counter() - t0
+                print(f"uwbd replay (the whole process), {label}, {impl}: {whole[impl]:.2f} s, "
+                      f"{duration_s / whole[impl]:.0f} x real time")
+            print(f"  C core / pure Python: {whole['pure Python'] / whole['C core']:.2f}")
 
 
 def main() -> None:
@@ -157,21 +173,27 @@ def main() -> None:
                     help="live runs (a shared VM's CPU figures vary by ±1 point run to run)")
     ap.add_argument("--replay-s", type=float, default=586.0,
                     help="length of the replayed log (the default path repeated)")
+    ap.add_argument("--replay-only", action="store_true", help="skip the live runs")
     args = ap.parse_args()
+    if not args.replay_only:
+        live_runs(args.runs, args.seconds)
+    replay_speed(args.replay_s)
+
+
+def live_runs(count: int, seconds: float) -> None:
     print("live: 200 Hz WitMotion IMU + 10 Hz Nooploop tag (6 anchors) on ptys")
     medians = {}
     # alternated run by run, so that drifts of a shared VM hit both alike
     runs: dict[bool, list[tuple[float, float, float, float]]] = {False: [], True: []}
-    for k in range(args.runs):
+    for k in range(count):
         for pure in (False, True):
-            runs[pure].append(live(args.seconds, k + 1, pure))
+            runs[pure].append(live(seconds, k + 1, pure))
     for pure in (False, True):
         medians[pure] = np.median(np.array(runs[pure]), axis=0)
         p50, p99, cpu, rss = medians[pure]
-        print(f"live, {'pure Python' if pure else 'C core'}, median of {args.runs}: "
+        print(f"live, {'pure Python' if pure else 'C core'}, median of {count}: "
               f"p50 {p50:.2f} ms, p99 {p99:.2f} ms, CPU {cpu:.1f} %, RSS {rss:.0f} MB")
     print(f"  CPU, C core / pure Python: {medians[False][2] / medians[True][2]:.2f}")
-    replay_speed(args.replay_s)
 
 
 if __name__ == "__main__":
