@@ -29,3 +29,6 @@ def fuse_ranges(P: Any, dx: Any, p: list[float], v: list[float], q: list[float],
                 ranges: Any, var: Any, columns: tuple[tuple[int, ...], ...], H_extra: Any,
                 y_extra: Any, R_extra: Any, decide: tuple[Any, ...], c0: int, c1: int
                 ) -> tuple[list[tuple[float, float, float, bool]], list[float] | None] | None: ...
+def multilaterate(anchors: Any, ranges: Any, x0: list[float], dims: int, sigma: float,
+                  outlier_sigma: float, max_iterations: int, converged_m: float,
+                  accept_last_m: float) -> Any: ...
