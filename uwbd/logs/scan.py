@@ -53,20 +53,11 @@ def scan(buf: bytes) -> Iterator[Event]:
 def _scan(buf: bytes) -> Iterator[Event]:
     if buf[:8] != MAGIC:
         raise UnusualRecordError("magic")
-    pos, end = 8, len(buf)
-    head = _HEAD.unpack_from
-    while True:
-        if pos + 9 > end:
-            raise UnusualRecordError("ends mid-record")
-        op, length = head(buf, pos)
-        body = pos + 9
-        stop = body + length
-        if stop > end:
-            raise UnusualRecordError("ends mid-record")
+    for op, body, stop in _records(buf, 8):
         if op == OP_CHUNK:
             yield from _chunk(buf, body, stop)
         elif op == OP_MESSAGE:
-            yield ("messages", _messages(buf, pos, stop))
+            yield ("messages", _messages(buf, body, stop))
         elif op in (OP_SCHEMA, OP_CHANNEL):
             yield _definition(buf, op, body, stop)
         elif op == OP_METADATA:
@@ -80,7 +71,23 @@ def _scan(buf: bytes) -> Iterator[Event]:
             if buf[stop:stop + 8] != MAGIC:
                 raise UnusualRecordError("no magic after the footer")
             return
-        pos = stop
+    raise UnusualRecordError("no footer")
+
+
+def _records(buf: bytes, pos: int) -> Iterator[tuple[int, int, int]]:
+    """Each record from ``pos`` to the end of ``buf``: its opcode and where its body starts
+    and stops."""
+    end = len(buf)
+    head = _HEAD.unpack_from
+    while pos < end:
+        if pos + 9 > end:
+            raise UnusualRecordError("ends mid-record")
+        op, length = head(buf, pos)
+        body = pos + 9
+        pos = body + length
+        if pos > end:
+            raise UnusualRecordError("ends mid-record")
+        yield op, body, pos
 
 
 def _chunk(buf: bytes, body: int, stop: int) -> Iterator[Event]:
@@ -102,36 +109,26 @@ def _chunk(buf: bytes, body: int, stop: int) -> Iterator[Event]:
     if len(data) != size or (crc != 0 and zlib.crc32(data) != crc):
         raise UnusualRecordError("chunk CRC")
     messages: list[tuple[int, int, bytes]] = []
-    pos, end = 0, len(data)
-    head, message = _HEAD.unpack_from, _MESSAGE.unpack_from
+    message = _MESSAGE.unpack_from
     append = messages.append
-    while pos < end:
-        if pos + 9 > end:
-            raise UnusualRecordError("chunk record cut")
-        op, length = head(data, pos)
-        body = pos + 9
-        nxt = body + length
-        if nxt > end:
-            raise UnusualRecordError("chunk record cut")
+    for op, start, nxt in _records(data, 0):
         if op == OP_MESSAGE:
-            if length < 22:
+            if nxt - start < 22:
                 raise UnusualRecordError("message length")
-            channel, _, log_time, _ = message(data, body)
-            append((channel, log_time, data[body + 22:nxt]))
+            channel, _, log_time, _ = message(data, start)
+            append((channel, log_time, data[start + 22:nxt]))
         elif op in (OP_SCHEMA, OP_CHANNEL):
             if messages:
                 yield ("messages", messages)
                 messages = []
                 append = messages.append
-            yield _definition(data, op, body, nxt)
-        pos = nxt
+            yield _definition(data, op, start, nxt)
     if messages:
         yield ("messages", messages)
 
 
-def _messages(buf: bytes, pos: int, stop: int) -> list[tuple[int, int, bytes]]:
+def _messages(buf: bytes, body: int, stop: int) -> list[tuple[int, int, bytes]]:
     """A message outside any chunk."""
-    body = pos + 9
     if stop - body < 22:
         raise UnusualRecordError("message length")
     channel, _, log_time, _ = _MESSAGE.unpack_from(buf, body)
