@@ -653,7 +653,7 @@ class Filter(Recovery):
             ratio = innovation**2 / variance / gate_1 if variance > 0 else math.nan
             reports.append(FusionReport(t_ns, kind, key, innovation, variance, ratio, ok,
                                         reason))
-            counters[_OUTCOME_COUNTERS[kind, ok]] += 1
+            counters[_OUTCOME_COUNTERS.get((kind, ok)) or _outcome_counter(kind, ok)] += 1
             if numerical:
                 counters["numerical_skips"] += 1
                 monitor.numerical_fault(t_ns)
@@ -681,8 +681,12 @@ class Filter(Recovery):
                       attitude_rad=UNSEEN_RATE_SIGMA_RPS * math.sqrt(dt))
 
 
-# the fusion counter of each kind of row and its outcome ("range_accepted", …)
-_OUTCOME_COUNTERS = {(kind, ok): f"{kind}_{'accepted' if ok else 'rejected'}"
+def _outcome_counter(kind: str, accepted: bool) -> str:
+    """The fusion counter of a kind of row and its outcome ("range_accepted", …)."""
+    return f"{kind}_{'accepted' if accepted else 'rejected'}"
+
+
+_OUTCOME_COUNTERS = {(kind, ok): _outcome_counter(kind, ok)  # the known kinds', made once
                      for kind in ("range", "position", "zupt", "nhc", "height")
                      for ok in (True, False)}
 
