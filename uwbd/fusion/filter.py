@@ -16,6 +16,7 @@ the sequence it runs; each step's policy has a module of its own:
 * :mod:`.robust` — de-weighting NLOS ranges, per-anchor statistics;
 * :mod:`.health` — the health record, and the evidence for restarts;
 * :mod:`.recovery` — the restarts themselves and what triggers them (a mixin of this class);
+* :mod:`.fusing` — one epoch's rows fused and each row's outcome (a mixin of this class);
 * :mod:`.eskf` — the algebra (docs/ekf.md).
 
 Life cycle: **waiting** (collect IMU and fixes), start at rest or while moving, **aligning**
@@ -42,8 +43,9 @@ import numpy as np
 from drivers.frames import AnchorRanges, ImuSample, UwbRanges
 from uwbd.fusion import native
 from uwbd.fusion.alignment import HeadingAligner
-from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, Eskf, Row
+from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, Eskf
 from uwbd.fusion.fixes import RangeWindow
+from uwbd.fusion.fusing import EpochFusion
 from uwbd.fusion.gating import GatingCounters, chi2_quantile, gate
 from uwbd.fusion.health import WAITING, Health, HealthMonitor
 from uwbd.fusion.imu_check import ImuCheck
@@ -54,9 +56,6 @@ from uwbd.fusion.measurements import (
     Rows,
     height_rows,
     nhc_rows,
-    position_rows,
-    range_keys,
-    range_rows,
     zupt_rows,
 )
 from uwbd.fusion.mirror import WALL_NORMAL_Z, MirrorSide
@@ -75,21 +74,16 @@ from uwbd.fusion.types import FusionReport, Pose
 
 Vec3 = tuple[float, float, float]
 HELD_YAW_SIGMA_RAD = 1e-3  # the heading's σ while it is held, before the coarse alignment
-ATTITUDE_AND_IMU_BIASES = slice(TH_.start, BA_.stop)
-ATTITUDE_AND_GYRO_BIAS = slice(TH_.start, BG_.stop)
 PROPAGATE_EVERY_S = 0.1  # the covariance follows the state at least this often (coasting)
 MIN_PROPAGATE_S = 0.02  # and at most this often: P grows little in 20 ms
 CONSTRAINT_EVERY_NS = 95_000_000  # ZUPT, NHC, known height: about 10 Hz
 TILT_CHECK_EVERY_NS = NS // 2
 MAX_ANCHOR_COORD_M = 1e4  # a device-reported anchor farther out than this is garbage
 NUMERICAL_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError)
-# the covariance is kept finite: no error state may be less certain than this (σ per state)
-MAX_SIGMA = np.array([1e3] * 3 + [1e2] * 3 + [math.pi] * 3 + [0.5] * 3 + [5.0] * 3)
-MAX_RANGE_BIAS_SIGMA_M = 5.0
 MAX_OBSERVABLE_YAW_SIGMA = math.radians(10)  # the heading counts as known below this σ
 
 
-class Filter(Recovery):
+class Filter(Recovery, EpochFusion):
     """Loosely or tightly coupled UWB/INS error-state EKF (see module doc)."""
 
     def __init__(self, config: FilterConfig, record: bool = False) -> None:
@@ -518,19 +512,6 @@ class Filter(Recovery):
             self._coast(dt)
         self.t_ns = t_ns
 
-    def _measurement_rows(self, ids: list[int], anchors: Array, ranges: Array,
-                          r_scale: Array, fix: LsqFix | None) -> Rows:
-        """Tight: one row per range (§4, range); loose: the fix's axes (§4, position)."""
-        ekf = self.ekf
-        assert ekf is not None
-        if self.cfg.mode is Mode.TIGHT:
-            return range_rows(ekf, self.lever, ids, anchors, ranges,
-                              self.cfg.range_sigma_m**2 * r_scale,
-                              self._range_columns)
-        if fix is None:
-            return Rows.empty(ekf.n)
-        return position_rows(ekf, self.lever, fix, 3 if self._fixed_z is None else 2)
-
     def _track_fixes(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                      fix: LsqFix | None) -> None:
         """UWB-only fixes for :class:`UwbStillness`, about 5 a second."""
@@ -571,124 +552,10 @@ class Filter(Recovery):
             rows.append(height_rows(ekf, cfg.known_height_m, cfg.height_sigma_m))
         return rows
 
-    def _fuse_epoch(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
-                    r_scale: Array, fix: LsqFix | None,
-                    constraints: list[Rows]) -> list[FusionReport]:
-        """The epoch's rows fused: tight, on the C core, in one call (:meth:`Eskf.fuse_ranges`);
-        else (or where that call declines) built here and fused by :meth:`_fuse`."""
-        ekf = self.ekf
-        assert ekf is not None
-        if ids and self.cfg.mode is Mode.TIGHT and ekf._core is not None:
-            extra = Rows.stack(constraints) if constraints else self._no_rows(ekf.n)
-            keys = range_keys(ids) + extra.keys
-            outcome = ekf.fuse_ranges(
-                self.lever, anchors, ranges, self.cfg.range_sigma_m**2 * r_scale,
-                tuple(self._range_columns.get(a, ()) for a in ids), extra[:3],
-                self._row_policy(keys, True), self._considered())
-            if outcome is not None:
-                return self._outcomes(t_ns, keys, outcome)
-        return self._fuse(t_ns, Rows.stack([self._measurement_rows(ids, anchors, ranges,
-                                                                   r_scale, fix),
-                                            *constraints]))
-
-    def _fuse(self, t_ns: int, rows: Rows) -> list[FusionReport]:
-        """Sequential scalar updates; each range gated (χ²) and weighted (robust); a loose
-        fix gated as one 3-D measurement."""
-        ekf = self.ekf
-        assert ekf is not None
-        H, y, R, keys = rows
-        if not keys:
-            return []
-        fix_ok = True
-        idx = np.array([k[0] == "position" for k in keys]) if self.cfg.mode is Mode.LOOSE \
-            else None
-        if idx is not None and idx.any():  # a position fix is one 3-D measurement: gate it as one
-            Hl = H[idx]
-            Sl = Hl @ ekf.P @ Hl.T + np.diag(R[idx])
-            try:
-                fix_ok = float(y[idx] @ np.linalg.solve(Sl, y[idx])) <= self._gate_3
-            except np.linalg.LinAlgError:
-                fix_ok = False
-        outcome = ekf.sequential_update(H, y, R, self._row_policy(keys, fix_ok),
-                                        self._considered())
-        return self._outcomes(t_ns, keys, outcome)
-
-    def _row_policy(self, keys: list[tuple[str, str]], fix_ok: bool) -> RowPolicy:
-        # the first letter of each row's kind: "r"ange, "p"osition, any other gated plainly
-        kinds = "".join([kind[0] for kind, _ in keys])
-        policy = self._policies.get((kinds, fix_ok))
-        if policy is None:  # a few shapes of update recur: each made once
-            policy = self._policies[kinds, fix_ok] = RowPolicy.of(
-                kinds.encode(), self._gate_1, self.cfg.robust, fix_ok)
-        return policy
-
-    def _no_rows(self, n: int) -> Rows:
-        rows = self._empty_rows.get(n)
-        if rows is None:
-            rows = self._empty_rows[n] = Rows.empty(n)
-        return rows
-
-    def _considered(self) -> slice | None:
-        """The states an update may not correct. While the heading is held, moving, its
-        linearisation is void: attitude and gyro biases must not soak up what the unknown
-        heading does to the velocity; without the IMU (coasting through a gap) nothing
-        observes the attitude and the IMU's biases."""
-        if not self._imu_fresh():
-            return ATTITUDE_AND_IMU_BIASES
-        if not self._aligned and not self._at_rest:
-            return ATTITUDE_AND_GYRO_BIAS  # at rest the heading does not matter
-        return None
-
-    def _outcomes(self, t_ns: int, keys: list[tuple[str, str]],
-                  outcome: list[Row]) -> list[FusionReport]:
-        """Each row's report, counters, health evidence and anchor statistics; then the
-        covariance kept within bounds."""
-        gate_1 = self._gate_1
-        reports = []
-        counters, monitor, anchor_stats = self.counters, self.monitor, self.anchor_stats
-        for (kind, key), (innovation, variance, weight, numerical) in zip(keys, outcome,
-                                                                          strict=True):
-            ok = weight > 0.0
-            reason = "" if ok else ("numerical" if numerical else "innovation_gate")
-            ratio = innovation**2 / variance / gate_1 if variance > 0 else math.nan
-            reports.append(FusionReport(t_ns, kind, key, innovation, variance, ratio, ok,
-                                        reason))
-            counters[_OUTCOME_COUNTERS.get((kind, ok)) or _outcome_counter(kind, ok)] += 1
-            if numerical:
-                counters["numerical_skips"] += 1
-                monitor.numerical_fault(t_ns)
-            if kind in ("range", "position"):
-                monitor.uwb_outcome(t_ns, ok, ratio * gate_1)
-            if kind == "range":
-                anchor = int(key)
-                stats = anchor_stats.get(anchor)
-                if stats is None:
-                    stats = anchor_stats[anchor] = AnchorStats()
-                stats.add(innovation / math.sqrt(variance) if variance > 0 else math.nan,
-                          weight)
-        self._keep_covariance_sane()
-        return reports
-
-    def _keep_covariance_sane(self) -> None:
-        ekf = self.ekf
-        assert ekf is not None
-        if ekf.clamp_covariance(MAX_SIGMA, MAX_RANGE_BIAS_SIGMA_M):
-            self.counters["covariance_clamped"] += 1
-
     def _widen_for_unseen(self, dt: float) -> None:
         """A rejected IMU sample hid ``dt`` of motion: widen velocity and attitude for it."""
         self._inflate(velocity_mps=COAST_ACCEL_SIGMA_MPS2 * math.sqrt(dt),
                       attitude_rad=UNSEEN_RATE_SIGMA_RPS * math.sqrt(dt))
-
-
-def _outcome_counter(kind: str, accepted: bool) -> str:
-    """The fusion counter of a kind of row and its outcome ("range_accepted", …)."""
-    return f"{kind}_{'accepted' if accepted else 'rejected'}"
-
-
-_OUTCOME_COUNTERS = {(kind, ok): _outcome_counter(kind, ok)  # the known kinds', made once
-                     for kind in ("range", "position", "zupt", "nhc", "height")
-                     for ok in (True, False)}
 
 
 def _yaw_unknown(covariance: tuple[float, ...]) -> tuple[float, ...]:

@@ -1,0 +1,186 @@
+"""One epoch's measurement update: its rows fused, each row's outcome reported.
+
+The step of :class:`~uwbd.fusion.filter.Filter` after the policy has chosen the rows (the
+ranges of an epoch, or a loose fix, with the ZUPT, NHC and height rows due): tight, on the
+C core, the whole epoch in one call (:meth:`Eskf.fuse_ranges`); else the rows built
+(:mod:`.measurements`) and fused one scalar at a time (:meth:`Eskf.sequential_update`),
+each range gated (χ²) and weighted (:class:`~uwbd.fusion.robust.RowPolicy`), a loose fix
+gated as one 3-D measurement; then every row's report, counters, health evidence and
+anchor statistics, and the covariance kept within bounds. A mixin of the filter: these
+methods act on its state.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from uwbd.fusion.eskf import BA_, BG_, TH_, Eskf, Row
+from uwbd.fusion.health import HealthMonitor
+from uwbd.fusion.lsq import LsqFix
+from uwbd.fusion.measurements import Rows, position_rows, range_keys, range_rows
+from uwbd.fusion.robust import AnchorStats, RowPolicy
+from uwbd.fusion.rotation import Array
+from uwbd.fusion.settings import Mode
+from uwbd.fusion.types import FusionReport
+
+if TYPE_CHECKING:
+    from uwbd.fusion.settings import FilterConfig
+
+ATTITUDE_AND_IMU_BIASES = slice(TH_.start, BA_.stop)
+ATTITUDE_AND_GYRO_BIAS = slice(TH_.start, BG_.stop)
+# the covariance is kept finite: no error state may be less certain than this (σ per state)
+MAX_SIGMA = np.array([1e3] * 3 + [1e2] * 3 + [math.pi] * 3 + [0.5] * 3 + [5.0] * 3)
+MAX_RANGE_BIAS_SIGMA_M = 5.0
+
+
+class EpochFusion:
+    """The update step of :class:`~uwbd.fusion.filter.Filter`, and the state it acts on
+    (set by the filter)."""
+
+    cfg: FilterConfig
+    ekf: Eskf | None
+    lever: Array
+    counters: collections.Counter[str]
+    monitor: HealthMonitor
+    anchor_stats: dict[int, AnchorStats]
+    _range_columns: dict[int, tuple[int, ...]]
+    _fixed_z: float | None
+    _gate_1: float
+    _gate_3: float
+    _policies: dict[tuple[str, bool], RowPolicy]
+    _empty_rows: dict[int, Rows]
+    _aligned: bool
+    _at_rest: bool
+    _imu_fresh: Callable[[], bool]  # the filter's: the last IMU sample is recent
+
+    def _measurement_rows(self, ids: list[int], anchors: Array, ranges: Array,
+                          r_scale: Array, fix: LsqFix | None) -> Rows:
+        """Tight: one row per range (§4, range); loose: the fix's axes (§4, position)."""
+        ekf = self.ekf
+        assert ekf is not None
+        if self.cfg.mode is Mode.TIGHT:
+            return range_rows(ekf, self.lever, ids, anchors, ranges,
+                              self.cfg.range_sigma_m**2 * r_scale,
+                              self._range_columns)
+        if fix is None:
+            return Rows.empty(ekf.n)
+        return position_rows(ekf, self.lever, fix, 3 if self._fixed_z is None else 2)
+
+    def _fuse_epoch(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
+                    r_scale: Array, fix: LsqFix | None,
+                    constraints: list[Rows]) -> list[FusionReport]:
+        """The epoch's rows fused: tight, on the C core, in one call (:meth:`Eskf.fuse_ranges`);
+        else (or where that call declines) built here and fused by :meth:`_fuse`."""
+        ekf = self.ekf
+        assert ekf is not None
+        if ids and self.cfg.mode is Mode.TIGHT and ekf._core is not None:
+            extra = Rows.stack(constraints) if constraints else self._no_rows(ekf.n)
+            keys = range_keys(ids) + extra.keys
+            outcome = ekf.fuse_ranges(
+                self.lever, anchors, ranges, self.cfg.range_sigma_m**2 * r_scale,
+                tuple(self._range_columns.get(a, ()) for a in ids), extra[:3],
+                self._row_policy(keys, True), self._considered())
+            if outcome is not None:
+                return self._outcomes(t_ns, keys, outcome)
+        return self._fuse(t_ns, Rows.stack([self._measurement_rows(ids, anchors, ranges,
+                                                                   r_scale, fix),
+                                            *constraints]))
+
+    def _fuse(self, t_ns: int, rows: Rows) -> list[FusionReport]:
+        """Sequential scalar updates; each range gated (χ²) and weighted (robust); a loose
+        fix gated as one 3-D measurement."""
+        ekf = self.ekf
+        assert ekf is not None
+        H, y, R, keys = rows
+        if not keys:
+            return []
+        fix_ok = True
+        idx = np.array([k[0] == "position" for k in keys]) if self.cfg.mode is Mode.LOOSE \
+            else None
+        if idx is not None and idx.any():  # a position fix is one 3-D measurement: gate it as one
+            Hl = H[idx]
+            Sl = Hl @ ekf.P @ Hl.T + np.diag(R[idx])
+            try:
+                fix_ok = float(y[idx] @ np.linalg.solve(Sl, y[idx])) <= self._gate_3
+            except np.linalg.LinAlgError:
+                fix_ok = False
+        outcome = ekf.sequential_update(H, y, R, self._row_policy(keys, fix_ok),
+                                        self._considered())
+        return self._outcomes(t_ns, keys, outcome)
+
+    def _row_policy(self, keys: list[tuple[str, str]], fix_ok: bool) -> RowPolicy:
+        # the first letter of each row's kind: "r"ange, "p"osition, any other gated plainly
+        kinds = "".join([kind[0] for kind, _ in keys])
+        policy = self._policies.get((kinds, fix_ok))
+        if policy is None:  # a few shapes of update recur: each made once
+            policy = self._policies[kinds, fix_ok] = RowPolicy.of(
+                kinds.encode(), self._gate_1, self.cfg.robust, fix_ok)
+        return policy
+
+    def _no_rows(self, n: int) -> Rows:
+        rows = self._empty_rows.get(n)
+        if rows is None:
+            rows = self._empty_rows[n] = Rows.empty(n)
+        return rows
+
+    def _considered(self) -> slice | None:
+        """The states an update may not correct. While the heading is held, moving, its
+        linearisation is void: attitude and gyro biases must not soak up what the unknown
+        heading does to the velocity; without the IMU (coasting through a gap) nothing
+        observes the attitude and the IMU's biases."""
+        if not self._imu_fresh():
+            return ATTITUDE_AND_IMU_BIASES
+        if not self._aligned and not self._at_rest:
+            return ATTITUDE_AND_GYRO_BIAS  # at rest the heading does not matter
+        return None
+
+    def _outcomes(self, t_ns: int, keys: list[tuple[str, str]],
+                  outcome: list[Row]) -> list[FusionReport]:
+        """Each row's report, counters, health evidence and anchor statistics; then the
+        covariance kept within bounds."""
+        gate_1 = self._gate_1
+        reports = []
+        counters, monitor, anchor_stats = self.counters, self.monitor, self.anchor_stats
+        for (kind, key), (innovation, variance, weight, numerical) in zip(keys, outcome,
+                                                                          strict=True):
+            ok = weight > 0.0
+            reason = "" if ok else ("numerical" if numerical else "innovation_gate")
+            ratio = innovation**2 / variance / gate_1 if variance > 0 else math.nan
+            reports.append(FusionReport(t_ns, kind, key, innovation, variance, ratio, ok,
+                                        reason))
+            counters[_OUTCOME_COUNTERS.get((kind, ok)) or _outcome_counter(kind, ok)] += 1
+            if numerical:
+                counters["numerical_skips"] += 1
+                monitor.numerical_fault(t_ns)
+            if kind in ("range", "position"):
+                monitor.uwb_outcome(t_ns, ok, ratio * gate_1)
+            if kind == "range":
+                anchor = int(key)
+                stats = anchor_stats.get(anchor)
+                if stats is None:
+                    stats = anchor_stats[anchor] = AnchorStats()
+                stats.add(innovation / math.sqrt(variance) if variance > 0 else math.nan,
+                          weight)
+        self._keep_covariance_sane()
+        return reports
+
+    def _keep_covariance_sane(self) -> None:
+        ekf = self.ekf
+        assert ekf is not None
+        if ekf.clamp_covariance(MAX_SIGMA, MAX_RANGE_BIAS_SIGMA_M):
+            self.counters["covariance_clamped"] += 1
+
+
+def _outcome_counter(kind: str, accepted: bool) -> str:
+    """The fusion counter of a kind of row and its outcome ("range_accepted", …)."""
+    return f"{kind}_{'accepted' if accepted else 'rejected'}"
+
+
+_OUTCOME_COUNTERS = {(kind, ok): _outcome_counter(kind, ok)  # the known kinds', made once
+                     for kind in ("range", "position", "zupt", "nhc", "height")
+                     for ok in (True, False)}
