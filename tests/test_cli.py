@@ -123,3 +123,13 @@ def test_demo_survives_ctrl_c_twice() -> None:
     assert proc.returncode == 0, err.decode()
     assert b"Traceback" not in err
     assert b"fused pose vs scenario truth" in out
+
+
+def test_the_version_said_is_the_installed_one() -> None:
+    """``uwbd --version`` (a constant in uwbd/__init__.py, read without importlib.metadata)
+    is the version the install recorded, which pyproject.toml takes from that constant."""
+    from importlib.metadata import version  # noqa: PLC0415 - only this test needs it
+
+    result = run("--version")
+    assert result.returncode == 0
+    assert result.stdout.decode().split()[:2] == ["uwbd", version("uwbd")]

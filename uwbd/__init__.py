@@ -1,8 +1,5 @@
 """uwbd: UWB + IMU localisation daemon."""
 
-from importlib.metadata import PackageNotFoundError, version
-
-try:
-    __version__ = version("uwbd")
-except PackageNotFoundError:  # running from a source tree that was not installed
-    __version__ = "0.0.0+unknown"
+# the one place the version is written (pyproject.toml reads it from here); a constant,
+# not importlib.metadata, whose import alone was a tenth of every command's start-up
+__version__ = "0.1.0"
