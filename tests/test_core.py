@@ -230,30 +230,6 @@ def test_multilateration_matches_the_reference(seed: int, k: int, height_held: b
 
 @needs_core
 @settings(max_examples=40, deadline=None)
-@given(st.integers(0, 2**31), st.integers(1, 8))
-def test_range_rows_match_the_reference(seed: int, k: int) -> None:
-    fast, _ = twin(2 * 8, seed)
-    rng = np.random.default_rng(seed)
-    ids = [int(a) for a in rng.choice(8, size=k, replace=False)]
-    anchors = rng.uniform(-10, 10, size=(k, 3))
-    ranges = rng.uniform(1, 15, size=k)
-    var = rng.uniform(0.001, 0.1, size=k)
-    lever = rng.normal(size=3) * 0.2
-    fast.b_r[:] = rng.normal(size=16) * 0.1
-    delay = {a: N_CORE + a for a in range(8)}
-    multipath = {a: N_CORE + 8 + a for a in range(0, 8, 2)}  # every other anchor
-    columns = {a: (delay[a], multipath[a]) if a in multipath else (delay[a],) for a in delay}
-    rows = range_rows(fast, lever, ids, anchors, ranges, var, columns)
-    with native.pure_python():
-        reference = range_rows(fast, lever, ids, anchors, ranges, var, columns)
-    assert rows.keys == reference.keys
-    np.testing.assert_allclose(rows.H, reference.H, rtol=1e-12, atol=1e-15)
-    np.testing.assert_allclose(rows.y, reference.y, rtol=1e-12, atol=1e-12)
-    np.testing.assert_array_equal(rows.R, reference.R)
-
-
-@needs_core
-@settings(max_examples=40, deadline=None)
 @given(st.integers(0, 2**31), st.integers(1, 8), st.integers(0, 3), st.booleans(),
        st.sampled_from([None, slice(6, 12)]))
 def test_a_tight_epoch_in_one_call_matches_rows_then_update(seed: int, k: int, extra: int,

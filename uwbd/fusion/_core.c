@@ -742,50 +742,6 @@ static int fill_range_rows(const double pos[3], const double q[4], const double 
     return 0;
 }
 
-/* range_rows(p, q, lever, anchors (k×3), ranges (k), b_r (n−15), columns, H (k×n), y (k))
- * -> the smallest antenna-to-anchor distance (fill_range_rows). */
-static PyObject *core_range_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
-{
-    (void)self;
-    if (nargs != 9) {
-        PyErr_SetString(PyExc_TypeError, "range_rows takes 9 arguments");
-        return NULL;
-    }
-    double pos[3], q[4], lever[3];
-    if (get_vec(args[0], pos, 3, "p") || get_vec(args[1], q, 4, "q") ||
-        get_vec(args[2], lever, 3, "lever"))
-        return NULL;
-    Py_buffer view[5]; /* ranges, anchors, b_r, H, y */
-    int got = 0;
-    PyObject *result = NULL;
-    if (get_doubles(args[4], &view[0], -1, 0, "ranges") < 0)
-        return NULL;
-    got = 1;
-    Py_ssize_t k = view[0].len / 8;
-    if (get_doubles(args[3], &view[1], 3 * k, 0, "anchors") < 0)
-        goto done;
-    got = 2;
-    if (get_doubles(args[5], &view[2], -1, 0, "b_r") < 0)
-        goto done;
-    got = 3;
-    Py_ssize_t n = N_CORE + view[2].len / 8;
-    if (get_doubles(args[7], &view[3], k * n, 1, "H") < 0)
-        goto done;
-    got = 4;
-    if (get_doubles(args[8], &view[4], k, 1, "y") < 0)
-        goto done;
-    got = 5;
-    double closest;
-    if (fill_range_rows(pos, q, lever, (const double *)view[1].buf,
-                        (const double *)view[0].buf, k, (const double *)view[2].buf, n,
-                        args[6], (double *)view[3].buf, (double *)view[4].buf, &closest) == 0)
-        result = PyFloat_FromDouble(closest);
-done:
-    for (int i = 0; i < got; i++)
-        PyBuffer_Release(&view[i]);
-    return result;
-}
-
 /* fuse_ranges(P, dx, p, v, q, b_g, b_a, b_r, lever, anchors (k×3), ranges (k), var (k),
  *             columns, H_extra (m×n), y_extra (m), R_extra (m), decide, c0, c1)
  * -> (rows, q) or None
@@ -1380,8 +1336,6 @@ static PyMethodDef core_methods[] = {
      "After a fused update: P symmetrised and reset by G, in place."},
     {"fuse_ranges", (PyCFunction)(void (*)(void))core_fuse_ranges, METH_FASTCALL,
      "A tight epoch: the range rows and the extra rows fused in one call (or None)."},
-    {"range_rows", (PyCFunction)(void (*)(void))core_range_rows, METH_FASTCALL,
-     "measurements.range_rows into H and y; returns the smallest distance."},
     {"pose_covariance", (PyCFunction)(void (*)(void))core_pose_covariance, METH_FASTCALL,
      "Filter.pose's 6x6 covariance (position, nav-frame attitude), row-major."},
     {"diagonal_out_of_bounds", (PyCFunction)(void (*)(void))core_diagonal_out_of_bounds,

@@ -12,7 +12,6 @@ from typing import NamedTuple
 
 import numpy as np
 
-from uwbd.fusion import native
 from uwbd.fusion.eskf import N_CORE, P_, TH_, V_, Eskf
 from uwbd.fusion.lsq import LsqFix
 from uwbd.fusion.rotation import Array, skew
@@ -43,19 +42,10 @@ class Rows(NamedTuple):
 def range_rows(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array, ranges: Array,
                var: Array, columns: Mapping[int, tuple[int, ...]]) -> Rows:
     """One row per range: ``h = |p + R l − a| + Σ b`` over the range-model states whose
-    columns ``columns`` gives the anchor (antenna delay, multipath; none if absent). The C
-    core builds them when it is built (:mod:`.native`); the code below is its reference."""
-    core = native.core
+    columns ``columns`` gives the anchor (antenna delay, multipath; none if absent). The
+    reference of the C core's tight epoch (:meth:`Eskf.fuse_ranges`), and the rows where
+    that declines: a range whose antenna is within 1 mm of its anchor is dropped here."""
     keys = range_keys(ids)
-    if core is not None and len(ids):
-        H = np.zeros((len(ids), ekf.n))
-        y = np.empty(len(ids))
-        closest = core.range_rows(ekf.p, ekf.q, lever_m, np.ascontiguousarray(anchors, float),
-                                  np.ascontiguousarray(ranges, float),
-                                  np.ascontiguousarray(ekf.b_r, float),
-                                  tuple(columns.get(a, ()) for a in ids), H, y)
-        if closest >= 1e-3:  # else an antenna on an anchor: the code below drops that range
-            return Rows(H, y, var, keys)
     R = ekf.R
     p_ant = np.array(ekf.p) + R @ lever_m
     diff = p_ant - anchors
