@@ -7,7 +7,8 @@ runs its pure-Python reference (``uwbd version`` says which one runs).
 from setuptools import Extension, setup
 
 setup(ext_modules=[Extension(
-    "uwbd.fusion._core", ["uwbd/fusion/_core.c"],
+    "uwbd.fusion._core", ["uwbd/fusion/_core.c", "uwbd/fusion/_imu_read.c"],
+    depends=["uwbd/fusion/_core.h"],
     # a * b + c rounded as Python rounds it (no fused multiply-add): the same bits
     extra_compile_args=["-O2", "-ffp-contract=off", "-fno-fast-math"],
     optional=True,

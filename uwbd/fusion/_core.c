@@ -16,7 +16,8 @@
 #include <math.h>
 #include <string.h>
 
-#define N_CORE 15
+#include "_core.h"
+
 
 /* -- helpers ---------------------------------------------------------------------------- */
 
@@ -42,7 +43,7 @@ static int get_doubles(PyObject *obj, Py_buffer *view, Py_ssize_t count, int wri
 }
 
 /* Three (or four) floats out of a list or tuple of floats. */
-static int get_vec(PyObject *seq, double *out, Py_ssize_t n, const char *what)
+int uwbd_get_vec(PyObject *seq, double *out, Py_ssize_t n, const char *what)
 {
     PyObject *fast = PySequence_Fast(seq, what);
     if (fast == NULL)
@@ -66,7 +67,7 @@ static int get_vec(PyObject *seq, double *out, Py_ssize_t n, const char *what)
 
 /* Store doubles back into an existing list, item by item (the list is mutated in place,
  * as the Python code's `p[0] += ...` does). */
-static int set_list(PyObject *list, const double *v, Py_ssize_t n)
+int uwbd_set_list(PyObject *list, const double *v, Py_ssize_t n)
 {
     if (!PyList_Check(list) || PyList_GET_SIZE(list) != n) {
         PyErr_SetString(PyExc_TypeError, "a list of the state's length is needed");
@@ -122,35 +123,11 @@ static void quat_to_matrix(const double q[4], double R[3][3])
 
 /* -- predict: every IMU sample ---------------------------------------------------------- */
 
-/* predict(p, v, q, b_g, b_a, sum_fn, sum_w, acc_b, gyro_b, dt, gravity) -> new q (list)
- * p, v, sum_fn, sum_w are updated in place; Eskf.predict in eskf.py, step by step. */
-static PyObject *core_predict(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+/* Eskf.predict's arithmetic, step by step: p, v, sum_fn, sum_w in place, the new q in qn. */
+void uwbd_predict_step(double p[3], double v[3], const double q[4], const double bg[3],
+                       const double ba[3], double sfn[3], double sw[3], const double acc[3],
+                       const double gyro[3], double dt, double g, double qn[4])
 {
-    (void)self;
-    if (nargs != 11) {
-        PyErr_SetString(PyExc_TypeError, "predict takes 11 arguments");
-        return NULL;
-    }
-    double p[3], v[3], q[4], bg[3], ba[3], sfn[3], sw[3], acc[3], gyro[3];
-    if (get_vec(args[0], p, 3, "p") || get_vec(args[1], v, 3, "v") ||
-        get_vec(args[2], q, 4, "q") || get_vec(args[3], bg, 3, "b_g") ||
-        get_vec(args[4], ba, 3, "b_a") || get_vec(args[5], sfn, 3, "sum_fn") ||
-        get_vec(args[6], sw, 3, "sum_w") || get_vec(args[7], acc, 3, "acc_b") ||
-        get_vec(args[8], gyro, 3, "gyro_b"))
-        return NULL;
-    double dt = PyFloat_AsDouble(args[9]);
-    if (dt == -1.0 && PyErr_Occurred())
-        return NULL;
-    double g = PyFloat_AsDouble(args[10]);
-    if (g == -1.0 && PyErr_Occurred())
-        return NULL;
-    /* every target a list of 3 before anything is written */
-    const int targets[4] = {0, 1, 5, 6};
-    for (int i = 0; i < 4; i++)
-        if (!PyList_Check(args[targets[i]]) || PyList_GET_SIZE(args[targets[i]]) != 3) {
-            PyErr_SetString(PyExc_TypeError, "p, v, sum_fn and sum_w must be lists of 3");
-            return NULL;
-        }
     double wx = (gyro[0] - bg[0]) * dt, wy = (gyro[1] - bg[1]) * dt, wz = (gyro[2] - bg[2]) * dt;
     double fx = acc[0] - ba[0], fy = acc[1] - ba[1], fz = acc[2] - ba[2];
     double qw = q[0], qx = q[1], qy = q[2], qz = q[3];
@@ -173,10 +150,42 @@ static PyObject *core_predict(PyObject *self, PyObject *const *args, Py_ssize_t 
     v[0] += ax * dt;
     v[1] += ay * dt;
     v[2] += az * dt;
-    double qn[4];
     turned(q, wx, wy, wz, qn);
-    if (set_list(args[0], p, 3) || set_list(args[1], v, 3) || set_list(args[5], sfn, 3) ||
-        set_list(args[6], sw, 3))
+}
+
+/* predict(p, v, q, b_g, b_a, sum_fn, sum_w, acc_b, gyro_b, dt, gravity) -> new q (list)
+ * p, v, sum_fn, sum_w are updated in place; Eskf.predict in eskf.py, step by step. */
+static PyObject *core_predict(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 11) {
+        PyErr_SetString(PyExc_TypeError, "predict takes 11 arguments");
+        return NULL;
+    }
+    double p[3], v[3], q[4], bg[3], ba[3], sfn[3], sw[3], acc[3], gyro[3];
+    if (uwbd_get_vec(args[0], p, 3, "p") || uwbd_get_vec(args[1], v, 3, "v") ||
+        uwbd_get_vec(args[2], q, 4, "q") || uwbd_get_vec(args[3], bg, 3, "b_g") ||
+        uwbd_get_vec(args[4], ba, 3, "b_a") || uwbd_get_vec(args[5], sfn, 3, "sum_fn") ||
+        uwbd_get_vec(args[6], sw, 3, "sum_w") || uwbd_get_vec(args[7], acc, 3, "acc_b") ||
+        uwbd_get_vec(args[8], gyro, 3, "gyro_b"))
+        return NULL;
+    double dt = PyFloat_AsDouble(args[9]);
+    if (dt == -1.0 && PyErr_Occurred())
+        return NULL;
+    double g = PyFloat_AsDouble(args[10]);
+    if (g == -1.0 && PyErr_Occurred())
+        return NULL;
+    /* every target a list of 3 before anything is written */
+    const int targets[4] = {0, 1, 5, 6};
+    for (int i = 0; i < 4; i++)
+        if (!PyList_Check(args[targets[i]]) || PyList_GET_SIZE(args[targets[i]]) != 3) {
+            PyErr_SetString(PyExc_TypeError, "p, v, sum_fn and sum_w must be lists of 3");
+            return NULL;
+        }
+    double qn[4];
+    uwbd_predict_step(p, v, q, bg, ba, sfn, sw, acc, gyro, dt, g, qn);
+    if (uwbd_set_list(args[0], p, 3) || uwbd_set_list(args[1], v, 3) ||
+        uwbd_set_list(args[5], sfn, 3) || uwbd_set_list(args[6], sw, 3))
         return NULL;
     return Py_BuildValue("[dddd]", qn[0], qn[1], qn[2], qn[3]);
 }
@@ -207,8 +216,8 @@ static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_
         return NULL;
     }
     double q[4], sfn[3], sw[3];
-    if (get_vec(args[2], q, 4, "q") || get_vec(args[3], sfn, 3, "sum_fn") ||
-        get_vec(args[4], sw, 3, "sum_w"))
+    if (uwbd_get_vec(args[2], q, 4, "q") || uwbd_get_vec(args[3], sfn, 3, "sum_fn") ||
+        uwbd_get_vec(args[4], sw, 3, "sum_w"))
         return NULL;
     double T = PyFloat_AsDouble(args[5]);
     if (PyErr_Occurred())
@@ -487,7 +496,7 @@ static PyObject *core_turn_attitude_covariance(PyObject *self, PyObject *const *
         return NULL;
     }
     double g[9], G[3][3];
-    if (get_vec(args[1], g, 9, "G"))
+    if (uwbd_get_vec(args[1], g, 9, "G"))
         return NULL;
     for (int i = 0; i < 9; i++)
         G[i / 3][i % 3] = g[i];
@@ -529,7 +538,7 @@ static PyObject *core_reset_covariance(PyObject *self, PyObject *const *args,
         return NULL;
     }
     double th[3];
-    if (get_vec(args[1], th, 3, "dtheta"))
+    if (uwbd_get_vec(args[1], th, 3, "dtheta"))
         return NULL;
     Py_buffer Pb;
     Py_ssize_t n;
@@ -549,9 +558,9 @@ typedef struct {
 
 static int get_nominal(PyObject *const *args, Nominal *s)
 {
-    if (get_vec(args[0], s->p, 3, "p") || get_vec(args[1], s->v, 3, "v") ||
-        get_vec(args[2], s->q, 4, "q") || get_vec(args[3], s->bg, 3, "b_g") ||
-        get_vec(args[4], s->ba, 3, "b_a"))
+    if (uwbd_get_vec(args[0], s->p, 3, "p") || uwbd_get_vec(args[1], s->v, 3, "v") ||
+        uwbd_get_vec(args[2], s->q, 4, "q") || uwbd_get_vec(args[3], s->bg, 3, "b_g") ||
+        uwbd_get_vec(args[4], s->ba, 3, "b_a"))
         return -1;
     s->p_list = args[0], s->v_list = args[1], s->bg_list = args[3], s->ba_list = args[4];
     if (!PyList_Check(s->p_list) || !PyList_Check(s->v_list) || !PyList_Check(s->bg_list) ||
@@ -596,8 +605,8 @@ static PyObject *update_state(double *P, double *dx, double *b_r, Py_ssize_t n,
     }
     double qn[4];
     turned(s->q, dx[6], dx[7], dx[8], qn);
-    if (set_list(s->p_list, s->p, 3) || set_list(s->v_list, s->v, 3) ||
-        set_list(s->bg_list, s->bg, 3) || set_list(s->ba_list, s->ba, 3))
+    if (uwbd_set_list(s->p_list, s->p, 3) || uwbd_set_list(s->v_list, s->v, 3) ||
+        uwbd_set_list(s->bg_list, s->bg, 3) || uwbd_set_list(s->ba_list, s->ba, 3))
         goto done;
     for (Py_ssize_t a = N_CORE; a < n; a++)
         b_r[a - N_CORE] += dx[a];
@@ -764,7 +773,7 @@ static PyObject *core_fuse_ranges(PyObject *self, PyObject *const *args, Py_ssiz
     Nominal state;
     double lever[3];
     if (get_decide(args[16], &policy, &pol) < 0 || get_nominal(args + 2, &state) < 0 ||
-        get_vec(args[8], lever, 3, "lever"))
+        uwbd_get_vec(args[8], lever, 3, "lever"))
         return NULL;
     Py_buffer view[9]; /* P, dx, b_r, ranges, anchors, var, y_extra, H_extra, R_extra */
     int got = 0;
@@ -1154,7 +1163,7 @@ static PyObject *core_multilaterate(PyObject *self, PyObject *const *args, Py_ss
         return NULL;
     }
     double x[3];
-    if (get_vec(args[2], x, 3, "x0"))
+    if (uwbd_get_vec(args[2], x, 3, "x0"))
         return NULL;
     long dims = PyLong_AsLong(args[3]), max_iter = PyLong_AsLong(args[6]);
     double sigma = PyFloat_AsDouble(args[4]), outlier = PyFloat_AsDouble(args[5]);
@@ -1251,7 +1260,7 @@ static PyObject *core_pose_covariance(PyObject *self, PyObject *const *args, Py_
         return NULL;
     }
     double q[4];
-    if (get_vec(args[1], q, 4, "q"))
+    if (uwbd_get_vec(args[1], q, 4, "q"))
         return NULL;
     Py_buffer Pb;
     Py_ssize_t n;
@@ -1346,6 +1355,8 @@ static PyMethodDef core_methods[] = {
      "lsq.multilaterate from a start point: the fix, its outlier test and second fix."},
     {"leverages", (PyCFunction)(void (*)(void))core_leverages, METH_FASTCALL,
      "Each range's leverage at x (multilaterate's outlier test); None if singular."},
+    {"imu_read", (PyCFunction)(void (*)(void))uwbd_imu_read, METH_FASTCALL,
+     "The common IMU read whole (parse, spread, align, check, predict), or None."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -1355,4 +1366,9 @@ static struct PyModuleDef core_module = {
     core_methods, NULL, NULL, NULL, NULL,
 };
 
-PyMODINIT_FUNC PyInit__core(void) { return PyModule_Create(&core_module); }
+PyMODINIT_FUNC PyInit__core(void)
+{
+    if (uwbd_imu_read_init() < 0)
+        return NULL;
+    return PyModule_Create(&core_module);
+}

@@ -50,7 +50,7 @@ from uwbd.fusion.gating import GatingCounters, chi2_quantile, gate
 from uwbd.fusion.health import WAITING, Health, HealthMonitor
 from uwbd.fusion.imu_check import ImuCheck
 from uwbd.fusion.initialise import Start
-from uwbd.fusion.intrinsics import to_body
+from uwbd.fusion.intrinsics import body_maps, to_body
 from uwbd.fusion.lsq import LsqFix, coplanar
 from uwbd.fusion.measurements import (
     Rows,
@@ -189,6 +189,34 @@ class Filter(Recovery, EpochFusion):
             self._predict(imu)
         except NUMERICAL_ERRORS as err:
             self._internal_error(imu.t_ns, err)
+
+    def read_path(self) -> tuple[Any, ...]:
+        """What the C core's common IMU read (``_core.imu_read``, ``_imu_read.c``) uses of
+        this filter besides itself, in that file's order: the IMU check, the rest window and
+        its samples, the numbers (body maps, the check's limits, the largest IMU gap, how
+        often the covariance follows), and the window's length in ns."""
+        cfg, check = self.cfg, self.imu_check
+        (a, b, c), (d, e, f), (g, h, i) = self._C
+        maps = body_maps(((a, b, c), (d, e, f), (g, h, i)), cfg.imu_intrinsics)
+        numbers = (*(x for row in maps.acc_M for x in row), *maps.acc_b,
+                   *(x for row in maps.gyro_M for x in row), *maps.gyro_b, *maps.gyro_offset,
+                   maps.gyro_band, check.acc_clip, check.gyro_clip,
+                   check.limits.max_acc_jump_mps2, check.limits.max_gyro_jump_rps,
+                   check.limits.max_jump_run, cfg.max_imu_gap_s, PROPAGATE_EVERY_S)
+        return (check, self.window, self.window.samples, tuple(map(float, numbers)),
+                self.window.length_ns)
+
+    def finish_prediction(self, t_ns: int, body: tuple[Vec3, Vec3]) -> None:
+        """The C core's read path integrated the sample of ``t_ns`` and the covariance is
+        due: what :meth:`_predict` does next."""
+        try:
+            assert self.ekf is not None
+            self.ekf.propagate()
+        except NUMERICAL_ERRORS as err:
+            self._internal_error(t_ns, err)
+            return
+        self.t_ns = t_ns
+        self._last_imu = body
 
     def update(self, uwb: UwbRanges | AnchorRanges) -> list[FusionReport]:
         """Fuse one UWB message (an epoch, or a single range); one report per measurement.

@@ -44,8 +44,8 @@ class ImuCheck:
 
     def __init__(self, limits: ImuLimits) -> None:
         self.limits = limits
-        self._acc_clip = limits.saturation_fraction * limits.acc_full_scale_mps2
-        self._gyro_clip = limits.saturation_fraction * limits.gyro_full_scale_rps
+        self.acc_clip = limits.saturation_fraction * limits.acc_full_scale_mps2
+        self.gyro_clip = limits.saturation_fraction * limits.gyro_full_scale_rps
         self.last_good: tuple[Vec3, Vec3] | None = None
         self._jump_run = 0
         self._burst_start_ns: int | None = None
@@ -70,7 +70,7 @@ class ImuCheck:
     def _reason(self, acc: Vec3, gyro: Vec3) -> str:
         if not math.isfinite(acc[0] + acc[1] + acc[2] + gyro[0] + gyro[1] + gyro[2]):
             return "imu_not_finite"  # NaN and inf propagate through the sum
-        a, g = self._acc_clip, self._gyro_clip
+        a, g = self.acc_clip, self.gyro_clip
         if (abs(acc[0]) >= a or abs(acc[1]) >= a or abs(acc[2]) >= a
                 or abs(gyro[0]) >= g or abs(gyro[1]) >= g or abs(gyro[2]) >= g):
             return "imu_saturated"

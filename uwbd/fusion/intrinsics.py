@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 Vec3 = tuple[float, float, float]
 Rows3 = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
@@ -72,26 +73,52 @@ def _affine(M: Rows3, b: Vec3) -> Callable[[Vec3], Vec3]:
     return apply
 
 
-def to_body(C_bs: Rows3, intrinsics: ImuIntrinsics,
-            rotate: Callable[[Vec3], Vec3]) -> tuple[Callable[[Vec3], Vec3],
-                                                     Callable[[Vec3], Vec3]]:
-    """The per-sample maps raw accelerometer and gyro readings (sensor axes) → corrected
-    body axes. ``rotate`` is the plain ``C_bs v``: returned as both when every intrinsic is
-    at its default (nothing else runs)."""
+class BodyMaps(NamedTuple):
+    """The per-sample maps raw sensor axes → corrected body axes, as numbers: the
+    accelerometer's ``acc_M a − acc_b``; the gyro's ``gyro_M ω − gyro_b``, or with a
+    dead-band (``gyro_band > 0``) ``gyro_M band(ω − gyro_offset)``. The C core's read path
+    applies these; :func:`to_body` makes the Python functions of the same arithmetic."""
+
+    acc_M: Rows3  # noqa: N815 - a matrix
+    acc_b: Vec3
+    gyro_M: Rows3  # noqa: N815 - a matrix
+    gyro_b: Vec3
+    gyro_offset: Vec3
+    gyro_band: float
+
+
+def body_maps(C_bs: Rows3, intrinsics: ImuIntrinsics) -> BodyMaps:
+    """The maps for the mounting rotation ``C_bs`` and the calibration ``intrinsics``."""
     if intrinsics.is_identity:
-        return rotate, rotate
+        return BodyMaps(C_bs, ZEROS, C_bs, ZEROS, ZEROS, 0.0)
     s, o = intrinsics.acc_scale, intrinsics.acc_offset_mps2
 
     def scaled(row: Vec3) -> Vec3:  # C_bs diag(1/scale)
         return (row[0] / s[0], row[1] / s[1], row[2] / s[2])
 
-    M = (scaled(C_bs[0]), scaled(C_bs[1]), scaled(C_bs[2]))
-    acc = _affine(M, _times(M, o))  # M (a - o) = M a - M o
+    M = (scaled(C_bs[0]), scaled(C_bs[1]), scaled(C_bs[2]))  # M (a - o) = M a - M o
     if intrinsics.gyro_deadband_rps <= 0.0:
-        return acc, _affine(C_bs, _times(C_bs, intrinsics.gyro_offset_rps))
-    (m0, m1, m2), (m3, m4, m5), (m6, m7, m8) = C_bs
-    o0, o1, o2 = intrinsics.gyro_offset_rps
-    d = intrinsics.gyro_deadband_rps
+        return BodyMaps(M, _times(M, o), C_bs, _times(C_bs, intrinsics.gyro_offset_rps),
+                        ZEROS, 0.0)
+    return BodyMaps(M, _times(M, o), C_bs, ZEROS, intrinsics.gyro_offset_rps,
+                    intrinsics.gyro_deadband_rps)
+
+
+def to_body(C_bs: Rows3, intrinsics: ImuIntrinsics,
+            rotate: Callable[[Vec3], Vec3]) -> tuple[Callable[[Vec3], Vec3],
+                                                     Callable[[Vec3], Vec3]]:
+    """The per-sample maps raw accelerometer and gyro readings (sensor axes) → corrected
+    body axes. ``rotate`` is the plain ``C_bs v``: returned as both when every intrinsic is
+    at its default (nothing else runs; the same numbers as ``M v − 0``)."""
+    if intrinsics.is_identity:
+        return rotate, rotate
+    maps = body_maps(C_bs, intrinsics)
+    acc = _affine(maps.acc_M, maps.acc_b)
+    if maps.gyro_band <= 0.0:
+        return acc, _affine(maps.gyro_M, maps.gyro_b)
+    (m0, m1, m2), (m3, m4, m5), (m6, m7, m8) = maps.gyro_M
+    o0, o1, o2 = maps.gyro_offset
+    d = maps.gyro_band
 
     def gyro(w: Vec3) -> Vec3:  # the band is per sensor axis: before the rotation
         x, y, z = w[0] - o0, w[1] - o1, w[2] - o2

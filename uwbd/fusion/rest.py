@@ -45,6 +45,12 @@ class ImuWindow:
         self._memo_ns = 0.0
         self._memo = False
 
+    @property
+    def samples(self) -> collections.deque[tuple[float, ...]]:
+        """The window's rows ``(t_ns, *acc, *gyro)``, oldest first (the C core's read path
+        appends to it as :meth:`add` does)."""
+        return self._samples
+
     def add(self, t_ns: int, acc: Vec3, gyro: Vec3) -> None:
         samples = self._samples
         samples.append((t_ns, *acc, *gyro))

@@ -5,6 +5,10 @@ replay`` for every ``/raw/<source>`` message of a log, in log order with its log
 the same code in the same order, so a replay reproduces the live poses bit for bit. Logs
 that carry only decoded frames go in through :meth:`Pipeline.on_frame`.
 
+With the C core built, the common read of a WitMotion IMU (one accel and one gyro packet)
+is taken whole by one call (:mod:`uwbd.service.imu_read`), which does what this module, the
+parser, the aligner and the filter do with it, to the bit; anything else goes the way below.
+
 Poses leave after every UWB update and, between updates, at most every
 ``pose_period_ns`` of data time; status every ``status_period_ns``. Sinks receive
 everything (raw bytes, frames, poses, status). Each call to a sink is guarded: a sink that
@@ -25,6 +29,7 @@ from uwbd.config import Config
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.types import Pose
 from uwbd.service.aligner import Aligner
+from uwbd.service.imu_read import imu_read_path
 
 
 class Sink(Protocol):
@@ -77,6 +82,10 @@ class Pipeline:
         self._last_frame_ns: dict[str, int] = {}
         self._last_status_ns: int | None = None
         self._latest_ns = -(2**63)  # the latest data (or wall-clock tick) time seen
+        # per source, the C core's common read (parse, spread, align, check, predict in one
+        # call) where there is one: WitMotion IMUs, with the C core built
+        self._imu_read = {name: path for name, parser in self.parsers.items()
+                          if (path := imu_read_path(parser, self, name)) is not None}
 
     @property
     def next_pose_due_ns(self) -> int:
@@ -94,7 +103,17 @@ class Pipeline:
                 call(source, t_ns, data)
             except Exception as err:
                 self._sink_failed(call, err)
-        self._frames(self._spread(source, parser.feed(data, t_ns)))
+        fast = self._imu_read.get(source)
+        sample = None if fast is None else fast(data, t_ns)
+        if sample is None:
+            self._frames(self._spread(source, parser.feed(data, t_ns)))
+        else:  # the common IMU read, parsed and integrated in one call of the C core
+            if sample.__class__ is tuple:  # the covariance is due
+                sample, body = sample
+                self.filter.finish_prediction(sample.t_ns, body)
+            self._frame_to_sinks(sample)
+            if sample.t_ns - self._last_pose_ns >= self._pose_period_ns:
+                self._emit_pose()
         self._tick(t_ns)
 
     def _spread(self, source: str, frames: Sequence[Frame]) -> Sequence[Frame]:
@@ -178,13 +197,16 @@ class Pipeline:
 
     def _frames(self, frames: Sequence[Frame]) -> None:
         for frame in frames:
-            for call in self._frame:
-                try:
-                    call(frame)
-                except Exception as err:
-                    self._sink_failed(call, err)
+            self._frame_to_sinks(frame)
             for ready in self.aligner.push(frame):
                 self._fuse(ready)
+
+    def _frame_to_sinks(self, frame: Frame) -> None:
+        for call in self._frame:
+            try:
+                call(frame)
+            except Exception as err:
+                self._sink_failed(call, err)
 
     def _fuse(self, frame: Frame) -> None:
         flt = self.filter
@@ -196,7 +218,10 @@ class Pipeline:
             flt.update(frame)
         else:
             return  # anchor-to-anchor ranges: logged for surveying, never fused
-        pose = flt.pose()
+        self._emit_pose()
+
+    def _emit_pose(self) -> None:
+        pose = self.filter.pose()
         if pose is not None:
             self._last_pose_ns = pose.t_ns
             self.poses += 1
