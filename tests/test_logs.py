@@ -385,8 +385,8 @@ def test_a_damaged_or_cut_log_reads_as_the_library_reads_it(
                  st.none() | st.tuples(*[st.floats(-1, 1)] * 4),
                  st.none() | st.integers(0, 2**62)))
 def test_an_imu_record_holds_its_fields_in_order_whichever_are_set(sample: ImuSample) -> None:
-    """The common record (accelerometer and gyro only) has a path of its own: the same
-    bytes as every other (NaN as null, a field without a value left out)."""
+    """The common record (accelerometer, gyro, perhaps the temperature) has a path of its
+    own: the same bytes as every other (NaN as null, a field without a value left out)."""
     expected: dict[str, object] = {"type": "ImuSample", "timestamp": {
         "sec": sample.t_ns // 10**9, "nsec": sample.t_ns % 10**9}}
     for name in ("t_ns", "acc_mps2", "gyro_rps", "temperature_c", "angle_deg", "mag_raw",

@@ -30,15 +30,16 @@ def frame_to_json(frame: Frame) -> bytes:
     skips the walk that replaces NaN with ``null``."""
     t_ns = frame.t_ns
     kind = type(frame)
-    if (isinstance(frame, ImuSample) and frame.temperature_c is None
-            and frame.angle_deg is None and frame.mag_raw is None
+    if (isinstance(frame, ImuSample) and frame.angle_deg is None and frame.mag_raw is None
             and frame.quaternion_wire is None and frame.device_time_ns is None):
-        # the common IMU record (accelerometer and gyro only), its keys in the same order
-        return strict_json({"type": "ImuSample",
-                            "timestamp": {"sec": t_ns // 1_000_000_000,
-                                          "nsec": t_ns % 1_000_000_000},
-                            "t_ns": t_ns, "acc_mps2": frame.acc_mps2,
-                            "gyro_rps": frame.gyro_rps})
+        # the common IMU record (accelerometer, gyro, perhaps the temperature), its keys in
+        # the same order
+        imu = {"type": "ImuSample",
+               "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
+               "t_ns": t_ns, "acc_mps2": frame.acc_mps2, "gyro_rps": frame.gyro_rps}
+        if frame.temperature_c is not None:
+            imu["temperature_c"] = frame.temperature_c
+        return strict_json(imu)
     out: dict[str, Any] = {"type": kind.__name__,
                            "timestamp": {"sec": t_ns // 1_000_000_000,
                                          "nsec": t_ns % 1_000_000_000}}

@@ -98,17 +98,9 @@ class ChunkedWriter:
         index = self._index.get(channel_id)
         if index is None:
             index = self._index[channel_id] = []
-        index += (log_time, len(chunk))
+        index += (log_time, len(chunk))  # the chunk's times and counts follow from these
         chunk += head
         chunk += data
-        if self._chunk_messages == 0:
-            self._chunk_start = self._chunk_end = log_time
-        elif log_time < self._chunk_start:
-            self._chunk_start = log_time
-        elif log_time > self._chunk_end:
-            self._chunk_end = log_time
-        self._chunk_messages += 1
-        self._counts[channel_id] += 1
         if len(chunk) > self._chunk_size:
             self._finish_chunk()
 
@@ -153,8 +145,15 @@ class ChunkedWriter:
         self._out.write(MCAP0_MAGIC)
 
     def _finish_chunk(self) -> None:
-        if self._chunk_messages == 0:
+        if not self._index:
             return  # schemas and channels wait for the chunk of their first message
+        # the messages' time span and counts, from the index (log time, offset, …)
+        self._chunk_start = min(min(entries[0::2]) for entries in self._index.values())
+        self._chunk_end = max(max(entries[0::2]) for entries in self._index.values())
+        self._chunk_messages = 0
+        for channel_id, entries in self._index.items():
+            self._counts[channel_id] += len(entries) // 2
+            self._chunk_messages += len(entries) // 2
         data = bytes(self._chunk)
         compressed = self._zstd.compress(data)
         chunk = Chunk(message_start_time=self._chunk_start, message_end_time=self._chunk_end,
