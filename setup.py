@@ -1,4 +1,5 @@
-"""The C core (uwbd/fusion/_core.c) is built here; everything else is in pyproject.toml.
+"""The C extensions (the filter's core, uwbd/fusion/_core.c, and the daemon's serial reader,
+uwbd/service/_reader.c) are built here; everything else is in pyproject.toml.
 
 ``optional=True``: where no C compiler is found the install goes on without it and uwbd
 runs its pure-Python reference (``uwbd version`` says which one runs).
@@ -6,10 +7,15 @@ runs its pure-Python reference (``uwbd version`` says which one runs).
 
 from setuptools import Extension, setup
 
-setup(ext_modules=[Extension(
-    "uwbd.fusion._core", ["uwbd/fusion/_core.c", "uwbd/fusion/_imu_read.c"],
-    depends=["uwbd/fusion/_core.h"],
-    # a * b + c rounded as Python rounds it (no fused multiply-add): the same bits
-    extra_compile_args=["-O2", "-ffp-contract=off", "-fno-fast-math"],
-    optional=True,
-)])
+setup(ext_modules=[
+    Extension(
+        "uwbd.fusion._core", ["uwbd/fusion/_core.c", "uwbd/fusion/_imu_read.c"],
+        depends=["uwbd/fusion/_core.h"],
+        # a * b + c rounded as Python rounds it (no fused multiply-add): the same bits
+        extra_compile_args=["-O2", "-ffp-contract=off", "-fno-fast-math"],
+        optional=True,
+    ),
+    # the daemon's serial reads on a thread of their own (uwbd/service/ports.py)
+    Extension("uwbd.service._reader", ["uwbd/service/_reader.c"], extra_compile_args=["-O2"],
+              extra_link_args=["-pthread"], optional=True),
+])

@@ -18,11 +18,12 @@ import zenoh
 from drivers.emulator import DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
 from uwbd.config import parse
+from uwbd.fusion import native
 from uwbd.logs.mcaplog import read_log
 from uwbd.logs.replay import replay
 from uwbd.logs.sink import McapSink
-from uwbd.service.daemon import ReadQueue
 from uwbd.service.pipeline import Pipeline, PoseList
+from uwbd.service.ports import ReadQueue
 from uwbd.tools.logtools import write_simulation
 from uwbd.tools.simulator import SimConfig, simulate
 
@@ -57,9 +58,11 @@ multicast_scouting = false  # tests never send beyond loopback
     return path
 
 
-def start_daemon(cfg: Path, logs: Path, *extra: str) -> subprocess.Popen[bytes]:
+def start_daemon(cfg: Path, logs: Path, *extra: str,
+                 env: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
     return subprocess.Popen([*UWBD, "run", "-c", str(cfg), "--log-dir", str(logs), *extra],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            env=None if env is None else {**os.environ, **env})
 
 
 def poses_of(path: Path) -> list[tuple[int, tuple[float, ...]]]:
@@ -76,9 +79,17 @@ def emulator(tmp_path: Path):
         yield emu
 
 
-def test_live_run_logs_everything_and_replays_bit_for_bit(tmp_path: Path, emulator) -> None:
+@pytest.mark.parametrize("reads", ["reader thread", "event loop"])
+def test_live_run_logs_everything_and_replays_bit_for_bit(tmp_path: Path, emulator,
+                                                          reads: str) -> None:
+    """With the C reader's thread (and C core), and without either (UWBD_PURE_PYTHON=1:
+    the event loop reads the ports, the filter is Python's): the same behaviour."""
+    if reads == "reader thread" and native.core is None:
+        pytest.skip(native.implementation)
+    pure = reads == "event loop"
     cfg = write_config(tmp_path, {n: p.path for n, p in emulator.ports.items()})
-    daemon = start_daemon(cfg, tmp_path / "logs")
+    daemon = start_daemon(cfg, tmp_path / "logs",
+                          env={native.PURE_PYTHON_ENV: "1" if pure else "0"})
     time.sleep(0.8)  # the daemon opens the ports; bytes sent before that are flushed by open()
     emulator.start()
     emulator.finished.wait(15)
@@ -86,6 +97,7 @@ def test_live_run_logs_everything_and_replays_bit_for_bit(tmp_path: Path, emulat
     daemon.send_signal(signal.SIGTERM)
     _, err = daemon.communicate(timeout=20)
     assert daemon.returncode == 0, err.decode()
+    assert f"serial reads: {reads})" in err.decode()
     (log,) = sorted((tmp_path / "logs").glob("*.mcap"))
     contents = read_log(log)
     assert not contents.truncated  # finished cleanly on SIGTERM
@@ -103,7 +115,8 @@ def test_live_run_logs_everything_and_replays_bit_for_bit(tmp_path: Path, emulat
     assert (t_last_uwb - t_first) / 1e9 > 4.5  # ranges again after the replug
     # replay: the same reads through the same pipeline give the same poses, bit for bit
     out = tmp_path / "replayed.mcap"
-    pipeline, _ = replay(contents, str(log), out)
+    with native.pure_python() if pure else contextlib.nullcontext():
+        pipeline, _ = replay(contents, str(log), out)
     assert poses_of(out) == live
     assert pipeline.poses == len(live)
 

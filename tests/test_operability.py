@@ -28,8 +28,8 @@ from uwbd.config import parse
 from uwbd.fusion.types import Pose
 from uwbd.logs.mcaplog import read_log
 from uwbd.logs.sink import McapSink
-from uwbd.service.daemon import ReadQueue
 from uwbd.service.pipeline import Pipeline, PoseList
+from uwbd.service.ports import ReadQueue
 from uwbd.tools.logtools import simulation_toml, write_simulation
 from uwbd.tools.simulator import DEFAULT_SEGMENTS, SimConfig, simulate
 

@@ -1,13 +1,7 @@
 """``uwbd run``: serial ports → pipeline → MCAP (and, with the Zenoh sink, the network).
 
-Each source is a serial port read without blocking: pyserial opens it (non-blocking, with an
-exclusive lock), its file descriptor goes into the event loop with ``add_reader``, and every
-read is stamped as it completes with :class:`EpochClock`: Unix-epoch nanoseconds that
-advance with the monotonic clock, so an NTP step (a robot without a real-time clock, just
-after boot) cannot make the aligner drop frames as late or the filter see a leap. A port
-that is absent at start or vanishes (unplugged) is retried with a backoff of 0.1 s doubling
-to 2 s; its state shows in the status and every change of it in a log line. SIGINT and
-SIGTERM stop the loop and finish the log.
+The serial ports (opened, read, stamped, held until they matter, reopened when lost) are
+:mod:`uwbd.service.ports`'. SIGINT and SIGTERM stop the loop and finish the log.
 
 The status is published on the wall clock, whether or not data arrives. The systemd
 watchdog is fed by the loop's tick, so a hung loop is restarted; an exception out of the
@@ -19,213 +13,35 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import errno
-import os
 import signal
-import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
-import serial
 import zenoh
 
-from drivers.dwm1001_tlv import LOC_GET_REQUEST
 from uwbd import __version__, journal
-from uwbd.config import Config, SourceConfig
+from uwbd.config import Config
 from uwbd.fusion import native
 from uwbd.logs.sink import McapSink
 from uwbd.service.narrator import Narrator
 from uwbd.service.notify import Notifier
 from uwbd.service.pipeline import Pipeline, Sink
+from uwbd.service.ports import (
+    EpochClock,
+    LoopReads,
+    ReadQueue,
+    SerialSource,
+    ThreadReads,
+    make_reads,
+)
 from uwbd.service.zenohsink import ZenohSink, zenoh_reason
 
-READ_BYTES = 4096
-# drivers whose device speaks only when asked: (request bytes, period s)
-POLLED = {"dwm1001-tlv": (LOC_GET_REQUEST, 0.1)}
-BACKOFF_START_S = 0.1
-BACKOFF_MAX_S = 2.0
-STABLE_OPEN_S = 5.0  # open this long before a loss: the backoff starts again from the start
-IMU_ONLY_DRIVERS = {"wit"}  # their reads may wait for the next pose (ReadQueue)
-MAX_QUEUE_NS = 100_000_000
 ZENOH_RETRY_S = 5.0
 LOG = journal.get("daemon")
 
 
 class PipelineError(RuntimeError):
     """The pipeline raised: the run stopped (its log is finished)."""
-
-
-@dataclass
-class SourceState:
-    state: str = "closed"  # closed | open
-    opens: int = 0
-    losses: int = 0
-    last_error: str = ""
-    bytes_read: int = 0
-
-
-class EpochClock:
-    """``time.time_ns()`` read once, then advanced by ``time.monotonic_ns()``."""
-
-    def __init__(self) -> None:
-        self._offset_ns = time.time_ns() - time.monotonic_ns()
-
-    def now_ns(self) -> int:
-        return self._offset_ns + time.monotonic_ns()
-
-
-class ReadQueue:
-    """Reads wait here until they matter, then go to the pipeline a few at a time, in order.
-
-    A process woken from sleep runs on cold caches: a read costs about three times the CPU
-    after a 5 ms pause that it costs in a tight loop (measured), so handing 200 IMU reads a
-    second to the pipeline one by one was most of the daemon's CPU. A read goes on at once,
-    with all those that waited before it, when it can change what subscribers see: it comes
-    from a UWB source (an epoch: an update and a pose), or it is at or past the time the
-    next pose is due. Otherwise it waits, at most ``MAX_QUEUE_NS`` of read time. Sources,
-    times and order are unchanged, so a replay of the log still matches bit for bit, and no
-    pose leaves later than it would have. Reads that wait are the time to do work that
-    can wait too, ``idle`` (writing the log).
-    """
-
-    def __init__(self, pipeline: Pipeline, idle: Callable[[], None] = lambda: None) -> None:
-        self.pipeline = pipeline
-        self.idle = idle  # called on reads that wait: time for work that delays no pose
-        self.urgent = {s.name for s in pipeline.config.sources
-                       if s.driver not in IMU_ONLY_DRIVERS}
-        self._pending: list[tuple[str, int, bytes]] = []
-        self.failure: Exception | None = None  # what the pipeline raised; reads then stop
-
-    def push(self, source: str, t_ns: int, data: bytes) -> None:
-        pending = self._pending
-        pending.append((source, t_ns, data))
-        if (source in self.urgent or t_ns >= self.pipeline.next_pose_due_ns
-                or t_ns - pending[0][1] >= MAX_QUEUE_NS):
-            self.flush()
-        else:
-            try:
-                self.idle()
-            except Exception as err:  # the log's own work: reported like a sink's
-                self.pipeline.sink_failed(self.idle, err)
-
-    def flush(self) -> None:
-        pending, self._pending = self._pending, []
-        if self.failure is not None:
-            return
-        on_bytes = self.pipeline.on_bytes
-        try:
-            for source, t_ns, data in pending:
-                on_bytes(source, t_ns, data)
-        except Exception as err:
-            self.fail(err, f"on a read of {source}")
-
-    def fail(self, err: Exception, doing: str) -> None:
-        """The pipeline raised (a bug: bad input is counted, never raised): reads stop."""
-        self.failure = err
-        LOG.error("the pipeline failed %s: %s: %s; stopping (please report this with the log)",
-                  doing, type(err).__name__, err, exc_info=True)
-
-
-class SerialSource:
-    def __init__(self, cfg: SourceConfig, queue: ReadQueue,
-                 loop: asyncio.AbstractEventLoop, clock: EpochClock) -> None:
-        self.cfg = cfg
-        self.clock = clock
-        self.queue = queue
-        self.loop = loop
-        self.info = SourceState()
-        self._port: serial.Serial | None = None
-        self._fd = -1
-        self._backoff_s = BACKOFF_START_S
-        self._opened_at = 0.0
-        self._retry: asyncio.TimerHandle | None = None
-        self._poller: asyncio.TimerHandle | None = None
-        self._closed = False
-
-    def start(self) -> None:
-        self._open()
-
-    def _open(self) -> None:
-        self._retry = None
-        if self._closed:
-            return
-        try:
-            port = serial.Serial(self.cfg.port, self.cfg.baud, timeout=0, exclusive=True)
-        except (OSError, ValueError) as err:
-            self._schedule_retry(f"cannot open {self.cfg.port}: {_reason(err)}")
-            return
-        self._port, self._fd = port, port.fileno()
-        self.loop.add_reader(self._fd, self._readable)
-        self.info.state = "open"
-        self.info.opens += 1
-        LOG.info("%s: %s %s at %d baud (%s)", self.cfg.name,
-                 "opened" if self.info.opens == 1 else "reopened", self.cfg.port,
-                 self.cfg.baud, self.cfg.driver)
-        self._opened_at = self.loop.time()
-        if self.cfg.driver in POLLED:
-            self._poll()
-
-    def _poll(self) -> None:
-        """Request devices that only answer requests (DWM1001 TLV ``loc_get``) at 10 Hz."""
-        request, period_s = POLLED[self.cfg.driver]
-        if self._port is None or self._closed:
-            return
-        try:
-            os.write(self._fd, request)
-        except BlockingIOError:
-            pass  # output buffer full: the next period asks again
-        except OSError as err:
-            self._lost(err)
-            return
-        self._poller = self.loop.call_later(period_s, self._poll)
-
-    def _schedule_retry(self, reason: str) -> None:
-        if reason != self.info.last_error or self.info.state == "open":
-            LOG.warning("%s: %s; retrying every %.1f s at most", self.cfg.name, reason,
-                        BACKOFF_MAX_S)
-        self.info.state = "closed"
-        self.info.last_error = reason
-        self._retry = self.loop.call_later(self._backoff_s, self._open)
-        self._backoff_s = min(self._backoff_s * 2, BACKOFF_MAX_S)
-
-    def _readable(self) -> None:
-        try:
-            data = os.read(self._fd, READ_BYTES)
-            if not data:
-                raise OSError("port closed (device gone)")
-        except BlockingIOError:
-            return
-        except OSError as err:
-            self._lost(err)
-            return
-        t_ns = self.clock.now_ns()
-        self.info.bytes_read += len(data)
-        self.queue.push(self.cfg.name, t_ns, data)
-
-    def _lost(self, err: OSError) -> None:
-        self.info.losses += 1
-        if self.loop.time() - self._opened_at >= STABLE_OPEN_S:
-            self._backoff_s = BACKOFF_START_S  # it worked a while: retry quickly
-        # else a port that opens and fails at once keeps backing off (no flood of lines)
-        self._release()
-        self._schedule_retry(f"lost {self.cfg.port}: {_reason(err)}")
-
-    def _release(self) -> None:
-        if self._poller is not None:
-            self._poller.cancel()
-            self._poller = None
-        if self._port is not None:
-            self.loop.remove_reader(self._fd)
-            with contextlib.suppress(OSError):  # the device is gone: nothing left to release
-                self._port.close()
-            self._port, self._fd = None, -1
-
-    def close(self) -> None:
-        self._closed = True
-        if self._retry is not None:
-            self._retry.cancel()
-        self._release()
 
 
 async def run(config: Config, log_dir: Path, duration_s: float | None = None,
@@ -251,8 +67,9 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
     pipeline = Pipeline(config, sinks)
     clock = EpochClock()
     queue = ReadQueue(pipeline, idle=mcap.write_pending)
-    sources += [SerialSource(s, queue, loop, clock) for s in config.sources]
-    _announce(config, where, log_dir)
+    reads = make_reads(loop, clock, queue)
+    sources += [SerialSource(s, queue, loop, clock, reads) for s in config.sources]
+    _announce(config, where, log_dir, reads)
     zenoh_link = ZenohLink(config, pipeline, loop)
     stop = asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -268,6 +85,8 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
         deadline = None if duration_s is None else loop.time() + duration_s
         next_status = loop.time() + 1.0
         while not stop.is_set() and queue.failure is None:
+            reads.drain()  # what the reader thread holds, before a status on the wall clock
+            _note_dropped(reads, pipeline)
             pipeline.extra_status["sources"] = {
                 s.cfg.name: {"port": s.cfg.port, "state": s.info.state, "opens": s.info.opens,
                              "losses": s.info.losses, "bytes": s.info.bytes_read,
@@ -275,7 +94,7 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
             pipeline.extra_status["log"] = {
                 "files": [str(f) for f in mcap.files], "error": mcap.error,
                 "records_lost": mcap.records_lost, "bad_records": mcap.bad_records}
-            queue.flush()  # what waited goes in before a status on the wall clock
+            queue.flush()  # and what waited in the queue
             zenoh_link.retry()
             try:
                 pipeline.tick(clock.now_ns())
@@ -298,6 +117,8 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
             signal.signal(sig, signal.SIG_IGN)  # the stop is under way: finish it
         for source in sources:
             source.close()
+        reads.drain()
+        reads.close()
         queue.flush()
         if queue.failure is None:
             try:
@@ -358,10 +179,11 @@ class ZenohLink:
             LOG.info("zenoh started: publishing on %s/pose", self.sink.prefix)
 
 
-def _announce(config: Config, where: str, log_dir: Path) -> None:
+def _announce(config: Config, where: str, log_dir: Path,
+              reads: LoopReads | ThreadReads) -> None:
     """The start-up summary: config, sources, anchors, Zenoh, log."""
-    LOG.info("starting uwbd %s with %s (fusion: %s)", __version__,
-             where or "the built-in config", native.implementation)
+    LOG.info("starting uwbd %s with %s (fusion: %s; serial reads: %s)", __version__,
+             where or "the built-in config", native.implementation, reads.name)
     for s in config.sources:
         LOG.info("source %s: %s on %s at %d baud", s.name, s.driver, s.port, s.baud)
     anchors = "; ".join(f"{a} ({x:.2f}, {y:.2f}, {z:.2f})"
@@ -382,17 +204,15 @@ def _announce(config: Config, where: str, log_dir: Path) -> None:
     LOG.info("logs: %s", log_dir.resolve())
 
 
-def _reason(err: Exception) -> str:
-    """An OS error as a person reads it, with what to check: ``No such file or directory (is
-    it plugged in? ...)`` rather than pyserial's ``could not open port ...: [Errno 2] ...``."""
-    code = getattr(err, "errno", None)
-    if not isinstance(code, int):
-        return str(err)
-    hint = {errno.ENOENT: " (is it plugged in? see ls /dev/serial/by-id/)",
-            errno.EACCES: " (is the user in group dialout?)",
-            errno.EBUSY: " (another program has it open)",
-            errno.EAGAIN: " (another program has it locked)"}.get(code, "")
-    return os.strerror(code) + hint
+def _note_dropped(reads: LoopReads | ThreadReads, pipeline: Pipeline) -> None:
+    """Reads the reader thread could not hold (the loop took none for 64 MB: it hung) are
+    counted in the status and said once."""
+    dropped = reads.dropped_bytes
+    if dropped and "reads_dropped_bytes" not in pipeline.extra_status:
+        LOG.error("the serial reader dropped %d bytes: the event loop took no reads for 64 MB "
+                  "(is the machine overloaded?)", dropped)
+    if dropped:
+        pipeline.extra_status["reads_dropped_bytes"] = dropped
 
 
 def _summary(sources: list[SerialSource], pipeline: Pipeline) -> str:

@@ -1,0 +1,328 @@
+"""The daemon's serial ports: opened, read, stamped, held until they matter, reopened.
+
+Each source is a serial port read without blocking: pyserial opens it (non-blocking, with an
+exclusive lock) and every read is stamped as it completes with :class:`EpochClock`:
+Unix-epoch nanoseconds that advance with the monotonic clock, so an NTP step (a robot
+without a real-time clock, just after boot) cannot make the aligner drop frames as late or
+the filter see a leap. A port that is absent at start or vanishes (unplugged) is retried
+with a backoff of 0.1 s doubling to 2 s; its state shows in the status and every change of
+it in a log line.
+
+Who reads the ports: with the C extension built (``uwbd.service._reader``, as the C core,
+unless ``UWBD_PURE_PYTHON=1``), a thread of its own, which wakes the event loop only when a
+read may change what subscribers see (:class:`ThreadReads`); else the event loop itself,
+one callback per read (:class:`LoopReads`). Either hands the same reads, with the same
+times, in the same order, to :class:`ReadQueue`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from types import ModuleType
+
+import serial
+
+from drivers.dwm1001_tlv import LOC_GET_REQUEST
+from uwbd import journal
+from uwbd.config import SourceConfig
+from uwbd.fusion import native
+from uwbd.service.pipeline import Pipeline
+
+READ_BYTES = 4096  # as _reader.c's
+# drivers whose device speaks only when asked: (request bytes, period s)
+POLLED = {"dwm1001-tlv": (LOC_GET_REQUEST, 0.1)}
+BACKOFF_START_S = 0.1
+BACKOFF_MAX_S = 2.0
+STABLE_OPEN_S = 5.0  # open this long before a loss: the backoff starts again from the start
+IMU_ONLY_DRIVERS = {"wit"}  # their reads may wait for the next pose (ReadQueue)
+MAX_QUEUE_NS = 100_000_000
+LOG = journal.get("daemon")
+
+
+@dataclass
+class SourceState:
+    state: str = "closed"  # closed | open
+    opens: int = 0
+    losses: int = 0
+    last_error: str = ""
+    bytes_read: int = 0
+
+
+class EpochClock:
+    """``time.time_ns()`` read once, then advanced by ``time.monotonic_ns()``."""
+
+    def __init__(self) -> None:
+        self.offset_ns = time.time_ns() - time.monotonic_ns()
+
+    def now_ns(self) -> int:
+        return self.offset_ns + time.monotonic_ns()
+
+
+class ReadQueue:
+    """Reads wait here until they matter, then go to the pipeline a few at a time, in order.
+
+    A process woken from sleep runs on cold caches: a read costs about three times the CPU
+    after a 5 ms pause that it costs in a tight loop (measured), so handing 200 IMU reads a
+    second to the pipeline one by one was most of the daemon's CPU. A read goes on at once,
+    with all those that waited before it, when it can change what subscribers see: it comes
+    from a UWB source (an epoch: an update and a pose), or it is at or past the time the
+    next pose is due. Otherwise it waits, at most ``MAX_QUEUE_NS`` of read time. Sources,
+    times and order are unchanged, so a replay of the log still matches bit for bit, and no
+    pose leaves later than it would have. Reads that wait are the time to do work that
+    can wait too, ``idle`` (writing the log).
+    """
+
+    def __init__(self, pipeline: Pipeline, idle: Callable[[], None] = lambda: None) -> None:
+        self.pipeline = pipeline
+        self.idle = idle  # called on reads that wait: time for work that delays no pose
+        self.urgent = {s.name for s in pipeline.config.sources
+                       if s.driver not in IMU_ONLY_DRIVERS}
+        self._pending: list[tuple[str, int, bytes]] = []
+        self.failure: Exception | None = None  # what the pipeline raised; reads then stop
+
+    def push(self, source: str, t_ns: int, data: bytes) -> None:
+        pending = self._pending
+        pending.append((source, t_ns, data))
+        if (source in self.urgent or t_ns >= self.pipeline.next_pose_due_ns
+                or t_ns - pending[0][1] >= MAX_QUEUE_NS):
+            self.flush()
+        else:
+            try:
+                self.idle()
+            except Exception as err:  # the log's own work: reported like a sink's
+                self.pipeline.sink_failed(self.idle, err)
+
+    def flush(self) -> None:
+        pending, self._pending = self._pending, []
+        if self.failure is not None:
+            return
+        on_bytes = self.pipeline.on_bytes
+        try:
+            for source, t_ns, data in pending:
+                on_bytes(source, t_ns, data)
+        except Exception as err:
+            self.fail(err, f"on a read of {source}")
+
+    def fail(self, err: Exception, doing: str) -> None:
+        """The pipeline raised (a bug: bad input is counted, never raised): reads stop."""
+        self.failure = err
+        LOG.error("the pipeline failed %s: %s: %s; stopping (please report this with the log)",
+                  doing, type(err).__name__, err, exc_info=True)
+
+
+class SerialSource:
+    """One port: opened, handed to ``reads`` (:func:`make_reads`), reopened when lost."""
+
+    def __init__(self, cfg: SourceConfig, queue: ReadQueue,
+                 loop: asyncio.AbstractEventLoop, clock: EpochClock,
+                 reads: LoopReads | ThreadReads) -> None:
+        self.cfg = cfg
+        self.clock = clock
+        self.queue = queue
+        self.loop = loop
+        self.reads = reads
+        self.info = SourceState()
+        self.token = -1  # ThreadReads': which watch of the port this is
+        self._port: serial.Serial | None = None
+        self.fd = -1
+        self._backoff_s = BACKOFF_START_S
+        self._opened_at = 0.0
+        self._retry: asyncio.TimerHandle | None = None
+        self._poller: asyncio.TimerHandle | None = None
+        self._closed = False
+
+    def start(self) -> None:
+        self._open()
+
+    def _open(self) -> None:
+        self._retry = None
+        if self._closed:
+            return
+        try:
+            port = serial.Serial(self.cfg.port, self.cfg.baud, timeout=0, exclusive=True)
+        except (OSError, ValueError) as err:
+            self._schedule_retry(f"cannot open {self.cfg.port}: {reason(err)}")
+            return
+        self._port, self.fd = port, port.fileno()
+        self.reads.watch(self)
+        self.info.state = "open"
+        self.info.opens += 1
+        LOG.info("%s: %s %s at %d baud (%s)", self.cfg.name,
+                 "opened" if self.info.opens == 1 else "reopened", self.cfg.port,
+                 self.cfg.baud, self.cfg.driver)
+        self._opened_at = self.loop.time()
+        if self.cfg.driver in POLLED:
+            self._poll()
+
+    def _poll(self) -> None:
+        """Request devices that only answer requests (DWM1001 TLV ``loc_get``) at 10 Hz."""
+        request, period_s = POLLED[self.cfg.driver]
+        if self._port is None or self._closed:
+            return
+        try:
+            os.write(self.fd, request)
+        except BlockingIOError:
+            pass  # output buffer full: the next period asks again
+        except OSError as err:
+            self.lost(err)
+            return
+        self._poller = self.loop.call_later(period_s, self._poll)
+
+    def _schedule_retry(self, reason: str) -> None:
+        if reason != self.info.last_error or self.info.state == "open":
+            LOG.warning("%s: %s; retrying every %.1f s at most", self.cfg.name, reason,
+                        BACKOFF_MAX_S)
+        self.info.state = "closed"
+        self.info.last_error = reason
+        self._retry = self.loop.call_later(self._backoff_s, self._open)
+        self._backoff_s = min(self._backoff_s * 2, BACKOFF_MAX_S)
+
+    def readable(self) -> None:
+        """The event loop's callback (:class:`LoopReads`): one read, stamped as it returns."""
+        try:
+            data = os.read(self.fd, READ_BYTES)
+            if not data:
+                raise OSError("port closed (device gone)")
+        except BlockingIOError:
+            return
+        except OSError as err:
+            self.lost(err)
+            return
+        self.take(self.clock.now_ns(), data)
+
+    def take(self, t_ns: int, data: bytes) -> None:
+        """A read of ``data`` that returned at ``t_ns``."""
+        self.info.bytes_read += len(data)
+        self.queue.push(self.cfg.name, t_ns, data)
+
+    def lost(self, err: OSError) -> None:
+        self.info.losses += 1
+        if self.loop.time() - self._opened_at >= STABLE_OPEN_S:
+            self._backoff_s = BACKOFF_START_S  # it worked a while: retry quickly
+        # else a port that opens and fails at once keeps backing off (no flood of lines)
+        self._release()
+        self._schedule_retry(f"lost {self.cfg.port}: {reason(err)}")
+
+    def _release(self) -> None:
+        if self._poller is not None:
+            self._poller.cancel()
+            self._poller = None
+        if self._port is not None:
+            self.reads.unwatch(self)
+            with contextlib.suppress(OSError):  # the device is gone: nothing left to release
+                self._port.close()
+            self._port, self.fd = None, -1
+
+    def close(self) -> None:
+        self._closed = True
+        if self._retry is not None:
+            self._retry.cancel()
+        self._release()
+
+
+class LoopReads:
+    """The ports in the event loop (``add_reader``): a callback for every read."""
+
+    name = "event loop"
+    dropped_bytes = 0
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self.loop = loop
+
+    def watch(self, source: SerialSource) -> None:
+        self.loop.add_reader(source.fd, source.readable)
+
+    def unwatch(self, source: SerialSource) -> None:
+        self.loop.remove_reader(source.fd)
+
+    def drain(self) -> None:
+        """Every read went in as it came."""
+
+    def close(self) -> None:
+        """Nothing of its own to stop."""
+
+
+class ThreadReads:
+    """The ports read by the C reader's thread (``_reader.c``), which wakes the event loop
+    for a read from a UWB source, one at or after the next pose's time, a lost port, or
+    reads held ``MAX_QUEUE_NS``: ~60 wakeups a second instead of ~210 with a 200 Hz IMU."""
+
+    name = "reader thread"
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, clock: EpochClock, queue: ReadQueue,
+                 module: ModuleType) -> None:
+        self.loop = loop
+        self.queue = queue
+        self._reader = module.Reader(clock.offset_ns, MAX_QUEUE_NS)
+        # each watch of a port gets a token: a loss the thread held for a port that has
+        # been released since (and perhaps reopened) is not the new port's
+        self._tokens: dict[int, SerialSource] = {}
+        self._next_token = 0
+        self._wake_fd = self._reader.wake_fd
+        loop.add_reader(self._wake_fd, self.drain)
+
+    @property
+    def dropped_bytes(self) -> int:
+        return int(self._reader.dropped_bytes)
+
+    def watch(self, source: SerialSource) -> None:
+        token = self._next_token
+        self._next_token += 1
+        self._tokens[token] = source
+        source.token = token
+        self._reader.add(source.fd, token, source.cfg.driver not in IMU_ONLY_DRIVERS)
+
+    def unwatch(self, source: SerialSource) -> None:
+        self._reader.remove(source.fd)  # not read again once this returns
+
+    def drain(self) -> None:
+        """The held reads into the queue, in order; lost ports to their source."""
+        for token, t_ns, data, error in self._reader.drain():
+            source = self._tokens[token]
+            if data is not None:
+                source.take(t_ns, data)  # read before any loss: real data
+            elif token == source.token:
+                source.lost(OSError(error, os.strerror(error)) if error
+                            else OSError("port closed (device gone)"))
+        self._reader.set_due(self.queue.pipeline.next_pose_due_ns)
+
+    def close(self) -> None:
+        self.loop.remove_reader(self._wake_fd)
+        self._reader.close()
+
+
+def _reader_module() -> ModuleType | None:
+    """The C reader, when built and not ruled out by ``UWBD_PURE_PYTHON``."""
+    if native.core is None:  # the same switch as the C core's (and built with it)
+        return None
+    try:
+        from uwbd.service import _reader  # noqa: PLC0415
+    except ImportError:
+        return None
+    return _reader
+
+
+def make_reads(loop: asyncio.AbstractEventLoop, clock: EpochClock,
+               queue: ReadQueue) -> LoopReads | ThreadReads:
+    module = _reader_module()
+    return LoopReads(loop) if module is None else ThreadReads(loop, clock, queue, module)
+
+
+def reason(err: Exception) -> str:
+    """An OS error as a person reads it, with what to check: ``No such file or directory (is
+    it plugged in? ...)`` rather than pyserial's ``could not open port ...: [Errno 2] ...``."""
+    code = getattr(err, "errno", None)
+    if not isinstance(code, int):
+        return str(err)
+    hint = {errno.ENOENT: " (is it plugged in? see ls /dev/serial/by-id/)",
+            errno.EACCES: " (is the user in group dialout?)",
+            errno.EBUSY: " (another program has it open)",
+            errno.EAGAIN: " (another program has it locked)"}.get(code, "")
+    return os.strerror(code) + hint
+
