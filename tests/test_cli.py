@@ -14,6 +14,8 @@ import serial
 from procs import read_until
 
 from drivers import PARSERS
+from uwbd.cli import IMPORT_FORMATS
+from uwbd.commands.tools import IMPORTERS
 from uwbd.logs.mcaplog import read_log
 
 DATA = Path(__file__).parent / "data"
@@ -133,3 +135,21 @@ def test_the_version_said_is_the_installed_one() -> None:
     result = run("--version")
     assert result.returncode == 0
     assert result.stdout.decode().split()[:2] == ["uwbd", version("uwbd")]
+
+
+def test_the_import_formats_offered_are_those_there_are() -> None:
+    """The parser names the dataset layouts without importing the importers (start-up)."""
+    assert set(IMPORT_FORMATS) == set(IMPORTERS)
+
+
+def test_a_command_imports_only_its_own_layer() -> None:
+    """``uwbd replay`` starts without the daemon, the simulator or the dataset importers."""
+    check = ("import sys\n"
+             "from uwbd.cli import main\n"
+             "main(['replay', '/nonexistent.mcap'])\n"
+             "print(sorted(m for m in ('asyncio', 'uwbd.service.daemon', 'uwbd.tools.simulator',"
+             " 'uwbd.tools.importer', 'uwbd.commands.tools', 'uwbd.commands.service')"
+             " if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True,
+                         timeout=60, check=False)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr

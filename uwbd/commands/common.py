@@ -1,0 +1,160 @@
+"""What the commands share: their two errors (a usage problem, exit 2; a failure while
+working, exit 1) and the checks of what they are given (files, folders, drivers, configs,
+logs, extras)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from drivers import PARSERS
+from uwbd import journal
+from uwbd.config import Config, ConfigError, apply_overrides
+from uwbd.config import load as load_config
+from uwbd.logs.mcaplog import LogContents, not_a_log, read_log
+
+LOG = journal.get("cli")
+
+
+class UsageError(Exception):
+    """A problem with what the user asked for; printed as one line, exit code 2."""
+
+
+class RunError(Exception):
+    """The command failed while working (an output it could not write); exit code 1."""
+
+
+def writable_folder(target: Path, what: str) -> None:
+    """Fail before any work when ``target`` (a file to write) cannot be created."""
+    folder = target.parent
+    if not folder.is_dir():
+        raise UsageError(f"cannot write {what} {target}: folder {folder} does not exist")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise UsageError(f"cannot write {what} {target}: folder {folder} is not writable")
+    if target.is_dir():
+        raise UsageError(f"cannot write {what} {target}: it is a folder")
+
+
+def driver_name(name: str) -> str:
+    if name not in PARSERS:
+        raise UsageError(f"unknown driver {name!r} (known: {', '.join(PARSERS)})")
+    return name
+
+
+FOXGLOVE_DEFAULT = "127.0.0.1:8765"
+
+
+def foxglove_server(args: argparse.Namespace) -> Callable[[Config], Any] | None:
+    """``--foxglove [HOST:PORT]``: what starts the live Foxglove server for a config, from the
+    ``foxglove`` extra (imported only then, so it never sits in the daemon's memory
+    otherwise); ``None`` without the option."""
+    if args.foxglove is None:
+        return None
+    try:
+        from uwbd.service.live import FoxgloveLive, parse_endpoint
+    except ImportError as err:
+        raise UsageError(f"--foxglove needs the foxglove extra ({err.name} is missing): "
+                         "pip install 'uwbd[foxglove]' (from a checkout: pip install "
+                         "'.[foxglove]')") from err
+    try:
+        host, port = parse_endpoint(args.foxglove)
+    except ValueError as err:
+        raise UsageError(f"--foxglove {err}") from err
+
+    def start(config: Config) -> Any:
+        try:
+            return FoxgloveLive(config, host, port)
+        except RuntimeError as err:  # the SDK's FoxgloveError: the port is taken, no such host
+            raise UsageError(f"--foxglove {args.foxglove}: cannot serve there: "
+                             f"{str(err).removeprefix('FoxgloveError: ')}") from err
+    return start
+
+
+def open_log(name: str, doing: str) -> tuple[Path, LogContents]:
+    """A log read for ``doing``; a log cut short by a crash is used up to its last chunk."""
+    path = Path(name)
+    if not path.exists():
+        raise UsageError(f"cannot read {path}: no such file")
+    problem = not_a_log(path)
+    if problem:
+        raise UsageError(problem)
+    contents = read_log(path)
+    if contents.truncated:
+        LOG.warning("%s; %s what was complete", contents.error, doing)
+    return path, contents
+
+
+def log_config(args: argparse.Namespace, path: Path, contents: LogContents) -> str | None:
+    """The config to run a log with: the log's own, or ``-c``'s, with the ``--set`` items;
+    ``None`` for the log's own unchanged."""
+    if args.config:
+        text = read_config_text(Path(args.config))
+    elif "config_toml" in contents.metadata:
+        text = contents.metadata["config_toml"]
+    else:
+        raise UsageError(f"{path}: not a uwbd log (no uwbd metadata holding its config); "
+                         "give the config to use with -c CONFIG")
+    if not args.set and not args.config:
+        return None
+    try:
+        return apply_overrides(text, args.set, args.config or f"{path} (metadata)")
+    except ConfigError as err:
+        raise UsageError(str(err)) from err
+
+
+def read_config_text(path: Path) -> str:
+    try:
+        return load_config(path).text
+    except ConfigError as err:
+        raise UsageError(str(err)) from err
+
+
+def require_replayable(path: Path, contents: LogContents) -> None:
+    if not any(m.topic.startswith("/raw/") or m.topic in ("/imu", "/uwb")
+               for m in contents.messages):
+        raise UsageError(f"{path}: nothing to run (no /raw/*, /imu or /uwb messages; topics: "
+                         f"{', '.join(sorted(contents.topics())) or 'none'})")
+
+
+def tools_report(command: str) -> Any:
+    """The report function, from the ``tools`` extra (matplotlib, scipy, filterpy), which the
+    robot's install leaves out; imported here so it never sits in the daemon's memory."""
+    try:
+        from uwbd.tools.report import report
+    except ImportError as err:
+        raise UsageError(f"{command} needs the tools extra ({err.name} is missing): "
+                         "pip install 'uwbd[tools]' (from a checkout: pip install '.[tools]')"
+                         ) from err
+    return report
+
+
+def write_atomically(target: Path, text: str) -> None:
+    """``text`` into ``target`` whole or not at all (a temporary file renamed over it)."""
+    tmp = None
+    try:
+        with tempfile.NamedTemporaryFile("w", encoding="utf-8", dir=target.parent,
+                                         prefix=f".{target.name}.", delete=False) as f:
+            tmp = Path(f.name)
+            f.write(text)
+        os.replace(tmp, target)
+    except OSError as err:
+        if tmp is not None:
+            tmp.unlink(missing_ok=True)
+        raise RunError(f"cannot write {target}: {err.strerror or err}") from err
+
+
+def load_config_file(path: str, warn: bool = False) -> Config:
+    """A configuration file, or every problem with it, one line each naming file and key
+    (exit 2); ``warn``: the warnings of a config that loads are said too."""
+    try:
+        config = load_config(Path(path))
+    except ConfigError as err:
+        raise UsageError(str(err)) from err
+    if warn:
+        for warning in config.warnings:
+            LOG.warning("%s", warning)
+    return config

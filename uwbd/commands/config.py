@@ -1,0 +1,28 @@
+"""The configuration's command: ``check-config``."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from uwbd.commands.common import LOG, UsageError
+from uwbd.config import ConfigError
+from uwbd.config import load as load_config
+
+
+def cmd_check_config(args: argparse.Namespace) -> int:
+    """Validate a configuration file: its warnings, then every problem (exit 2) or one line
+    saying it is fine."""
+    try:
+        config = load_config(Path(args.config))
+    except ConfigError as err:
+        for warning in err.warnings:
+            LOG.warning("%s", warning)
+        raise UsageError(str(err)) from err
+    for warning in config.warnings:
+        LOG.warning("%s", warning)
+    ports = ", ".join(f"{s.name}={s.driver}@{s.port}" for s in config.sources) or "no sources"
+    mode = config.filter_config().mode.value
+    print(f"{args.config}: ok ({ports}; {len(config.anchors_m)} anchors; {mode} fusion"
+          + (f"; {len(config.warnings)} warning(s) above)" if config.warnings else ")"))
+    return 0

@@ -1,0 +1,131 @@
+"""The commands on logs and captures: ``replay``, ``recover``, ``export``, ``dump``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import BinaryIO
+
+from drivers import PARSERS, Frame
+from uwbd.codec import frame_to_dict
+from uwbd.commands.common import (
+    RunError,
+    UsageError,
+    driver_name,
+    log_config,
+    open_log,
+    require_replayable,
+    writable_folder,
+)
+from uwbd.config import ConfigError
+from uwbd.logs.mcaplog import not_a_log, recover
+from uwbd.logs.replay import replay
+
+READ_CHUNK_BYTES = 65536
+
+
+def cmd_dump(args: argparse.Namespace) -> int:
+    """Decode a byte capture: one JSON object per frame on stdout, parser counters on stderr.
+
+    A capture has no receive times, so every frame's ``t_ns`` is 0.
+    """
+    parser = PARSERS[driver_name(args.driver)]()
+    try:
+        stream: BinaryIO = sys.stdin.buffer if args.file == "-" else open(args.file, "rb")  # noqa: SIM115
+    except OSError as err:
+        raise UsageError(f"cannot read {args.file}: {err.strerror}") from err
+    with stream:
+        while chunk := stream.read(READ_CHUNK_BYTES):
+            _print_frames(parser.feed(chunk, 0))
+        _print_frames(parser.flush())
+    print(json.dumps({"parser_stats": parser.stats.as_dict()}), file=sys.stderr)
+    return 0
+
+
+def _print_frames(frames: Sequence[Frame]) -> None:
+    for frame in frames:
+        sys.stdout.write(json.dumps(frame_to_dict(frame)) + "\n")
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    """A log's reads through the live pipeline; the poses to -o, a summary to stdout."""
+    path, contents = open_log(args.log, "replaying")
+    config_toml = log_config(args, path, contents)
+    require_replayable(path, contents)
+    out = Path(args.output) if args.output else None
+    if out is not None:
+        writable_folder(out, "the replayed log")
+        if out.exists() and out.resolve() == path.resolve():
+            raise UsageError(f"{out}: give another file to write, not the log itself")
+    try:
+        pipeline, poses = replay(contents, str(path), out, args.realtime,
+                                 progress=sys.stderr.isatty(), config_toml=config_toml)
+    except ConfigError as err:
+        raise UsageError(str(err)) from err
+    log_errors = [str(getattr(sink, "error", "")) for sink in pipeline.sinks
+                  if getattr(sink, "error", "")]
+    print(f"{path}: {pipeline.poses} poses; filter {pipeline.filter.status}"
+          + (f"; written to {out}" if out and not log_errors and out.is_file() else ""))
+    if poses.poses:
+        x, y, z = poses.poses[-1].position_m
+        print(f"last pose ({x:.3f}, {y:.3f}, {z:.3f}) m")
+    if out is not None and (log_errors or not out.is_file()):
+        raise RunError(f"{out}: the replayed log is incomplete: "
+                       f"{log_errors[0] if log_errors else 'the file was not written'}")
+    return 0
+
+
+def cmd_recover(args: argparse.Namespace) -> int:
+    """Rewrite a log cut short by a crash (no footer) as a valid MCAP file."""
+    source, target = Path(args.log), Path(args.output)
+    if not source.exists():
+        raise UsageError(f"cannot read {source}: no such file")
+    problem = not_a_log(source)
+    if problem:
+        raise UsageError(problem)
+    if target.exists() and target.resolve() == source.resolve():
+        raise UsageError(f"{target}: give another file to write, not the log itself")
+    writable_folder(target, "the recovered log")
+    try:
+        result = recover(source, target)
+    except OSError as err:
+        target.unlink(missing_ok=True)
+        raise RunError(f"cannot write {target}: {err.strerror or err}") from err
+    print(f"{target}: {result.messages} messages recovered from {source}"
+          + (f" ({result.error})" if result.truncated else
+             " (it was complete)"))
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    """A log as a ROS 2 bag folder (metadata.yaml + MCAP, CDR): see :mod:`uwbd.tools.ros2`."""
+    path, contents = open_log(args.log, "exporting")
+    out = Path(args.ros2)
+    if out.exists() or out.is_symlink():
+        raise UsageError(f"cannot write the bag {out}: it exists (a bag is a new folder: "
+                         "remove it or give another name)")
+    writable_folder(out, "the bag")
+    config_toml = log_config(args, path, contents)
+    if config_toml is not None or not any(m.topic == "/pose" for m in contents.messages):
+        require_replayable(path, contents)  # the poses come from a replay
+    try:
+        from uwbd.tools.ros2 import export_ros2
+    except ImportError as err:
+        raise UsageError(f"export needs the tools extra ({err.name} is missing): pip install "
+                         "'uwbd[tools]' (from a checkout: pip install '.[tools]')") from err
+    try:
+        result = export_ros2(contents, str(path), out, config_toml,
+                             progress=sys.stderr.isatty())
+    except ConfigError as err:
+        raise UsageError(str(err)) from err
+    except OSError as err:
+        raise RunError(f"cannot write the bag {out}: {err.strerror or err}") from err
+    n = result.counts
+    origin = "the log's own" if result.poses_from == "log" else "replayed"
+    print(f"{out}: ROS 2 bag (MCAP) from {path}: {n.get('/uwbd/pose', 0)} poses ({origin}), "
+          f"{n.get('/uwbd/imu', 0)} IMU samples, {n.get('/uwbd/truth', 0)} truth poses; "
+          f"topics {', '.join(sorted(n))}")
+    return 0

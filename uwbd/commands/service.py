@@ -1,0 +1,146 @@
+"""The commands of the robot's daemon and its company: ``run``, ``demo``, ``emulate``,
+``echo``, ``router``, ``check-config``."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from drivers.emulator import DeviceSpec, Emulator, Faults, Window
+from drivers.emulator.scenario import CircleScenario
+from uwbd.commands.common import (
+    RunError,
+    UsageError,
+    driver_name,
+    foxglove_server,
+    load_config_file,
+)
+from uwbd.config import default_robot_name
+from uwbd.service.daemon import PipelineError
+from uwbd.service.daemon import run as run_daemon
+from uwbd.service.demo import run_demo
+from uwbd.service.echo import EchoError, dial_endpoints, echo
+from uwbd.service.interrupt import shielded, wait_until
+from uwbd.service.router import DEFAULT_LISTEN, RouterError, run_router
+from uwbd.service.zenohsink import zenoh_reason
+
+
+def cmd_emulate(args: argparse.Namespace) -> int:
+    """Serve the built-in scenario on pseudo-terminals and print the paths to open."""
+    faults = _faults(args)
+    devices = [DeviceSpec(kind, driver_name(name), faults)
+               for kind, name in (("imu", args.imu), ("uwb", args.uwb)) if name != "none"]
+    if not devices:
+        raise UsageError("nothing to emulate: both --imu and --uwb are 'none'")
+    link_dir = Path(args.link_dir) if args.link_dir else None
+    if link_dir is not None:
+        try:
+            link_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise UsageError(f"--link-dir {link_dir}: cannot create it: "
+                             f"{err.strerror or err}") from err
+    with Emulator(devices, CircleScenario(seed=args.seed), args.duration, link_dir) as emu:
+        for dev in devices:
+            port = emu.ports[dev.name]
+            print(f"{dev.name} {dev.driver} {port.path} ({port.tty_path})", flush=True)
+        emu.start()
+        wait_until(emu.finished)
+        with shielded():
+            emu.close()
+            print(json.dumps({name: vars(c) for name, c in emu.counts.items()}),
+                  file=sys.stderr)
+    return 0
+
+
+def _faults(args: argparse.Namespace) -> Faults:
+    try:
+        return Faults(
+            garbage_rate_hz=args.garbage_rate, split=args.split, corrupt_prob=args.corrupt,
+            drop_prob=args.drop, stalls=tuple(Window.parse(w) for w in args.stall),
+            unplugs=tuple(Window.parse(w) for w in args.unplug),
+        )
+    except ValueError as err:
+        raise UsageError(str(err)) from err
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """Emulated sensors through the pipeline, live in the terminal, until Ctrl-C."""
+    live = foxglove_server(args)
+    with tempfile.TemporaryDirectory(prefix="uwbd-demo-") as tmp:
+        return run_demo(Path(tmp), duration_s=args.duration, seed=args.seed, live=live)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """The daemon: serial ports → fusion → MCAP logs, until SIGINT/SIGTERM."""
+    config = load_config_file(args.config, warn=True)
+    if not config.sources:
+        raise UsageError(f"{args.config}: sources: at least one [[sources]] is needed")
+    log_dir = Path(args.log_dir or config.log.get("directory", "logs"))
+    live = foxglove_server(args)
+    extra = (live(config),) if live is not None else ()
+    try:
+        pipeline = asyncio.run(run_daemon(config, log_dir, args.duration, extra_sinks=extra,
+                                          summary_s=args.summary_every, where=args.config))
+    except PipelineError as err:
+        raise RunError(str(err)) from err
+    finally:
+        for sink in extra:  # the pipeline closes its sinks; this is for a run that never began
+            sink.close()
+    sources = pipeline.extra_status.get("sources", {})
+    if sources and not any(s["opens"] for s in sources.values()):
+        raise RunError("no port could be opened: " + "; ".join(
+            f"{name}: {s['last_error']}" for name, s in sources.items()))
+    return 0
+
+
+def cmd_echo(args: argparse.Namespace) -> int:
+    """Print the poses (or status) a daemon publishes."""
+    zcfg: dict[str, Any] = {"mode": "peer", "multicast_scouting": not args.connect}
+    prefix = args.prefix
+    if args.config:
+        config = load_config_file(args.config)
+        # dial the daemon: its routers, and its own listen endpoints (a subscriber must not
+        # take the daemon's listen port itself)
+        zenoh_cfg = config.zenoh
+        dial = [*zenoh_cfg.get("connect", []), *dial_endpoints(zenoh_cfg.get("listen", []))]
+        zcfg.update(multicast_scouting=zenoh_cfg.get("multicast_scouting", True),
+                    connect=dial)
+        prefix = prefix or config.zenoh_prefix
+    if args.connect:
+        zcfg["connect"] = [*args.connect, *zcfg.get("connect", [])]
+    prefix = str(prefix or f"uwbd/{default_robot_name()}")
+    if zcfg.get("connect"):
+        # it dials a daemon or a router and only listens: as a client it needs no listen
+        # endpoint of its own, which a peer would (peers mesh with each other directly)
+        zcfg["mode"] = "client"
+    try:
+        zenoh.KeyExpr(f"{prefix.strip('/')}/pose")
+    except zenoh.ZError as err:
+        raise UsageError(f"--prefix {prefix}: not a key expression ({zenoh_reason(err)}); "
+                         "e.g. uwbd/robot1 or uwbd/*") from err
+    try:
+        printed = echo(zcfg, prefix, args.status, args.count, args.timeout)
+    except EchoError as err:
+        raise RunError(str(err)) from err
+    if args.timeout is not None and printed == 0:
+        raise RunError(f"nothing received on {prefix}/{'status' if args.status else 'pose'} "
+                       f"in {args.timeout:g} s")
+    return 0
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    """A Zenoh router for several daemons (as ``zenohd``)."""
+    try:
+        run_router(args.listen or [DEFAULT_LISTEN], args.multicast_scouting)
+    except RouterError as err:
+        raise UsageError(str(err)) from err
+    return 0
+
+
