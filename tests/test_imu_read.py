@@ -206,6 +206,13 @@ def test_a_read_the_path_declines_changes_nothing() -> None:
         assert path(bad, t_ns) is None, bad.hex()
     assert path(bytearray(data), t_ns) is None  # bytes only
     assert path(data, before["filter"][1]) is None  # not after the last sample
+    assert path(data, 2**62 + 1) is None  # a time no difference of which fits in int64
+    ekf = pipeline.filter.ekf
+    assert ekf is not None
+    p = ekf.p
+    ekf.p = tuple(p)  # type: ignore[assignment]  # a state the INS step cannot write in place
+    assert path(data, t_ns) is None
+    ekf.p = p
     assert state(pipeline) == before
     assert path(data, t_ns) is not None
     assert state(pipeline)["window"][1] == before["window"][1] + 1

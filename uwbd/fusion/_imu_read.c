@@ -21,6 +21,7 @@
 #include <Python.h>
 #include <math.h>
 #include <stdint.h>
+#include <string.h>
 
 #include "_core.h"
 
@@ -39,6 +40,7 @@ enum {  /* parts[P_CONSTS]: floats */
 #define WIT_GYRO 0x52
 #define CYCLE_LEN 22
 #define LIMIT_NS (INT64_C(1) << 52)  /* differences below this are exact as doubles */
+#define LIMIT_T (INT64_C(1) << 62)   /* times within ±this: no difference overflows */
 
 enum {
     N_BUF, N_CLOSING, N_LAST_TYPE, N_CYCLE_MAX, N_CYCLE, N_BASE, N_CYCLE_T, N_BYTES_IN,
@@ -78,7 +80,7 @@ static PyObject *attr(PyObject *ns, int name)
     return v;
 }
 
-/* An int fitting int64 (1), None (1 and *none set, if none is given), else 0 (decline). */
+/* An int within ±2^62 (1), None (1 and *none set, if none is given), else 0 (decline). */
 static int as_i64(PyObject *v, int64_t *out, int *none)
 {
     if (none != NULL)
@@ -92,7 +94,7 @@ static int as_i64(PyObject *v, int64_t *out, int *none)
     if (x == -1 && PyErr_Occurred())
         return -1;
     *out = (int64_t)x;
-    return !overflow;
+    return !overflow && x > -LIMIT_T && x < LIMIT_T;
 }
 
 /* 1 yes, 0 not so (decline), -1 an error: as_i64 of ns[name] */
@@ -121,30 +123,16 @@ static int set_attr(PyObject *ns, int name, PyObject *value)
     return PyDict_SetItem(ns, names[name], value);
 }
 
-/* ns[name] += k (Python ints) */
-static int add_attr(PyObject *ns, int name, long k)
+/* ns[name] + k (Python ints), new; NULL with an error set */
+static PyObject *plus(PyObject *ns, int name, long k)
 {
     PyObject *v = attr(ns, name);
     if (v == NULL)
-        return -1;
+        return NULL;
     PyObject *step = PyLong_FromLong(k);
     PyObject *sum = step == NULL ? NULL : PyNumber_Add(v, step);
     Py_XDECREF(step);
-    if (sum == NULL)
-        return -1;
-    int rc = set_attr(ns, name, sum);
-    Py_DECREF(sum);
-    return rc;
-}
-
-/* A float attribute, -1 with an error set if none. */
-static int attr_double(PyObject *ns, int name, double *out)
-{
-    PyObject *v = attr(ns, name);
-    if (v == NULL)
-        return -1;
-    *out = PyFloat_AsDouble(v);
-    return *out == -1.0 && PyErr_Occurred() ? -1 : 0;
+    return sum;
 }
 
 /* A dict's int value for key (*none when absent), as attr_i64. */
@@ -272,12 +260,29 @@ static PyObject *new_sample(PyObject *type, PyObject *fields, PyObject *values[S
 
 static int16_t le16(const unsigned char *b) { return (int16_t)(b[0] | (b[1] << 8)); }
 
-/* The checks: everything is read and nothing written. 1 take it, 0 decline, -1 error. */
+/* A read taken: what the checks read, and every object the writes store, made before the
+ * first write (so that only dict and deque stores, and the INS step's floats, can fail
+ * after it). */
 typedef struct {
     int64_t t, prev, state_t, period;
-    int state_t_none, has_period, first_none, filter_running;
-    double acc[3], gyro[3], temp;
+    int has_period, first_none, filter_running;
+    double acc[3], gyro[3], temp, ab[3], gb[3]; /* raw, and in body axes */
+    PyObject *ekf;     /* the filter's Eskf namespace (new), NULL before the start */
+    PyObject *lists[7]; /* in it: p, v, q, b_g, b_a, _sum_fn, _sum_w (new references) */
+    double st[7][4], gravity, interval;
 } Read;
+
+enum { O_ACC, O_GYRO, O_TEMP, O_SAMPLE, O_BYTES_IN, O_BASE, O_FRAMES, O_PERIOD, O_PAIR,
+       O_ZERO, O_BODY, O_ROW, O_ADDED, O_COUNT };
+
+static void release(Read *r, PyObject **o)
+{
+    Py_CLEAR(r->ekf);
+    for (int i = 0; i < 7; i++)
+        Py_CLEAR(r->lists[i]);
+    for (int i = 0; i < O_COUNT; i++)
+        Py_CLEAR(o[i]);
+}
 
 static int wit_cycle(PyObject *parser, PyObject *data, const double *c, Read *r)
 {
@@ -312,13 +317,41 @@ static int wit_cycle(PyObject *parser, PyObject *data, const double *c, Read *r)
     return 1;
 }
 
-static int takes(PyObject *const *parts, PyObject *data, const double *c, Read *r,
-                 PyObject **ekf)
+/* The running filter's nominal state, as Eskf.predict reads it: 1 as expected (lists of
+ * floats where the step writes, floats), 0 not (decline), -1 an error. */
+static int nominal(PyObject *ekf, Read *r)
+{
+    const int sizes[7] = {3, 3, 4, 3, 3, 3, 3};
+    const int which[7] = {N_P, N_V, N_Q, N_BG, N_BA, N_SUM_FN, N_SUM_W};
+    const int written[7] = {1, 1, 0, 0, 0, 1, 1};
+    if ((r->ekf = PyObject_GenericGetDict(ekf, NULL)) == NULL)
+        return -1;
+    for (int i = 0; i < 7; i++) {
+        PyObject *v = attr(r->ekf, which[i]);
+        if (v == NULL)
+            return -1;
+        if ((written[i] && !PyList_CheckExact(v)) || !floats_of(v, r->st[i], sizes[i]))
+            return 0;
+        Py_INCREF(v);
+        r->lists[i] = v;
+    }
+    PyObject *g = attr(r->ekf, N_GRAVITY), *interval = attr(r->ekf, N_INTERVAL);
+    if (g == NULL || interval == NULL)
+        return -1;
+    if (!PyFloat_CheckExact(g) || !PyFloat_CheckExact(interval))
+        return 0;
+    r->gravity = PyFloat_AS_DOUBLE(g);
+    r->interval = PyFloat_AS_DOUBLE(interval);
+    return 1;
+}
+
+/* The checks: everything is read and nothing written. 1 take it, 0 decline, -1 error. */
+static int takes(PyObject *const *parts, PyObject *data, const double *c, Read *r)
 {
     int t, none;
     if ((t = wit_cycle(parts[P_PARSER], data, c, r)) <= 0)
         return t;
-    /* Pipeline._spread: the learned period's next value fits in int64 */
+    /* Pipeline._spread: the learned period's next value */
     int64_t previous;
     int prev_none, period_none;
     if ((t = item_i64(parts[P_LAST_FRAME], parts[P_SOURCE], &previous, &prev_none)) <= 0 ||
@@ -351,63 +384,95 @@ static int takes(PyObject *const *parts, PyObject *data, const double *c, Read *
         return t;
     if ((t = attr_i64(filter, N_FIRST_T, &previous, &r->first_none)) <= 0)
         return t;
-    *ekf = attr(filter, N_EKF);
-    if (*ekf == NULL)
+    PyObject *ekf = attr(filter, N_EKF);
+    if (ekf == NULL)
         return -1;
-    Py_INCREF(*ekf);
-    r->filter_running = *ekf != Py_None;
+    r->filter_running = ekf != Py_None;
     if (!r->filter_running)
         return 1;
     if ((t = attr_none(filter, N_RELEVEL)) <= 0)
         return t;
     if ((double)(r->t - r->prev) / 1e9 > c[C_MAX_GAP])
         return 0; /* a gap: coasted in Python */
-    if ((t = attr_i64(filter, N_T, &r->state_t, &r->state_t_none)) <= 0 || r->state_t_none)
+    if ((t = attr_i64(filter, N_T, &r->state_t, &none)) <= 0 || none)
         return t < 0 ? -1 : 0;
     int64_t ahead = r->t - r->state_t;
-    return ahead < LIMIT_NS && ahead > -LIMIT_NS;
+    if (ahead >= LIMIT_NS || ahead <= -LIMIT_NS)
+        return 0;
+    return nominal(ekf, r);
 }
 
-/* ImuWindow.add */
-static int window_add(PyObject *const *parts, PyObject *t_obj, int64_t t, const double ab[3],
-                      const double gb[3])
+/* Every object the writes store, made now: 0, or -1 with an error set. */
+static int make_objects(PyObject *const *parts, PyObject *t_obj, const double *c, Read *r,
+                        PyObject **o)
 {
-    double v[6] = {ab[0], ab[1], ab[2], gb[0], gb[1], gb[2]};
-    PyObject *row = PyTuple_New(7);
-    if (row == NULL)
+    double *ab = r->ab, *gb = r->gb;
+    affine(c + C_ACC_M, c + C_ACC_B, r->acc, ab);
+    if (c[C_BAND] > 0.0)
+        banded(c + C_GYRO_M, c + C_GYRO_O, c[C_BAND], r->gyro, gb);
+    else
+        affine(c + C_GYRO_M, c + C_GYRO_B, r->gyro, gb);
+    if ((o[O_ACC] = float_tuple(r->acc, 3)) == NULL ||
+        (o[O_GYRO] = float_tuple(r->gyro, 3)) == NULL ||
+        (o[O_TEMP] = PyFloat_FromDouble(r->temp)) == NULL)
         return -1;
+    PyObject *values[SAMPLE_FIELDS] = {t_obj, o[O_ACC], o[O_GYRO], o[O_TEMP], Py_None,
+                                       Py_None, Py_None, Py_None};
+    if ((o[O_SAMPLE] = new_sample(parts[P_SAMPLE_TYPE], parts[P_FIELDS], values)) == NULL ||
+        (o[O_BYTES_IN] = plus(parts[P_STATS], N_BYTES_IN, CYCLE_LEN)) == NULL ||
+        (o[O_BASE] = plus(parts[P_PARSER], N_BASE, CYCLE_LEN)) == NULL ||
+        (o[O_FRAMES] = plus(parts[P_STATS], N_FRAMES, 1)) == NULL ||
+        (r->has_period && (o[O_PERIOD] = PyLong_FromLongLong(r->period)) == NULL) ||
+        (o[O_PAIR] = PyTuple_Pack(2, o[O_ACC], o[O_GYRO])) == NULL ||
+        (o[O_ZERO] = PyLong_FromLong(0)) == NULL ||
+        (o[O_ADDED] = plus(parts[P_WINDOW], N_ADDED, 1)) == NULL)
+        return -1;
+    PyObject *ab_t = float_tuple(ab, 3), *gb_t = ab_t == NULL ? NULL : float_tuple(gb, 3);
+    o[O_BODY] = gb_t == NULL ? NULL : PyTuple_Pack(2, ab_t, gb_t);
+    Py_XDECREF(ab_t);
+    Py_XDECREF(gb_t);
+    if (o[O_BODY] == NULL || (o[O_ROW] = PyTuple_New(7)) == NULL)
+        return -1;
+    double v[6] = {ab[0], ab[1], ab[2], gb[0], gb[1], gb[2]};
     Py_INCREF(t_obj);
-    PyTuple_SET_ITEM(row, 0, t_obj);
+    PyTuple_SET_ITEM(o[O_ROW], 0, t_obj);
     for (int i = 0; i < 6; i++) {
         PyObject *f = PyFloat_FromDouble(v[i]);
-        if (f == NULL) {
-            Py_DECREF(row);
+        if (f == NULL)
             return -1;
-        }
-        PyTuple_SET_ITEM(row, i + 1, f);
+        PyTuple_SET_ITEM(o[O_ROW], i + 1, f);
     }
+    return 0;
+}
+
+/* ImuWindow.add: the row in, those older than the window out */
+static int window_add(PyObject *const *parts, int64_t t, PyObject *row, PyObject *added)
+{
     PyObject *samples = parts[P_SAMPLES];
     PyObject *rc = PyObject_CallMethodOneArg(samples, names[N_APPEND], row);
-    Py_DECREF(row);
     if (rc == NULL)
         return -1;
     Py_DECREF(rc);
-    if (add_attr(parts[P_WINDOW], N_ADDED, 1) < 0)
+    if (set_attr(parts[P_WINDOW], N_ADDED, added) < 0)
         return -1;
-    int64_t length_ns = PyLong_AsLongLong(parts[P_WINDOW_NS]);
-    if (length_ns == -1 && PyErr_Occurred())
+    int64_t length_ns;
+    if (as_i64(parts[P_WINDOW_NS], &length_ns, NULL) != 1) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "imu_read: the window's length is no small int");
         return -1;
+    }
     int64_t oldest = t - length_ns;
     for (;;) {
         PyObject *first = PySequence_GetItem(samples, 0);
         if (first == NULL)
             return -1;
-        PyObject *t0 = PyTuple_Check(first) ? PyTuple_GET_ITEM(first, 0) : NULL;
-        long long first_ns = t0 == NULL ? 0 : PyLong_AsLongLong(t0);
+        int64_t first_ns = 0;
+        int got = PyTuple_Check(first) && PyTuple_GET_SIZE(first) > 0
+            ? as_i64(PyTuple_GET_ITEM(first, 0), &first_ns, NULL) : 0;
         Py_DECREF(first);
-        if (t0 == NULL || (first_ns == -1 && PyErr_Occurred())) {
+        if (got != 1) {
             if (!PyErr_Occurred())
-                PyErr_SetString(PyExc_TypeError, "imu_read: a window row is no tuple");
+                PyErr_SetString(PyExc_TypeError, "imu_read: a window row is not (t_ns, ...)");
             return -1;
         }
         if (first_ns >= oldest)
@@ -419,59 +484,60 @@ static int window_add(PyObject *const *parts, PyObject *t_obj, int64_t t, const 
     }
 }
 
-/* Eskf.predict on the C core: 1 done and the covariance is due, 0 done, -1 an error. */
-static int predict(PyObject *ekf, const double acc[3], const double gyro[3], double dt,
+/* Eskf.predict on the C core, on the state nominal() read: 1 done and the covariance is
+ * due, 0 done, -1 an error. */
+static int predict(Read *r, const double acc[3], const double gyro[3], double dt,
                    double propagate_every_s)
 {
-    double st[7][4], g, interval;
-    const int sizes[7] = {3, 3, 4, 3, 3, 3, 3};
-    const int which[7] = {N_P, N_V, N_Q, N_BG, N_BA, N_SUM_FN, N_SUM_W};
-    PyObject *lists[7];
-    PyObject *ns = PyObject_GenericGetDict(ekf, NULL);
-    if (ns == NULL)
-        return -1;
-    int rc = -1;
-    for (int i = 0; i < 7; i++) {
-        lists[i] = attr(ns, which[i]);
-        if (lists[i] == NULL)
-            goto done;
-        if (!floats_of(lists[i], st[i], sizes[i]) &&
-            uwbd_get_vec(lists[i], st[i], sizes[i], name_text[which[i]]))
-            goto done;
-    }
-    if (attr_double(ns, N_GRAVITY, &g) < 0 || attr_double(ns, N_INTERVAL, &interval) < 0)
-        goto done;
     double qn[4];
-    uwbd_predict_step(st[0], st[1], st[2], st[3], st[4], st[5], st[6], acc, gyro, dt, g, qn);
-    if (uwbd_set_list(lists[0], st[0], 3) || uwbd_set_list(lists[1], st[1], 3) ||
-        uwbd_set_list(lists[5], st[5], 3) || uwbd_set_list(lists[6], st[6], 3))
-        goto done;
+    uwbd_predict_step(r->st[0], r->st[1], r->st[2], r->st[3], r->st[4], r->st[5], r->st[6],
+                      acc, gyro, dt, r->gravity, qn);
+    if (uwbd_set_list(r->lists[0], r->st[0], 3) || uwbd_set_list(r->lists[1], r->st[1], 3) ||
+        uwbd_set_list(r->lists[5], r->st[5], 3) || uwbd_set_list(r->lists[6], r->st[6], 3))
+        return -1;
     PyObject *q = PyList_New(4);
     if (q == NULL)
-        goto done;
+        return -1;
     for (int i = 0; i < 4; i++) {
         PyObject *f = PyFloat_FromDouble(qn[i]);
         if (f == NULL) {
             Py_DECREF(q);
-            goto done;
+            return -1;
         }
         PyList_SET_ITEM(q, i, f);
     }
-    int failed = set_attr(ns, N_Q, q) < 0;
+    int failed = set_attr(r->ekf, N_Q, q) < 0;
     Py_DECREF(q);
-    if (failed)
-        goto done;
-    interval += dt;
-    PyObject *T = PyFloat_FromDouble(interval);
-    if (T == NULL || set_attr(ns, N_INTERVAL, T) < 0) {
+    double interval = r->interval + dt;
+    PyObject *T = failed ? NULL : PyFloat_FromDouble(interval);
+    if (T == NULL || set_attr(r->ekf, N_INTERVAL, T) < 0) {
         Py_XDECREF(T);
-        goto done;
+        return -1;
     }
     Py_DECREF(T);
-    rc = interval >= propagate_every_s;
-done:
-    Py_DECREF(ns);
-    return rc;
+    return interval >= propagate_every_s;
+}
+
+/* the numbers of parts[P_CONSTS] into c */
+static int numbers_of(PyObject *consts, double c[C_COUNT])
+{
+    /* those of the last parts seen are kept, with a reference to them (so that no other
+     * tuple can take their address): one pipeline reads on and on with the same */
+    static PyObject *seen = NULL;
+    static double kept[C_COUNT];
+    if (consts != seen) {
+        for (int i = 0; i < C_COUNT; i++) {
+            kept[i] = PyFloat_AsDouble(PyTuple_GET_ITEM(consts, i));
+            if (kept[i] == -1.0 && PyErr_Occurred()) {
+                Py_CLEAR(seen);
+                return -1;
+            }
+        }
+        Py_INCREF(consts);
+        Py_XSETREF(seen, consts);
+    }
+    memcpy(c, kept, sizeof kept); /* this call's own copy */
+    return 0;
 }
 
 PyObject *uwbd_imu_read(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
@@ -484,121 +550,66 @@ PyObject *uwbd_imu_read(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     PyObject *const *parts = &PyTuple_GET_ITEM(args[0], 0);
     PyObject *consts = parts[P_CONSTS], *t_obj = args[2];
     if (!PyTuple_Check(consts) || PyTuple_GET_SIZE(consts) != C_COUNT ||
-        !PyTuple_Check(parts[P_FIELDS]) || PyTuple_GET_SIZE(parts[P_FIELDS]) != SAMPLE_FIELDS) {
-        PyErr_SetString(PyExc_TypeError, "imu_read: parts not as imu_read_parts makes them");
+        !PyTuple_Check(parts[P_FIELDS]) || PyTuple_GET_SIZE(parts[P_FIELDS]) != SAMPLE_FIELDS ||
+        !PyType_Check(parts[P_SAMPLE_TYPE])) {
+        PyErr_SetString(PyExc_TypeError, "imu_read: parts not as imu_read_path makes them");
         return NULL;
     }
-    /* the numbers of the last parts seen, kept with a reference to them (so that no other
-     * tuple can take their address): one pipeline reads on and on with the same */
-    static PyObject *seen = NULL;
-    static double numbers[C_COUNT];
-    if (consts != seen) {
-        for (int i = 0; i < C_COUNT; i++) {
-            numbers[i] = PyFloat_AsDouble(PyTuple_GET_ITEM(consts, i));
-            if (numbers[i] == -1.0 && PyErr_Occurred()) {
-                Py_CLEAR(seen);
-                return NULL;
-            }
-        }
-        Py_INCREF(consts);
-        Py_XSETREF(seen, consts);
-    }
-    const double *c = numbers;
-    Read r;
-    if (!PyLong_CheckExact(t_obj))
-        Py_RETURN_NONE;
-    int overflow = 0;
-    r.t = PyLong_AsLongLongAndOverflow(t_obj, &overflow);
-    if (r.t == -1 && PyErr_Occurred())
+    double c[C_COUNT];
+    if (numbers_of(consts, c) < 0)
         return NULL;
-    if (overflow)
-        Py_RETURN_NONE;
-    PyObject *ekf = NULL;
-    int t = takes(parts, args[1], c, &r, &ekf);
+    Read r = {0};
+    PyObject *o[O_COUNT] = {NULL};
+    int t = as_i64(t_obj, &r.t, NULL);
+    if (t == 1)
+        t = takes(parts, args[1], c, &r);
+    if (t == 1)
+        t = make_objects(parts, t_obj, c, &r, o) < 0 ? -1 : 1;
     if (t <= 0) {
-        Py_XDECREF(ekf);
+        release(&r, o);
         if (t < 0)
             return NULL;
         Py_RETURN_NONE;
     }
     /* Taken: from here on, the writes, in the order the Python code makes them. */
-    PyObject *sample = NULL, *acc = float_tuple(r.acc, 3), *gyro = float_tuple(r.gyro, 3);
-    PyObject *body = NULL;
-    PyObject *temp = PyFloat_FromDouble(r.temp), *out = NULL, *tmp = NULL;
-    if (acc == NULL || gyro == NULL || temp == NULL)
-        goto done;
-    PyObject *values[SAMPLE_FIELDS] = {t_obj, acc, gyro, temp, Py_None, Py_None, Py_None,
-                                       Py_None};
-    PyObject *parser = parts[P_PARSER], *filter = parts[P_FILTER], *check = parts[P_CHECK];
-    /* the parser (WitParser._common_cycle) */
-    if (add_attr(parts[P_STATS], N_BYTES_IN, CYCLE_LEN) < 0 ||
-        add_attr(parser, N_BASE, CYCLE_LEN) < 0 || set_attr(parser, N_CYCLE_T, t_obj) < 0 ||
-        add_attr(parts[P_STATS], N_FRAMES, 1) < 0)
-        goto done;
-    if ((sample = new_sample(parts[P_SAMPLE_TYPE], parts[P_FIELDS], values)) == NULL)
-        goto done;
-    /* Pipeline._spread, Aligner.push */
-    if (r.has_period) {
-        if ((tmp = PyLong_FromLongLong(r.period)) == NULL ||
-            PyDict_SetItem(parts[P_PERIOD], parts[P_SOURCE], tmp) < 0)
-            goto done;
-        Py_CLEAR(tmp);
-    }
-    if (PyDict_SetItem(parts[P_LAST_FRAME], parts[P_SOURCE], t_obj) < 0 ||
+    PyObject *out = NULL, *parser = parts[P_PARSER], *filter = parts[P_FILTER];
+    PyObject *check = parts[P_CHECK];
+    if (/* the parser (WitParser._common_cycle) */
+        set_attr(parts[P_STATS], N_BYTES_IN, o[O_BYTES_IN]) < 0 ||
+        set_attr(parser, N_BASE, o[O_BASE]) < 0 || set_attr(parser, N_CYCLE_T, t_obj) < 0 ||
+        set_attr(parts[P_STATS], N_FRAMES, o[O_FRAMES]) < 0 ||
+        /* Pipeline._spread, Aligner.push */
+        (r.has_period && PyDict_SetItem(parts[P_PERIOD], parts[P_SOURCE], o[O_PERIOD]) < 0) ||
+        PyDict_SetItem(parts[P_LAST_FRAME], parts[P_SOURCE], t_obj) < 0 ||
         set_attr(parts[P_ALIGNER], N_CLOCK, t_obj) < 0 ||
-        set_attr(parts[P_ALIGNER], N_RELEASED, t_obj) < 0)
-        goto done;
-    /* ImuCheck.judge */
-    if ((tmp = PyLong_FromLong(0)) == NULL || set_attr(check, N_JUMP_RUN, tmp) < 0)
-        goto done;
-    Py_CLEAR(tmp);
-    if ((tmp = PyTuple_Pack(2, acc, gyro)) == NULL || set_attr(check, N_LAST_GOOD, tmp) < 0)
-        goto done;
-    Py_CLEAR(tmp);
-    if (set_attr(check, N_BURST, Py_None) < 0 || set_attr(check, N_LAST_NS, t_obj) < 0)
-        goto done;
-    /* Filter._predict */
-    if ((r.first_none && set_attr(filter, N_FIRST_T, t_obj) < 0) ||
-        set_attr(filter, N_IMU_T, t_obj) < 0)
-        goto done;
-    double ab[3], gb[3];
-    affine(c + C_ACC_M, c + C_ACC_B, r.acc, ab);
-    if (c[C_BAND] > 0.0)
-        banded(c + C_GYRO_M, c + C_GYRO_O, c[C_BAND], r.gyro, gb);
-    else
-        affine(c + C_GYRO_M, c + C_GYRO_B, r.gyro, gb);
-    PyObject *ab_t = float_tuple(ab, 3), *gb_t = ab_t == NULL ? NULL : float_tuple(gb, 3);
-    body = gb_t == NULL ? NULL : PyTuple_Pack(2, ab_t, gb_t);
-    Py_XDECREF(ab_t);
-    Py_XDECREF(gb_t);
-    if (body == NULL || window_add(parts, t_obj, r.t, ab, gb) < 0 ||
+        set_attr(parts[P_ALIGNER], N_RELEASED, t_obj) < 0 ||
+        /* ImuCheck.judge */
+        set_attr(check, N_JUMP_RUN, o[O_ZERO]) < 0 || set_attr(check, N_LAST_GOOD, o[O_PAIR]) < 0 ||
+        set_attr(check, N_BURST, Py_None) < 0 || set_attr(check, N_LAST_NS, t_obj) < 0 ||
+        /* Filter._predict */
+        (r.first_none && set_attr(filter, N_FIRST_T, t_obj) < 0) ||
+        set_attr(filter, N_IMU_T, t_obj) < 0 ||
+        window_add(parts, r.t, o[O_ROW], o[O_ADDED]) < 0 ||
         set_attr(filter, N_GOOD_T, t_obj) < 0)
         goto done;
     if (r.filter_running) {
         double dt = (double)(r.t - r.state_t) / 1e9;
         if (dt > 0) {
-            int due = predict(ekf, ab, gb, dt, c[C_PROPAGATE]);
+            int due = predict(&r, r.ab, r.gb, dt, c[C_PROPAGATE]);
             if (due < 0)
                 goto done;
             if (due) { /* Filter.finish_prediction propagates, then sets t_ns and _last_imu */
-                out = PyTuple_Pack(2, sample, body);
+                out = PyTuple_Pack(2, o[O_SAMPLE], o[O_BODY]);
                 goto done;
             }
         }
         if (set_attr(filter, N_T, t_obj) < 0)
             goto done;
     }
-    if (set_attr(filter, N_LAST_IMU, body) < 0)
+    if (set_attr(filter, N_LAST_IMU, o[O_BODY]) < 0)
         goto done;
-    out = sample;
-    Py_INCREF(out);
+    out = Py_NewRef(o[O_SAMPLE]);
 done:
-    Py_XDECREF(ekf);
-    Py_XDECREF(acc);
-    Py_XDECREF(gyro);
-    Py_XDECREF(temp);
-    Py_XDECREF(tmp);
-    Py_XDECREF(body);
-    Py_XDECREF(sample);
+    release(&r, o);
     return out;
 }

@@ -28,6 +28,7 @@
 #include <Python.h>
 #include <errno.h>
 #include <pthread.h>
+#include <signal.h>
 #include <stdint.h>
 #include <string.h>
 #include <sys/epoll.h>
@@ -47,10 +48,15 @@ typedef struct {
 } Slot;
 
 typedef struct {
-    int source, error; /* error: -1 data; else the loss's errno, 0 for end of file */
+    int source;
     int64_t t_ns;
     size_t offset, length;
 } Held;
+
+typedef struct {
+    int source, error;
+    int64_t t_ns;
+} Loss;
 
 typedef struct {
     PyObject_HEAD
@@ -64,6 +70,8 @@ typedef struct {
     size_t n_held, cap_held;
     char *bytes;
     size_t n_bytes, cap_bytes;
+    Loss losses[MAX_SLOTS]; /* lost ports not yet taken: no allocation needed to say so */
+    int n_losses;
     int signalled;
     unsigned long long dropped_bytes;
 } Reader;
@@ -75,9 +83,8 @@ static int64_t now_ns(const Reader *r)
     return r->offset_ns + (int64_t)ts.tv_sec * 1000000000 + ts.tv_nsec;
 }
 
-/* One held read (or loss); 0, or -1 when out of memory (the read is then dropped). */
-static int hold(Reader *r, int source, int64_t t_ns, const char *data, size_t length,
-                int error)
+/* One held read; 0, or -1 when out of memory (the read is then dropped). */
+static int hold(Reader *r, int source, int64_t t_ns, const char *data, size_t length)
 {
     if (r->n_held == r->cap_held) {
         size_t cap = r->cap_held ? 2 * r->cap_held : 64;
@@ -97,8 +104,9 @@ static int hold(Reader *r, int source, int64_t t_ns, const char *data, size_t le
         r->bytes = b;
         r->cap_bytes = cap;
     }
-    memcpy(r->bytes + r->n_bytes, data, length);
-    r->held[r->n_held++] = (Held){source, error, t_ns, r->n_bytes, length};
+    if (length)
+        memcpy(r->bytes + r->n_bytes, data, length);
+    r->held[r->n_held++] = (Held){source, t_ns, r->n_bytes, length};
     r->n_bytes += length;
     return 0;
 }
@@ -108,8 +116,9 @@ static void *run(void *arg)
     Reader *r = arg;
     struct epoll_event events[EVENTS];
     char buf[READ_BYTES];
+    int timeout_ms = 100;
     for (;;) {
-        int n = epoll_wait(r->ep, events, EVENTS, 100);
+        int n = epoll_wait(r->ep, events, EVENTS, timeout_ms);
         if (n < 0 && errno != EINTR)
             n = 0; /* cannot happen with a valid epoll fd; keep waiting for stop */
         pthread_mutex_lock(&r->lock);
@@ -124,24 +133,35 @@ static void *run(void *arg)
             if (!s->active || s->generation != (uint32_t)(key >> 32))
                 continue; /* removed since epoll_wait returned */
             ssize_t got = read(s->fd, buf, sizeof buf);
+            int error = got < 0 ? errno : 0;
             int64_t t_ns = now_ns(r);
             if (got > 0) {
                 if (r->n_bytes + (size_t)got > MAX_HELD_BYTES ||
-                    hold(r, s->source, t_ns, buf, (size_t)got, -1) < 0)
+                    hold(r, s->source, t_ns, buf, (size_t)got) < 0)
                     r->dropped_bytes += (unsigned long long)got;
                 else if (s->urgent || t_ns >= r->due_ns)
                     wake = 1;
-            } else if (got == 0 || (errno != EAGAIN && errno != EINTR)) {
-                int error = got == 0 ? 0 : errno;
+            } else if (got == 0 || (error != EAGAIN && error != EINTR) ||
+                       (events[i].events & (EPOLLERR | EPOLLHUP))) {
+                /* end of file, an error, or nothing to read from a port that hangs up or
+                 * errs (epoll would report it again at once): lost */
                 epoll_ctl(r->ep, EPOLL_CTL_DEL, s->fd, NULL);
                 s->active = 0;
                 s->generation++;
-                hold(r, s->source, t_ns, "", 0, error);
+                if (r->n_losses < MAX_SLOTS) /* one per port added: never full */
+                    r->losses[r->n_losses++] = (Loss){s->source, got == 0 ? 0 : (
+                        error == EAGAIN ? EIO : error), t_ns};
                 wake = 1;
             }
         }
-        if (r->n_held && now_ns(r) - r->held[0].t_ns >= r->max_hold_ns)
-            wake = 1;
+        timeout_ms = 100;
+        if (r->n_held && !r->signalled) { /* wake when the oldest has been held long enough */
+            int64_t left = r->held[0].t_ns + r->max_hold_ns - now_ns(r);
+            if (left <= 0)
+                wake = 1;
+            else if (left < 100000000)
+                timeout_ms = (int)((left + 999999) / 1000000);
+        }
         if (wake && !r->signalled) {
             uint64_t one = 1;
             if (write(r->wake_fd, &one, sizeof one) == sizeof one)
@@ -194,7 +214,11 @@ static int reader_init(Reader *r, PyObject *args, PyObject *kwds)
         stop_thread(r);
         return -1;
     }
+    sigset_t all, old; /* signals go to the main thread, as Python expects */
+    sigfillset(&all);
+    pthread_sigmask(SIG_SETMASK, &all, &old);
     int rc = pthread_create(&r->thread, NULL, run, r);
+    pthread_sigmask(SIG_SETMASK, &old, NULL);
     if (rc != 0) {
         errno = rc;
         PyErr_SetFromErrno(PyExc_OSError);
@@ -311,20 +335,30 @@ static PyObject *reader_drain(Reader *r, PyObject *Py_UNUSED(ignored))
     Held *held = r->held;
     char *bytes = r->bytes;
     size_t n = r->n_held;
+    Loss losses[MAX_SLOTS];
+    int n_losses = r->n_losses;
+    memcpy(losses, r->losses, sizeof losses);
     r->held = NULL;
     r->bytes = NULL;
     r->n_held = r->cap_held = r->n_bytes = r->cap_bytes = 0;
+    r->n_losses = 0;
     r->signalled = 0;
     pthread_mutex_unlock(&r->lock);
-    PyObject *out = PyList_New((Py_ssize_t)n);
+    /* (out of memory here, what was taken is lost with the process's other troubles) */
+    PyObject *out = PyList_New((Py_ssize_t)n + n_losses);
+    for (int k = 0; out != NULL && k < n_losses; k++) { /* after the reads before them */
+        PyObject *item = Py_BuildValue("(iLOi)", losses[k].source, (long long)losses[k].t_ns,
+                                       Py_None, losses[k].error);
+        if (item == NULL)
+            Py_CLEAR(out);
+        else
+            PyList_SET_ITEM(out, (Py_ssize_t)n + k, item);
+    }
     for (size_t i = 0; out != NULL && i < n; i++) {
         Held *h = &held[i];
-        PyObject *data = h->error < 0
-            ? PyBytes_FromStringAndSize(bytes + h->offset, (Py_ssize_t)h->length)
-            : Py_NewRef(Py_None);
+        PyObject *data = PyBytes_FromStringAndSize(bytes + h->offset, (Py_ssize_t)h->length);
         PyObject *item = data == NULL ? NULL
-            : Py_BuildValue("(iLNi)", h->source, (long long)h->t_ns, data, h->error < 0 ? 0
-                                                                               : h->error);
+            : Py_BuildValue("(iLNi)", h->source, (long long)h->t_ns, data, 0);
         if (item == NULL)
             Py_CLEAR(out);
         else

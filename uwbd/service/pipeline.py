@@ -108,10 +108,12 @@ class Pipeline:
         if sample is None:
             self._frames(self._spread(source, parser.feed(data, t_ns)))
         else:  # the common IMU read, parsed and integrated in one call of the C core
-            if sample.__class__ is tuple:  # the covariance is due
+            body = None
+            if sample.__class__ is tuple:  # and the covariance is due
                 sample, body = sample
+            self._frame_to_sinks(sample)  # the frame's sinks first, as on the way below
+            if body is not None:
                 self.filter.finish_prediction(sample.t_ns, body)
-            self._frame_to_sinks(sample)
             if sample.t_ns - self._last_pose_ns >= self._pose_period_ns:
                 self._emit_pose()
         self._tick(t_ns)

@@ -150,7 +150,14 @@ class SerialSource:
             self._schedule_retry(f"cannot open {self.cfg.port}: {reason(err)}")
             return
         self._port, self.fd = port, port.fileno()
-        self.reads.watch(self)
+        try:
+            self.reads.watch(self)
+        except OSError as err:  # the reader cannot take it (more ports than it has room for)
+            with contextlib.suppress(OSError):
+                port.close()
+            self._port, self.fd = None, -1
+            self._schedule_retry(f"cannot read {self.cfg.port}: {reason(err)}")
+            return
         self.info.state = "open"
         self.info.opens += 1
         LOG.info("%s: %s %s at %d baud (%s)", self.cfg.name,
@@ -263,7 +270,9 @@ class ThreadReads:
         # each watch of a port gets a token: a loss the thread held for a port that has
         # been released since (and perhaps reopened) is not the new port's
         self._tokens: dict[int, SerialSource] = {}
+        self._retired: list[int] = []  # unwatched: forgotten after the next drain
         self._next_token = 0
+        self._clock = clock
         self._wake_fd = self._reader.wake_fd
         loop.add_reader(self._wake_fd, self.drain)
 
@@ -280,16 +289,23 @@ class ThreadReads:
 
     def unwatch(self, source: SerialSource) -> None:
         self._reader.remove(source.fd)  # not read again once this returns
+        self._retired.append(source.token)
 
     def drain(self) -> None:
         """The held reads into the queue, in order; lost ports to their source."""
-        for token, t_ns, data, error in self._reader.drain():
+        retired, self._retired = self._retired, []
+        reads = self._reader.drain()
+        for token, t_ns, data, error in reads:
             source = self._tokens[token]
             if data is not None:
                 source.take(t_ns, data)  # read before any loss: real data
             elif token == source.token:
                 source.lost(OSError(error, os.strerror(error)) if error
                             else OSError("port closed (device gone)"))
+        for token in retired:  # every read of theirs was held before the drain above
+            del self._tokens[token]
+        if reads and self._clock.now_ns() - reads[0][1] >= MAX_QUEUE_NS:
+            self.queue.flush()  # held their time: what still waits in the queue goes in
         self._reader.set_due(self.queue.pipeline.next_pose_due_ns)
 
     def close(self) -> None:
