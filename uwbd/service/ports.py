@@ -98,6 +98,16 @@ class ReadQueue:
             except Exception as err:  # the log's own work: reported like a sink's
                 self.pipeline.sink_failed(self.idle, err)
 
+    def push_held(self, reads: list[tuple[str, int, bytes]]) -> None:
+        """Reads the reader thread held until one of them mattered: all go on at once,
+        then the work that can wait (``idle``) has its turn, after the pose."""
+        self._pending += reads
+        self.flush()
+        try:
+            self.idle()
+        except Exception as err:
+            self.pipeline.sink_failed(self.idle, err)
+
     def flush(self) -> None:
         pending, self._pending = self._pending, []
         if self.failure is not None:
@@ -208,6 +218,11 @@ class SerialSource:
         self.info.bytes_read += len(data)
         self.queue.push(self.cfg.name, t_ns, data)
 
+    def counted(self, t_ns: int, data: bytes) -> tuple[str, int, bytes]:
+        """A read the reader thread held, counted; for :meth:`ReadQueue.push_held`."""
+        self.info.bytes_read += len(data)
+        return self.cfg.name, t_ns, data
+
     def lost(self, err: OSError) -> None:
         self.info.losses += 1
         if self.loop.time() - self._opened_at >= STABLE_OPEN_S:
@@ -272,7 +287,6 @@ class ThreadReads:
         self._tokens: dict[int, SerialSource] = {}
         self._retired: list[int] = []  # unwatched: forgotten after the next drain
         self._next_token = 0
-        self._clock = clock
         self._wake_fd = self._reader.wake_fd
         loop.add_reader(self._wake_fd, self.drain)
 
@@ -294,18 +308,20 @@ class ThreadReads:
     def drain(self) -> None:
         """The held reads into the queue, in order; lost ports to their source."""
         retired, self._retired = self._retired, []
-        reads = self._reader.drain()
-        for token, t_ns, data, error in reads:
-            source = self._tokens[token]
-            if data is not None:
-                source.take(t_ns, data)  # read before any loss: real data
-            elif token == source.token:
-                source.lost(OSError(error, os.strerror(error)) if error
-                            else OSError("port closed (device gone)"))
+        tokens, held = self._tokens, []
+        lost = []
+        for token, t_ns, data, error in self._reader.drain():
+            if data is not None:  # read before any loss: real data
+                held.append(tokens[token].counted(t_ns, data))
+            elif token == tokens[token].token:
+                lost.append((tokens[token], error))
+        if held:  # they waited in the thread until one mattered: all go on now
+            self.queue.push_held(held)
+        for source, error in lost:  # (the thread holds a port's loss after its reads)
+            source.lost(OSError(error, os.strerror(error)) if error
+                        else OSError("port closed (device gone)"))
         for token in retired:  # every read of theirs was held before the drain above
-            del self._tokens[token]
-        if reads and self._clock.now_ns() - reads[0][1] >= MAX_QUEUE_NS:
-            self.queue.flush()  # held their time: what still waits in the queue goes in
+            del tokens[token]
         self._reader.set_due(self.queue.pipeline.next_pose_due_ns)
 
     def close(self) -> None:
