@@ -307,6 +307,7 @@ def _read_whole(buf: bytes) -> LogContents:
     raw_protobuf: set[int] = set()
     schemas: dict[int, str] = {}
     messages = out.messages
+    append, make = messages.append, tuple.__new__  # make: LogMessage's own __new__, unwrapped
     for event in scan(buf):
         kind = event[0]
         if kind == "messages":
@@ -319,7 +320,7 @@ def _read_whole(buf: bytes) -> LogContents:
                     else:
                         with contextlib.suppress(ValueError):  # not one: left as it is
                             data = fx.decode_raw(data)
-                messages.append(LogMessage(topics.get(channel, "?"), log_time, data))
+                append(make(LogMessage, (topics.get(channel, "?"), log_time, data)))
         elif kind == "schema":
             schemas[event[1]] = event[2]
         elif kind == "channel":

@@ -110,10 +110,19 @@ def _chunk(buf: bytes, body: int, stop: int) -> Iterator[Event]:
         raise UnusualRecordError("chunk CRC")
     messages: list[tuple[int, int, bytes]] = []
     message = _MESSAGE.unpack_from
+    head = _HEAD.unpack_from
     append = messages.append
-    for op, start, nxt in _records(data, 0):
+    end, nxt = len(data), 0
+    while nxt < end:  # _records(data, 0), inline: a chunk holds thousands of messages
+        if nxt + 9 > end:
+            raise UnusualRecordError("ends mid-record")
+        op, length = head(data, nxt)
+        start = nxt + 9
+        nxt = start + length
+        if nxt > end:
+            raise UnusualRecordError("ends mid-record")
         if op == OP_MESSAGE:
-            if nxt - start < 22:
+            if length < 22:
                 raise UnusualRecordError("message length")
             channel, _, log_time, _ = message(data, start)
             append((channel, log_time, data[start + 22:nxt]))
