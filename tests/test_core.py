@@ -21,6 +21,7 @@ from uwbd.fusion.eskf import N_CORE, ImuNoise, Row
 from uwbd.fusion.eskf import Eskf as _Eskf
 from uwbd.fusion.lsq import multilaterate
 from uwbd.fusion.measurements import range_rows
+from uwbd.fusion.rest import ImuWindow, RestLimits
 from uwbd.fusion.robust import RobustPolicy, RowPolicy
 from uwbd.fusion.settings import FilterConfig
 from uwbd.fusion.types import Pose
@@ -345,3 +346,34 @@ def test_the_environment_variable_forces_pure_python() -> None:
                          check=True, env={k: v for k, v in os.environ.items()
                                           if k != native.PURE_PYTHON_ENV}).stdout
     assert out.startswith("False C core")
+
+
+@needs_core
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(0, 400), st.floats(0.01, 3.0))
+def test_the_rest_tests_moments_match_numpys(seed: int, count: int, span_s: float) -> None:
+    """The rest test on a window of rows: the C core's moments and numpy's, the same bits,
+    so the same verdict; at rest and moving, jittered times, Unix-epoch ns."""
+    rng = np.random.default_rng(seed)
+    window = ImuWindow(4.0, RestLimits())
+    t = 1_700_000_000_000_000_000 + int(rng.integers(0, 10**12))
+    still = rng.random() < 0.5
+    level = rng.normal(0, 0.01 if still else 3.0, 6) + np.array([0, 0, 9.81, 0, 0, 0])
+    for _ in range(count):
+        t += int(rng.integers(4_000_000, 6_000_000))
+        noise = rng.normal(0, 0.01 if still else 0.5, 6)
+        window.add(t, tuple((level[:3] + noise[:3]).tolist()),  # type: ignore[arg-type]
+                   tuple((level[3:] + noise[3:]).tolist()))  # type: ignore[arg-type]
+    fast = native.core.window_moments(window.samples, span_s * 1e9)  # type: ignore[union-attr]
+    a = np.array(window.samples).reshape(-1, 7)
+    recent = a[int(np.searchsorted(a[:, 0], a[-1, 0] - span_s * 1e9)):, 1:] if count else a
+    if len(recent) < 3:
+        assert fast is None
+    else:
+        mean = recent.sum(axis=0) / len(recent)
+        dev = recent - mean
+        assert fast == (tuple(mean.tolist()),
+                        tuple(np.sqrt((dev * dev).sum(axis=0) / len(recent)).tolist()))
+    verdict = window.static(span_s)
+    with native.pure_python():
+        assert ImuWindow._judge(window, span_s) == verdict

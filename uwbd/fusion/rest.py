@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from uwbd.fusion import native
 from uwbd.fusion.eskf import GRAVITY_MPS2
 from uwbd.fusion.lsq import LsqFix
 from uwbd.fusion.rotation import Array
@@ -115,16 +116,24 @@ class ImuWindow:
         samples = self._samples
         if not samples or (samples[-1][0] - samples[0][0]) < 0.9 * span_s * 1e9:
             return False
-        a = self.as_array()
-        # the samples at or after the span's start (times ascend: one search), as one block
-        recent = a[int(np.searchsorted(a[:, 0], a[-1, 0] - span_s * 1e9)):, 1:]
-        if len(recent) < 3:
-            return False
-        # mean and std (population) per axis, in numpy's own steps for them
-        mean = recent.sum(axis=0) / len(recent)
-        dev = recent - mean
-        ax, ay, az, gx, gy, gz = mean.tolist()
-        sax, say, saz, sgx, sgy, sgz = np.sqrt((dev * dev).sum(axis=0) / len(recent)).tolist()
+        core = native.core
+        if core is not None:  # the same numbers, from the rows themselves
+            moments = core.window_moments(samples, span_s * 1e9)
+            if moments is None:
+                return False
+            (ax, ay, az, gx, gy, gz), (sax, say, saz, sgx, sgy, sgz) = moments
+        else:
+            a = self.as_array()
+            # the samples at or after the span's start (times ascend: one search), one block
+            recent = a[int(np.searchsorted(a[:, 0], a[-1, 0] - span_s * 1e9)):, 1:]
+            if len(recent) < 3:
+                return False
+            # mean and std (population) per axis, in numpy's own steps for them
+            mean = recent.sum(axis=0) / len(recent)
+            dev = recent - mean
+            ax, ay, az, gx, gy, gz = mean.tolist()
+            sax, say, saz, sgx, sgy, sgz = np.sqrt((dev * dev).sum(axis=0)
+                                                   / len(recent)).tolist()
         lim = self.limits
         return (math.hypot(sax, say, saz) < lim.acc_std_mps2
                 and abs(math.hypot(ax, ay, az) - self.gravity_mps2) < lim.gravity_tolerance_mps2
