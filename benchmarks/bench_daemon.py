@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import json
 import os
 import signal
@@ -137,6 +138,7 @@ def replay_speed(replay_s: float) -> None:
         path = Path(tmp_name) / "sim.mcap"
         write_simulation(sim, path)
         contents = read_log(path)
+        gc.freeze()  # as `uwbd replay` does: the log is not walked by every collection
         output = Path(tmp_name) / "o.mcap"
         for label, out in (("poses only", None), ("writing the output log", output)):
             speed = {}
