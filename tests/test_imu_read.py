@@ -64,24 +64,28 @@ def reads(seconds: float, seed: int, faults: Faults | None = None,
     return simulation_toml(sim), [(source, t, data) for t, source, data in events]
 
 
-def run(toml: str, stream: list[Read], fast: bool) -> tuple[Pipeline, Recorder, int]:
-    """The stream through a pipeline with (or without) the C core's read path; how many reads
-    it took whole."""
+def run(toml: str, stream: list[Read], how: str) -> tuple[Pipeline, Recorder, int]:
+    """The stream through a pipeline: ``"read"`` with the C core's read path (and step),
+    ``"step"`` with its filter step only, ``"python"`` with neither (the reference; the C
+    core's algebra in both). Returns how many IMU reads (or samples) C took whole."""
     sink = Recorder()
     pipeline = Pipeline(parse(toml), [sink])
     taken = 0
-    if fast:
-        assert pipeline._imu_read, "the pipeline made no read path for the WitMotion IMU"
-        path = pipeline._imu_read["imu"]
 
-        def counted(data: bytes, t_ns: int) -> Any:
+    def counted(call: Any) -> Any:
+        def wrapper(*args: Any) -> Any:
             nonlocal taken
-            out = path(data, t_ns)
+            out = call(*args)
             taken += out is not None
             return out
-        pipeline._imu_read["imu"] = counted
+        return wrapper
+    if how == "read":
+        assert pipeline._imu_read, "the pipeline made no read path for the WitMotion IMU"
+        pipeline._imu_read["imu"] = counted(pipeline._imu_read["imu"])
     else:
         pipeline._imu_read.clear()
+        flt = pipeline.filter
+        flt.imu_step = counted(flt.imu_step) if how == "step" else None
     for source, t_ns, data in stream:
         pipeline.on_bytes(source, t_ns, data)
     pipeline.finish()
@@ -108,16 +112,22 @@ def state(pipeline: Pipeline) -> dict[str, Any]:
 
 
 def same_runs(toml: str, stream: list[Read], min_taken: float = 0.5) -> int:
-    """Both ways, compared; the read path must have taken ``min_taken`` of the IMU reads."""
-    fast, fast_sink, taken = run(toml, stream, fast=True)
-    slow, slow_sink, _ = run(toml, stream, fast=False)
-    assert fast_sink.poses == slow_sink.poses and len(fast_sink.poses) > 0
-    assert fast_sink.frames == slow_sink.frames
-    assert fast_sink.statuses == slow_sink.statuses
-    assert state(fast) == state(slow)
+    """The C read path, and the C step alone, each against the reference; the read path must
+    have taken ``min_taken`` of the IMU reads (the step at least as many)."""
+    slow, slow_sink, _ = run(toml, stream, "python")
+    assert len(slow_sink.poses) > 0
     imu_reads = sum(source == "imu" for source, _, _ in stream)
-    assert taken >= min_taken * imu_reads, f"the read path took {taken} of {imu_reads} reads"
-    return taken
+    taken = {}
+    for how in ("read", "step"):
+        fast, fast_sink, taken[how] = run(toml, stream, how)
+        assert fast_sink.poses == slow_sink.poses, how
+        assert fast_sink.frames == slow_sink.frames, how
+        assert fast_sink.statuses == slow_sink.statuses, how
+        assert state(fast) == state(slow), how
+    assert taken["read"] >= min_taken * imu_reads, \
+        f"the read path took {taken['read']} of {imu_reads} reads"
+    assert taken["step"] >= taken["read"]
+    return taken["read"]
 
 
 @needs_core
@@ -155,7 +165,7 @@ def _faulty(sample: ImuSample, k: int) -> ImuSample | None:
 
 @needs_core
 def test_rejected_samples_times_out_of_order_and_a_gap_are_the_same() -> None:
-    fast, _, _ = run(*reads(12.0, seed=3, edit=_faulty), fast=True)
+    fast, _, _ = run(*reads(12.0, seed=3, edit=_faulty), "read")
     for counter in ("imu_saturated", "imu_jump", "imu_out_of_order", "imu_gaps"):
         assert fast.filter.counters[counter] > 0, counter  # each case was met
     same_runs(*reads(12.0, seed=3, edit=_faulty), min_taken=0.7)

@@ -1444,6 +1444,8 @@ static PyMethodDef core_methods[] = {
      "Each range's leverage at x (multilaterate's outlier test); None if singular."},
     {"window_moments", (PyCFunction)(void (*)(void))core_window_moments, METH_FASTCALL,
      "ImuWindow._judge's mean and std of the six axes over the last span_ns, or None."},
+    {"imu_step", (PyCFunction)(void (*)(void))uwbd_imu_step, METH_FASTCALL,
+     "Filter.predict's common sample whole (check, rest window, INS step), or None."},
     {"imu_read", (PyCFunction)(void (*)(void))uwbd_imu_read, METH_FASTCALL,
      "The common IMU read whole (parse, spread, align, check, predict), or None."},
     {NULL, NULL, 0, NULL},

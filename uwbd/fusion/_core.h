@@ -19,5 +19,6 @@ void uwbd_predict_step(double p[3], double v[3], const double q[4], const double
 /* _imu_read.c */
 int uwbd_imu_read_init(void);
 PyObject *uwbd_imu_read(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
+PyObject *uwbd_imu_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 
 #endif

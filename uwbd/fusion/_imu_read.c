@@ -1,21 +1,25 @@
-/* uwbd.fusion._core.imu_read: the common IMU read whole, in one call.
+/* uwbd.fusion._core.imu_step and imu_read: the common IMU sample, and the common IMU read,
+ * whole, in one call each.
  *
- * The daemon reads a WitMotion IMU ~200 times a second, and almost every read is the same:
- * one accel packet and one gyro packet, the cycle the parser expects, a sample in order
- * that passes the integrity check, a filter running. In Python that read passes through
- * five objects (WitParser._common_cycle, Pipeline._spread, Aligner.push, ImuCheck.judge,
- * Filter._predict with ImuWindow.add and Eskf.predict); here it is one call that does what
- * they do, on their own attributes, in their order, with their arithmetic (the same bits).
+ * Almost every IMU sample is the same case: in order, passing the integrity check, for a
+ * filter that is running (or waiting for its start). In Python it passes through
+ * ImuCheck.judge, the body maps, ImuWindow.add and Eskf.predict (Filter._predict);
+ * imu_step does what they do, on their own attributes, in their order, with their
+ * arithmetic (the same bits). And almost every read of a WitMotion IMU is one accel and one
+ * gyro packet, the cycle the parser expects, which the aligner passes straight on: imu_read
+ * does WitParser._common_cycle, Pipeline._spread and Aligner.push too, then the same step.
  *
- * It declines (returns None, having changed nothing) for anything else: another read, a
+ * Each declines (returns None, having changed nothing) for anything else: another read, a
  * parser mid-cycle, a held or late frame, a sample the check would reject or might, the
- * filter starting, re-levelling or after a gap. Python then takes the read as before, so the
- * Python code stays the reference and handles every case; this handles the common one.
+ * filter re-levelling or after a gap. Python then takes it as before, so the Python code
+ * stays the reference and handles every case; these handle the common one.
  *
- * imu_read(parts, data, t_ns) -> ImuSample | (ImuSample, body) | None
- *   parts: the objects and numbers of uwbd.service.pipeline.imu_read_parts (order below).
- *   (ImuSample, body): the sample was integrated and the covariance is due: the caller
- *   propagates it (Filter.finish_prediction), as Filter._predict would have next.
+ * The objects arrive as their instance dicts (vars(obj)), in the orders of the enums below:
+ * Filter.step_parts and uwbd.service.imu_read.imu_read_path make them.
+ *   imu_step(step_parts, t_ns, acc, gyro) -> True | body | None
+ *   imu_read(read_parts, data, t_ns) -> ImuSample | (ImuSample, body) | None
+ * body (the sample in body axes): integrated, and the covariance is due: the caller
+ * propagates (Filter.finish_prediction), as Filter._predict would have next.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -25,14 +29,18 @@
 
 #include "_core.h"
 
-enum {  /* parts */
-    P_PARSER, P_STATS, P_LAST_FRAME, P_PERIOD, P_SOURCE, P_ALIGNER, P_FILTER, P_CHECK,
-    P_WINDOW, P_SAMPLES, P_SAMPLE_TYPE, P_FIELDS, P_CONSTS, P_WINDOW_NS, P_COUNT
+enum {  /* imu_read's parts */
+    P_PARSER, P_STATS, P_LAST_FRAME, P_PERIOD, P_SOURCE, P_ALIGNER, P_SAMPLE_TYPE, P_FIELDS,
+    P_DIVISORS, P_STEP, P_COUNT
 };
-enum {  /* parts[P_CONSTS]: floats */
+enum { D_ACC, D_GYRO, D_TEMP, D_COUNT };  /* parts[P_DIVISORS]: raw -> SI, floats */
+enum {  /* the filter step's parts (imu_step's first argument, parts[P_STEP]) */
+    F_FILTER, F_CHECK, F_WINDOW, F_SAMPLES, F_CONSTS, F_WINDOW_NS, F_COUNT
+};
+enum {  /* step parts[F_CONSTS]: floats */
     C_ACC_M = 0, C_ACC_B = 9, C_GYRO_M = 12, C_GYRO_B = 21, C_GYRO_O = 24, C_BAND = 27,
     C_ACC_CLIP, C_GYRO_CLIP, C_ACC_JUMP, C_GYRO_JUMP, C_JUMP_RUN, C_MAX_GAP, C_PROPAGATE,
-    C_ACC_DIV, C_GYRO_DIV, C_TEMP_DIV, C_COUNT
+    C_COUNT
 };
 #define SAMPLE_FIELDS 8  /* ImuSample's, in order */
 #define WIT_HEADER 0x55
@@ -284,7 +292,7 @@ static void release(Read *r, PyObject **o)
         Py_CLEAR(o[i]);
 }
 
-static int wit_cycle(PyObject *parser, PyObject *data, const double *c, Read *r)
+static int wit_cycle(PyObject *parser, PyObject *data, const double *d, Read *r)
 {
     if (!PyBytes_CheckExact(data) || PyBytes_GET_SIZE(data) != CYCLE_LEN)
         return 0;
@@ -310,10 +318,10 @@ static int wit_cycle(PyObject *parser, PyObject *data, const double *c, Read *r)
     if (closing != WIT_GYRO || last_type != WIT_GYRO || cycle_max >= 0)
         return 0;
     for (int i = 0; i < 3; i++) {
-        r->acc[i] = (double)le16(b + 2 + 2 * i) / c[C_ACC_DIV];
-        r->gyro[i] = (double)le16(b + 13 + 2 * i) / c[C_GYRO_DIV];
+        r->acc[i] = (double)le16(b + 2 + 2 * i) / d[D_ACC];
+        r->gyro[i] = (double)le16(b + 13 + 2 * i) / d[D_GYRO];
     }
-    r->temp = (double)le16(b + 19) / c[C_TEMP_DIV];
+    r->temp = (double)le16(b + 19) / d[D_TEMP];
     return 1;
 }
 
@@ -345,11 +353,12 @@ static int nominal(PyObject *ekf, Read *r)
     return 1;
 }
 
-/* The checks: everything is read and nothing written. 1 take it, 0 decline, -1 error. */
-static int takes(PyObject *const *parts, PyObject *data, const double *c, Read *r)
+/* The read's checks (parser, spreading, aligner): everything is read and nothing written.
+ * 1 take it, 0 decline, -1 error. */
+static int read_takes(PyObject *const *parts, PyObject *data, const double *d, Read *r)
 {
-    int t, none;
-    if ((t = wit_cycle(parts[P_PARSER], data, c, r)) <= 0)
+    int t;
+    if ((t = wit_cycle(parts[P_PARSER], data, d, r)) <= 0)
         return t;
     /* Pipeline._spread: the learned period's next value */
     int64_t previous;
@@ -372,15 +381,21 @@ static int takes(PyObject *const *parts, PyObject *data, const double *c, Read *
         return t;
     if ((t = attr_true(aligner, N_HEAP)) != 0)
         return t < 0 ? -1 : 0;
-    if (wait != 0 || r->t < released)
-        return 0;
-    /* Filter._predict: in order, checked, the filter running or waiting for its start */
-    PyObject *filter = parts[P_FILTER];
+    return wait == 0 && r->t >= released;
+}
+
+/* The filter step's checks (Filter._predict: in order, checked, the filter running or
+ * waiting for its start): everything is read and nothing written. 1, 0 or -1 as above. */
+static int step_takes(PyObject *const *fp, const double *c, Read *r)
+{
+    int t, none;
+    int64_t previous;
+    PyObject *filter = fp[F_FILTER];
     if ((t = attr_i64(filter, N_IMU_T, &r->prev, &none)) <= 0 || none)
         return t < 0 ? -1 : 0; /* the first sample: Python's */
     if (r->t <= r->prev || r->t - r->prev >= LIMIT_NS)
         return 0;
-    if ((t = check_passes(parts[P_CHECK], c, r->acc, r->gyro)) <= 0)
+    if ((t = check_passes(fp[F_CHECK], c, r->acc, r->gyro)) <= 0)
         return t;
     if ((t = attr_i64(filter, N_FIRST_T, &previous, &r->first_none)) <= 0)
         return t;
@@ -402,16 +417,9 @@ static int takes(PyObject *const *parts, PyObject *data, const double *c, Read *
     return nominal(ekf, r);
 }
 
-/* Every object the writes store, made now: 0, or -1 with an error set. */
-static int make_objects(PyObject *const *parts, PyObject *t_obj, const double *c, Read *r,
-                        PyObject **o)
+/* Every object the read's own writes store, made now: 0, or -1 with an error set. */
+static int read_objects(PyObject *const *parts, PyObject *t_obj, Read *r, PyObject **o)
 {
-    double *ab = r->ab, *gb = r->gb;
-    affine(c + C_ACC_M, c + C_ACC_B, r->acc, ab);
-    if (c[C_BAND] > 0.0)
-        banded(c + C_GYRO_M, c + C_GYRO_O, c[C_BAND], r->gyro, gb);
-    else
-        affine(c + C_GYRO_M, c + C_GYRO_B, r->gyro, gb);
     if ((o[O_ACC] = float_tuple(r->acc, 3)) == NULL ||
         (o[O_GYRO] = float_tuple(r->gyro, 3)) == NULL ||
         (o[O_TEMP] = PyFloat_FromDouble(r->temp)) == NULL)
@@ -422,10 +430,25 @@ static int make_objects(PyObject *const *parts, PyObject *t_obj, const double *c
         (o[O_BYTES_IN] = plus(parts[P_STATS], N_BYTES_IN, CYCLE_LEN)) == NULL ||
         (o[O_BASE] = plus(parts[P_PARSER], N_BASE, CYCLE_LEN)) == NULL ||
         (o[O_FRAMES] = plus(parts[P_STATS], N_FRAMES, 1)) == NULL ||
-        (r->has_period && (o[O_PERIOD] = PyLong_FromLongLong(r->period)) == NULL) ||
-        (o[O_PAIR] = PyTuple_Pack(2, o[O_ACC], o[O_GYRO])) == NULL ||
+        (r->has_period && (o[O_PERIOD] = PyLong_FromLongLong(r->period)) == NULL))
+        return -1;
+    return 0;
+}
+
+/* Every object the filter step's writes store, made now (acc and gyro: the sample's own
+ * tuples, which the check keeps as the last good pair): 0, or -1 with an error set. */
+static int step_objects(PyObject *const *fp, PyObject *t_obj, const double *c, Read *r,
+                        PyObject *acc, PyObject *gyro, PyObject **o)
+{
+    double *ab = r->ab, *gb = r->gb;
+    affine(c + C_ACC_M, c + C_ACC_B, r->acc, ab);
+    if (c[C_BAND] > 0.0)
+        banded(c + C_GYRO_M, c + C_GYRO_O, c[C_BAND], r->gyro, gb);
+    else
+        affine(c + C_GYRO_M, c + C_GYRO_B, r->gyro, gb);
+    if ((o[O_PAIR] = PyTuple_Pack(2, acc, gyro)) == NULL ||
         (o[O_ZERO] = PyLong_FromLong(0)) == NULL ||
-        (o[O_ADDED] = plus(parts[P_WINDOW], N_ADDED, 1)) == NULL)
+        (o[O_ADDED] = plus(fp[F_WINDOW], N_ADDED, 1)) == NULL)
         return -1;
     PyObject *ab_t = float_tuple(ab, 3), *gb_t = ab_t == NULL ? NULL : float_tuple(gb, 3);
     o[O_BODY] = gb_t == NULL ? NULL : PyTuple_Pack(2, ab_t, gb_t);
@@ -446,17 +469,17 @@ static int make_objects(PyObject *const *parts, PyObject *t_obj, const double *c
 }
 
 /* ImuWindow.add: the row in, those older than the window out */
-static int window_add(PyObject *const *parts, int64_t t, PyObject *row, PyObject *added)
+static int window_add(PyObject *const *fp, int64_t t, PyObject *row, PyObject *added)
 {
-    PyObject *samples = parts[P_SAMPLES];
+    PyObject *samples = fp[F_SAMPLES];
     PyObject *rc = PyObject_CallMethodOneArg(samples, names[N_APPEND], row);
     if (rc == NULL)
         return -1;
     Py_DECREF(rc);
-    if (set_attr(parts[P_WINDOW], N_ADDED, added) < 0)
+    if (set_attr(fp[F_WINDOW], N_ADDED, added) < 0)
         return -1;
     int64_t length_ns;
-    if (as_i64(parts[P_WINDOW_NS], &length_ns, NULL) != 1) {
+    if (as_i64(fp[F_WINDOW_NS], &length_ns, NULL) != 1) {
         if (!PyErr_Occurred())
             PyErr_SetString(PyExc_ValueError, "imu_read: the window's length is no small int");
         return -1;
@@ -518,7 +541,7 @@ static int predict(Read *r, const double acc[3], const double gyro[3], double dt
     return interval >= propagate_every_s;
 }
 
-/* the numbers of parts[P_CONSTS] into c */
+/* the numbers of the step parts' F_CONSTS into c */
 static int numbers_of(PyObject *consts, double c[C_COUNT])
 {
     /* those of the last parts seen are kept, with a reference to them (so that no other
@@ -540,6 +563,81 @@ static int numbers_of(PyObject *consts, double c[C_COUNT])
     return 0;
 }
 
+/* The step parts and their numbers, checked: 0, or -1 with an error set. */
+static int step_parts(PyObject *obj, PyObject *const **fp, double c[C_COUNT])
+{
+    if (!PyTuple_Check(obj) || PyTuple_GET_SIZE(obj) != F_COUNT ||
+        !PyTuple_Check(PyTuple_GET_ITEM(obj, F_CONSTS)) ||
+        PyTuple_GET_SIZE(PyTuple_GET_ITEM(obj, F_CONSTS)) != C_COUNT) {
+        PyErr_SetString(PyExc_TypeError, "the step's parts are not as Filter makes them");
+        return -1;
+    }
+    *fp = &PyTuple_GET_ITEM(obj, 0);
+    return numbers_of(PyTuple_GET_ITEM(obj, F_CONSTS), c);
+}
+
+/* Filter._predict's writes, in its order, once everything is made: 1 done and the
+ * covariance is due (Filter.finish_prediction goes on), 0 done, -1 an error. */
+static int step_writes(PyObject *const *fp, PyObject *t_obj, const double *c, Read *r,
+                       PyObject **o)
+{
+    PyObject *filter = fp[F_FILTER], *check = fp[F_CHECK];
+    if (/* ImuCheck.judge */
+        set_attr(check, N_JUMP_RUN, o[O_ZERO]) < 0 || set_attr(check, N_LAST_GOOD, o[O_PAIR]) < 0 ||
+        set_attr(check, N_BURST, Py_None) < 0 || set_attr(check, N_LAST_NS, t_obj) < 0 ||
+        (r->first_none && set_attr(filter, N_FIRST_T, t_obj) < 0) ||
+        set_attr(filter, N_IMU_T, t_obj) < 0 ||
+        window_add(fp, r->t, o[O_ROW], o[O_ADDED]) < 0 ||
+        set_attr(filter, N_GOOD_T, t_obj) < 0)
+        return -1;
+    if (r->filter_running) {
+        double dt = (double)(r->t - r->state_t) / 1e9;
+        if (dt > 0) {
+            int due = predict(r, r->ab, r->gb, dt, c[C_PROPAGATE]);
+            if (due != 0)
+                return due; /* (due: t_ns and _last_imu are set after the propagation) */
+        }
+        if (set_attr(filter, N_T, t_obj) < 0)
+            return -1;
+    }
+    return set_attr(filter, N_LAST_IMU, o[O_BODY]) < 0 ? -1 : 0;
+}
+
+/* imu_step(step_parts, t_ns, acc, gyro) -> True | body | None: Filter.predict's common
+ * sample (checked, in order, the filter running or waiting for its start); body: done, and
+ * the covariance is due (Filter.finish_prediction); None: nothing changed, Python's. */
+PyObject *uwbd_imu_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    PyObject *const *fp;
+    double c[C_COUNT];
+    if (nargs != 4) {
+        PyErr_SetString(PyExc_TypeError, "imu_step(parts, t_ns, acc, gyro)");
+        return NULL;
+    }
+    if (step_parts(args[0], &fp, c) < 0)
+        return NULL;
+    Read r = {0};
+    PyObject *o[O_COUNT] = {NULL}, *t_obj = args[1], *acc = args[2], *gyro = args[3];
+    int t = as_i64(t_obj, &r.t, NULL);
+    if (t == 1 && !(PyTuple_CheckExact(acc) && floats_of(acc, r.acc, 3) &&
+                    PyTuple_CheckExact(gyro) && floats_of(gyro, r.gyro, 3)))
+        t = 0; /* (a sample not of plain floats: Python's) */
+    if (t == 1)
+        t = step_takes(fp, c, &r);
+    if (t == 1)
+        t = step_objects(fp, t_obj, c, &r, acc, gyro, o) < 0 ? -1 : 1;
+    PyObject *out = NULL;
+    if (t == 1) {
+        int due = step_writes(fp, t_obj, c, &r, o);
+        out = due < 0 ? NULL : due ? Py_NewRef(o[O_BODY]) : Py_NewRef(Py_True);
+    } else if (t == 0) {
+        out = Py_NewRef(Py_None);
+    }
+    release(&r, o);
+    return out;
+}
+
 PyObject *uwbd_imu_read(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)self;
@@ -547,24 +645,30 @@ PyObject *uwbd_imu_read(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         PyErr_SetString(PyExc_TypeError, "imu_read(parts, data, t_ns)");
         return NULL;
     }
-    PyObject *const *parts = &PyTuple_GET_ITEM(args[0], 0);
-    PyObject *consts = parts[P_CONSTS], *t_obj = args[2];
-    if (!PyTuple_Check(consts) || PyTuple_GET_SIZE(consts) != C_COUNT ||
-        !PyTuple_Check(parts[P_FIELDS]) || PyTuple_GET_SIZE(parts[P_FIELDS]) != SAMPLE_FIELDS ||
-        !PyType_Check(parts[P_SAMPLE_TYPE])) {
+    PyObject *const *parts = &PyTuple_GET_ITEM(args[0], 0), *const *fp;
+    PyObject *divisors = parts[P_DIVISORS], *t_obj = args[2];
+    double c[C_COUNT], d[D_COUNT];
+    if (!PyTuple_Check(parts[P_FIELDS]) || PyTuple_GET_SIZE(parts[P_FIELDS]) != SAMPLE_FIELDS ||
+        !PyType_Check(parts[P_SAMPLE_TYPE]) || !PyTuple_Check(divisors) ||
+        PyTuple_GET_SIZE(divisors) != D_COUNT) {
         PyErr_SetString(PyExc_TypeError, "imu_read: parts not as imu_read_path makes them");
         return NULL;
     }
-    double c[C_COUNT];
-    if (numbers_of(consts, c) < 0)
+    if (step_parts(parts[P_STEP], &fp, c) < 0)
         return NULL;
+    for (int i = 0; i < D_COUNT; i++)
+        if ((d[i] = PyFloat_AsDouble(PyTuple_GET_ITEM(divisors, i))) == -1.0 && PyErr_Occurred())
+            return NULL;
     Read r = {0};
     PyObject *o[O_COUNT] = {NULL};
     int t = as_i64(t_obj, &r.t, NULL);
     if (t == 1)
-        t = takes(parts, args[1], c, &r);
+        t = read_takes(parts, args[1], d, &r);
     if (t == 1)
-        t = make_objects(parts, t_obj, c, &r, o) < 0 ? -1 : 1;
+        t = step_takes(fp, c, &r);
+    if (t == 1)
+        t = read_objects(parts, t_obj, &r, o) < 0 ||
+            step_objects(fp, t_obj, c, &r, o[O_ACC], o[O_GYRO], o) < 0 ? -1 : 1;
     if (t <= 0) {
         release(&r, o);
         if (t < 0)
@@ -572,44 +676,22 @@ PyObject *uwbd_imu_read(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         Py_RETURN_NONE;
     }
     /* Taken: from here on, the writes, in the order the Python code makes them. */
-    PyObject *out = NULL, *parser = parts[P_PARSER], *filter = parts[P_FILTER];
-    PyObject *check = parts[P_CHECK];
+    PyObject *out = NULL, *parser = parts[P_PARSER];
+    int due = -1;
     if (/* the parser (WitParser._common_cycle) */
-        set_attr(parts[P_STATS], N_BYTES_IN, o[O_BYTES_IN]) < 0 ||
-        set_attr(parser, N_BASE, o[O_BASE]) < 0 || set_attr(parser, N_CYCLE_T, t_obj) < 0 ||
-        set_attr(parts[P_STATS], N_FRAMES, o[O_FRAMES]) < 0 ||
+        set_attr(parts[P_STATS], N_BYTES_IN, o[O_BYTES_IN]) >= 0 &&
+        set_attr(parser, N_BASE, o[O_BASE]) >= 0 && set_attr(parser, N_CYCLE_T, t_obj) >= 0 &&
+        set_attr(parts[P_STATS], N_FRAMES, o[O_FRAMES]) >= 0 &&
         /* Pipeline._spread, Aligner.push */
-        (r.has_period && PyDict_SetItem(parts[P_PERIOD], parts[P_SOURCE], o[O_PERIOD]) < 0) ||
-        PyDict_SetItem(parts[P_LAST_FRAME], parts[P_SOURCE], t_obj) < 0 ||
-        set_attr(parts[P_ALIGNER], N_CLOCK, t_obj) < 0 ||
-        set_attr(parts[P_ALIGNER], N_RELEASED, t_obj) < 0 ||
-        /* ImuCheck.judge */
-        set_attr(check, N_JUMP_RUN, o[O_ZERO]) < 0 || set_attr(check, N_LAST_GOOD, o[O_PAIR]) < 0 ||
-        set_attr(check, N_BURST, Py_None) < 0 || set_attr(check, N_LAST_NS, t_obj) < 0 ||
-        /* Filter._predict */
-        (r.first_none && set_attr(filter, N_FIRST_T, t_obj) < 0) ||
-        set_attr(filter, N_IMU_T, t_obj) < 0 ||
-        window_add(parts, r.t, o[O_ROW], o[O_ADDED]) < 0 ||
-        set_attr(filter, N_GOOD_T, t_obj) < 0)
-        goto done;
-    if (r.filter_running) {
-        double dt = (double)(r.t - r.state_t) / 1e9;
-        if (dt > 0) {
-            int due = predict(&r, r.ab, r.gb, dt, c[C_PROPAGATE]);
-            if (due < 0)
-                goto done;
-            if (due) { /* Filter.finish_prediction propagates, then sets t_ns and _last_imu */
-                out = PyTuple_Pack(2, o[O_SAMPLE], o[O_BODY]);
-                goto done;
-            }
-        }
-        if (set_attr(filter, N_T, t_obj) < 0)
-            goto done;
-    }
-    if (set_attr(filter, N_LAST_IMU, o[O_BODY]) < 0)
-        goto done;
-    out = Py_NewRef(o[O_SAMPLE]);
-done:
+        (!r.has_period || PyDict_SetItem(parts[P_PERIOD], parts[P_SOURCE], o[O_PERIOD]) >= 0) &&
+        PyDict_SetItem(parts[P_LAST_FRAME], parts[P_SOURCE], t_obj) >= 0 &&
+        set_attr(parts[P_ALIGNER], N_CLOCK, t_obj) >= 0 &&
+        set_attr(parts[P_ALIGNER], N_RELEASED, t_obj) >= 0)
+        due = step_writes(fp, t_obj, c, &r, o); /* Filter._predict */
+    if (due == 0)
+        out = Py_NewRef(o[O_SAMPLE]);
+    else if (due > 0) /* Filter.finish_prediction propagates, then sets t_ns and _last_imu */
+        out = PyTuple_Pack(2, o[O_SAMPLE], o[O_BODY]);
     release(&r, o);
     return out;
 }

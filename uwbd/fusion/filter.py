@@ -35,6 +35,7 @@ Without ranges the state coasts and its covariance grows.
 from __future__ import annotations
 
 import collections
+import functools
 import math
 from typing import Any
 
@@ -154,6 +155,12 @@ class Filter(Recovery, EpochFusion):
         self._gate_3 = chi2_quantile(config.gate_probability, 3)
         self._pose_T = np.zeros((6, TH_.stop))  # pose(): (p, v, θ) -> (p, R θ)
         self._pose_T[:3, P_] = np.eye(3)
+        # the common IMU sample whole on the C core (None: the pure-Python reference);
+        # step_parts: what it works on, for the pipeline's common read too
+        core = native.core
+        self.step_parts = self._step_parts()
+        self.imu_step = (None if core is None
+                         else functools.partial(core.imu_step, self.step_parts))
 
     def _layout(self) -> None:
         """What follows from the anchors: the mirror side of a plane of them, the height
@@ -185,16 +192,23 @@ class Filter(Recovery, EpochFusion):
     # -- inputs ---------------------------------------------------------------------------
     def predict(self, imu: ImuSample) -> None:
         """Integrate one IMU sample (sensor axes); bad samples are counted, never used."""
+        step = self.imu_step
+        if step is not None:  # the common sample, whole, on the C core
+            done = step(imu.t_ns, imu.acc_mps2, imu.gyro_rps)
+            if done is not None:
+                if done is not True:
+                    self.finish_prediction(imu.t_ns, done)
+                return
         try:
             self._predict(imu)
         except NUMERICAL_ERRORS as err:
             self._internal_error(imu.t_ns, err)
 
-    def read_path(self) -> tuple[Any, ...]:
-        """What the C core's common IMU read (``_core.imu_read``, ``_imu_read.c``) uses of
-        this filter besides itself, in that file's order: the IMU check, the rest window and
-        its samples, the numbers (body maps, the check's limits, the largest IMU gap, how
-        often the covariance follows), and the window's length in ns."""
+    def _step_parts(self) -> tuple[Any, ...]:
+        """What the C core's common IMU step (``_core.imu_step``, ``_imu_read.c``) reads and
+        writes, in that file's order: this filter, its IMU check and rest window (their
+        namespaces), the window's rows, the numbers (body maps, the check's limits, the
+        largest IMU gap, how often the covariance follows), the window's length in ns."""
         cfg, check = self.cfg, self.imu_check
         (a, b, c), (d, e, f), (g, h, i) = self._C
         maps = body_maps(((a, b, c), (d, e, f), (g, h, i)), cfg.imu_intrinsics)
@@ -203,12 +217,12 @@ class Filter(Recovery, EpochFusion):
                    maps.gyro_band, check.acc_clip, check.gyro_clip,
                    check.limits.max_acc_jump_mps2, check.limits.max_gyro_jump_rps,
                    check.limits.max_jump_run, cfg.max_imu_gap_s, PROPAGATE_EVERY_S)
-        return (check, self.window, self.window.samples, tuple(map(float, numbers)),
-                self.window.length_ns)
+        return (vars(self), vars(check), vars(self.window), self.window.samples,
+                tuple(map(float, numbers)), self.window.length_ns)
 
     def finish_prediction(self, t_ns: int, body: tuple[Vec3, Vec3]) -> None:
-        """The C core's read path integrated the sample of ``t_ns`` and the covariance is
-        due: what :meth:`_predict` does next."""
+        """The C core's step integrated the sample of ``t_ns`` (``body``: in body axes) and
+        the covariance is due: what :meth:`_predict` does next."""
         try:
             assert self.ekf is not None
             self.ekf.propagate()

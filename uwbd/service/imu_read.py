@@ -34,13 +34,11 @@ def imu_read_path(parser: Parser, pipeline: Pipeline, source: str) -> ImuRead | 
     ``(sample, body)`` when the filter's covariance is due
     (:meth:`~uwbd.fusion.filter.Filter.finish_prediction`), or ``None``."""
     core = native.core
-    if core is None or type(parser) is not WitParser:
+    if core is None or type(parser) is not WitParser or pipeline.filter.imu_step is None:
         return None
-    check, window, samples, numbers, window_ns = pipeline.filter.read_path()
     # the objects as their namespaces (vars: the live __dict__ of each), which the C core
     # reads and writes as the Python code's attribute access does, at a quarter of the cost
     parts = (vars(parser), vars(parser.stats), pipeline._last_frame_ns,
-             pipeline._period_ns, source, vars(pipeline.aligner),
-             vars(pipeline.filter), vars(check), vars(window), samples, ImuSample,
-             _SAMPLE_FIELDS, (*numbers, ACC_DIV, GYRO_DIV, float(TEMP_DIV)), window_ns)
+             pipeline._period_ns, source, vars(pipeline.aligner), ImuSample, _SAMPLE_FIELDS,
+             (ACC_DIV, GYRO_DIV, float(TEMP_DIV)), pipeline.filter.step_parts)
     return functools.partial(core.imu_read, parts)
