@@ -5,6 +5,7 @@ event loop reading instead, is tests/test_daemon.py's.)"""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import errno
 import os
@@ -14,11 +15,14 @@ import threading
 import time
 import tty
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from types import ModuleType
 
 import pytest
 
-from uwbd.service.ports import _reader_module
+from uwbd.config import parse
+from uwbd.service.pipeline import Pipeline
+from uwbd.service.ports import EpochClock, ReadQueue, SerialSource, ThreadReads, _reader_module
 
 READER = _reader_module()
 pytestmark = pytest.mark.skipif(READER is None, reason="the C reader is not built or ruled out")
@@ -180,3 +184,33 @@ def test_many_ports_at_once(reader, port) -> None:
     os.write(pairs[63][0], b"z")
     assert wait_wake(r)
     assert [(s, d) for s, _, d, _ in r.drain()] == [(63, b"z")]
+
+
+def test_a_port_lost_twice_at_once_is_lost_once(tmp_path: Path) -> None:
+    """At an unplug a polled device's write fails in Python while the thread's read fails
+    too: one loss, one retry, whichever is told first."""
+    assert READER is not None
+    device, ours = pty.openpty()
+    config = parse(f'[[sources]]\nname = "uwb"\ndriver = "nlink"\nport = "{os.ttyname(ours)}"\n'
+                   'baud = 921600\n[anchors]\n"0" = [0, 0, 2]\n"1" = [5, 0, 2]\n'
+                   '"2" = [0, 5, 2]\n"3" = [5, 5, 0.5]\n', "test")
+
+    async def unplug() -> SerialSource:
+        loop = asyncio.get_running_loop()
+        queue = ReadQueue(Pipeline(config, []))
+        clock = EpochClock()
+        reads = ThreadReads(loop, clock, queue, READER)
+        source = SerialSource(config.sources[0], queue, loop, clock, reads)
+        source.start()
+        assert source.info.state == "open"
+        os.close(device)  # unplugged: the thread reads the end of the port ...
+        time.sleep(0.2)  # (the loop held back, so that the thread's loss waits)
+        source.lost(OSError(errno.EIO, "Input/output error"))  # ... and a write failed
+        await asyncio.sleep(0.3)  # the thread's loss is taken now
+        source.close()
+        reads.close()
+        return source
+
+    source = asyncio.run(unplug())
+    os.close(ours)
+    assert source.info.losses == 1

@@ -297,13 +297,16 @@ class ThreadReads:
     def watch(self, source: SerialSource) -> None:
         token = self._next_token
         self._next_token += 1
+        self._reader.add(source.fd, token, source.cfg.driver not in IMU_ONLY_DRIVERS)
         self._tokens[token] = source
         source.token = token
-        self._reader.add(source.fd, token, source.cfg.driver not in IMU_ONLY_DRIVERS)
 
     def unwatch(self, source: SerialSource) -> None:
         self._reader.remove(source.fd)  # not read again once this returns
         self._retired.append(source.token)
+        # a loss the thread saw before this is no longer news: the port is released already
+        # (by a failed write, say, at the same unplug), its retry under way
+        source.token = -1
 
     def drain(self) -> None:
         """The held reads into the queue, in order; lost ports to their source."""
