@@ -10,6 +10,7 @@ a held aligner), so that every place where the core declines is crossed both way
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -226,3 +227,27 @@ def test_a_read_the_path_declines_changes_nothing() -> None:
     assert state(pipeline) == before
     assert path(data, t_ns) is not None
     assert state(pipeline)["window"][1] == before["window"][1] + 1
+
+
+@needs_core
+def test_a_sample_the_check_rejects_is_left_to_python() -> None:
+    """Filter.predict's C step takes only what the check passes: not finite, saturated or
+    jumping samples (from any driver) go to the reference, which counts them."""
+    toml, stream = reads(6.0, seed=9)
+    pipeline = Pipeline(parse(toml), [])
+    for source, t_ns, data in stream[:300]:
+        pipeline.on_bytes(source, t_ns, data)
+    flt = pipeline.filter
+    assert flt.imu_step is not None and flt.ekf is not None
+    before = state(pipeline)
+    t_ns = before["filter"][1] + 5_000_000
+    good = (0.1, 0.2, 9.8)
+    for acc, gyro in (((math.nan, 0.2, 9.8), (0.0, 0.0, 0.0)), (good, (0.0, math.inf, 0.0)),
+                      ((157.0, 0.0, 9.8), (0.0, 0.0, 0.0)), ((90.0, 0.0, 9.8), (0.0, 0.0, 0.0)),
+                      ((1, 2, 3), (0.0, 0.0, 0.0))):
+        assert flt.imu_step(t_ns, acc, gyro) is None, (acc, gyro)
+    last_good, flt.imu_check.last_good = flt.imu_check.last_good, None  # no jump test then
+    assert flt.imu_step(t_ns, (math.nan, 0.2, 9.8), (0.0, 0.0, 0.0)) is None
+    flt.imu_check.last_good = last_good
+    assert state(pipeline) == before
+    assert flt.imu_step(t_ns, good, (0.0, 0.0, 0.0)) is not None

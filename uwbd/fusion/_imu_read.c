@@ -218,8 +218,9 @@ static int check_passes(PyObject *check, const double *c, const double acc[3],
                         const double gyro[3])
 {
     for (int i = 0; i < 3; i++)
-        if (fabs(acc[i]) >= c[C_ACC_CLIP] || fabs(gyro[i]) >= c[C_GYRO_CLIP])
-            return 0; /* imu_saturated (the values come from int16s: always finite) */
+        if (!isfinite(acc[i]) || !isfinite(gyro[i]) || fabs(acc[i]) >= c[C_ACC_CLIP] ||
+            fabs(gyro[i]) >= c[C_GYRO_CLIP])
+            return 0; /* imu_not_finite, imu_saturated */
     PyObject *last = attr(check, N_LAST_GOOD);
     if (last == NULL)
         return -1;
