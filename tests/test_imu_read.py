@@ -17,11 +17,12 @@ from typing import Any
 import pytest
 
 from drivers.emulator.faults import FaultCounts, Faults, Window, inject
-from drivers.frames import ImuSample
+from drivers.frames import ImuSample, UwbRanges
 from drivers.nlink import encode as encode_nlink
 from drivers.wit import encode as encode_wit
 from uwbd.config import apply_overrides, parse
 from uwbd.fusion import native
+from uwbd.fusion.filter import Filter
 from uwbd.service.pipeline import Pipeline, PoseList
 from uwbd.tools.logtools import simulation_toml
 from uwbd.tools.simulator import SimConfig, simulate
@@ -251,3 +252,27 @@ def test_a_sample_the_check_rejects_is_left_to_python() -> None:
     flt.imu_check.last_good = last_good
     assert state(pipeline) == before
     assert flt.imu_step(t_ns, good, (0.0, 0.0, 0.0)) is not None
+
+
+@needs_core
+@pytest.mark.parametrize("first_t", [True, 1.0, 0])
+def test_a_window_row_python_stamped_otherwise_is_compared_as_python_does(
+        first_t: object) -> None:
+    """A sample the step declined (its time a bool or a float) is in the rest window when
+    the next ones are taken: the step ages the window out with Python's own comparison."""
+    sim = simulate(SimConfig(seed=1, segments=((3.0, 0.0, 0.0, 0.0),)))
+    cfg = parse(simulation_toml(sim)).filter_config()
+    acc, gyro = sim.imu[0].acc_mps2, sim.imu[0].gyro_rps
+    filters = []
+    for use_c in (True, False):
+        flt = Filter(cfg)
+        if not use_c:
+            flt.imu_step = None
+        flt.update(UwbRanges(0, ()))  # the data begin with the tag: the first time an int
+        for t_ns in (first_t, 5_000_000, 10_000_000, 2_000_000_000):
+            flt.predict(ImuSample(t_ns, acc, gyro))  # type: ignore[arg-type]
+        filters.append(flt)
+    fast, slow = filters
+    assert list(fast.window.samples) == list(slow.window.samples)
+    assert (fast._imu_t_ns, fast._good_imu_ns, fast._last_imu, vars(fast.imu_check)) == \
+        (slow._imu_t_ns, slow._good_imu_ns, slow._last_imu, vars(slow.imu_check))

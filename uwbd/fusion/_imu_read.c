@@ -282,7 +282,7 @@ typedef struct {
 } Read;
 
 enum { O_ACC, O_GYRO, O_TEMP, O_SAMPLE, O_BYTES_IN, O_BASE, O_FRAMES, O_PERIOD, O_PAIR,
-       O_ZERO, O_BODY, O_ROW, O_ADDED, O_COUNT };
+       O_ZERO, O_BODY, O_ROW, O_ADDED, O_OLDEST, O_COUNT };
 
 static void release(Read *r, PyObject **o)
 {
@@ -391,6 +391,8 @@ static int step_takes(PyObject *const *fp, const double *c, Read *r)
 {
     int t, none;
     int64_t previous;
+    if ((t = as_i64(fp[F_WINDOW_NS], &previous, NULL)) <= 0)
+        return t; /* (a window of 2^62 ns or more: Python's) */
     PyObject *filter = fp[F_FILTER];
     if ((t = attr_i64(filter, N_IMU_T, &r->prev, &none)) <= 0 || none)
         return t < 0 ? -1 : 0; /* the first sample: Python's */
@@ -449,7 +451,8 @@ static int step_objects(PyObject *const *fp, PyObject *t_obj, const double *c, R
         affine(c + C_GYRO_M, c + C_GYRO_B, r->gyro, gb);
     if ((o[O_PAIR] = PyTuple_Pack(2, acc, gyro)) == NULL ||
         (o[O_ZERO] = PyLong_FromLong(0)) == NULL ||
-        (o[O_ADDED] = plus(fp[F_WINDOW], N_ADDED, 1)) == NULL)
+        (o[O_ADDED] = plus(fp[F_WINDOW], N_ADDED, 1)) == NULL ||
+        (o[O_OLDEST] = PyNumber_Subtract(t_obj, fp[F_WINDOW_NS])) == NULL)
         return -1;
     PyObject *ab_t = float_tuple(ab, 3), *gb_t = ab_t == NULL ? NULL : float_tuple(gb, 3);
     o[O_BODY] = gb_t == NULL ? NULL : PyTuple_Pack(2, ab_t, gb_t);
@@ -470,7 +473,7 @@ static int step_objects(PyObject *const *fp, PyObject *t_obj, const double *c, R
 }
 
 /* ImuWindow.add: the row in, those older than the window out */
-static int window_add(PyObject *const *fp, int64_t t, PyObject *row, PyObject *added)
+static int window_add(PyObject *const *fp, PyObject *row, PyObject *added, PyObject *oldest)
 {
     PyObject *samples = fp[F_SAMPLES];
     PyObject *rc = PyObject_CallMethodOneArg(samples, names[N_APPEND], row);
@@ -479,28 +482,20 @@ static int window_add(PyObject *const *fp, int64_t t, PyObject *row, PyObject *a
     Py_DECREF(rc);
     if (set_attr(fp[F_WINDOW], N_ADDED, added) < 0)
         return -1;
-    int64_t length_ns;
-    if (as_i64(fp[F_WINDOW_NS], &length_ns, NULL) != 1) {
-        if (!PyErr_Occurred())
-            PyErr_SetString(PyExc_ValueError, "imu_read: the window's length is no small int");
-        return -1;
-    }
-    int64_t oldest = t - length_ns;
-    for (;;) {
+    for (;;) { /* while samples[0][0] < oldest_ns: popleft() */
         PyObject *first = PySequence_GetItem(samples, 0);
         if (first == NULL)
             return -1;
-        int64_t first_ns = 0;
-        int got = PyTuple_Check(first) && PyTuple_GET_SIZE(first) > 0
-            ? as_i64(PyTuple_GET_ITEM(first, 0), &first_ns, NULL) : 0;
-        Py_DECREF(first);
-        if (got != 1) {
-            if (!PyErr_Occurred())
-                PyErr_SetString(PyExc_TypeError, "imu_read: a window row is not (t_ns, ...)");
+        if (!PyTuple_Check(first) || PyTuple_GET_SIZE(first) == 0) {
+            Py_DECREF(first);
+            PyErr_SetString(PyExc_TypeError, "imu_read: a window row is not (t_ns, ...)");
             return -1;
         }
-        if (first_ns >= oldest)
-            return 0;
+        /* Python's own comparison: a row's time may be any number Python put there */
+        int older = PyObject_RichCompareBool(PyTuple_GET_ITEM(first, 0), oldest, Py_LT);
+        Py_DECREF(first);
+        if (older <= 0)
+            return older;
         rc = PyObject_CallMethodNoArgs(samples, names[N_POPLEFT]);
         if (rc == NULL)
             return -1;
@@ -588,7 +583,7 @@ static int step_writes(PyObject *const *fp, PyObject *t_obj, const double *c, Re
         set_attr(check, N_BURST, Py_None) < 0 || set_attr(check, N_LAST_NS, t_obj) < 0 ||
         (r->first_none && set_attr(filter, N_FIRST_T, t_obj) < 0) ||
         set_attr(filter, N_IMU_T, t_obj) < 0 ||
-        window_add(fp, r->t, o[O_ROW], o[O_ADDED]) < 0 ||
+        window_add(fp, o[O_ROW], o[O_ADDED], o[O_OLDEST]) < 0 ||
         set_attr(filter, N_GOOD_T, t_obj) < 0)
         return -1;
     if (r->filter_running) {

@@ -111,7 +111,7 @@ class Pipeline:
             body = None
             if sample.__class__ is tuple:  # and the covariance is due
                 sample, body = sample
-            self._frame_to_sinks(sample)  # the frame's sinks first, as on the way below
+            self._frame_to_sinks(sample)  # (after the INS step: no sink reads the filter)
             if body is not None:
                 self.filter.finish_prediction(sample.t_ns, body)
             if sample.t_ns - self._last_pose_ns >= self._pose_period_ns:
