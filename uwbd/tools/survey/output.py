@@ -1,0 +1,84 @@
+"""A survey written out: the ``[anchors]`` table, a TOML snippet, a config with them."""
+
+from __future__ import annotations
+
+import math
+import sys
+from typing import Any
+
+from uwbd.config import ConfigError, parse
+from uwbd.config.overrides import write_toml
+from uwbd.config.schema import anchor_id
+from uwbd.tools.survey.model import Survey, SurveyError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+
+def table(result: Survey) -> str:
+    """The positions, their 1-σ and the change from the config, one line per anchor."""
+    lines = [f"{'anchor':>6} {'x m':>9} {'y m':>9} {'z m':>8}  {'σx':>6} {'σy':>6} {'σz':>6}"
+             f"  {'Δx':>7} {'Δy':>7} {'Δz':>7} {'|Δ|':>6}"
+             + ("  offset m" if any(e.range_offset_m is not None
+                                     for e in result.anchors.values()) else "")]
+    for a, e in sorted(result.anchors.items()):
+        x, y, zz = e.position_m
+        sx, sy, sz = e.sigma_m
+        line = f"{a:>6} {x:9.3f} {y:9.3f} {zz:8.3f}  {sx:6.3f} {sy:6.3f} {sz:6.3f}"
+        d = e.change_m
+        line += (f"  {d[0]:+7.3f} {d[1]:+7.3f} {d[2]:+7.3f} {math.hypot(*d):6.3f}"
+                 if d is not None else f"  {'(not in the config)':>30}")
+        if e.range_offset_m is not None and e.range_offset_sigma_m is not None:
+            line += f"  {e.range_offset_m:+.3f} ± {e.range_offset_sigma_m:.3f}"
+        if not e.surveyed:
+            line += "  (no ranges: as configured)"
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def anchors_document(result: Survey, header: str) -> str:
+    """A TOML file holding the surveyed ``[anchors]`` table (mm), checked by
+    :func:`uwbd.config.parse`."""
+    doc = {"anchors": {str(a): [round(v, 3) for v in p] for a, p in result.positions().items()}}
+    text = _comment(header) + write_toml(doc)
+    _check(text, "the anchors file")
+    return text
+
+
+def with_anchors(config_text: str, result: Survey, header: str, where: str) -> str:
+    """``config_text`` with its ``[anchors]`` replaced by the surveyed ones (each keeping the
+    key it was spelt with; anchors the survey did not see kept), as a TOML document that
+    :func:`uwbd.config.parse` accepts. Comments are not kept."""
+    try:
+        doc = tomllib.loads(config_text)
+    except tomllib.TOMLDecodeError as err:
+        raise SurveyError(f"{where}: {err}") from err
+    table_in = doc.get("anchors", {})
+    if not isinstance(table_in, dict):
+        raise SurveyError(f"{where}: anchors: not a table")
+    out: dict[str, Any] = {}
+    spelt = {anchor_id(k): k for k in table_in}
+    positions = result.positions()
+    for k, v in table_in.items():
+        a = anchor_id(k)
+        out[k] = [round(c, 3) for c in positions[a]] if a in positions else v
+    for a, p in positions.items():
+        if a not in spelt:
+            out[str(a)] = [round(c, 3) for c in p]
+    doc["anchors"] = out
+    text = _comment(header) + write_toml(doc)
+    _check(text, where)
+    return text
+
+
+def _comment(header: str) -> str:
+    return "".join(f"# {line}\n" for line in header.splitlines()) + "\n"
+
+
+def _check(text: str, where: str) -> None:
+    try:
+        parse(text, where)
+    except ConfigError as err:  # a bug here, not the user's: say it as such
+        raise RuntimeError(f"the written config would not parse: {err}") from err
