@@ -82,6 +82,22 @@ int uwbd_set_list(PyObject *list, const double *v, Py_ssize_t n)
     return 0;
 }
 
+/* A new list (as_list) or tuple of n floats; NULL with an error set. */
+PyObject *uwbd_floats(const double *v, Py_ssize_t n, int as_list)
+{
+    PyObject *out = as_list ? PyList_New(n) : PyTuple_New(n);
+    for (Py_ssize_t i = 0; out != NULL && i < n; i++) {
+        PyObject *f = PyFloat_FromDouble(v[i]);
+        if (f == NULL)
+            Py_CLEAR(out);
+        else if (as_list)
+            PyList_SET_ITEM(out, i, f);
+        else
+            PyTuple_SET_ITEM(out, i, f);
+    }
+    return out;
+}
+
 /* q ⊗ Exp(θ), normalised: eskf._turned */
 static void turned(const double q[4], double tx, double ty, double tz, double out[4])
 {
@@ -1082,17 +1098,7 @@ static PyObject *core_leverages(PyObject *self, PyObject *const *args, Py_ssize_
         out = Py_NewRef(Py_None);
         goto done;
     }
-    out = PyList_New(k);
-    if (out == NULL)
-        goto done;
-    for (Py_ssize_t a = 0; a < k; a++) {
-        PyObject *f = PyFloat_FromDouble(h[a]);
-        if (f == NULL) {
-            Py_CLEAR(out);
-            goto done;
-        }
-        PyList_SET_ITEM(out, a, f);
-    }
+    out = uwbd_floats(h, k, 1);
 done:
     PyMem_Free(h);
     PyBuffer_Release(&Ab);

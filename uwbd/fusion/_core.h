@@ -9,6 +9,8 @@
 
 /* Three (or four) floats out of a list or tuple of floats. */
 int uwbd_get_vec(PyObject *seq, double *out, Py_ssize_t n, const char *what);
+/* A new list (as_list) or tuple of n floats; NULL with an error set. */
+PyObject *uwbd_floats(const double *v, Py_ssize_t n, int as_list);
 /* Store doubles back into an existing list of that length, in place. */
 int uwbd_set_list(PyObject *list, const double *v, Py_ssize_t n);
 /* Eskf.predict's arithmetic: p, v, sum_fn, sum_w in place, the new q in qn. */

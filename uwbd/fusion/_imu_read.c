@@ -156,23 +156,6 @@ static int item_i64(PyObject *dict, PyObject *key, int64_t *out, int *none)
 
 /* -- values ------------------------------------------------------------------------------ */
 
-/* A tuple of n floats (new). */
-static PyObject *float_tuple(const double *v, Py_ssize_t n)
-{
-    PyObject *t = PyTuple_New(n);
-    if (t == NULL)
-        return NULL;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        PyObject *f = PyFloat_FromDouble(v[i]);
-        if (f == NULL) {
-            Py_DECREF(t);
-            return NULL;
-        }
-        PyTuple_SET_ITEM(t, i, f);
-    }
-    return t;
-}
-
 /* n floats out of a list or tuple of exactly n floats (the state's vectors): 1, else 0. */
 static int floats_of(PyObject *seq, double *out, Py_ssize_t n)
 {
@@ -423,8 +406,8 @@ static int step_takes(PyObject *const *fp, const double *c, Read *r)
 /* Every object the read's own writes store, made now: 0, or -1 with an error set. */
 static int read_objects(PyObject *const *parts, PyObject *t_obj, Read *r, PyObject **o)
 {
-    if ((o[O_ACC] = float_tuple(r->acc, 3)) == NULL ||
-        (o[O_GYRO] = float_tuple(r->gyro, 3)) == NULL ||
+    if ((o[O_ACC] = uwbd_floats(r->acc, 3, 0)) == NULL ||
+        (o[O_GYRO] = uwbd_floats(r->gyro, 3, 0)) == NULL ||
         (o[O_TEMP] = PyFloat_FromDouble(r->temp)) == NULL)
         return -1;
     PyObject *values[SAMPLE_FIELDS] = {t_obj, o[O_ACC], o[O_GYRO], o[O_TEMP], Py_None,
@@ -454,7 +437,8 @@ static int step_objects(PyObject *const *fp, PyObject *t_obj, const double *c, R
         (o[O_ADDED] = plus(fp[F_WINDOW], N_ADDED, 1)) == NULL ||
         (o[O_OLDEST] = PyNumber_Subtract(t_obj, fp[F_WINDOW_NS])) == NULL)
         return -1;
-    PyObject *ab_t = float_tuple(ab, 3), *gb_t = ab_t == NULL ? NULL : float_tuple(gb, 3);
+    PyObject *ab_t = uwbd_floats(ab, 3, 0);
+    PyObject *gb_t = ab_t == NULL ? NULL : uwbd_floats(gb, 3, 0);
     o[O_BODY] = gb_t == NULL ? NULL : PyTuple_Pack(2, ab_t, gb_t);
     Py_XDECREF(ab_t);
     Py_XDECREF(gb_t);
@@ -514,17 +498,9 @@ static int predict(Read *r, const double acc[3], const double gyro[3], double dt
     if (uwbd_set_list(r->lists[0], r->st[0], 3) || uwbd_set_list(r->lists[1], r->st[1], 3) ||
         uwbd_set_list(r->lists[5], r->st[5], 3) || uwbd_set_list(r->lists[6], r->st[6], 3))
         return -1;
-    PyObject *q = PyList_New(4);
+    PyObject *q = uwbd_floats(qn, 4, 1);
     if (q == NULL)
         return -1;
-    for (int i = 0; i < 4; i++) {
-        PyObject *f = PyFloat_FromDouble(qn[i]);
-        if (f == NULL) {
-            Py_DECREF(q);
-            return -1;
-        }
-        PyList_SET_ITEM(q, i, f);
-    }
     int failed = set_attr(r->ekf, N_Q, q) < 0;
     Py_DECREF(q);
     double interval = r->interval + dt;
