@@ -15,6 +15,7 @@ the sequence it runs; each step's policy has a module of its own:
 * :mod:`.measurements` — the rows of each measurement model (range, fix, ZUPT, NHC, height);
 * :mod:`.robust` — de-weighting NLOS ranges, per-anchor statistics;
 * :mod:`.health` — the health record, and the evidence for restarts;
+* :mod:`.propagation` — each IMU sample judged, kept and integrated (a mixin of this class);
 * :mod:`.recovery` — the restarts themselves and what triggers them (a mixin of this class);
 * :mod:`.fusing` — one epoch's rows fused and each row's outcome (a mixin of this class);
 * :mod:`.eskf` — the algebra (docs/ekf.md).
@@ -41,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.frames import AnchorRanges, ImuSample, UwbRanges
+from drivers.frames import AnchorRanges, UwbRanges
 from uwbd.fusion import native
 from uwbd.fusion.alignment import HeadingAligner
 from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, Eskf
@@ -51,7 +52,7 @@ from uwbd.fusion.gating import GatingCounters, chi2_quantile, gate
 from uwbd.fusion.health import WAITING, Health, HealthMonitor
 from uwbd.fusion.imu_check import ImuCheck
 from uwbd.fusion.initialise import Start
-from uwbd.fusion.intrinsics import body_maps, to_body
+from uwbd.fusion.intrinsics import to_body
 from uwbd.fusion.lsq import LsqFix, coplanar
 from uwbd.fusion.measurements import (
     Rows,
@@ -60,11 +61,9 @@ from uwbd.fusion.measurements import (
     zupt_rows,
 )
 from uwbd.fusion.mirror import WALL_NORMAL_Z, MirrorSide
+from uwbd.fusion.propagation import NUMERICAL_ERRORS, ImuPropagation
 from uwbd.fusion.recovery import (
-    COAST_ACCEL_SIGMA_MPS2,
     NS,
-    UNSEEN_RATE_SIGMA_RPS,
-    Recovery,
 )
 from uwbd.fusion.rest import ImuWindow, UwbStillness
 from uwbd.fusion.robust import AnchorStats, RowPolicy, quality_scale
@@ -75,16 +74,14 @@ from uwbd.fusion.types import FusionReport, Pose
 
 Vec3 = tuple[float, float, float]
 HELD_YAW_SIGMA_RAD = 1e-3  # the heading's σ while it is held, before the coarse alignment
-PROPAGATE_EVERY_S = 0.1  # the covariance follows the state at least this often (coasting)
 MIN_PROPAGATE_S = 0.02  # and at most this often: P grows little in 20 ms
 CONSTRAINT_EVERY_NS = 95_000_000  # ZUPT, NHC, known height: about 10 Hz
 TILT_CHECK_EVERY_NS = NS // 2
 MAX_ANCHOR_COORD_M = 1e4  # a device-reported anchor farther out than this is garbage
-NUMERICAL_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError)
 MAX_OBSERVABLE_YAW_SIGMA = math.radians(10)  # the heading counts as known below this σ
 
 
-class Filter(Recovery, EpochFusion):
+class Filter(ImuPropagation, EpochFusion):
     """Loosely or tightly coupled UWB/INS error-state EKF (see module doc)."""
 
     def __init__(self, config: FilterConfig, record: bool = False) -> None:
@@ -190,47 +187,6 @@ class Filter(Recovery, EpochFusion):
                                         if (c := index.get(a)) is not None) for a in ids}
 
     # -- inputs ---------------------------------------------------------------------------
-    def predict(self, imu: ImuSample) -> None:
-        """Integrate one IMU sample (sensor axes); bad samples are counted, never used."""
-        step = self.imu_step
-        if step is not None:  # the common sample, whole, on the C core
-            done = step(imu.t_ns, imu.acc_mps2, imu.gyro_rps)
-            if done is not None:
-                if done is not True:
-                    self.finish_prediction(imu.t_ns, done)
-                return
-        try:
-            self._predict(imu)
-        except NUMERICAL_ERRORS as err:
-            self._internal_error(imu.t_ns, err)
-
-    def _step_parts(self) -> tuple[Any, ...]:
-        """What the C core's common IMU step (``_core.imu_step``, ``_imu_read.c``) reads and
-        writes, in that file's order: this filter, its IMU check and rest window (their
-        namespaces), the window's rows, the numbers (body maps, the check's limits, the
-        largest IMU gap, how often the covariance follows), the window's length in ns."""
-        cfg, check = self.cfg, self.imu_check
-        (a, b, c), (d, e, f), (g, h, i) = self._C
-        maps = body_maps(((a, b, c), (d, e, f), (g, h, i)), cfg.imu_intrinsics)
-        numbers = (*(x for row in maps.acc_M for x in row), *maps.acc_b,
-                   *(x for row in maps.gyro_M for x in row), *maps.gyro_b, *maps.gyro_offset,
-                   maps.gyro_band, check.acc_clip, check.gyro_clip,
-                   check.limits.max_acc_jump_mps2, check.limits.max_gyro_jump_rps,
-                   check.limits.max_jump_run, cfg.max_imu_gap_s, PROPAGATE_EVERY_S)
-        return (vars(self), vars(check), vars(self.window), self.window.samples,
-                tuple(map(float, numbers)), self.window.length_ns)
-
-    def finish_prediction(self, t_ns: int, body: tuple[Vec3, Vec3]) -> None:
-        """The C core's step integrated the sample of ``t_ns`` (``body``: in body axes) and
-        the covariance is due: what :meth:`_predict` does next."""
-        try:
-            assert self.ekf is not None
-            self.ekf.propagate()
-        except NUMERICAL_ERRORS as err:
-            self._internal_error(t_ns, err)
-            return
-        self.t_ns = t_ns
-        self._last_imu = body
 
     def update(self, uwb: UwbRanges | AnchorRanges) -> list[FusionReport]:
         """Fuse one UWB message (an epoch, or a single range); one report per measurement.
@@ -242,71 +198,6 @@ class Filter(Recovery, EpochFusion):
         except NUMERICAL_ERRORS as err:
             self._internal_error(uwb.t_ns, err)
             return []
-
-    def _internal_error(self, t_ns: int, err: Exception) -> None:
-        """A numerical failure no check foresaw: counted, said, and the filter restarts
-        rather than let the exception stop fusion."""
-        self.counters["internal_errors"] += 1
-        self.last_internal_error = f"{type(err).__name__}: {err}"
-        self._restart(t_ns, "internal error")
-
-    def _predict(self, imu: ImuSample) -> None:
-        t_ns = imu.t_ns
-        prev = self._imu_t_ns
-        if prev is not None and t_ns <= prev:  # judged no further: it changes nothing
-            a, g = imu.acc_mps2, imu.gyro_rps
-            finite = math.isfinite(a[0] + a[1] + a[2] + g[0] + g[1] + g[2])
-            self.counters["imu_out_of_order" if finite else "imu_not_finite"] += 1
-            return
-        reason = self.imu_check.judge(t_ns, imu.acc_mps2, imu.gyro_rps)
-        if reason:
-            self.counters[reason] += 1
-            self.monitor.imu_rejected(t_ns)
-        if self._first_t_ns is None:
-            self._first_t_ns = t_ns
-        self._imu_t_ns = t_ns
-        gap_s = 0.0 if prev is None else (t_ns - prev) / NS  # since the last sample of any kind
-        if not reason:  # judged raw (full scale is the sensor's), then corrected
-            sample = (self._acc_to_body(imu.acc_mps2), self._gyro_to_body(imu.gyro_rps))
-            self.window.add(t_ns, *sample)
-            self._good_imu_ns = t_ns
-        ekf = self.ekf
-        if ekf is None:
-            if not reason:
-                self._last_imu = sample
-            return
-        assert self.t_ns is not None
-        cfg = self.cfg
-        if self._relevel is not None:  # the attitude restarts once fresh samples span a window
-            self._relevel_when_ready(t_ns)
-            return
-        dt = (t_ns - self.t_ns) / NS
-        if reason:
-            if self.imu_check.burst_s(t_ns) > cfg.attitude_lost_after_s or self._last_imu is None:
-                # held that long, the last good sample says nothing: coast on the ranges
-                self._lose_attitude(t_ns, "IMU samples rejected")
-                return
-            sample = self._last_imu  # integrate over the rejected one with the last good one
-        elif gap_s > cfg.max_imu_gap_s:
-            self.counters["imu_gaps"] += 1
-            self._coasted = True
-            if dt > 0:  # coasted by the ranges up to their last update; on to this sample
-                self._coast(dt)
-            self.t_ns = t_ns
-            self._last_imu = sample
-            if gap_s > cfg.attitude_lost_after_s:
-                self._lose_attitude(t_ns, "IMU gap")
-            else:
-                self.monitor.imu_gap = False
-            return
-        if dt > 0:
-            ekf.predict(sample[0], sample[1], dt)
-            if reason:
-                self._widen_for_unseen(dt)
-            if ekf.interval_s >= PROPAGATE_EVERY_S:
-                ekf.propagate()
-        self.t_ns = t_ns
-        self._last_imu = sample
 
     def _update(self, uwb: UwbRanges) -> list[FusionReport]:
         if self._first_t_ns is None:
@@ -444,12 +335,6 @@ class Filter(Recovery, EpochFusion):
         return (Nominal(np.array(ekf.p), np.array(ekf.v), np.array(ekf.q), np.array(ekf.b_g),
                         np.array(ekf.b_a), ekf.b_r.copy()), ekf.P.copy())
 
-    def _to_body(self, v: tuple[float, float, float]) -> Vec3:
-        """``C_bs v`` in plain floats: this runs for every IMU sample."""
-        (a, b, c), (d, e, f), (g, h, i) = self._C
-        x, y, z = v
-        return (a * x + b * y + c * z, d * x + e * y + f * z, g * x + h * y + i * z)
-
     def _antenna(self) -> Array | None:
         """The antenna's position by the estimate (a start point for least squares)."""
         ekf = self.ekf
@@ -529,31 +414,6 @@ class Filter(Recovery, EpochFusion):
             self._aligned = True
             self.counters["heading_alignments"] += 1
 
-    def _imu_fresh(self, t_ns: int | None = None) -> bool:
-        """The last IMU sample is at most ``max_imu_gap_s`` older than ``t_ns`` (the
-        state's time by default)."""
-        now = self.t_ns if t_ns is None else t_ns
-        return self._relevel is None and self._good_imu_ns is not None and now is not None \
-            and (now - self._good_imu_ns) / NS <= self.cfg.max_imu_gap_s
-
-    def _predict_to(self, t_ns: int) -> None:
-        """Bring the state to the measurement time: hold the last IMU sample while it is fresh
-        (one IMU period at most, normally); in an IMU gap, coast at constant velocity with
-        growing uncertainty, so the ranges keep the position while the IMU is away."""
-        ekf = self.ekf
-        assert ekf is not None and self.t_ns is not None
-        dt = (t_ns - self.t_ns) / NS
-        if dt <= 0:
-            return
-        if self._imu_fresh(t_ns) and self._last_imu is not None:
-            ekf.predict(self._last_imu[0], self._last_imu[1], dt)
-            self.monitor.imu_gap = False
-        else:
-            self._coasted = True
-            self.monitor.imu_gap = True
-            self._coast(dt)
-        self.t_ns = t_ns
-
     def _track_fixes(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                      fix: LsqFix | None) -> None:
         """UWB-only fixes for :class:`UwbStillness`, about 5 a second."""
@@ -593,11 +453,6 @@ class Filter(Recovery, EpochFusion):
         if cfg.known_height_m is not None:
             rows.append(height_rows(ekf, cfg.known_height_m, cfg.height_sigma_m))
         return rows
-
-    def _widen_for_unseen(self, dt: float) -> None:
-        """A rejected IMU sample hid ``dt`` of motion: widen velocity and attitude for it."""
-        self._inflate(velocity_mps=COAST_ACCEL_SIGMA_MPS2 * math.sqrt(dt),
-                      attitude_rad=UNSEEN_RATE_SIGMA_RPS * math.sqrt(dt))
 
 
 def _yaw_unknown(covariance: tuple[float, ...]) -> tuple[float, ...]:
