@@ -42,6 +42,10 @@ from uwbd.tools.logtools import write_simulation
 from uwbd.tools.simulator import SimConfig, segments_for, simulate
 
 TICKS = os.sysconf("SC_CLK_TCK")
+# the emulated vehicle stands this long before it drives off: the daemon starts meanwhile,
+# levels and then tells its heading from the drive off (a daemon joining the steady circle
+# later cannot, and would be measured aligning for good)
+REST_S = 6.0
 DEMO_CONFIG = Path(__file__).resolve().parents[1] / "config" / "demo.toml"
 
 
@@ -64,6 +68,18 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / TICKS  # utime + stime
 
 
+def thread_cpu_seconds(pid: int) -> dict[str, float]:
+    """CPU seconds per thread name (threads of one name summed: Zenoh's runtime pools)."""
+    out: dict[str, float] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(OSError):  # a thread that ended meanwhile
+            name = (task / "comm").read_text().strip()
+            name = name.rstrip("0123456789-") or name
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+            out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / TICKS
+    return out
+
+
 def rss_mb(pid: int) -> float:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
@@ -80,7 +96,8 @@ def live(seconds: float, run: int, pure: bool) -> tuple[float, float, float, flo
         # GIL by it (that was up to 0.5 ms of the measured latency)
         emulator = subprocess.Popen(
             [sys.executable, "-m", "uwbd", "emulate", "--uwb", "nlink", "--seed", "1",
-             "--link-dir", str(tmp)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+             "--rest", str(REST_S), "--link-dir", str(tmp)],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         daemon = None
         session = None
         latencies: list[int] = []
@@ -102,16 +119,30 @@ def live(seconds: float, run: int, pure: bool) -> tuple[float, float, float, flo
                 "mode": "peer", "connect": {"endpoints": [f"unixsock-stream/{sock}"]},
                 "scouting": {"multicast": {"enabled": False}}})))
 
+            phase = [""]
+
             def on_pose(sample: zenoh.Sample) -> None:
                 now = time.time_ns()
-                latencies.append(now - json.loads(sample.payload.to_bytes())["t_ns"])
+                pose = json.loads(sample.payload.to_bytes())
+                latencies.append(now - pose["t_ns"])
+                phase[0] = pose["health"]["phase"]
 
             sub = session.declare_subscriber("uwbd/bench/pose", on_pose)
-            time.sleep(3.0)  # start-up (imports, first fix) is not the steady state
+            # start-up (imports, first fix, the heading told by the drive off) is not the
+            # steady state: measured once tracking
+            deadline = time.monotonic() + REST_S + 20.0
+            while phase[0] != "tracking" and time.monotonic() < deadline:
+                time.sleep(0.1)
+            if phase[0] != "tracking":
+                print(f"  (not tracking {REST_S + 20:.0f} s after the start but "
+                      f"{phase[0] or 'no pose'}: measured so)")
+            time.sleep(1.0)
             latencies.clear()
             cpu0, t0 = cpu_seconds(daemon.pid), time.monotonic()
+            threads0 = thread_cpu_seconds(daemon.pid)
             time.sleep(seconds)
             cpu1, t1 = cpu_seconds(daemon.pid), time.monotonic()
+            threads1 = thread_cpu_seconds(daemon.pid)
             rss = rss_mb(daemon.pid)
             sub.undeclare()
         finally:
@@ -128,6 +159,10 @@ def live(seconds: float, run: int, pure: bool) -> tuple[float, float, float, flo
               "serial read -> Zenoh receive "
               f"p50 {p50:.2f} ms, p99 {p99:.2f} ms, max {lat_ms.max():.2f} ms over "
               f"{len(lat_ms)} poses; daemon CPU {cpu:.1f} % of one core, RSS {rss:.0f} MB")
+        shares = sorted(((100 * (c - threads0.get(name, 0.0)) / (t1 - t0), name)
+                         for name, c in threads1.items()), reverse=True)
+        print("  by thread (% of one core): " + ", ".join(
+            f"{name} {share:.1f}" for share, name in shares if share >= 0.05))
         return float(p50), float(p99), cpu, rss
 
 

@@ -16,12 +16,10 @@ from collections.abc import Sequence
 from typing import Any
 
 from drivers import PARSERS
-from drivers.emulator import ENCODERS
 from uwbd import __version__, journal
-from uwbd.commands.common import FOXGLOVE_DEFAULT, RunError, UsageError
+from uwbd.commands.common import FOXGLOVE_DEFAULT, ROUTER_LISTEN_DEFAULT, RunError, UsageError
 from uwbd.fusion import native
 from uwbd.service.interrupt import quiet_stdout
-from uwbd.service.router import DEFAULT_LISTEN
 
 IMPORT_FORMATS = ("iasl", "inrol")  # uwbd.commands.tools.IMPORTERS' keys
 
@@ -48,9 +46,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("emulate", help="serve emulated devices on pseudo-terminals")
     p.add_argument("--imu", default="wit", help="IMU driver, or none (default: wit)")
     p.add_argument("--uwb", default="nlink",
-                   help=f"UWB driver, or none; one of {', '.join(set(ENCODERS) - {'wit'})}")
+                   help=f"UWB driver, or none; one of {', '.join(sorted(set(PARSERS) - {'wit'}))} "
+                        "(every driver's device is emulated)")
     _common(p)
     p.add_argument("--link-dir", help="create stable names DIR/imu and DIR/uwb for the ports")
+    p.add_argument("--rest", type=float, default=2.0, metavar="S",
+                   help="the vehicle stands still this long before it drives its circle "
+                        "(default 2; a daemon that starts later joins a steady turn, which "
+                        "does not tell the heading, and stays aligning)")
     p.add_argument("--garbage-rate", type=float, default=0.0, metavar="HZ",
                    help="mean rate of garbage bursts")
     p.add_argument("--split", action="store_true", help="split frames at random byte boundaries")
@@ -90,7 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("router", help="a Zenoh router for a fleet of daemons (as zenohd)")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                   help=f"where daemons and subscribers connect (default {DEFAULT_LISTEN}; "
+                   help=f"where daemons and subscribers connect (default {ROUTER_LISTEN_DEFAULT}; "
                    "repeatable)")
     p.add_argument("--multicast-scouting", action="store_true",
                    help="also answer multicast scouting on the LAN (default off)")

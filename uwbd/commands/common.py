@@ -46,6 +46,7 @@ def driver_name(name: str) -> str:
 
 
 FOXGLOVE_DEFAULT = "127.0.0.1:8765"
+ROUTER_LISTEN_DEFAULT = "tcp/0.0.0.0:7447"  # `uwbd router` without --listen
 
 
 def foxglove_server(args: argparse.Namespace) -> Callable[[Config], Any] | None:

@@ -16,6 +16,7 @@ import zenoh
 from drivers.emulator import DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import CircleScenario
 from uwbd.commands.common import (
+    ROUTER_LISTEN_DEFAULT,
     RunError,
     UsageError,
     driver_name,
@@ -28,7 +29,7 @@ from uwbd.service.daemon import run as run_daemon
 from uwbd.service.demo import run_demo
 from uwbd.service.echo import EchoError, dial_endpoints, echo
 from uwbd.service.interrupt import shielded, wait_until
-from uwbd.service.router import DEFAULT_LISTEN, RouterError, run_router
+from uwbd.service.router import RouterError, run_router
 from uwbd.service.zenohsink import zenoh_reason
 
 
@@ -46,7 +47,10 @@ def cmd_emulate(args: argparse.Namespace) -> int:
         except OSError as err:
             raise UsageError(f"--link-dir {link_dir}: cannot create it: "
                              f"{err.strerror or err}") from err
-    with Emulator(devices, CircleScenario(seed=args.seed), args.duration, link_dir) as emu:
+    if not 0.0 <= args.rest <= 3600.0:
+        raise UsageError(f"--rest {args.rest:g}: seconds from 0 to 3600")
+    scenario = CircleScenario(seed=args.seed, rest_s=args.rest)
+    with Emulator(devices, scenario, args.duration, link_dir) as emu:
         for dev in devices:
             port = emu.ports[dev.name]
             print(f"{dev.name} {dev.driver} {port.path} ({port.tty_path})", flush=True)
@@ -138,7 +142,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
 def cmd_router(args: argparse.Namespace) -> int:
     """A Zenoh router for several daemons (as ``zenohd``)."""
     try:
-        run_router(args.listen or [DEFAULT_LISTEN], args.multicast_scouting)
+        run_router(args.listen or [ROUTER_LISTEN_DEFAULT], args.multicast_scouting)
     except RouterError as err:
         raise UsageError(str(err)) from err
     return 0

@@ -20,6 +20,8 @@ code here is the reference it translates.
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from typing import Any
 
@@ -99,9 +101,11 @@ def _multilaterate_core(core: Any, anchors: Array, ranges: Array, sigma_m: float
     if out is None or out is NotImplemented:
         return out
     position, inverse, residuals, used, iterations = out
-    residuals, used = np.array(residuals), np.array(used)
-    return LsqFix(np.array(position), sigma_m**2 * np.array(inverse).reshape(3, 3), residuals,
-                  used, float(np.sqrt(np.mean(residuals[used] ** 2))), iterations)
+    # the RMS in floats (np.mean costs ~5 µs; ranges are few)
+    kept = [r * r for r, u in zip(residuals, used, strict=True) if u]
+    rms_m = math.sqrt(sum(kept) / len(kept)) if kept else math.nan
+    return LsqFix(np.array(position), sigma_m**2 * np.array(inverse).reshape(3, 3),
+                  np.array(residuals), np.array(used), rms_m, iterations)
 
 
 def _leverages(anchors: Array, x: Array, dims: int) -> Array:

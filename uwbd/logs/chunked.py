@@ -33,8 +33,10 @@ from mcap.records import (
     Statistics,
     SummaryOffset,
 )
-from mcap.writer import MCAP0_MAGIC
 
+# the file's first and last bytes (mcap.writer's MCAP0_MAGIC: that module is not imported,
+# it reads its package's version from the installed metadata at import, ~15 ms)
+MCAP0_MAGIC = b"\x89MCAP0\r\n"
 # opcode, record length, channel id, sequence, log time, publish time: then the data
 _MESSAGE = struct.Struct("<BQHIQQ")
 _MESSAGE_FIXED = _MESSAGE.size - 9  # the record's content before its data

@@ -39,14 +39,13 @@ from mcap.data_stream import RecordBuilder
 from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
-from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
 from drivers.frames import Frame, UwbRanges
 from uwbd import __version__
 from uwbd.codec import frame_to_json, strict_json
 from uwbd.fusion.types import Pose
 from uwbd.logs import foxglove as fx
-from uwbd.logs.chunked import ChunkedWriter
+from uwbd.logs.chunked import MCAP0_MAGIC, ChunkedWriter
 from uwbd.logs.scan import UnusualRecordError, scan
 
 RAW_ENCODING = fx.LEGACY_RAW_ENCODING  # the old schemaless /raw/* encoding, still read
@@ -406,6 +405,8 @@ def recover(source: Path, target: Path) -> Recovered:
     channels: dict[int, int] = {}
     count, error = 0, ""
     with source.open("rb") as f, target.open("wb") as out:
+        from mcap.writer import CompressionType, Writer  # noqa: PLC0415 - not at start-up
+
         w = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
         w.start(profile="", library=f"uwbd {__version__} (recover)")
         try:

@@ -10,16 +10,16 @@ from __future__ import annotations
 
 import heapq
 import json
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import orjson
-from tqdm import tqdm
 
 from uwbd import journal
 from uwbd.codec import frame_from_dict
 from uwbd.config import parse
-from uwbd.logs.mcaplog import LogContents
+from uwbd.logs.mcaplog import LogContents, LogMessage
 from uwbd.logs.sink import McapSink
 from uwbd.service.pipeline import Pipeline, PoseList, Sink, monotonic_pacer
 
@@ -45,9 +45,8 @@ def replay(contents: LogContents, where: str, output: Path | None = None,
     truth = [m for m in contents.messages if m.topic == "/truth"] if out is not None else []
     pace = monotonic_pacer(items[0].log_time_ns) if realtime and items else None
     try:
-        for m in tqdm(heapq.merge(items, truth, key=lambda m: m.log_time_ns),
-                      total=len(items) + len(truth), desc="replay", unit="read",
-                      disable=not progress, leave=False, mininterval=0.5):
+        for m in _progress(heapq.merge(items, truth, key=lambda m: m.log_time_ns)
+                           if truth else items, len(items) + len(truth), progress):
             if m.topic == "/truth":
                 assert out is not None
                 record = _json_record(m.data)
@@ -77,6 +76,17 @@ def replay(contents: LogContents, where: str, output: Path | None = None,
     finally:  # an interrupted replay (Ctrl-C under --realtime) still finishes -o
         pipeline.close()
     return pipeline, poses
+
+
+def _progress(items: Iterable[LogMessage], total: int, shown: bool) -> Iterable[LogMessage]:
+    """``items``, with a progress bar on stderr when ``shown`` (tqdm is imported then)."""
+    if not shown:
+        return items
+    from tqdm import tqdm  # noqa: PLC0415 - only for a progress bar
+
+    bar: Iterable[LogMessage] = tqdm(items, total=total, desc="replay", unit="read",
+                                     leave=False, mininterval=0.5)
+    return bar
 
 
 def _json_record(data: bytes) -> dict[str, Any] | None:

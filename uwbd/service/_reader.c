@@ -32,6 +32,7 @@
 #include <stdint.h>
 #include <string.h>
 #include <sys/epoll.h>
+#include <sys/prctl.h>
 #include <sys/eventfd.h>
 #include <time.h>
 #include <unistd.h>
@@ -117,6 +118,7 @@ static void *run(void *arg)
     struct epoll_event events[EVENTS];
     char buf[READ_BYTES];
     int timeout_ms = 100;
+    prctl(PR_SET_NAME, "uwbd-reader", 0, 0, 0); /* the name top -H and ps -L show */
     for (;;) {
         int n = epoll_wait(r->ep, events, EVENTS, timeout_ms);
         if (n < 0 && errno != EINTR)

@@ -239,7 +239,8 @@ class Pipeline:
         self._tick(t_ns)
 
     def _tick(self, t_ns: int) -> None:
-        self._latest_ns = max(self._latest_ns, t_ns)
+        if t_ns > self._latest_ns:  # (max() costs a call: this runs for every read)
+            self._latest_ns = t_ns
         if self._last_status_ns is None:
             self._last_status_ns = t_ns
         elif t_ns - self._last_status_ns >= self._status_period_ns:

@@ -16,7 +16,6 @@ from uwbd.service.interrupt import wait_until
 from uwbd.service.zenohsink import session_config, zenoh_reason
 
 LOG = journal.get("router")
-DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
 
 
 class RouterError(Exception):
