@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 import serial
 from procs import read_until
 
@@ -68,7 +69,8 @@ def test_dump_unknown_driver_is_one_clear_line() -> None:
 def test_emulate_serves_ports_a_reader_can_open(tmp_path: Path) -> None:
     proc = subprocess.Popen(
         [*UWBD, "emulate", "--imu", "wit", "--uwb", "dwm1001", "--duration", "30",
-         "--link-dir", str(tmp_path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+         "--rest", "30", "--link-dir", str(tmp_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         assert proc.stdout is not None
         lines = [proc.stdout.readline().decode().split() for _ in range(2)]
@@ -96,6 +98,14 @@ def test_emulate_rejects_a_bad_fault_window() -> None:
     result = run("emulate", "--unplug", "soon")
     assert result.returncode == 2
     assert "AT:DURATION" in result.stderr.decode()
+
+
+@pytest.mark.parametrize("rest", ["-1", "nan", "1e9"])
+def test_emulate_rejects_a_bad_rest(rest: str) -> None:
+    result = run("emulate", "--rest", rest)
+    assert result.returncode == 2
+    (line,) = result.stderr.decode().splitlines()
+    assert f"--rest {float(rest):g}: seconds from 0 to 3600" in line
 
 
 def test_demo_runs_and_prints_a_summary() -> None:
