@@ -104,6 +104,7 @@ class Eskf:
         self._markov_var = (np.zeros(0) if aux_sigma is None
                             else np.asarray(aux_sigma)[self._markov] ** 2)
         self._decay_epoch = np.ones(n_range_bias)
+        self._no_decay = np.ones(n_range_bias)
         self._core = native.core  # None: the pure-Python code below
         self._clamp_key: tuple[Array, float] | None = None
         self._clamp_limit = np.zeros(0)
@@ -172,7 +173,7 @@ class Eskf:
         if self._epoch_propagated:  # else both are still identity and ones
             self._epoch_propagated = False
             self._Phi_epoch = self._I_core.copy()  # (np.eye: 1 µs more)
-            self._decay_epoch = np.ones(self.n - N_CORE)
+            self._decay_epoch = self._no_decay.copy()
         return Phi, (dv[0], dv[1], dv[2])
 
     def rotate_heading(self, dpsi: float, yaw_sigma_rad: float) -> None:

@@ -115,6 +115,8 @@ class Filter(ImuPropagation, EpochFusion):
         # the configured anchors whose every coordinate is finite and in range (_resolve)
         self._configured = {a: pos for a, pos in config.anchors_m.items()
                             if all(abs(c) <= MAX_ANCHOR_COORD_M for c in pos)}
+        # their positions and variance factors as arrays, by the epoch's anchor ids
+        self._resolved: dict[tuple[int, ...], tuple[Array, Array]] = {}
         self.mirror = MirrorSide(np.zeros((0, 3)))
         self._fixed_z: float | None = None
         self.ranges = RangeWindow(config.range_window_s, config.fix_interval_s,
@@ -355,6 +357,7 @@ class Filter(ImuPropagation, EpochFusion):
         and the factor on each range's variance from the device's quality."""
         ids, anchors, ranges, scale = [], [], [], []
         configured = self._configured
+        common = True  # every range to a configured anchor, with no quality
         for r in epoch.ranges:
             pos = configured.get(r.anchor_id)
             if pos is not None and r.quality is None:  # the common case: checked once
@@ -363,6 +366,7 @@ class Filter(ImuPropagation, EpochFusion):
                 ranges.append(r.range_m)
                 scale.append(1.0)
                 continue
+            common = False
             pos = self.cfg.anchors_m.get(r.anchor_id, r.anchor_position_m)
             # every coordinate finite and in range (max() would let a NaN after the first by)
             if pos is None or not all(abs(c) <= MAX_ANCHOR_COORD_M for c in pos):
@@ -382,6 +386,15 @@ class Filter(ImuPropagation, EpochFusion):
             anchors.append(pos)
             ranges.append(r.range_m)
             scale.append(quality_scale(r.quality))
+        if common:  # the same anchors recur: their arrays made once (read only downstream)
+            key = tuple(ids)
+            arrays = self._resolved.get(key)
+            if arrays is None:
+                arrays = self._resolved[key] = (np.array(anchors, dtype=float).reshape(-1, 3),
+                                                np.ones(len(ids)))
+                for a in arrays:
+                    a.flags.writeable = False
+            return ids, arrays[0], np.array(ranges), arrays[1]
         return (ids, np.array(anchors, dtype=float).reshape(-1, 3), np.array(ranges),
                 np.array(scale))
 

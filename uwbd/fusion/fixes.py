@@ -30,7 +30,7 @@ class RangeWindow:
         self.sigma_m = sigma_m
         self.side = side
         self.fixed_z = fixed_z
-        self._latest: dict[int, tuple[int, Array, float]] = {}
+        self._latest: dict[int, tuple[int, list[float], float]] = {}
         self._last_fix_ns: int | None = None
         self.last_inputs: tuple[Array, Array] = (np.zeros((0, 3)), np.zeros(0))  # of the last fix
 
@@ -40,7 +40,8 @@ class RangeWindow:
         return 3 if self.fixed_z is not None else 4
 
     def add(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array) -> None:
-        for a, pos, r in zip(ids, anchors, ranges.tolist(), strict=True):
+        # as lists (iterating the array makes a view of each row)
+        for a, pos, r in zip(ids, anchors.tolist(), ranges.tolist(), strict=True):
             self._latest[a] = (t_ns, pos, r)
 
     def fix(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,

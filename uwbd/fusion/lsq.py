@@ -21,7 +21,6 @@ code here is the reference it translates.
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 from typing import Any
 

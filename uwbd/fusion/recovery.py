@@ -228,7 +228,9 @@ class Recovery:
         """Restart or move the state when the evidence says it is wrong; True if it did."""
         ekf = self.ekf
         assert ekf is not None
-        if not math.isfinite(float(ekf.P.sum()) + sum(ekf.p) + sum(ekf.v) + sum(ekf.q)):
+        # (the ufunc itself: ndarray.sum's Python wrapper costs more than the sum)
+        if not math.isfinite(float(np.add.reduce(ekf.P, axis=None)) + sum(ekf.p) + sum(ekf.v)
+                             + sum(ekf.q)):
             self._restart_not_finite(t_ns)
             return True
         if not self.monitor.diverged(t_ns):

@@ -239,7 +239,7 @@ class Pipeline:
         self._tick(t_ns)
 
     def _tick(self, t_ns: int) -> None:
-        if t_ns > self._latest_ns:  # (max() costs a call: this runs for every read)
+        if t_ns > self._latest_ns:  # noqa: PLR1730 - max() costs a call, for every read
             self._latest_ns = t_ns
         if self._last_status_ns is None:
             self._last_status_ns = t_ns
