@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 import zstandard
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from mcap.reader import make_reader
 
@@ -350,6 +350,7 @@ def test_the_lean_scan_reads_what_the_library_reads(tmp_path: Path) -> None:
 @settings(max_examples=40, deadline=None)
 @given(cut=st.floats(0.0, 1.0), flips=st.lists(st.tuples(st.floats(0.0, 1.0),
                                                         st.integers(1, 255)), max_size=3))
+@example(cut=1.0, flips=[(0.625, 128)])  # a chunk's size field: OverflowError, MemoryError
 def test_a_damaged_or_cut_log_reads_as_the_library_reads_it(
         tmp_path_factory: pytest.TempPathFactory, cut: float,
         flips: list[tuple[float, int]]) -> None:

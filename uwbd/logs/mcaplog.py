@@ -366,8 +366,12 @@ def _read_by_library(path: Path) -> LogContents:
 
 
 # what reading a damaged or torn file raises: mcap's own errors, a record cut off (EOFError,
-# struct.error), a damaged compressed chunk (zstandard, lz4: a RuntimeError)
-DAMAGED = (McapError, EOFError, ValueError, struct.error, zstandard.ZstdError, RuntimeError)
+# struct.error), a damaged compressed chunk (zstandard, lz4: a RuntimeError), a damaged
+# length or size field, which has the reader ask for more than an index holds
+# (OverflowError) or allocate exabytes for a chunk's records (MemoryError: found by the
+# damaged-log property test)
+DAMAGED = (McapError, EOFError, ValueError, struct.error, zstandard.ZstdError, RuntimeError,
+           OverflowError, MemoryError)
 
 
 def _damage(err: BaseException, f: IO[bytes]) -> str:
