@@ -19,6 +19,7 @@ from uwbd.config import parse
 from uwbd.fusion import native
 from uwbd.fusion.eskf import N_CORE, ImuNoise, Row
 from uwbd.fusion.eskf import Eskf as _Eskf
+from uwbd.fusion.filter import MAX_OBSERVABLE_YAW_SIGMA, Filter
 from uwbd.fusion.lsq import multilaterate
 from uwbd.fusion.measurements import range_rows
 from uwbd.fusion.rest import ImuWindow, RestLimits
@@ -295,6 +296,39 @@ def compare_runs(cfg: FilterConfig, frames: list[object]) -> list[Pose]:
     np.testing.assert_allclose([q.covariance for q in poses],
                                [q.covariance for q in reference], rtol=1e-6, atol=1e-12)
     return poses
+
+
+@needs_core
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31), st.integers(0, 8), st.booleans(),
+       st.sampled_from([None, "p", "P"]))
+def test_the_pose_numbers_match_the_reference(seed: int, n_aux: int, aligned: bool,
+                                              broken: str | None) -> None:
+    """Filter.pose's numbers in one call of the C core against ``_pose_numbers``: the
+    covariance (yaw unknown while not aligned), σ_xy, the heading's observability, the
+    state's numbers; None for both when one is not finite."""
+    fast, _ = twin(n_aux, seed)
+    if broken == "p":
+        fast.p[1] = math.inf
+    elif broken == "P":
+        fast.P[7, 7] = math.nan
+    flt = Filter(FilterConfig(anchors_m={0: (0.0, 0.0, 0.0)}))
+    flt.ekf, flt._aligned = fast, aligned
+    assert native.core is not None
+    numbers = native.core.pose_numbers(np.ascontiguousarray(fast.P), fast.q, fast.p, fast.v,
+                                       aligned, MAX_OBSERVABLE_YAW_SIGMA)
+    reference = flt._pose_numbers(fast)
+    if broken is not None:
+        assert numbers is None and reference is None
+        return
+    assert numbers is not None and reference is not None
+    np.testing.assert_allclose(numbers[0], reference[0], rtol=1e-12, atol=1e-15)
+    assert math.isclose(numbers[1], reference[1], rel_tol=1e-12)
+    assert numbers[2] == reference[2] or abs(math.sqrt(reference[0][35])
+                                             - MAX_OBSERVABLE_YAW_SIGMA) < 1e-12
+    assert numbers[3:] == reference[3:]
+    if not aligned:
+        assert numbers[0][35] == math.pi**2 and numbers[0][5] == numbers[0][30] == 0.0
 
 
 @needs_core

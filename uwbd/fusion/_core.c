@@ -1255,18 +1255,27 @@ done:
 
 /* -- outputs and checks ----------------------------------------------------------------- */
 
-/* pose_covariance(P, q) -> 36 floats: Filter.pose's covariance over position and the
- * attitude error turned into the navigation frame, [[Ppp, Ppθ Rᵀ], [R Pθp, R Pθθ Rᵀ]],
- * row-major, made symmetric as (M + Mᵀ)/2. */
-static PyObject *core_pose_covariance(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+/* pose_numbers(P, q, p, v, aligned, max_yaw_sigma)
+ * -> (covariance (36), σ_xy, heading observable, position (3), velocity (3), xyzw (4)),
+ *    or None when a number is not finite (Filter.pose then restarts the filter)
+ * Filter.pose's numbers: the covariance over position and the attitude error turned into
+ * the navigation frame, [[Ppp, Ppθ Rᵀ], [R Pθp, R Pθθ Rᵀ]], row-major, made symmetric as
+ * (M + Mᵀ)/2; while the heading is not aligned its yaw row and column are 0 and its
+ * variance π² (_yaw_unknown); finite as the reference tells it (one sum, in its order). */
+static PyObject *core_pose_numbers(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)self;
-    if (nargs != 2) {
-        PyErr_SetString(PyExc_TypeError, "pose_covariance takes 2 arguments");
+    if (nargs != 6) {
+        PyErr_SetString(PyExc_TypeError, "pose_numbers takes 6 arguments");
         return NULL;
     }
-    double q[4];
-    if (uwbd_get_vec(args[1], q, 4, "q"))
+    double q[4], p[3], v[3];
+    if (uwbd_get_vec(args[1], q, 4, "q") || uwbd_get_vec(args[2], p, 3, "p") ||
+        uwbd_get_vec(args[3], v, 3, "v"))
+        return NULL;
+    int aligned = PyObject_IsTrue(args[4]);
+    double max_yaw_sigma = PyFloat_AsDouble(args[5]);
+    if (aligned < 0 || PyErr_Occurred())
         return NULL;
     Py_buffer Pb;
     Py_ssize_t n;
@@ -1276,39 +1285,45 @@ static PyObject *core_pose_covariance(PyObject *self, PyObject *const *args, Py_
     double R[3][3];
     quat_to_matrix(q, R);
     /* T (6×9) = [[I, 0, 0], [0, 0, R]] over (p, v, θ); M = T P Tᵀ */
-    static const int src[3] = {0, 1, 2};
     double TP[6][9];
     for (int j = 0; j < 9; j++) {
         for (int i = 0; i < 3; i++)
-            TP[i][j] = P[src[i] * n + j];
+            TP[i][j] = P[i * n + j];
         for (int i = 0; i < 3; i++)
             TP[3 + i][j] = R[i][0] * P[6 * n + j] + R[i][1] * P[7 * n + j]
                 + R[i][2] * P[8 * n + j];
     }
-    double M[6][6];
+    PyBuffer_Release(&Pb);
+    double M[6][6], cov[36];
     for (int i = 0; i < 6; i++) {
         for (int j = 0; j < 3; j++)
             M[i][j] = TP[i][j];
         for (int j = 0; j < 3; j++)
             M[i][3 + j] = TP[i][6] * R[j][0] + TP[i][7] * R[j][1] + TP[i][8] * R[j][2];
     }
-    PyObject *out = PyTuple_New(36);
-    if (out == NULL) {
-        PyBuffer_Release(&Pb);
-        return NULL;
-    }
     for (int i = 0; i < 6; i++)
-        for (int j = 0; j < 6; j++) {
-            PyObject *f = PyFloat_FromDouble(0.5 * (M[i][j] + M[j][i]));
-            if (f == NULL) {
-                Py_DECREF(out);
-                PyBuffer_Release(&Pb);
-                return NULL;
-            }
-            PyTuple_SET_ITEM(out, 6 * i + j, f);
-        }
-    PyBuffer_Release(&Pb);
-    return out;
+        for (int j = 0; j < 6; j++)
+            cov[6 * i + j] = 0.5 * (M[i][j] + M[j][i]);
+    if (!aligned) { /* held, its σ a placeholder: to a subscriber, yaw is unknown */
+        for (int i = 0; i < 6; i++)
+            cov[6 * i + 5] = cov[30 + i] = 0.0;
+        cov[35] = M_PI * M_PI;
+    }
+    /* sum(p) + sum(v) + w + x + y + z + sum(covariance), as Python adds them */
+    double s = p[0] + p[1] + p[2], sv = v[0] + v[1] + v[2], sc = 0.0;
+    for (int i = 0; i < 36; i++)
+        sc += cov[i];
+    if (!isfinite(s + sv + q[0] + q[1] + q[2] + q[3] + sc))
+        Py_RETURN_NONE;
+    double xy = cov[0] + cov[7], yaw = cov[35];
+    /* max(x, 0.0) as Python takes it: x unless 0.0 is larger (-0.0 and NaN stay) */
+    double sigma_xy = sqrt(0.0 > xy ? 0.0 : xy);
+    int observable = aligned && sqrt(0.0 > yaw ? 0.0 : yaw) < max_yaw_sigma;
+    PyObject *c = uwbd_floats(cov, 36, 0);
+    if (c == NULL)
+        return NULL;
+    return Py_BuildValue("(NdN(ddd)(ddd)(dddd))", c, sigma_xy, PyBool_FromLong(observable),
+                         p[0], p[1], p[2], v[0], v[1], v[2], q[1], q[2], q[3], q[0]);
 }
 
 /* diagonal_out_of_bounds(P, limit) -> bool: a variance above its limit or below zero
@@ -1438,8 +1453,8 @@ static PyMethodDef core_methods[] = {
      "After a fused update: P symmetrised and reset by G, in place."},
     {"fuse_ranges", (PyCFunction)(void (*)(void))core_fuse_ranges, METH_FASTCALL,
      "A tight epoch: the range rows and the extra rows fused in one call (or None)."},
-    {"pose_covariance", (PyCFunction)(void (*)(void))core_pose_covariance, METH_FASTCALL,
-     "Filter.pose's 6x6 covariance (position, nav-frame attitude), row-major."},
+    {"pose_numbers", (PyCFunction)(void (*)(void))core_pose_numbers, METH_FASTCALL,
+     "Filter.pose's numbers: covariance, sigma_xy, heading observable, p, v, xyzw."},
     {"diagonal_out_of_bounds", (PyCFunction)(void (*)(void))core_diagonal_out_of_bounds,
      METH_FASTCALL, "Any variance of P above its limit or below zero."},
     {"gauss_newton", (PyCFunction)(void (*)(void))core_gauss_newton, METH_FASTCALL,

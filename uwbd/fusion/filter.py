@@ -284,43 +284,50 @@ class Filter(ImuPropagation, EpochFusion):
 
     def pose(self) -> Pose | None:
         """The pose now, or ``None`` before the start, while restarting, or when any of
-        its numbers is not finite (which also restarts the filter).
-
-        It runs for every pose: the covariance over position and the attitude error turned
-        into the navigation frame is one product, ``T P Tᵀ`` with ``T = [[I, 0, 0], [0, 0,
-        R]]`` over (p, v, θ) (measured: half the time of the same in plain floats)."""
+        its numbers is not finite (which also restarts the filter)."""
         ekf = self.ekf
         t_ns = self.t_ns
         if ekf is None or t_ns is None:
             return None
-        w, x, y, z = ekf.q
         core = native.core
-        if core is not None:
+        if core is not None:  # the numbers in one call (_pose_numbers: the reference)
             ekf.P = np.ascontiguousarray(ekf.P)
-            covariance = core.pose_covariance(ekf.P, ekf.q)
+            numbers = core.pose_numbers(ekf.P, ekf.q, ekf.p, ekf.v, self._aligned,
+                                        MAX_OBSERVABLE_YAW_SIGMA)
         else:
-            T = self._pose_T
-            T[3:, TH_] = ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
-                          (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
-                          (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
-            M = T @ ekf.P[:TH_.stop, :TH_.stop] @ T.T
-            covariance = tuple((0.5 * (M + M.T)).ravel().tolist())  # symmetric, as ROS expects
-        if not self._aligned:  # held, its σ a placeholder: to a subscriber, yaw is unknown
-            covariance = _yaw_unknown(covariance)
-        cov = covariance
-        p, v = ekf.p, ekf.v
-        if not math.isfinite(sum(p) + sum(v) + w + x + y + z + sum(covariance)):
+            numbers = self._pose_numbers(ekf)
+        if numbers is None:
             self._restart_not_finite(t_ns)
+            return None
+        covariance, sigma_xy, observable, position, velocity, orientation = numbers
+        health = self.monitor.assess(t_ns, True, observable, sigma_xy, True)
+        return Pose(t_ns, position, velocity, orientation, covariance, health.summary(),
+                    observable, health)
+
+    def _pose_numbers(self, ekf: Eskf) -> tuple[tuple[float, ...], float, bool, Vec3, Vec3,
+                                                tuple[float, float, float, float]] | None:
+        """The pose's covariance, horizontal σ, whether the heading is observable, position,
+        velocity and orientation (x, y, z, w); ``None`` when a number is not finite.
+
+        The covariance over position and the attitude error turned into the navigation
+        frame is one product, ``T P Tᵀ`` with ``T = [[I, 0, 0], [0, 0, R]]`` over (p, v, θ)
+        (measured: half the time of the same in plain floats)."""
+        w, x, y, z = ekf.q
+        T = self._pose_T
+        T[3:, TH_] = ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+                      (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+                      (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
+        M = T @ ekf.P[:TH_.stop, :TH_.stop] @ T.T
+        cov = tuple((0.5 * (M + M.T)).ravel().tolist())  # symmetric, as ROS expects
+        if not self._aligned:  # held, its σ a placeholder: to a subscriber, yaw is unknown
+            cov = _yaw_unknown(cov)
+        p, v = ekf.p, ekf.v
+        if not math.isfinite(sum(p) + sum(v) + w + x + y + z + sum(cov)):
             return None
         # the heading's σ is the nav-z attitude error's (yaw_sigma_rad)
         observable = self._aligned and math.sqrt(max(cov[35], 0.0)) < MAX_OBSERVABLE_YAW_SIGMA
-        sigma_xy = math.sqrt(max(cov[0] + cov[7], 0.0))
-        health = self.monitor.assess(t_ns, True, observable, sigma_xy, True)
-        return Pose(
-            t_ns=t_ns, position_m=(p[0], p[1], p[2]), velocity_mps=(v[0], v[1], v[2]),
-            orientation_xyzw=(x, y, z, w), covariance=covariance, status=health.summary(),
-            heading_observable=observable, health=health,
-        )
+        return (cov, math.sqrt(max(cov[0] + cov[7], 0.0)), observable, (p[0], p[1], p[2]),
+                (v[0], v[1], v[2]), (x, y, z, w))
 
     def diagnostics(self) -> dict[str, Any]:
         """For the status: the health record, the mirror side, per-anchor range statistics."""
