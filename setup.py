@@ -9,7 +9,8 @@ from setuptools import Extension, setup
 
 setup(ext_modules=[
     Extension(
-        "uwbd.fusion._core", ["uwbd/fusion/_core.c", "uwbd/fusion/_imu_read.c"],
+        "uwbd.fusion._core", ["uwbd/fusion/_core.c", "uwbd/fusion/_imu_read.c",
+                                "uwbd/fusion/_outcomes.c"],
         depends=["uwbd/fusion/_core.h"],
         # a * b + c rounded as Python rounds it (no fused multiply-add): the same bits
         extra_compile_args=["-O2", "-ffp-contract=off", "-fno-fast-math"],

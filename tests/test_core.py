@@ -15,6 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from drivers.frames import ImuSample
 from uwbd.config import parse
 from uwbd.fusion import native
 from uwbd.fusion.eskf import N_CORE, ImuNoise, Row
@@ -25,7 +26,7 @@ from uwbd.fusion.measurements import range_rows
 from uwbd.fusion.rest import ImuWindow, RestLimits
 from uwbd.fusion.robust import RobustPolicy, RowPolicy
 from uwbd.fusion.settings import FilterConfig
-from uwbd.fusion.types import Pose
+from uwbd.fusion.types import FusionReport, Pose
 from uwbd.tools.evaluate import merge, run_filter
 from uwbd.tools.importer import INROL_LEVER_ARM_M, INROL_MOUNTING, load_iasl, load_inrol
 from uwbd.tools.logtools import simulation_toml
@@ -329,6 +330,67 @@ def test_the_pose_numbers_match_the_reference(seed: int, n_aux: int, aligned: bo
     assert numbers[3:] == reference[3:]
     if not aligned:
         assert numbers[0][35] == math.pi**2 and numbers[0][5] == numbers[0][30] == 0.0
+
+
+def _reference_outcomes(flt: Filter) -> None:
+    """``flt`` reports its rows with the Python reference alone."""
+    def outcomes(t_ns: int, keys: list[tuple[str, str]], rows: list[Row]
+                 ) -> list[FusionReport]:
+        reports = flt._row_outcomes(t_ns, keys, rows)
+        flt._keep_covariance_sane()
+        return reports
+    flt._outcomes = outcomes  # type: ignore[assignment, method-assign]
+
+
+@needs_core
+@pytest.mark.parametrize("preset", ["handheld", "ceiling"])
+def test_row_outcomes_in_c_match_the_reference(preset: str,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """The rows' reports, counters, health evidence and anchor statistics of the C core
+    are the reference's, to the bit, through rejected and down-weighted ranges (multipath)
+    and a 6 s gap in the ranges (the window cleared and judged afresh)."""
+    sim = simulate(handheld_async(3) if preset == "handheld" else ceiling_room(3))
+    frames = list(merge(sim.imu, sim.uwb))
+    gap_from = frames[0].t_ns + 20 * 10**9
+    frames = [f for f in frames if isinstance(f, ImuSample)
+              or not gap_from <= f.t_ns < gap_from + 6 * 10**9][: len(frames) // 2]
+    cfg = parse(simulation_toml(sim)).filter_config()
+    fast, slow = Filter(cfg), Filter(cfg)
+    _reference_outcomes(slow)
+    assert native.core is not None
+    in_c = []
+    core_outcomes = native.core.outcomes
+    monkeypatch.setattr(native.core, "outcomes",
+                        lambda *args: in_c.append(core_outcomes(*args)) or in_c[-1])
+    reports: dict[int, list[FusionReport]] = {id(fast): [], id(slow): []}
+    for flt in (fast, slow):
+        for f in frames:
+            if isinstance(f, ImuSample):
+                flt.predict(f)
+            else:
+                reports[id(flt)] += flt.update(f)
+    assert in_c and all(out is not NotImplemented for out in in_c)
+    assert reports[id(fast)] == reports[id(slow)]
+    assert fast.counters == slow.counters and fast.counters["range_rejected"] > 0
+    assert fast.monitor.resets == slow.monitor.resets
+    fm, sm = vars(fast.monitor), vars(slow.monitor)
+    assert {k: list(v) if k == "_outcomes" else v for k, v in fm.items()} == \
+        {k: list(v) if k == "_outcomes" else v for k, v in sm.items()}
+    assert {a: vars(s) for a, s in fast.anchor_stats.items()} == \
+        {a: vars(s) for a, s in slow.anchor_stats.items()}
+    assert any(s.deweighted for s in fast.anchor_stats.values())
+
+
+@needs_core
+def test_row_outcomes_of_an_unknown_kind_are_left_to_the_reference() -> None:
+    flt = Filter(FilterConfig(anchors_m={0: (0.0, 0.0, 0.0)}))
+    before = (dict(flt.counters), dict(vars(flt.monitor)))
+    assert native.core is not None
+    out = native.core.outcomes(flt._outcome_parts(), 10**18, [("range", "0"), ("odd", "x")],
+                               [Row(0.1, 1.0, 1.0, False), Row(0.1, 1.0, 1.0, False)])
+    assert out is NotImplemented
+    assert (dict(flt.counters), dict(vars(flt.monitor))) == before
+    assert not flt.anchor_stats
 
 
 @needs_core

@@ -1467,6 +1467,8 @@ static PyMethodDef core_methods[] = {
      "ImuWindow._judge's mean and std of the six axes over the last span_ns, or None."},
     {"imu_step", (PyCFunction)(void (*)(void))uwbd_imu_step, METH_FASTCALL,
      "Filter.predict's common sample whole (check, rest window, INS step), or None."},
+    {"outcomes", (PyCFunction)(void (*)(void))uwbd_outcomes, METH_FASTCALL,
+     "EpochFusion._outcomes: each row reported, counted, the health and anchor evidence."},
     {"imu_read", (PyCFunction)(void (*)(void))uwbd_imu_read, METH_FASTCALL,
      "The common IMU read whole (parse, spread, align, check, predict), or None."},
     {NULL, NULL, 0, NULL},
@@ -1480,6 +1482,8 @@ static struct PyModuleDef core_module = {
 
 PyMODINIT_FUNC PyInit__core(void)
 {
+    if (uwbd_outcomes_init() < 0)
+        return NULL;
     if (uwbd_imu_read_init() < 0)
         return NULL;
     return PyModule_Create(&core_module);

@@ -23,4 +23,8 @@ int uwbd_imu_read_init(void);
 PyObject *uwbd_imu_read(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 PyObject *uwbd_imu_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 
+/* _outcomes.c */
+int uwbd_outcomes_init(void);
+PyObject *uwbd_outcomes(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
+
 #endif

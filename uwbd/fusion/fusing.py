@@ -15,10 +15,11 @@ from __future__ import annotations
 import collections
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from uwbd.fusion import native
 from uwbd.fusion.eskf import BA_, BG_, TH_, Eskf, Row
 from uwbd.fusion.health import HealthMonitor
 from uwbd.fusion.lsq import LsqFix
@@ -141,8 +142,28 @@ class EpochFusion:
 
     def _outcomes(self, t_ns: int, keys: list[tuple[str, str]],
                   outcome: list[Row]) -> list[FusionReport]:
-        """Each row's report, counters, health evidence and anchor statistics; then the
-        covariance kept within bounds."""
+        """Each row's report, counters, health evidence and anchor statistics (on the C
+        core in one call, :meth:`_row_outcomes` the reference); then the covariance kept
+        within bounds."""
+        core = native.core
+        reports = NotImplemented if core is None else core.outcomes(
+            self._outcome_parts(), t_ns, keys, outcome)
+        if reports is NotImplemented:
+            reports = self._row_outcomes(t_ns, keys, outcome)
+        self._keep_covariance_sane()
+        return reports
+
+    def _outcome_parts(self) -> tuple[Any, ...]:
+        """What ``outcomes`` of the C core works on (``uwbd/fusion/_outcomes.c``): the
+        objects of :meth:`_row_outcomes`, the monitor as its namespace."""
+        monitor = self.monitor
+        lim = monitor.limits
+        return (FusionReport, self.counters, _OUTCOME_COUNTERS, vars(monitor),
+                (lim.range_timeout_s, lim.window_count, lim.max_rejected_fraction,
+                 lim.max_mean_nis), self.anchor_stats, AnchorStats, self._gate_1)
+
+    def _row_outcomes(self, t_ns: int, keys: list[tuple[str, str]],
+                      outcome: list[Row]) -> list[FusionReport]:
         gate_1 = self._gate_1
         reports = []
         counters, monitor, anchor_stats = self.counters, self.monitor, self.anchor_stats
@@ -166,7 +187,6 @@ class EpochFusion:
                     stats = anchor_stats[anchor] = AnchorStats()
                 stats.add(innovation / math.sqrt(variance) if variance > 0 else math.nan,
                           weight)
-        self._keep_covariance_sane()
         return reports
 
     def _keep_covariance_sane(self) -> None:
