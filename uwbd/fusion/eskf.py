@@ -57,6 +57,9 @@ class Row(NamedTuple):
     numerical: bool
 
 
+RawRow = tuple[float, float, float, bool]  # a Row's fields as the C core returns them
+
+
 class Eskf:
     """The filter's state and the algebra on it; policy (gating, modes) lives in ``Filter``."""
 
@@ -331,7 +334,7 @@ class Eskf:
 
     def fuse_ranges(self, lever_m: Array, anchors: Array, ranges: Array, var: Array,
                     columns: tuple[tuple[int, ...], ...], extra: tuple[Array, Array, Array],
-                    decide: RowPolicy, considered: slice | None) -> list[Row] | None:
+                    decide: RowPolicy, considered: slice | None) -> list[RawRow] | None:
         """A tight epoch on the C core in one call: the rows of
         :func:`uwbd.fusion.measurements.range_rows` (``columns``: each range's range-model
         state columns), then ``extra`` rows ``(H, y, R)``, through :meth:`sequential_update`.
@@ -349,7 +352,7 @@ class Eskf:
             np.ascontiguousarray(var, dtype=float), columns,
             np.ascontiguousarray(H, dtype=float), np.ascontiguousarray(y, dtype=float),
             np.ascontiguousarray(R, dtype=float), decide, c0, c1)
-        return None if out is None else self._corrected(dx, out)
+        return None if out is None else self._taken(dx, out)  # Row's fields, as tuples
 
     def _considered_columns(self, considered: slice | None) -> tuple[int, int]:
         c0, c1, step = (0, 0, 1) if considered is None else considered.indices(self.n)
@@ -361,11 +364,15 @@ class Eskf:
                                               list[float] | None]) -> list[Row]:
         """The C core's (rows, new q): when a row was fused, P and the state are corrected
         already; the new attitude and ``δx`` are kept here."""
+        return [Row(*r) for r in self._taken(dx, out)]
+
+    def _taken(self, dx: Array, out: tuple[list[RawRow], list[float] | None]) -> list[RawRow]:
+        """:meth:`_corrected`, the rows left as the C core's tuples."""
         raw, q = out
         if q is not None:
             self.q = q
             self.last_dx = dx
-        return [Row(*r) for r in raw]
+        return raw
 
     def _sequential_rows(self, H: Array, y: Array, R: Array,
                          decide: Callable[[int, float, float], float] | RowPolicy,

@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import collections
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from uwbd.fusion import native
-from uwbd.fusion.eskf import BA_, BG_, TH_, Eskf, Row
+from uwbd.fusion.eskf import BA_, BG_, TH_, Eskf, RawRow
 from uwbd.fusion.health import HealthMonitor
 from uwbd.fusion.lsq import LsqFix
 from uwbd.fusion.measurements import Rows, position_rows, range_keys, range_rows
@@ -141,7 +141,7 @@ class EpochFusion:
         return None
 
     def _outcomes(self, t_ns: int, keys: list[tuple[str, str]],
-                  outcome: list[Row]) -> list[FusionReport]:
+                  outcome: Sequence[RawRow]) -> list[FusionReport]:
         """Each row's report, counters, health evidence and anchor statistics (on the C
         core in one call, :meth:`_row_outcomes` the reference); then the covariance kept
         within bounds."""
@@ -163,7 +163,7 @@ class EpochFusion:
                  lim.max_mean_nis), self.anchor_stats, AnchorStats, self._gate_1)
 
     def _row_outcomes(self, t_ns: int, keys: list[tuple[str, str]],
-                      outcome: list[Row]) -> list[FusionReport]:
+                      outcome: Sequence[RawRow]) -> list[FusionReport]:
         gate_1 = self._gate_1
         reports = []
         counters, monitor, anchor_stats = self.counters, self.monitor, self.anchor_stats

@@ -65,6 +65,8 @@ class Health(NamedTuple):
 
     def summary(self) -> str:
         """One line for a terminal or ``systemctl status``."""
+        if not self.faults and not self.notes and self.phase in _PLAIN:
+            return _PLAIN[self.phase]  # (every pose has one: the common case at once)
         text = self.phase.value
         if self.phase is Phase.COASTING and self.since_range_s is not None:
             text += f" ({self.since_range_s:.1f} s without an accepted range)"
@@ -90,6 +92,8 @@ class Health(NamedTuple):
 
 
 WAITING = Health(Phase.WAITING)
+# the summaries of the phases whose line is their name alone when nothing is wrong
+_PLAIN = {p: p.value for p in Phase if p not in (Phase.COASTING, Phase.RECOVERING)}
 
 
 @dataclass(frozen=True)

@@ -159,7 +159,8 @@ class UwbStillness:
 
     def add(self, t_ns: int, fix: LsqFix) -> None:
         self._fixes.append((t_ns, fix.position_m))
-        self._sigma_m = math.sqrt(max(float(np.trace(fix.covariance[:2, :2])) / 2, 0.0))
+        cov = fix.covariance  # (np.trace costs more than its two terms)
+        self._sigma_m = math.sqrt(max(float(cov[0, 0] + cov[1, 1]) / 2, 0.0))
 
     def forget_before(self, t_ns: int) -> None:
         fixes = self._fixes
