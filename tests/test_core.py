@@ -66,6 +66,22 @@ def imu_stream(seed: int, count: int) -> list[tuple[tuple[float, ...], tuple[flo
 @needs_core
 @settings(max_examples=30, deadline=None)
 @given(st.integers(0, 2**31), st.integers(0, 8))
+def test_propagation_symmetrised_in_c_is_numpys_to_the_bit(seed: int, n_aux: int) -> None:
+    """propagate_core's own symmetrising gives the bits of numpy's ``0.5 * (P + P.T)``."""
+    fast, _ = twin(n_aux, seed)
+    for acc, gyro in imu_stream(seed, 20):
+        fast.predict(acc, gyro, 0.005)
+    assert native.core is not None
+    args = (fast._Phi_epoch, fast.q, fast._sum_fn, fast._sum_w, fast._T, fast._q_rate)
+    P_np, P_c = fast.P.copy(), fast.P.copy()
+    native.core.propagate_core(P_np, args[0].copy(), *args[1:])
+    native.core.propagate_core(P_c, args[0].copy(), *args[1:], True)
+    assert np.array_equal(0.5 * (P_np + P_np.T), P_c)
+
+
+@needs_core
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31), st.integers(0, 8))
 def test_predict_and_propagate_match_the_reference(seed: int, n_aux: int) -> None:
     fast, slow = twin(n_aux, seed)
     for k, (acc, gyro) in enumerate(imu_stream(seed, 60)):

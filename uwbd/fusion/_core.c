@@ -219,18 +219,22 @@ static void nonzeros(const double M[N_CORE][N_CORE], int nz[N_CORE][N_CORE], int
     }
 }
 
-/* propagate_core(P, Phi_epoch, q, sum_fn, sum_w, T, q_rate)
+/* propagate_core(P, Phi_epoch, q, sum_fn, sum_w, T, q_rate[, symmetrise])
  * The core part of Eskf.propagate, in place on P (n×n) and Phi_epoch (15×15):
  * F from the mean specific force and rate over T, Φ = I + A + A²/2 with A = F T,
- * Φ_epoch ← Φ Φ_epoch, P ← Φ P Φᵀ on the core rows and columns, P += diag(q_rate) T.
- * Symmetrising and the Gauss–Markov step stay in Python (they run on the whole P). */
+ * Φ_epoch ← Φ Φ_epoch, P ← Φ P Φᵀ on the core rows and columns, P += diag(q_rate) T;
+ * with symmetrise (no Gauss–Markov step to come between), P ← (P + Pᵀ)/2 too, as numpy's
+ * 0.5 * (P + P.T) makes it (the same bits: a sum of two does not depend on their order). */
 static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)self;
-    if (nargs != 7) {
-        PyErr_SetString(PyExc_TypeError, "propagate_core takes 7 arguments");
+    if (nargs != 7 && nargs != 8) {
+        PyErr_SetString(PyExc_TypeError, "propagate_core takes 7 or 8 arguments");
         return NULL;
     }
+    int symmetrise = nargs == 8 ? PyObject_IsTrue(args[7]) : 0;
+    if (symmetrise < 0)
+        return NULL;
     double q[4], sfn[3], sw[3];
     if (uwbd_get_vec(args[2], q, 4, "q") || uwbd_get_vec(args[3], sfn, 3, "sum_fn") ||
         uwbd_get_vec(args[4], sw, 3, "sum_w"))
@@ -333,6 +337,10 @@ static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_
     PyMem_Free(rows);
     for (Py_ssize_t i = 0; i < n; i++)
         P[i * n + i] += qr[i] * T;
+    if (symmetrise)
+        for (Py_ssize_t i = 0; i < n; i++)
+            for (Py_ssize_t j = i; j < n; j++)
+                P[i * n + j] = P[j * n + i] = 0.5 * (P[i * n + j] + P[j * n + i]);
     PyBuffer_Release(&Pb);
     PyBuffer_Release(&Eb);
     PyBuffer_Release(&Qb);

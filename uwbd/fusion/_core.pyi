@@ -8,7 +8,8 @@ def predict(p: list[float], v: list[float], q: Sequence[float], b_g: Sequence[fl
             acc_b: Sequence[float], gyro_b: Sequence[float], dt: float,
             gravity: float) -> list[float]: ...
 def propagate_core(P: Any, Phi_epoch: Any, q: Sequence[float], sum_fn: Sequence[float],
-                   sum_w: Sequence[float], T: float, q_rate: Any) -> None: ...
+                   sum_w: Sequence[float], T: float, q_rate: Any,
+                   symmetrise: bool = False) -> None: ...
 def update_and_inject(P: Any, H: Any, y: Any, R: Any,
                       decide: Callable[[int, float, float], float] | tuple[Any, ...], c0: int,
                       c1: int, dx: Any, p: list[float], v: list[float], q: list[float],

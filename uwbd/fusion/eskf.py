@@ -219,6 +219,11 @@ class Eskf:
         self._epoch_propagated = True
         if self._core is not None:
             P = self.P = np.ascontiguousarray(self.P)
+            if not len(self._markov):  # symmetrised in the same call: the same numbers
+                self._core.propagate_core(P, self._Phi_epoch, self.q, self._sum_fn,
+                                          self._sum_w, T, self._q_rate, True)
+                self._reset_interval()
+                return
             self._core.propagate_core(P, self._Phi_epoch, self.q, self._sum_fn, self._sum_w,
                                       T, self._q_rate)
         else:
