@@ -186,11 +186,17 @@ def replay_speed(replay_s: float) -> None:
                 print(f"replay, {duration_s:.0f} s simulated log, {label}, {impl}: "
                       f"{speed[impl]:.0f} x real time ({pipeline.poses} poses)")
             print(f"  C core / pure Python: {speed['C core'] / speed['pure Python']:.2f}")
-        # the whole process, as a user runs it: start-up, imports, reading the log, replay
+        # the whole process, as a user runs it: start-up, imports (compiled once, as an
+        # install leaves them: PYTHONDONTWRITEBYTECODE, set in some shells, would have every
+        # start compile every module), reading the log, replay
+        plain = {k: v for k, v in os.environ.items()
+                 if k not in (native.PURE_PYTHON_ENV, "PYTHONDONTWRITEBYTECODE")}
+        subprocess.run([sys.executable, "-m", "uwbd", "replay", str(path), "-o", str(output)],
+                       check=True, env=plain, stdout=subprocess.DEVNULL)
         for label, extra in (("poses only", []), ("writing the output log", ["-o", str(output)])):
             whole = {}
             for impl in ("C core", "pure Python"):
-                env = {k: v for k, v in os.environ.items() if k != native.PURE_PYTHON_ENV}
+                env = dict(plain)
                 if impl == "pure Python":
                     env[native.PURE_PYTHON_ENV] = "1"
                 output.unlink(missing_ok=True)
