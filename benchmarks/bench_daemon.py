@@ -5,6 +5,8 @@
 * latency: serial read → Zenoh receive. A pose's ``t_ns`` is the receive time of the read
   that produced it (``time.time_ns()`` in the daemon), so a subscriber on the same host takes
   ``time.time_ns() − t_ns`` on arrival: percentiles over every pose;
+* the floor under the CPU figure: what an asyncio loop that only wakes (60 and 200 times a
+  second) costs on this machine;
 * CPU (% of one core) and RSS of the ``uwbd run`` process, with the emulator (a process of
   its own, ``uwbd emulate``) feeding a 200 Hz WitMotion IMU and a 10 Hz Nooploop tag over
   pseudo-terminals, from ``/proc``; each run and the median of the runs;
@@ -21,6 +23,7 @@ Everything stays on this machine: Zenoh on a unix socket, no scouting.
 from __future__ import annotations
 
 import argparse
+import asyncio
 import contextlib
 import gc
 import json
@@ -209,6 +212,31 @@ def replay_speed(replay_s: float) -> None:
             print(f"  C core / pure Python: {whole['pure Python'] / whole['C core']:.2f}")
 
 
+def wakeup_floor(rate_hz: float, seconds: float = 8.0) -> float:
+    """The CPU (% of one core) of an asyncio loop that does nothing but wake ``rate_hz``
+    times a second for a pipe another process writes: what waking costs on this machine
+    before any work (the daemon's loop wakes ~60 times a second, its reader thread once a
+    read)."""
+    r, w = os.pipe()
+    os.set_blocking(r, False)
+    writer = subprocess.Popen(
+        [sys.executable, "-c", "import os, sys, time\nwhile True:\n"
+         f"    time.sleep({1 / rate_hz}); os.write({w}, b'x')"], pass_fds=(w,))
+    loop = asyncio.new_event_loop()
+    try:
+        loop.add_reader(r, lambda: os.read(r, 4096))
+        loop.run_until_complete(asyncio.sleep(1.0))
+        t0, wall0 = time.thread_time(), time.monotonic()
+        loop.run_until_complete(asyncio.sleep(seconds))
+        return 100 * (time.thread_time() - t0) / (time.monotonic() - wall0)
+    finally:
+        loop.close()
+        writer.kill()
+        writer.wait()
+        os.close(r)
+        os.close(w)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=15.0, help="steady-state window")
@@ -219,6 +247,9 @@ def main() -> None:
     ap.add_argument("--replay-only", action="store_true", help="skip the live runs")
     args = ap.parse_args()
     if not args.replay_only:
+        print("the floor: an empty asyncio loop woken by another process, "
+              + ", ".join(f"{hz} times a second {wakeup_floor(hz):.2f} % CPU"
+                          for hz in (60, 200)))
         live_runs(args.runs, args.seconds)
     replay_speed(args.replay_s)
 
