@@ -16,6 +16,9 @@ setup(ext_modules=[
         extra_compile_args=["-O2", "-ffp-contract=off", "-fno-fast-math"],
         optional=True,
     ),
+    # the per-message loops of reading a whole log (uwbd/logs/scan.py, mcaplog.py)
+    Extension("uwbd.logs._scan", ["uwbd/logs/_scan.c"], extra_compile_args=["-O2"],
+              optional=True),
     # the daemon's serial reads on a thread of their own (uwbd/service/ports.py)
     Extension("uwbd.service._reader", ["uwbd/service/_reader.c"], extra_compile_args=["-O2"],
               extra_link_args=["-pthread"], optional=True),

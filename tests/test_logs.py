@@ -19,7 +19,8 @@ from mcap.reader import make_reader
 from drivers.frames import ImuSample, UwbRanges
 from uwbd.codec import frame_to_json, strict_json
 from uwbd.config import parse
-from uwbd.logs import mcaplog
+from uwbd.logs import foxglove as fx
+from uwbd.logs import mcaplog, scan
 from uwbd.logs.mcaplog import LogWriter, SourceInfo, read_log
 from uwbd.logs.sink import McapSink
 from uwbd.tools.importer import INROL_EPOCH_NS
@@ -345,6 +346,45 @@ def test_the_lean_scan_reads_what_the_library_reads(tmp_path: Path) -> None:
         assert whole.metadata == metadata and metadata["config_toml"] is not None
         assert not whole.truncated
     assert {len(m.data) for m in read_log(long_raw).messages} >= {0, 1, 127, 129, 448}
+
+
+@pytest.mark.skipif(scan.C_SCAN is None, reason="the log reader's C loops are not built")
+def test_the_scans_loops_in_c_read_what_their_reference_reads(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``uwbd/logs/_scan.c`` (a chunk's run of messages; each as a LogMessage) against the
+    Python loops it translates: raw reads of every length (a two-byte protobuf length
+    among them, decoded by the reference's own function), JSON records, an unknown
+    channel, and a chunk cut inside a message, which both refuse alike."""
+    path = tmp_path / "a.mcap"
+    with LogWriter(path, sources=(SourceInfo("uwb", "nlink"),), chunk_bytes=2048) as log:
+        for k in range(300):
+            log.raw("uwb", k, bytes([k % 251]) * (k + k // 2))
+            log.json("/truth", k, {"k": k})
+    buf = path.read_bytes()
+    in_c = mcaplog._read_whole(buf)
+    with monkeypatch.context() as m:
+        m.setattr(scan, "C_SCAN", None)
+        m.setattr(mcaplog, "C_SCAN", None)
+        reference = mcaplog._read_whole(buf)
+    assert [tuple(x) for x in in_c.messages] == [tuple(x) for x in reference.messages]
+    assert in_c.metadata == reference.metadata and len(in_c.messages) == 600
+    assert {len(x.data) for x in in_c.messages if x.topic == "/raw/uwb"} >= {0, 127, 129, 448}
+    assert scan.C_SCAN is not None
+    message = struct.pack("<BQHIQQ", 0x05, 22 + 3, 1, 0, 7, 7) + b"abc"
+    channel = struct.pack("<BQ", 0x04, 0)  # another record: the run stops at it
+    assert scan.C_SCAN.chunk_messages(message + channel, 0) == ([(1, 7, b"abc")], 34)
+    for cut, why in ((len(message) - 1, "ends mid-record"), (5, "ends mid-record")):
+        with pytest.raises(ValueError, match=why):
+            scan.C_SCAN.chunk_messages(message[:cut], 0)
+    short = struct.pack("<BQ", 0x05, 10) + bytes(10)
+    with pytest.raises(ValueError, match="message length"):
+        scan.C_SCAN.chunk_messages(short, 0)
+    records = [(9, 1, b"\x0a\x02hi"), (9, 2, b"\x0a"), (3, 3, b"x")]
+    out: list[mcaplog.LogMessage] = []
+    scan.C_SCAN.log_messages(records, {9: "/raw/a"}, {9}, fx.decode_raw, mcaplog.LogMessage,
+                             out)
+    assert out == [("/raw/a", 1, b"hi"), ("/raw/a", 2, b"\x0a"), ("?", 3, b"x")]
+    assert all(type(x) is mcaplog.LogMessage for x in out)
 
 
 @settings(max_examples=40, deadline=None)

@@ -17,9 +17,12 @@ from __future__ import annotations
 import struct
 import zlib
 from collections.abc import Iterator
+from types import ModuleType
 from typing import Any
 
 import zstandard
+
+from uwbd.fusion import native
 
 MAGIC = b"\x89MCAP0\r\n"
 _HEAD = struct.Struct("<BQ")  # opcode, record length
@@ -30,6 +33,21 @@ _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x03, 0x04, 0x05, 0x06
 OP_FOOTER, OP_METADATA, OP_DATA_END = 0x02, 0x0C, 0x0F
+
+
+def _c_scan() -> ModuleType | None:
+    """The per-message loops in C (``_scan.c``), when built and not ruled out by
+    ``UWBD_PURE_PYTHON`` (the C core's switch)."""
+    if native.core is None:
+        return None
+    try:
+        from uwbd.logs import _scan  # noqa: PLC0415
+    except ImportError:
+        return None
+    return _scan
+
+
+C_SCAN = _c_scan()
 
 
 class UnusualRecordError(Exception):
@@ -114,6 +132,14 @@ def _chunk(buf: bytes, body: int, stop: int) -> Iterator[Event]:
     append = messages.append
     end, nxt = len(data), 0
     while nxt < end:  # _records(data, 0), inline: a chunk holds thousands of messages
+        if C_SCAN is not None:  # the run of messages from here in one call (the same)
+            try:
+                run, nxt = C_SCAN.chunk_messages(data, nxt)
+            except ValueError as err:
+                raise UnusualRecordError(str(err)) from err
+            messages += run
+            if nxt >= end:
+                break
         if nxt + 9 > end:
             raise UnusualRecordError("ends mid-record")
         op, length = head(data, nxt)
