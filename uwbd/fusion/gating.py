@@ -15,6 +15,7 @@ import math
 from dataclasses import dataclass, field
 from enum import Enum
 from statistics import NormalDist
+from typing import NamedTuple
 
 from drivers.frames import AnchorRange, UwbRanges
 
@@ -63,10 +64,10 @@ class GatingCounters:
     rejections: collections.Counter[str] = field(default_factory=collections.Counter)
 
 
-@dataclass(frozen=True)
-class GateResult:
+class GateResult(NamedTuple):
     """The epoch with only the accepted ranges (``None`` if the epoch failed as a whole) and
-    the rejected ranges with their reasons, for per-measurement reports."""
+    the rejected ranges with their reasons, for per-measurement reports. (A named tuple:
+    every UWB message makes one.)"""
 
     epoch: UwbRanges | None
     rejected: tuple[tuple[AnchorRange, Rejection], ...]
@@ -87,11 +88,12 @@ def gate(epoch: UwbRanges, policy: GatingPolicy, counters: GatingCounters) -> Ga
             counters.rejections[reason.value] += 1
     if len(kept) < policy.min_anchors:
         counters.rejections[Rejection.TOO_FEW_ANCHORS.value] += 1
-        return GateResult(None, tuple(rejected))
+        return GateResult(None, tuple(rejected) if rejected else ())
     counters.epochs_passed += 1
     counters.ranges_passed += len(kept)
-    passed = epoch if not rejected else dataclasses.replace(epoch, ranges=tuple(kept))
-    return GateResult(passed, tuple(rejected))
+    if not rejected:
+        return GateResult(epoch, ())
+    return GateResult(dataclasses.replace(epoch, ranges=tuple(kept)), tuple(rejected))
 
 
 def _judge(r: AnchorRange, policy: GatingPolicy, seen: set[int]) -> Rejection | None:
