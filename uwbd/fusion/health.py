@@ -80,8 +80,7 @@ class Health(NamedTuple):
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready (non-finite numbers as ``None``)."""
-        def num(x: float | None) -> float | None:
-            return None if x is None or not math.isfinite(x) else round(x, 4)
+        num = _rounded
         return {"phase": self.phase.value, "healthy": self.healthy,
                 "faults": list(self.faults), "notes": list(self.notes),
                 "since_range_s": num(self.since_range_s),
@@ -89,6 +88,10 @@ class Health(NamedTuple):
                 "last_reset_t_ns": self.last_reset_t_ns,
                 "last_reset_reason": self.last_reset_reason,
                 "last_reset_jump_m": num(self.last_reset_jump_m)}
+
+
+def _rounded(x: float | None) -> float | None:
+    return None if x is None or not math.isfinite(x) else round(x, 4)
 
 
 WAITING = Health(Phase.WAITING)

@@ -60,8 +60,8 @@ def pose_message(t_ns: int, position_m: Sequence[float], orientation_xyzw: Seque
                  extra: dict[str, Any] | None = None,
                  frame_id: str = NAV_FRAME_ID) -> dict[str, Any]:
     """A ``foxglove.PoseInFrame`` JSON object (plus uwbd's own fields, which Foxglove ignores)."""
-    x, y, z = (float(v) for v in position_m)
-    qx, qy, qz, qw = (float(v) for v in orientation_xyzw)
+    x, y, z = map(float, position_m)
+    qx, qy, qz, qw = map(float, orientation_xyzw)
     msg: dict[str, Any] = {
         "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
         "frame_id": frame_id,
@@ -77,7 +77,7 @@ def pose_to_message(pose: Pose, frame_id: str = NAV_FRAME_ID) -> dict[str, Any]:
     """``/pose`` (and Zenoh ``<prefix>/pose``): :func:`pose_message` plus velocity,
     covariance, status and the health record, whose unknown values are left out."""
     return pose_message(pose.t_ns, pose.position_m, pose.orientation_xyzw, {
-        "velocity_mps": list(pose.velocity_mps), "covariance": list(pose.covariance),
+        "velocity_mps": pose.velocity_mps, "covariance": pose.covariance,  # tuples: arrays
         "status": pose.status, "heading_observable": pose.heading_observable,
         "health": known(pose.health.as_dict())}, frame_id)
 
