@@ -1290,6 +1290,14 @@ static PyObject *core_pose_numbers(PyObject *self, PyObject *const *args, Py_ssi
     if (get_P(args[0], &Pb, &n, 0) < 0)
         return NULL;
     const double *P = (const double *)Pb.buf;
+    /* the reference's T P Tᵀ spreads a NaN or inf anywhere in P[:9, :9] (0 × inf is NaN),
+     * the velocity block too, which the product below never reads */
+    for (int i = 0; i < 9; i++)
+        for (int j = 0; j < 9; j++)
+            if (!isfinite(P[i * n + j])) {
+                PyBuffer_Release(&Pb);
+                Py_RETURN_NONE;
+            }
     double R[3][3];
     quat_to_matrix(q, R);
     /* T (6×9) = [[I, 0, 0], [0, 0, R]] over (p, v, θ); M = T P Tᵀ */

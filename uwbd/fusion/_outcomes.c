@@ -106,9 +106,11 @@ static int read_monitor(PyObject *m, Monitor *mon)
     mon->rejudging = judging == Py_True;
     if (strcmp(Py_TYPE(deque)->tp_name, "collections.deque") != 0)
         return -1;
-    mon->deque = deque;
     mon->len = PyObject_Length(deque);
-    return mon->len < 0 ? -1 : 0;
+    if (mon->len < 0)
+        return -1;
+    mon->deque = Py_NewRef(deque); /* held: Python code may run before it is done with */
+    return 0;
 }
 
 static int set_item(PyObject *d, int name, PyObject *value)
@@ -157,6 +159,11 @@ static int uwb_outcome(Monitor *mon, const double *lim, int64_t t_ns, int accept
         PyObject *old = PyObject_CallMethodNoArgs(mon->deque, str[S_POPLEFT]);
         if (old == NULL)
             return -1;
+        if (!PyTuple_Check(old) || PyTuple_GET_SIZE(old) != 2) {
+            Py_DECREF(old);
+            PyErr_SetString(PyExc_TypeError, "HealthMonitor._outcomes: (accepted, nis) expected");
+            return -1;
+        }
         int old_accepted = PyObject_IsTrue(PyTuple_GET_ITEM(old, 0));
         double old_nis = PyFloat_AsDouble(PyTuple_GET_ITEM(old, 1));
         Py_DECREF(old);
@@ -214,6 +221,27 @@ static int count(PyObject *counters, PyObject *name)
 }
 
 static int add_stat(PyObject *d, double e, double w);
+
+/* An AnchorStats's fields as the Python code keeps them (checked before anything changes,
+ * so that add_stat cannot fail half-way on them): 1 yes, 0 no, -1 an error */
+static int stats_as_expected(PyObject *stats, PyObject *anchor)
+{
+    PyObject *s = PyDict_GetItemWithError(stats, anchor);
+    if (s == NULL)
+        return PyErr_Occurred() ? -1 : 1; /* made new, with its defaults */
+    Py_INCREF(s);
+    PyObject *d = PyObject_GenericGetDict(s, NULL);
+    Py_DECREF(s);
+    if (d == NULL)
+        return -1;
+    int ok = 1;
+    for (int name = S_ACCEPTED; name <= S_SUM_E2 && ok; name++) {
+        PyObject *v = PyDict_GetItem(d, str[name]);
+        ok = v != NULL && (name < S_SUM_E ? PyLong_CheckExact(v) : PyFloat_CheckExact(v));
+    }
+    Py_DECREF(d);
+    return ok;
+}
 
 /* AnchorStats.add(e, weight) on the anchor's stats (made when it has none) */
 static int anchor_add(PyObject *stats, PyObject *type, PyObject *anchor, double e, double w)
@@ -274,10 +302,80 @@ static int add_stat(PyObject *d, double e, double w)
 }
 
 typedef struct {
-    PyObject *kind, *key, *name, *anchor;
-    double innovation, variance, weight;
+    PyObject *kind, *key, *name, *anchor; /* name and anchor: held */
+    double innovation, variance, weight, ratio;
     int numerical, uwb, range;
 } RowIn;
+
+/* A tuple of a tuple subclass (FusionReport) as tuple.__new__(type, items) makes it (a
+ * tuple's own allocation would leave the hash cache of newer Pythons unset) */
+static PyObject *new_tuple(PyObject *type, PyObject *items)
+{
+    PyObject *args = PyTuple_Pack(1, items);
+    if (args == NULL)
+        return NULL;
+    PyObject *out = PyTuple_Type.tp_new((PyTypeObject *)type, args, NULL);
+    Py_DECREF(args);
+    return out;
+}
+
+/* Every row read and checked before anything changes: 1 taken, 0 declined, -1 an error */
+static int read_rows(PyObject *keys, PyObject *rows, PyObject *names, PyObject *stats,
+                     double gate_1, RowIn *in, Py_ssize_t n, int *any_uwb)
+{
+    for (Py_ssize_t i = 0; i < n; i++) {
+        PyObject *k = PyList_GET_ITEM(keys, i), *r = PyList_GET_ITEM(rows, i);
+        if (!PyTuple_Check(k) || PyTuple_GET_SIZE(k) != 2 || !PyTuple_Check(r) ||
+            PyTuple_GET_SIZE(r) != 4)
+            return 0;
+        RowIn *row = &in[i];
+        row->kind = PyTuple_GET_ITEM(k, 0);
+        row->key = PyTuple_GET_ITEM(k, 1);
+        PyObject *nu = PyTuple_GET_ITEM(r, 0), *s = PyTuple_GET_ITEM(r, 1);
+        PyObject *w = PyTuple_GET_ITEM(r, 2), *num = PyTuple_GET_ITEM(r, 3);
+        if (!PyUnicode_CheckExact(row->kind) || !PyUnicode_CheckExact(row->key) ||
+            !PyFloat_CheckExact(nu) || !PyFloat_CheckExact(s) || !PyFloat_CheckExact(w) ||
+            !PyBool_Check(num))
+            return 0;
+        row->innovation = PyFloat_AS_DOUBLE(nu);
+        row->variance = PyFloat_AS_DOUBLE(s);
+        row->weight = PyFloat_AS_DOUBLE(w);
+        row->numerical = num == Py_True;
+        row->range = is_kind(row->kind, S_RANGE);
+        row->uwb = row->range || is_kind(row->kind, S_POSITION);
+        *any_uwb |= row->uwb;
+        row->ratio = NAN;
+        if (row->variance > 0) {
+            /* Python's innovation**2 is libm's pow (which the compiler would make x * x, not
+             * always the same bits: the exponent is hidden from it); where that overflows
+             * Python raises OverflowError: the reference's to raise */
+            volatile double two = 2.0;
+            double square = pow(row->innovation, two);
+            if (isinf(square) && isfinite(row->innovation))
+                return 0;
+            row->ratio = square / row->variance / gate_1;
+        }
+        PyObject *name_key = PyTuple_Pack(2, row->kind, row->weight > 0.0 ? Py_True : Py_False);
+        if (name_key == NULL)
+            return -1;
+        PyObject *name = PyDict_GetItemWithError(names, name_key);
+        Py_DECREF(name_key);
+        if (name == NULL)
+            return PyErr_Occurred() ? -1 : 0; /* a kind not known: the reference names it */
+        row->name = Py_NewRef(name);
+        if (row->range) {
+            row->anchor = PyLong_FromUnicodeObject(row->key, 10);
+            if (row->anchor == NULL) {
+                PyErr_Clear();
+                return 0;
+            }
+            int ok = stats_as_expected(stats, row->anchor);
+            if (ok <= 0)
+                return ok;
+        }
+    }
+    return 1;
+}
 
 PyObject *uwbd_outcomes(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
@@ -295,9 +393,10 @@ PyObject *uwbd_outcomes(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     double lim[L_COUNT], gate_1 = PyFloat_AsDouble(parts[O_GATE]);
     if (PyErr_Occurred())
         return NULL;
+    /* (a gate of 0 or less: the reference divides by it, and says so) */
     if (n != PyList_GET_SIZE(args[3]) || n > MAX_ROWS || get_int64(args[1], &t_ns) ||
-        !PyDict_Check(counters) || !PyDict_Check(names) || !PyDict_Check(m) ||
-        !PyDict_Check(stats) || !PyType_Check(report_type) ||
+        !(gate_1 > 0.0) || !PyDict_Check(counters) || !PyDict_Check(names) ||
+        !PyDict_Check(m) || !PyDict_Check(stats) || !PyType_Check(report_type) ||
         !PyType_IsSubtype((PyTypeObject *)report_type, &PyTuple_Type) ||
         uwbd_get_vec(parts[O_LIMITS], lim, L_COUNT, "limits") < 0) {
         PyErr_Clear();
@@ -308,95 +407,41 @@ PyObject *uwbd_outcomes(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         PyErr_Clear();
         Py_RETURN_NOTIMPLEMENTED;
     }
-    /* every row read and checked before anything changes */
     RowIn in[MAX_ROWS];
+    memset(in, 0, sizeof(RowIn) * (size_t)n);
     int any_uwb = 0;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        PyObject *k = PyList_GET_ITEM(args[2], i), *r = PyList_GET_ITEM(args[3], i);
-        if (!PyTuple_Check(k) || PyTuple_GET_SIZE(k) != 2 || !PyTuple_Check(r) ||
-            PyTuple_GET_SIZE(r) != 4)
-            Py_RETURN_NOTIMPLEMENTED;
-        RowIn *row = &in[i];
-        row->kind = PyTuple_GET_ITEM(k, 0);
-        row->key = PyTuple_GET_ITEM(k, 1);
-        PyObject *nu = PyTuple_GET_ITEM(r, 0), *s = PyTuple_GET_ITEM(r, 1);
-        PyObject *w = PyTuple_GET_ITEM(r, 2), *num = PyTuple_GET_ITEM(r, 3);
-        if (!PyUnicode_CheckExact(row->kind) || !PyUnicode_CheckExact(row->key) ||
-            !PyFloat_CheckExact(nu) || !PyFloat_CheckExact(s) || !PyFloat_CheckExact(w) ||
-            !PyBool_Check(num))
-            Py_RETURN_NOTIMPLEMENTED;
-        row->innovation = PyFloat_AS_DOUBLE(nu);
-        row->variance = PyFloat_AS_DOUBLE(s);
-        row->weight = PyFloat_AS_DOUBLE(w);
-        row->numerical = num == Py_True;
-        row->range = is_kind(row->kind, S_RANGE);
-        row->uwb = row->range || is_kind(row->kind, S_POSITION);
-        any_uwb |= row->uwb;
-        PyObject *name_key = Py_BuildValue("(OO)", row->kind,
-                                           row->weight > 0.0 ? Py_True : Py_False);
-        if (name_key == NULL)
-            return NULL;
-        row->name = PyDict_GetItemWithError(names, name_key); /* borrowed: names keeps it */
-        Py_DECREF(name_key);
-        if (row->name == NULL) {
-            if (PyErr_Occurred())
-                return NULL;
-            Py_RETURN_NOTIMPLEMENTED; /* a kind not known: the reference names it */
-        }
-        row->anchor = NULL;
-        if (row->range) {
-            row->anchor = PyLong_FromUnicodeObject(row->key, 10);
-            if (row->anchor == NULL) {
-                PyErr_Clear();
-                for (Py_ssize_t j = 0; j < i; j++)
-                    Py_XDECREF(in[j].anchor);
-                Py_RETURN_NOTIMPLEMENTED;
-            }
-        }
+    PyObject *out = NULL, *reports = NULL, *t_obj = NULL;
+    int taken = read_rows(args[2], args[3], names, stats, gate_1, in, n, &any_uwb);
+    if (taken == 1 && any_uwb && mon.has_last &&
+        (t_ns - mon.last >= EXACT || mon.last - t_ns >= EXACT))
+        taken = 0; /* a time apart beyond a double's exact integers */
+    if (taken <= 0) {
+        out = taken < 0 ? NULL : Py_NewRef(Py_NotImplemented);
+        goto done;
     }
-    if (any_uwb && mon.has_last && (t_ns - mon.last >= EXACT || mon.last - t_ns >= EXACT)) {
-        for (Py_ssize_t j = 0; j < n; j++)
-            Py_XDECREF(in[j].anchor);
-        Py_RETURN_NOTIMPLEMENTED; /* a time apart beyond a double's exact integers */
-    }
-    PyObject *reports = PyList_New(n), *t_obj = PyLong_FromLongLong(t_ns);
+    /* from here on the state changes: an error (only a failed allocation can make one)
+     * still leaves the monitor's fields in step with its window */
+    reports = PyList_New(n);
+    t_obj = PyLong_FromLongLong(t_ns);
     int failed = reports == NULL || t_obj == NULL;
     for (Py_ssize_t i = 0; i < n && !failed; i++) {
         RowIn *row = &in[i];
         int ok = row->weight > 0.0;
         PyObject *reason = ok ? str[S_EMPTY] : row->numerical ? str[S_NUMERICAL] : str[S_GATE];
-        /* Python's innovation**2 is libm's pow (which the compiler would make x * x, not
-         * always the same bits: the exponent is hidden from it) */
-        volatile double two = 2.0;
-        double ratio = row->variance > 0 ? pow(row->innovation, two) / row->variance / gate_1
-                                         : NAN;
-        PyObject *report = ((PyTypeObject *)report_type)->tp_alloc((PyTypeObject *)report_type, 8);
+        PyObject *items = Py_BuildValue("(OOOdddNO)", t_obj, row->kind, row->key,
+                                        row->innovation, row->variance, row->ratio,
+                                        PyBool_FromLong(ok), reason);
+        PyObject *report = items == NULL ? NULL : new_tuple(report_type, items);
+        Py_XDECREF(items);
         if (report == NULL) {
             failed = 1;
             break;
         }
-        PyObject *items[8] = {Py_NewRef(t_obj), Py_NewRef(row->kind), Py_NewRef(row->key),
-                              PyFloat_FromDouble(row->innovation),
-                              PyFloat_FromDouble(row->variance), PyFloat_FromDouble(ratio),
-                              PyBool_FromLong(ok), Py_NewRef(reason)};
-        for (int j = 0; j < 8; j++) {
-            if (items[j] == NULL)
-                failed = 1;
-            PyTuple_SET_ITEM(report, j, items[j]);
-        }
         PyList_SET_ITEM(reports, i, report);
-        if (failed || count(counters, row->name) < 0) {
-            failed = 1;
-            break;
-        }
-        if (row->numerical) {
-            if (count(counters, str[S_SKIPS]) < 0 ||
-                set_item(m, S_NUMERICAL_NS, PyLong_FromLongLong(t_ns)) < 0) {
-                failed = 1;
-                break;
-            }
-        }
-        if (row->uwb && uwb_outcome(&mon, lim, t_ns, ok, ratio * gate_1) < 0) {
+        if (count(counters, row->name) < 0 ||
+            (row->numerical && (count(counters, str[S_SKIPS]) < 0 ||
+                                set_item(m, S_NUMERICAL_NS, PyLong_FromLongLong(t_ns)) < 0)) ||
+            (row->uwb && uwb_outcome(&mon, lim, t_ns, ok, row->ratio * gate_1) < 0)) {
             failed = 1;
             break;
         }
@@ -408,14 +453,24 @@ PyObject *uwbd_outcomes(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
             }
         }
     }
-    if (!failed && any_uwb && write_monitor(m, &mon) < 0)
-        failed = 1;
-    for (Py_ssize_t j = 0; j < n; j++)
-        Py_XDECREF(in[j].anchor);
-    Py_XDECREF(t_obj);
-    if (failed) {
-        Py_XDECREF(reports);
-        return NULL;
+    if (any_uwb) {
+        PyObject *type, *value, *tb;
+        PyErr_Fetch(&type, &value, &tb); /* written on failure too, the error kept */
+        if (write_monitor(m, &mon) < 0)
+            failed = 1;
+        if (type != NULL) {
+            PyErr_Clear();
+            PyErr_Restore(type, value, tb);
+        }
     }
-    return reports;
+    out = failed ? NULL : Py_NewRef(reports);
+done:
+    for (Py_ssize_t j = 0; j < n; j++) {
+        Py_XDECREF(in[j].name);
+        Py_XDECREF(in[j].anchor);
+    }
+    Py_XDECREF(reports);
+    Py_XDECREF(t_obj);
+    Py_DECREF(mon.deque);
+    return out;
 }

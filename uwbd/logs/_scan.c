@@ -110,13 +110,13 @@ static PyObject *log_messages(PyObject *self, PyObject *const *args, Py_ssize_t 
             PyErr_SetString(PyExc_TypeError, "a record: (channel id, log time, bytes)");
             goto fail;
         }
+        Py_INCREF(rec); /* held: decode_raw is Python code */
         PyObject *channel = PyTuple_GET_ITEM(rec, 0), *data = PyTuple_GET_ITEM(rec, 2);
-        PyObject *topic = PyDict_GetItemWithError(topics, channel);
-        if (topic == NULL && PyErr_Occurred())
-            goto fail;
         int is_raw = PySet_Contains(raw, channel);
-        if (is_raw < 0)
+        if (is_raw < 0) {
+            Py_DECREF(rec);
             goto fail;
+        }
         Py_INCREF(data);
         if (is_raw) {
             const unsigned char *b = (const unsigned char *)PyBytes_AS_STRING(data);
@@ -132,18 +132,25 @@ static PyObject *log_messages(PyObject *self, PyObject *const *args, Py_ssize_t 
                 }
             }
             Py_DECREF(data);
-            if (inner == NULL)
+            if (inner == NULL) {
+                Py_DECREF(rec);
                 goto fail;
+            }
             data = inner;
         }
-        PyObject *message = type->tp_alloc(type, 3);
-        if (message == NULL) {
-            Py_DECREF(data);
+        PyObject *topic = PyDict_GetItemWithError(topics, channel); /* after decode_raw */
+        PyObject *items = topic == NULL && PyErr_Occurred() ? NULL : PyTuple_Pack(
+            3, topic != NULL ? topic : unknown, PyTuple_GET_ITEM(rec, 1), data);
+        Py_DECREF(data);
+        Py_DECREF(rec);
+        /* as tuple.__new__(LogMessage, items) makes it (a tuple's own allocation would
+         * leave the hash cache of newer Pythons unset) */
+        PyObject *args1 = items == NULL ? NULL : PyTuple_Pack(1, items);
+        Py_XDECREF(items);
+        PyObject *message = args1 == NULL ? NULL : PyTuple_Type.tp_new(type, args1, NULL);
+        Py_XDECREF(args1);
+        if (message == NULL)
             goto fail;
-        }
-        PyTuple_SET_ITEM(message, 0, Py_NewRef(topic != NULL ? topic : unknown));
-        PyTuple_SET_ITEM(message, 1, Py_NewRef(PyTuple_GET_ITEM(rec, 1)));
-        PyTuple_SET_ITEM(message, 2, data);
         int rc = PyList_Append(out, message);
         Py_DECREF(message);
         if (rc < 0)
