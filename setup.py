@@ -11,14 +11,14 @@ setup(ext_modules=[
     Extension(
         "uwbd.fusion._core", ["uwbd/fusion/_core.c", "uwbd/fusion/_imu_read.c",
                                 "uwbd/fusion/_outcomes.c"],
-        depends=["uwbd/fusion/_core.h"],
+        depends=["uwbd/fusion/_core.h", "uwbd/_tuple.h"],
         # a * b + c rounded as Python rounds it (no fused multiply-add): the same bits
         extra_compile_args=["-O2", "-ffp-contract=off", "-fno-fast-math"],
         optional=True,
     ),
     # the per-message loops of reading a whole log (uwbd/logs/scan.py, mcaplog.py)
-    Extension("uwbd.logs._scan", ["uwbd/logs/_scan.c"], extra_compile_args=["-O2"],
-              optional=True),
+    Extension("uwbd.logs._scan", ["uwbd/logs/_scan.c"], depends=["uwbd/_tuple.h"],
+              extra_compile_args=["-O2"], optional=True),
     # the daemon's serial reads on a thread of their own (uwbd/service/ports.py)
     Extension("uwbd.service._reader", ["uwbd/service/_reader.c"], extra_compile_args=["-O2"],
               extra_link_args=["-pthread"], optional=True),

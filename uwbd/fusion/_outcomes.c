@@ -20,6 +20,7 @@
 #include <stdint.h>
 #include <string.h>
 
+#include "../_tuple.h"
 #include "_core.h"
 
 enum { O_REPORT, O_COUNTERS, O_NAMES, O_MONITOR, O_LIMITS, O_STATS, O_STATS_TYPE, O_GATE,
@@ -307,18 +308,6 @@ typedef struct {
     int numerical, uwb, range;
 } RowIn;
 
-/* A tuple of a tuple subclass (FusionReport) as tuple.__new__(type, items) makes it (a
- * tuple's own allocation would leave the hash cache of newer Pythons unset) */
-static PyObject *new_tuple(PyObject *type, PyObject *items)
-{
-    PyObject *args = PyTuple_Pack(1, items);
-    if (args == NULL)
-        return NULL;
-    PyObject *out = PyTuple_Type.tp_new((PyTypeObject *)type, args, NULL);
-    Py_DECREF(args);
-    return out;
-}
-
 /* Every row read and checked before anything changes: 1 taken, 0 declined, -1 an error */
 static int read_rows(PyObject *keys, PyObject *rows, PyObject *names, PyObject *stats,
                      double gate_1, RowIn *in, Py_ssize_t n, int *any_uwb)
@@ -428,11 +417,11 @@ PyObject *uwbd_outcomes(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         RowIn *row = &in[i];
         int ok = row->weight > 0.0;
         PyObject *reason = ok ? str[S_EMPTY] : row->numerical ? str[S_NUMERICAL] : str[S_GATE];
-        PyObject *items = Py_BuildValue("(OOOdddNO)", t_obj, row->kind, row->key,
-                                        row->innovation, row->variance, row->ratio,
-                                        PyBool_FromLong(ok), reason);
-        PyObject *report = items == NULL ? NULL : new_tuple(report_type, items);
-        Py_XDECREF(items);
+        PyObject *items[8] = {Py_NewRef(t_obj), Py_NewRef(row->kind), Py_NewRef(row->key),
+                              PyFloat_FromDouble(row->innovation),
+                              PyFloat_FromDouble(row->variance), PyFloat_FromDouble(row->ratio),
+                              PyBool_FromLong(ok), Py_NewRef(reason)};
+        PyObject *report = uwbd_tuple_of((PyTypeObject *)report_type, items, 8);
         if (report == NULL) {
             failed = 1;
             break;

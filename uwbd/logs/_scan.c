@@ -21,6 +21,8 @@
 #include <stdint.h>
 #include <string.h>
 
+#include "../_tuple.h"
+
 #define OP_MESSAGE 0x05
 #define MESSAGE_FIXED 22 /* channel id u16, sequence u32, log time u64, publish time u64 */
 
@@ -139,16 +141,15 @@ static PyObject *log_messages(PyObject *self, PyObject *const *args, Py_ssize_t 
             data = inner;
         }
         PyObject *topic = PyDict_GetItemWithError(topics, channel); /* after decode_raw */
-        PyObject *items = topic == NULL && PyErr_Occurred() ? NULL : PyTuple_Pack(
-            3, topic != NULL ? topic : unknown, PyTuple_GET_ITEM(rec, 1), data);
-        Py_DECREF(data);
+        if (topic == NULL && PyErr_Occurred()) {
+            Py_DECREF(data);
+            Py_DECREF(rec);
+            goto fail;
+        }
+        PyObject *items[3] = {Py_NewRef(topic != NULL ? topic : unknown),
+                              Py_NewRef(PyTuple_GET_ITEM(rec, 1)), data};
         Py_DECREF(rec);
-        /* as tuple.__new__(LogMessage, items) makes it (a tuple's own allocation would
-         * leave the hash cache of newer Pythons unset) */
-        PyObject *args1 = items == NULL ? NULL : PyTuple_Pack(1, items);
-        Py_XDECREF(items);
-        PyObject *message = args1 == NULL ? NULL : PyTuple_Type.tp_new(type, args1, NULL);
-        Py_XDECREF(args1);
+        PyObject *message = uwbd_tuple_of(type, items, 3);
         if (message == NULL)
             goto fail;
         int rc = PyList_Append(out, message);
