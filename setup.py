@@ -19,6 +19,9 @@ setup(ext_modules=[
     # the per-message loops of reading a whole log (uwbd/logs/scan.py, mcaplog.py)
     Extension("uwbd.logs._scan", ["uwbd/logs/_scan.c"], depends=["uwbd/_tuple.h"],
               extra_compile_args=["-O2"], optional=True),
+    # the common Nooploop read in one call (drivers/nlink.py, drivers/accel.py)
+    Extension("drivers._frames", ["drivers/_frames.c"], extra_compile_args=["-O2"],
+              optional=True),
     # the daemon's serial reads on a thread of their own (uwbd/service/ports.py)
     Extension("uwbd.service._reader", ["uwbd/service/_reader.c"], extra_compile_args=["-O2"],
               extra_link_args=["-pthread"], optional=True),

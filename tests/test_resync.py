@@ -27,6 +27,7 @@ from drivers import (
     AnchorRange,
     ImuSample,
     UwbRanges,
+    accel,
     dwm1001,
     dwm1001_tlv,
     nlink,
@@ -96,6 +97,32 @@ def test_nlink_recovers_after_garbage(epochs, data, cuts) -> None:
     assume(not _spurious_fixed(stream, nlink.FRAME_LEN, {nlink.MARK_TAG_FRAME0}, set(starts)))
     assert _is_subsequence(epochs, frames)
     assert parser.stats.frames == len(epochs)
+
+
+@pytest.mark.skipif(accel.frames is None, reason="the drivers' C accelerator is not built")
+@settings(max_examples=100)
+@given(st.lists(st.tuples(nlink_epochs(), st.one_of(st.just(-1), st.integers(0, 127)),
+                          st.integers(1, 255)), min_size=1, max_size=6), st.booleans())
+def test_nlink_common_read_in_c_is_the_parsers_own(reads, emit_imu) -> None:
+    """Reads of one whole TagFrame0 each (some with a byte flipped: a frame to refuse), with
+    and without the tag's IMU: the C read (drivers/_frames.c) gives what the parser's own
+    scan and decoder give, frames, counters and kept bytes alike."""
+    fast, slow = nlink.NlinkParser(emit_imu), nlink.NlinkParser(emit_imu)
+    module = accel.frames
+    for k, (epoch, flip_at, xor) in enumerate(reads):
+        data = bytearray(nlink.encode(epoch))
+        if flip_at >= 0:
+            data[flip_at] ^= xor
+        try:
+            got = fast.feed(bytes(data), 1000 + k)
+            accel.frames = None
+            expected = slow.feed(bytes(data), 1000 + k)
+        finally:
+            accel.frames = module
+        assert got == expected
+        assert (fast.stats, fast._base, fast._buf) == (slow.stats, slow._base, slow._buf)
+        if flip_at < 0:  # a whole frame: taken (by the C read, where emit_imu allows it)
+            assert got and got[0] == dataclasses.replace(epoch, t_ns=1000 + k)
 
 
 @settings(max_examples=150)
