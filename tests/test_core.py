@@ -402,7 +402,8 @@ def test_row_outcomes_in_c_match_the_reference(preset: str,
 
 
 @needs_core
-@pytest.mark.parametrize("case", ["unknown kind", "square overflows", "odd anchor stats"])
+@pytest.mark.parametrize("case", ["unknown kind", "square overflows", "odd anchor stats",
+                                  "no anchor stats", "window of no whole count"])
 def test_row_outcomes_the_c_core_does_not_expect_are_left_to_the_reference(case: str) -> None:
     """Declined with nothing changed: a kind of row it does not name, an innovation whose
     square overflows (where Python raises), anchor statistics not of the shape it writes."""
@@ -413,13 +414,17 @@ def test_row_outcomes_the_c_core_does_not_expect_are_left_to_the_reference(case:
         keys[1] = ("odd", "x")
     elif case == "square overflows":
         rows[1] = Row(1e200, 1.0, 0.0, False)
-    else:
+    elif case == "odd anchor stats":
         flt.anchor_stats[7] = AnchorStats(rejected=0.0)  # type: ignore[arg-type]
+    elif case == "no anchor stats":
+        flt.anchor_stats[7] = 42  # type: ignore[assignment]
     before = (dict(flt.counters), repr(vars(flt.monitor)), repr(flt.anchor_stats))
     assert native.core is not None
+    parts = flt._outcome_parts()
+    if case == "window of no whole count":
+        parts = (*parts[:4], (5.0, 11.5, 0.5, 6.0), *parts[5:])
     for _ in range(3):
-        assert native.core.outcomes(flt._outcome_parts(), 10**18, keys, rows) \
-            is NotImplemented
+        assert native.core.outcomes(parts, 10**18, keys, rows) is NotImplemented
     assert (dict(flt.counters), repr(vars(flt.monitor)), repr(flt.anchor_stats)) == before
     if case == "square overflows":
         with pytest.raises(OverflowError):

@@ -17,6 +17,7 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
+#include <limits.h>
 #include <stdint.h>
 #include <string.h>
 
@@ -103,6 +104,10 @@ static int read_monitor(PyObject *m, Monitor *mon)
         PyErr_Clear();
         return -1;
     }
+    /* counts a call can add to or take from without leaving a long */
+    if (mon->rejected > LONG_MAX - MAX_ROWS || mon->rejected < LONG_MIN + MAX_ROWS ||
+        mon->run > LONG_MAX - MAX_ROWS || mon->run < 0)
+        return -1;
     mon->nis_sum = PyFloat_AS_DOUBLE(nis);
     mon->rejudging = judging == Py_True;
     if (strcmp(Py_TYPE(deque)->tp_name, "collections.deque") != 0)
@@ -197,12 +202,12 @@ static int uwb_outcome(Monitor *mon, const double *lim, int64_t t_ns, int accept
 
 static int write_monitor(PyObject *m, const Monitor *mon)
 {
-    return set_item(m, S_LAST, mon->has_last ? PyLong_FromLongLong(mon->last) : Py_NewRef(Py_None)) ||
+    return (set_item(m, S_LAST, mon->has_last ? PyLong_FromLongLong(mon->last) : Py_NewRef(Py_None)) ||
            set_item(m, S_SINCE, mon->has_since ? PyLong_FromLongLong(mon->since) : Py_NewRef(Py_None)) ||
            set_item(m, S_REJECTED, PyLong_FromLong(mon->rejected)) ||
            set_item(m, S_RUN, PyLong_FromLong(mon->run)) ||
            set_item(m, S_NIS_SUM, PyFloat_FromDouble(mon->nis_sum)) ||
-           set_item(m, S_REJUDGING, PyBool_FromLong(mon->rejudging));
+           set_item(m, S_REJUDGING, PyBool_FromLong(mon->rejudging))) ? -1 : 0;
 }
 
 /* counters[name] += 1 (a Counter: a missing name counts 0) */
@@ -225,16 +230,20 @@ static int add_stat(PyObject *d, double e, double w);
 
 /* An AnchorStats's fields as the Python code keeps them (checked before anything changes,
  * so that add_stat cannot fail half-way on them): 1 yes, 0 no, -1 an error */
-static int stats_as_expected(PyObject *stats, PyObject *anchor)
+static int stats_as_expected(PyObject *stats, PyObject *anchor, PyObject *type)
 {
     PyObject *s = PyDict_GetItemWithError(stats, anchor);
     if (s == NULL)
         return PyErr_Occurred() ? -1 : 1; /* made new, with its defaults */
+    if (Py_TYPE(s) != (PyTypeObject *)type)
+        return 0; /* another object (its own add): the reference's */
     Py_INCREF(s);
     PyObject *d = PyObject_GenericGetDict(s, NULL);
     Py_DECREF(s);
-    if (d == NULL)
-        return -1;
+    if (d == NULL) {
+        PyErr_Clear();
+        return 0;
+    }
     int ok = 1;
     for (int name = S_ACCEPTED; name <= S_SUM_E2 && ok; name++) {
         PyObject *v = PyDict_GetItem(d, str[name]);
@@ -297,20 +306,22 @@ static int add_stat(PyObject *d, double e, double w)
     Py_DECREF(inc);
     if (rc < 0)
         return -1;
+    /* (to the bit but for which NaN's sign survives a NaN + NaN) */
     double sum_e = PyFloat_AS_DOUBLE(se), sum_e2 = PyFloat_AS_DOUBLE(se2);
-    return set_item(d, S_SUM_E, PyFloat_FromDouble(sum_e + e)) ||
-           set_item(d, S_SUM_E2, PyFloat_FromDouble(sum_e2 + e * e));
+    return (set_item(d, S_SUM_E, PyFloat_FromDouble(sum_e + e)) ||
+            set_item(d, S_SUM_E2, PyFloat_FromDouble(sum_e2 + e * e))) ? -1 : 0;
 }
 
 typedef struct {
-    PyObject *kind, *key, *name, *anchor; /* name and anchor: held */
+    PyObject *kind, *key, *name, *anchor; /* all held: Python code runs before their use */
     double innovation, variance, weight, ratio;
     int numerical, uwb, range;
 } RowIn;
 
 /* Every row read and checked before anything changes: 1 taken, 0 declined, -1 an error */
 static int read_rows(PyObject *keys, PyObject *rows, PyObject *names, PyObject *stats,
-                     double gate_1, RowIn *in, Py_ssize_t n, int *any_uwb)
+                     PyObject *stats_type, double gate_1, RowIn *in, Py_ssize_t n,
+                     int *any_uwb)
 {
     for (Py_ssize_t i = 0; i < n; i++) {
         PyObject *k = PyList_GET_ITEM(keys, i), *r = PyList_GET_ITEM(rows, i);
@@ -318,8 +329,8 @@ static int read_rows(PyObject *keys, PyObject *rows, PyObject *names, PyObject *
             PyTuple_GET_SIZE(r) != 4)
             return 0;
         RowIn *row = &in[i];
-        row->kind = PyTuple_GET_ITEM(k, 0);
-        row->key = PyTuple_GET_ITEM(k, 1);
+        row->kind = Py_NewRef(PyTuple_GET_ITEM(k, 0));
+        row->key = Py_NewRef(PyTuple_GET_ITEM(k, 1));
         PyObject *nu = PyTuple_GET_ITEM(r, 0), *s = PyTuple_GET_ITEM(r, 1);
         PyObject *w = PyTuple_GET_ITEM(r, 2), *num = PyTuple_GET_ITEM(r, 3);
         if (!PyUnicode_CheckExact(row->kind) || !PyUnicode_CheckExact(row->key) ||
@@ -358,7 +369,7 @@ static int read_rows(PyObject *keys, PyObject *rows, PyObject *names, PyObject *
                 PyErr_Clear();
                 return 0;
             }
-            int ok = stats_as_expected(stats, row->anchor);
+            int ok = stats_as_expected(stats, row->anchor, stats_type);
             if (ok <= 0)
                 return ok;
         }
@@ -379,15 +390,18 @@ PyObject *uwbd_outcomes(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     PyObject *names = parts[O_NAMES], *m = parts[O_MONITOR], *stats = parts[O_STATS];
     Py_ssize_t n = PyList_GET_SIZE(args[2]);
     int64_t t_ns;
-    double lim[L_COUNT], gate_1 = PyFloat_AsDouble(parts[O_GATE]);
-    if (PyErr_Occurred())
-        return NULL;
-    /* (a gate of 0 or less: the reference divides by it, and says so) */
+    double lim[L_COUNT], gate_1 = PyFloat_Check(parts[O_GATE]) ?
+                                       PyFloat_AS_DOUBLE(parts[O_GATE]) : NAN;
+    /* (a gate of 0 or less: the reference divides by it, and says so; a window of no whole
+     * count, or none: the reference's arithmetic then is not this) */
     if (n != PyList_GET_SIZE(args[3]) || n > MAX_ROWS || get_int64(args[1], &t_ns) ||
         !(gate_1 > 0.0) || !PyDict_Check(counters) || !PyDict_Check(names) ||
         !PyDict_Check(m) || !PyDict_Check(stats) || !PyType_Check(report_type) ||
         !PyType_IsSubtype((PyTypeObject *)report_type, &PyTuple_Type) ||
-        uwbd_get_vec(parts[O_LIMITS], lim, L_COUNT, "limits") < 0) {
+        !PyLong_CheckExact(PyTuple_Check(parts[O_LIMITS]) && PyTuple_GET_SIZE(parts[O_LIMITS])
+                           == L_COUNT ? PyTuple_GET_ITEM(parts[O_LIMITS], L_WINDOW) : Py_None) ||
+        uwbd_get_vec(parts[O_LIMITS], lim, L_COUNT, "limits") < 0 || !(lim[L_WINDOW] >= 1.0) ||
+        !(lim[L_WINDOW] <= 1e9)) {
         PyErr_Clear();
         Py_RETURN_NOTIMPLEMENTED;
     }
@@ -400,7 +414,8 @@ PyObject *uwbd_outcomes(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     memset(in, 0, sizeof(RowIn) * (size_t)n);
     int any_uwb = 0;
     PyObject *out = NULL, *reports = NULL, *t_obj = NULL;
-    int taken = read_rows(args[2], args[3], names, stats, gate_1, in, n, &any_uwb);
+    int taken = read_rows(args[2], args[3], names, stats, parts[O_STATS_TYPE], gate_1, in, n,
+                          &any_uwb);
     if (taken == 1 && any_uwb && mon.has_last &&
         (t_ns - mon.last >= EXACT || mon.last - t_ns >= EXACT))
         taken = 0; /* a time apart beyond a double's exact integers */
@@ -455,6 +470,8 @@ PyObject *uwbd_outcomes(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     out = failed ? NULL : Py_NewRef(reports);
 done:
     for (Py_ssize_t j = 0; j < n; j++) {
+        Py_XDECREF(in[j].kind);
+        Py_XDECREF(in[j].key);
         Py_XDECREF(in[j].name);
         Py_XDECREF(in[j].anchor);
     }
