@@ -39,7 +39,7 @@ import numpy as np
 import zenoh
 
 from uwbd.fusion import native
-from uwbd.logs.mcaplog import read_log
+from uwbd.logs.reading import read_log
 from uwbd.logs.replay import replay
 from uwbd.tools.logtools import write_simulation
 from uwbd.tools.simulator import SimConfig, segments_for, simulate

@@ -49,7 +49,7 @@ import numpy as np
 
 from drivers.frames import AnchorPair, AnchorRanges, Frame, UwbRanges
 from uwbd.fusion.settings import FilterConfig
-from uwbd.logs.mcaplog import read_log
+from uwbd.logs.reading import read_log
 from uwbd.tools.evaluate import run_filter, score_poses
 from uwbd.tools.logtools import load_recording, write_simulation
 from uwbd.tools.simulator import PRESETS, Simulation, simulate

@@ -17,7 +17,7 @@ from procs import read_until
 from drivers import PARSERS
 from uwbd.cli import IMPORT_FORMATS
 from uwbd.commands.tools import IMPORTERS
-from uwbd.logs.mcaplog import read_log
+from uwbd.logs.reading import read_log
 
 DATA = Path(__file__).parent / "data"
 UWBD = [sys.executable, "-m", "uwbd"]

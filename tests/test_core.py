@@ -21,9 +21,10 @@ from uwbd.config import parse
 from uwbd.fusion import native
 from uwbd.fusion.eskf import N_CORE, ImuNoise, Row
 from uwbd.fusion.eskf import Eskf as _Eskf
-from uwbd.fusion.filter import MAX_OBSERVABLE_YAW_SIGMA, Filter
+from uwbd.fusion.filter import Filter
 from uwbd.fusion.lsq import multilaterate
 from uwbd.fusion.measurements import range_rows
+from uwbd.fusion.outputs import MAX_OBSERVABLE_YAW_SIGMA
 from uwbd.fusion.rest import ImuWindow, RestLimits
 from uwbd.fusion.robust import AnchorStats, RobustPolicy, RowPolicy
 from uwbd.fusion.settings import FilterConfig

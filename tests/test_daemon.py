@@ -19,7 +19,7 @@ from drivers.emulator import DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
 from uwbd.config import parse
 from uwbd.fusion import native
-from uwbd.logs.mcaplog import read_log
+from uwbd.logs.reading import read_log
 from uwbd.logs.replay import replay
 from uwbd.logs.sink import McapSink
 from uwbd.service.pipeline import Pipeline, PoseList

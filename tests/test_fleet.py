@@ -11,7 +11,7 @@ from procs import UNBUFFERED, UWBD, read_until, uwbd
 
 from drivers.emulator import DeviceSpec, Emulator, Faults
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
-from uwbd.logs.mcaplog import read_log
+from uwbd.logs.reading import read_log
 
 ANCHORS = "\n".join(f'"{i}" = [{x}, {y}, {z}]' for i, (x, y, z) in enumerate(DEFAULT_ANCHORS_M))
 

@@ -28,7 +28,8 @@ from drivers.frames import AnchorRange, ImuSample, UwbRanges
 from uwbd.codec import frame_from_dict
 from uwbd.config import parse
 from uwbd.logs import foxglove as fx
-from uwbd.logs.mcaplog import METADATA_NAME, read_log
+from uwbd.logs.mcaplog import METADATA_NAME
+from uwbd.logs.reading import read_log
 from uwbd.logs.replay import replay
 from uwbd.logs.sink import McapSink
 from uwbd.service.pipeline import Pipeline

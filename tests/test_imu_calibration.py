@@ -20,7 +20,8 @@ from uwbd.fusion.eskf import GRAVITY_MPS2, N_CORE, Eskf, ImuNoise
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.intrinsics import ImuIntrinsics, to_body
 from uwbd.fusion.settings import FilterConfig
-from uwbd.logs.mcaplog import LogWriter, read_log
+from uwbd.logs.mcaplog import LogWriter
+from uwbd.logs.reading import read_log
 from uwbd.tools.evaluate import merge, run_filter, score_poses
 from uwbd.tools.imu_calibration import Calibration, calibrate, write_capture
 from uwbd.tools.logtools import load_recording, simulation_toml

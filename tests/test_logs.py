@@ -20,8 +20,9 @@ from drivers.frames import ImuSample, UwbRanges
 from uwbd.codec import frame_to_json, strict_json
 from uwbd.config import parse
 from uwbd.logs import foxglove as fx
-from uwbd.logs import mcaplog, scan
-from uwbd.logs.mcaplog import LogWriter, SourceInfo, read_log
+from uwbd.logs import reading, scan
+from uwbd.logs.mcaplog import LogWriter, SourceInfo
+from uwbd.logs.reading import read_log
 from uwbd.logs.sink import McapSink
 from uwbd.tools.importer import INROL_EPOCH_NS
 from uwbd.tools.logtools import load_recording, write_simulation
@@ -319,7 +320,7 @@ def test_a_record_out_of_range_is_refused_and_the_file_stays_whole(tmp_path: Pat
 
 
 def _library_read(path: Path) -> tuple[list[tuple[str, int, bytes]], dict[str, str]]:
-    contents = mcaplog._read_by_library(path)
+    contents = reading._read_by_library(path)
     return [tuple(m) for m in contents.messages], contents.metadata  # type: ignore[misc]
 
 
@@ -340,7 +341,7 @@ def test_the_lean_scan_reads_what_the_library_reads(tmp_path: Path) -> None:
     recovered = tmp_path / "recovered.mcap"  # the mcap library's own writer
     assert uwbd("recover", str(replayed), "-o", str(recovered)).returncode == 0
     for path in (source, replayed, long_raw, recovered):
-        whole = mcaplog._read_whole(path.read_bytes())
+        whole = reading._read_whole(path.read_bytes())
         messages, metadata = _library_read(path)
         assert [tuple(m) for m in whole.messages] == messages, path
         assert whole.metadata == metadata and metadata["config_toml"] is not None
@@ -361,11 +362,11 @@ def test_the_scans_loops_in_c_read_what_their_reference_reads(
             log.raw("uwb", k, bytes([k % 251]) * (k + k // 2))
             log.json("/truth", k, {"k": k})
     buf = path.read_bytes()
-    in_c = mcaplog._read_whole(buf)
+    in_c = reading._read_whole(buf)
     with monkeypatch.context() as m:
         m.setattr(scan, "C_SCAN", None)
-        m.setattr(mcaplog, "C_SCAN", None)
-        reference = mcaplog._read_whole(buf)
+        m.setattr(reading, "C_SCAN", None)
+        reference = reading._read_whole(buf)
     assert [tuple(x) for x in in_c.messages] == [tuple(x) for x in reference.messages]
     assert in_c.metadata == reference.metadata and len(in_c.messages) == 600
     assert {len(x.data) for x in in_c.messages if x.topic == "/raw/uwb"} >= {0, 127, 129, 448}
@@ -380,11 +381,11 @@ def test_the_scans_loops_in_c_read_what_their_reference_reads(
     with pytest.raises(ValueError, match="message length"):
         scan.C_SCAN.chunk_messages(short, 0)
     records = [(9, 1, b"\x0a\x02hi"), (9, 2, b"\x0a"), (3, 3, b"x")]
-    out: list[mcaplog.LogMessage] = []
-    scan.C_SCAN.log_messages(records, {9: "/raw/a"}, {9}, fx.decode_raw, mcaplog.LogMessage,
+    out: list[reading.LogMessage] = []
+    scan.C_SCAN.log_messages(records, {9: "/raw/a"}, {9}, fx.decode_raw, reading.LogMessage,
                              out)
     assert out == [("/raw/a", 1, b"hi"), ("/raw/a", 2, b"\x0a"), ("?", 3, b"x")]
-    assert all(type(x) is mcaplog.LogMessage for x in out)
+    assert all(type(x) is reading.LogMessage for x in out)
 
 
 @settings(max_examples=40, deadline=None)

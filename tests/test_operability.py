@@ -26,7 +26,7 @@ from drivers.emulator import DeviceSpec, Emulator, Faults
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
 from uwbd.config import parse
 from uwbd.fusion.types import Pose
-from uwbd.logs.mcaplog import read_log
+from uwbd.logs.reading import read_log
 from uwbd.logs.sink import McapSink
 from uwbd.service.pipeline import Pipeline, PoseList
 from uwbd.service.ports import ReadQueue

@@ -21,7 +21,7 @@ from drivers.frames import ImuSample
 from uwbd.config import parse
 from uwbd.fusion.rotation import quat_to_matrix
 from uwbd.fusion.types import Pose
-from uwbd.logs.mcaplog import read_log
+from uwbd.logs.reading import read_log
 from uwbd.tools.logtools import write_simulation
 from uwbd.tools.ros2 import write_bag
 from uwbd.tools.simulator import DEFAULT_SEGMENTS, SimConfig, simulate

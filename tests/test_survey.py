@@ -19,7 +19,8 @@ from drivers import trek1000
 from drivers.frames import AnchorPair, AnchorRanges, ImuSample
 from uwbd.config import parse, to_toml
 from uwbd.config.model import SourceConfig
-from uwbd.logs.mcaplog import LogWriter, SourceInfo, read_log
+from uwbd.logs.mcaplog import LogWriter, SourceInfo
+from uwbd.logs.reading import read_log
 from uwbd.tools.logtools import write_simulation
 from uwbd.tools.simulator import (
     EPOCH_NS,

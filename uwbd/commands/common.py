@@ -15,7 +15,7 @@ from drivers import PARSERS
 from uwbd import journal
 from uwbd.config import Config, ConfigError, apply_overrides
 from uwbd.config import load as load_config
-from uwbd.logs.mcaplog import LogContents, not_a_log, read_log
+from uwbd.logs.reading import LogContents, not_a_log, read_log
 
 LOG = journal.get("cli")
 

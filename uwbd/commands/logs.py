@@ -22,7 +22,7 @@ from uwbd.commands.common import (
     writable_folder,
 )
 from uwbd.config import ConfigError
-from uwbd.logs.mcaplog import not_a_log, recover
+from uwbd.logs.reading import not_a_log, recover
 from uwbd.logs.replay import replay
 
 READ_CHUNK_BYTES = 65536

@@ -18,6 +18,7 @@ the sequence it runs; each step's policy has a module of its own:
 * :mod:`.propagation` — each IMU sample judged, kept and integrated (a mixin of this class);
 * :mod:`.recovery` — the restarts themselves and what triggers them (a mixin of this class);
 * :mod:`.fusing` — one epoch's rows fused and each row's outcome (a mixin of this class);
+* :mod:`.outputs` — the pose, the health record, the diagnostics (a mixin of this class);
 * :mod:`.eskf` — the algebra (docs/ekf.md).
 
 Life cycle: **waiting** (collect IMU and fixes), start at rest or while moving, **aligning**
@@ -38,7 +39,6 @@ from __future__ import annotations
 import collections
 import functools
 import math
-from typing import Any
 
 import numpy as np
 
@@ -49,7 +49,7 @@ from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, Eskf
 from uwbd.fusion.fixes import RangeWindow
 from uwbd.fusion.fusing import EpochFusion
 from uwbd.fusion.gating import GatingCounters, chi2_quantile, gate
-from uwbd.fusion.health import WAITING, Health, HealthMonitor
+from uwbd.fusion.health import HealthMonitor
 from uwbd.fusion.imu_check import ImuCheck
 from uwbd.fusion.initialise import Start
 from uwbd.fusion.intrinsics import to_body
@@ -61,6 +61,7 @@ from uwbd.fusion.measurements import (
     zupt_rows,
 )
 from uwbd.fusion.mirror import WALL_NORMAL_Z, MirrorSide
+from uwbd.fusion.outputs import FilterOutputs
 from uwbd.fusion.propagation import NUMERICAL_ERRORS, ImuPropagation
 from uwbd.fusion.recovery import (
     NS,
@@ -70,7 +71,7 @@ from uwbd.fusion.robust import AnchorStats, RowPolicy, quality_scale
 from uwbd.fusion.rotation import Array
 from uwbd.fusion.settings import FilterConfig, Mode
 from uwbd.fusion.smoother import EpochRecord, Nominal
-from uwbd.fusion.types import FusionReport, Pose
+from uwbd.fusion.types import FusionReport
 
 Vec3 = tuple[float, float, float]
 HELD_YAW_SIGMA_RAD = 1e-3  # the heading's σ while it is held, before the coarse alignment
@@ -78,10 +79,9 @@ MIN_PROPAGATE_S = 0.02  # and at most this often: P grows little in 20 ms
 CONSTRAINT_EVERY_NS = 95_000_000  # ZUPT, NHC, known height: about 10 Hz
 TILT_CHECK_EVERY_NS = NS // 2
 MAX_ANCHOR_COORD_M = 1e4  # a device-reported anchor farther out than this is garbage
-MAX_OBSERVABLE_YAW_SIGMA = math.radians(10)  # the heading counts as known below this σ
 
 
-class Filter(ImuPropagation, EpochFusion):
+class Filter(ImuPropagation, EpochFusion, FilterOutputs):
     """Loosely or tightly coupled UWB/INS error-state EKF (see module doc)."""
 
     def __init__(self, config: FilterConfig, record: bool = False) -> None:
@@ -152,8 +152,8 @@ class Filter(ImuPropagation, EpochFusion):
         self._empty_rows: dict[int, Rows] = {}
         self._gate_1 = chi2_quantile(config.gate_probability, 1)
         self._gate_3 = chi2_quantile(config.gate_probability, 3)
-        self._pose_T = np.zeros((6, TH_.stop))  # pose(): (p, v, θ) -> (p, R θ)
-        self._pose_T[:3, P_] = np.eye(3)
+        self._pose_map = np.zeros((6, TH_.stop))  # pose(): (p, v, θ) -> (p, R θ)
+        self._pose_map[:3, P_] = np.eye(3)
         # the common IMU sample whole on the C core (None: the pure-Python reference);
         # step_parts: what it works on, for the pipeline's common read too
         core = native.core
@@ -259,83 +259,6 @@ class Filter(ImuPropagation, EpochFusion):
             self.records.append(EpochRecord(uwb.t_ns, *prior, *self._snapshot(),
                                             Phi if linked else None))
         return reports
-
-    # -- outputs --------------------------------------------------------------------------
-    def health(self) -> Health:
-        """The health record, rebuilt from the evidence now."""
-        ekf = self.ekf
-        t_ns = self.t_ns if self.t_ns is not None else self._imu_t_ns
-        if t_ns is None:
-            return WAITING
-        if ekf is None:
-            return self.monitor.assess(t_ns, False, False, None, True)
-        P = ekf.P
-        sigma_xy = math.sqrt(max(P[0, 0] + P[1, 1], 0.0))
-        finite = math.isfinite(sigma_xy + sum(ekf.p) + sum(ekf.v) + sum(ekf.q))
-        return self.monitor.assess(t_ns, True, self.heading_observable(), sigma_xy, finite)
-
-    @property
-    def status(self) -> str:
-        return self.health().summary()
-
-    def heading_observable(self) -> bool:
-        ekf = self.ekf
-        return ekf is not None and self._aligned and ekf.yaw_sigma_rad() < MAX_OBSERVABLE_YAW_SIGMA
-
-    def pose(self) -> Pose | None:
-        """The pose now, or ``None`` before the start, while restarting, or when any of
-        its numbers is not finite (which also restarts the filter)."""
-        ekf = self.ekf
-        t_ns = self.t_ns
-        if ekf is None or t_ns is None:
-            return None
-        core = native.core
-        if core is not None:  # the numbers in one call (_pose_numbers: the reference)
-            ekf.P = np.ascontiguousarray(ekf.P)
-            numbers = core.pose_numbers(ekf.P, ekf.q, ekf.p, ekf.v, self._aligned,
-                                        MAX_OBSERVABLE_YAW_SIGMA)
-        else:
-            numbers = self._pose_numbers(ekf)
-        if numbers is None:
-            self._restart_not_finite(t_ns)
-            return None
-        covariance, sigma_xy, observable, position, velocity, orientation = numbers
-        health = self.monitor.assess(t_ns, True, observable, sigma_xy, True)
-        return Pose(t_ns, position, velocity, orientation, covariance, health.summary(),
-                    observable, health)
-
-    def _pose_numbers(self, ekf: Eskf) -> tuple[tuple[float, ...], float, bool, Vec3, Vec3,
-                                                tuple[float, float, float, float]] | None:
-        """The pose's covariance, horizontal σ, whether the heading is observable, position,
-        velocity and orientation (x, y, z, w); ``None`` when a number is not finite.
-
-        The covariance over position and the attitude error turned into the navigation
-        frame is one product, ``T P Tᵀ`` with ``T = [[I, 0, 0], [0, 0, R]]`` over (p, v, θ)
-        (measured: half the time of the same in plain floats)."""
-        w, x, y, z = ekf.q
-        T = self._pose_T
-        T[3:, TH_] = ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
-                      (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
-                      (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
-        M = T @ ekf.P[:TH_.stop, :TH_.stop] @ T.T
-        cov = tuple((0.5 * (M + M.T)).ravel().tolist())  # symmetric, as ROS expects
-        if not self._aligned:  # held, its σ a placeholder: to a subscriber, yaw is unknown
-            cov = _yaw_unknown(cov)
-        p, v = ekf.p, ekf.v
-        if not math.isfinite(sum(p) + sum(v) + w + x + y + z + sum(cov)):
-            return None
-        # the heading's σ is the nav-z attitude error's (yaw_sigma_rad)
-        observable = self._aligned and math.sqrt(max(cov[35], 0.0)) < MAX_OBSERVABLE_YAW_SIGMA
-        return (cov, math.sqrt(max(cov[0] + cov[7], 0.0)), observable, (p[0], p[1], p[2]),
-                (v[0], v[1], v[2]), (x, y, z, w))
-
-    def diagnostics(self) -> dict[str, Any]:
-        """For the status: the health record, the mirror side, per-anchor range statistics."""
-        m = self.mirror
-        return {"health": self.health().as_dict(),
-                "mirror": {"ambiguous": m.ambiguous, "side": "above" if m.sign > 0 else "below",
-                           "decided_by": m.decided_by, "resolved": m.resolved},
-                "anchors": {str(a): s.as_dict() for a, s in sorted(self.anchor_stats.items())}}
 
     # -- internals ------------------------------------------------------------------------
     def _snapshot(self) -> tuple[Nominal, Array]:
@@ -474,12 +397,3 @@ class Filter(ImuPropagation, EpochFusion):
             rows.append(height_rows(ekf, cfg.known_height_m, cfg.height_sigma_m))
         return rows
 
-
-def _yaw_unknown(covariance: tuple[float, ...]) -> tuple[float, ...]:
-    """The pose covariance (6×6 over position and nav-frame attitude, row-major) with the
-    yaw's variance π² and no correlation: what a heading not yet aligned is worth."""
-    cov = list(covariance)
-    for i in range(6):
-        cov[6 * i + 5] = cov[30 + i] = 0.0
-    cov[35] = math.pi**2
-    return tuple(cov)

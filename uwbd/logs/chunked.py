@@ -6,7 +6,7 @@ per-message path in one ``struct.pack``.
 and its bytes appended to the open chunk; everything else — schemas, channels, metadata,
 chunks, message and chunk indexes, statistics, the summary and its offsets, the footer —
 is written with the library's own record classes, in the same layout as its writer (the
-reader tests and ``uwbd.logs.mcaplog.read_log`` check the files with the library's reader).
+reader tests and ``uwbd.logs.reading.read_log`` check the files with the library's reader).
 """
 
 from __future__ import annotations

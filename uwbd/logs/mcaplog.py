@@ -17,29 +17,22 @@ Every JSON channel has a JSON Schema (:mod:`uwbd.logs.foxglove`) and every recor
 version, the config TOML as used, the sources (name, driver, port) as JSON, the robot's name
 (``[robot] name``) and the host that wrote the file.
 
-Reading is a linear scan of the records, so a log cut short by a crash (no footer, which
-the seeking reader refuses) reads up to its last complete chunk; ``LogContents.truncated``
-says so. :func:`recover` rewrites such a file, any MCAP file, as a valid one.
+Reading the logs back, and recovering a cut one: :mod:`uwbd.logs.reading`.
 """
 
 from __future__ import annotations
 
 import contextlib
-import gc
 import json
 import socket
-import struct
-from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import IO, Any, NamedTuple
+from typing import IO, Any
 
-import zstandard
 from mcap.data_stream import RecordBuilder
-from mcap.exceptions import EndOfFile, McapError
-from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import DataEnd, Footer
 
 from drivers.frames import Frame, UwbRanges
 from uwbd import __version__
@@ -47,7 +40,6 @@ from uwbd.codec import frame_to_json, strict_json
 from uwbd.fusion.types import Pose
 from uwbd.logs import foxglove as fx
 from uwbd.logs.chunked import MCAP0_MAGIC, ChunkedWriter
-from uwbd.logs.scan import C_SCAN, UnusualRecordError, scan
 
 RAW_ENCODING = fx.LEGACY_RAW_ENCODING  # the old schemaless /raw/* encoding, still read
 METADATA_NAME = "uwbd"
@@ -244,163 +236,6 @@ class LogWriter:
         self.close()
 
 
-class LogMessage(NamedTuple):
-    topic: str
-    log_time_ns: int
-    data: bytes
-
-
-@dataclass
-class LogContents:
-    """Everything in a log, in file order. ``truncated``: the file ended mid-record (a crash);
-    what came before its last complete chunk is here."""
-
-    messages: list[LogMessage] = field(default_factory=list)
-    metadata: dict[str, str] = field(default_factory=dict)
-    truncated: bool = False
-    error: str = ""
-
-    def topics(self) -> set[str]:
-        return {m.topic for m in self.messages}
-
-    def json(self, topic: str) -> Iterator[dict[str, Any]]:
-        return (json.loads(m.data) for m in self.messages if m.topic == topic)
-
-
-def not_a_log(path: Path) -> str:
-    """Why ``path`` cannot be read as an MCAP file ("" when it can): missing, a folder,
-    unreadable, empty, or not starting with the MCAP magic."""
-    if path.is_dir():
-        return f"{path}: is a folder, not an MCAP log"
-    try:
-        with path.open("rb") as f:
-            head = f.read(len(MCAP0_MAGIC))
-    except OSError as err:
-        return f"cannot read {path}: {err.strerror or err}"
-    if not head:
-        return f"{path}: the file is empty, not an MCAP log"
-    if head != MCAP0_MAGIC:
-        return (f"{path}: not an MCAP file (it starts with {head[:4]!r}, an MCAP log with "
-                f"{MCAP0_MAGIC[:4]!r})")
-    return ""
-
-
-def read_log(path: Path) -> LogContents:
-    """Read a (possibly unfinished) uwbd log by a linear scan. ``/raw/*`` messages come out as
-    the bytes read from the port, whether the log wrote them as ``uwbd.Raw`` protobuf
-    messages or, before, schemaless (``uwbd.raw``).
-
-    A whole file is read by :func:`uwbd.logs.scan.scan` (one ``struct`` call a message);
-    any other (cut short, damaged, compressed otherwise) by the ``mcap`` library's reader,
-    which says where it ends."""
-    with path.open("rb") as f:
-        buf = f.read()
-    with _no_cycle_collection():
-        try:
-            return _read_whole(buf)
-        except UnusualRecordError:
-            return _read_by_library(path)
-
-
-@contextlib.contextmanager
-def _no_cycle_collection() -> Iterator[None]:
-    """The cyclic garbage collector paused: reading makes a record per message and no
-    cycle, and a collection every 700 of them walks the growing list again and again
-    (measured: a third of reading a 10-minute log)."""
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if enabled:
-            gc.enable()
-
-
-def _read_whole(buf: bytes) -> LogContents:
-    out = LogContents()
-    topics: dict[int, str] = {}
-    raw_protobuf: set[int] = set()
-    schemas: dict[int, str] = {}
-    messages = out.messages
-    append, make = messages.append, tuple.__new__  # make: LogMessage's own __new__, unwrapped
-    c_scan = C_SCAN
-    for event in scan(buf):
-        kind = event[0]
-        if kind == "messages":
-            if c_scan is not None:  # the loop below, in C
-                c_scan.log_messages(event[1], topics, raw_protobuf, fx.decode_raw, LogMessage,
-                                    messages)
-                continue
-            for channel, log_time, record in event[1]:
-                data = record
-                if channel in raw_protobuf:
-                    # uwbd.Raw as uwbd writes it (tag, one-byte length, bytes), else in full
-                    if len(data) >= 2 and data[0] == 0x0A and data[1] == len(data) - 2 < 0x80:
-                        data = data[2:]
-                    else:
-                        with contextlib.suppress(ValueError):  # not one: left as it is
-                            data = fx.decode_raw(data)
-                append(make(LogMessage, (topics.get(channel, "?"), log_time, data)))
-        elif kind == "schema":
-            schemas[event[1]] = event[2]
-        elif kind == "channel":
-            _, ident, schema_id, topic, encoding = event
-            topics[ident] = topic
-            if (encoding == fx.RAW_MESSAGE_ENCODING
-                    and schemas.get(schema_id) == fx.RAW_SCHEMA_NAME):
-                raw_protobuf.add(ident)
-        elif event[1] == METADATA_NAME:
-            out.metadata = dict(event[2])
-    return out
-
-
-def _read_by_library(path: Path) -> LogContents:
-    out = LogContents()
-    channels: dict[int, str] = {}
-    raw_protobuf: set[int] = set()  # channels of uwbd.Raw messages (new logs)
-    schemas: dict[int, str] = {}
-    with path.open("rb") as f:
-        try:
-            for record in StreamReader(f, validate_crcs=True).records:
-                if isinstance(record, Schema):
-                    schemas[record.id] = record.name
-                elif isinstance(record, Channel):
-                    channels[record.id] = record.topic
-                    if (record.message_encoding == fx.RAW_MESSAGE_ENCODING
-                            and schemas.get(record.schema_id) == fx.RAW_SCHEMA_NAME):
-                        raw_protobuf.add(record.id)
-                elif isinstance(record, Message):
-                    data = record.data
-                    if record.channel_id in raw_protobuf:
-                        with contextlib.suppress(ValueError):  # not one: left as it is
-                            data = fx.decode_raw(data)
-                    out.messages.append(LogMessage(channels.get(record.channel_id, "?"),
-                                                   record.log_time, data))
-                elif isinstance(record, Metadata) and record.name == METADATA_NAME:
-                    out.metadata = dict(record.metadata)
-        except DAMAGED as err:
-            # a torn last record (mcap raises struct.error when the stream ends inside one),
-            # or a damaged chunk: what came before it is kept
-            out.truncated = True
-            out.error = f"{path}: {_damage(err, f)}"
-    return out
-
-
-# what reading a damaged or torn file raises: mcap's own errors, a record cut off (EOFError,
-# struct.error), a damaged compressed chunk (zstandard, lz4: a RuntimeError), a damaged
-# length or size field, which has the reader ask for more than an index holds
-# (OverflowError) or allocate exabytes for a chunk's records (MemoryError: found by the
-# damaged-log property test)
-DAMAGED = (McapError, EOFError, ValueError, struct.error, zstandard.ZstdError, RuntimeError,
-           OverflowError, MemoryError)
-
-
-def _damage(err: BaseException, f: IO[bytes]) -> str:
-    kind = ("ends mid-record" if isinstance(err, (EOFError, struct.error, EndOfFile))
-            else "is damaged")
-    return f"it {kind} near byte {f.tell()} ({type(err).__name__}: {err})"
-
-
 def finish_cut(path: Path, size: int) -> None:
     """Finish a log whose writing stopped (disk full): keep its first ``size`` bytes, whole
     records up to a chunk's end as :attr:`LogWriter.flushed_bytes` says, and end it with
@@ -413,46 +248,3 @@ def finish_cut(path: Path, size: int) -> None:
         f.truncate(max(size, len(MCAP0_MAGIC)))
         f.seek(0, 2)
         f.write(end.end() + MCAP0_MAGIC)  # type: ignore[no-untyped-call]
-
-
-@dataclass(frozen=True)
-class Recovered:
-    messages: int
-    truncated: bool  # the source ended mid-record
-    error: str
-
-
-def recover(source: Path, target: Path) -> Recovered:
-    """Copy every complete record of ``source`` (schemas, channels, messages, metadata,
-    attachments) into a new, finished MCAP file ``target`` that seeking readers (Foxglove,
-    ``mcap`` tools) open. ``source`` may be any MCAP file, typically one a crash cut short."""
-    schemas: dict[int, int] = {0: 0}
-    channels: dict[int, int] = {}
-    count, error = 0, ""
-    with source.open("rb") as f, target.open("wb") as out:
-        from mcap.writer import CompressionType, Writer  # noqa: PLC0415 - not at start-up
-
-        w = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
-        w.start(profile="", library=f"uwbd {__version__} (recover)")
-        try:
-            for record in StreamReader(f, validate_crcs=True).records:
-                if isinstance(record, Schema):
-                    schemas[record.id] = w.register_schema(record.name, record.encoding,
-                                                           record.data)
-                elif isinstance(record, Channel):
-                    channels[record.id] = w.register_channel(
-                        record.topic, record.message_encoding,
-                        schemas.get(record.schema_id, 0), dict(record.metadata))
-                elif isinstance(record, Message) and record.channel_id in channels:
-                    w.add_message(channels[record.channel_id], record.log_time, record.data,
-                                  record.publish_time, record.sequence)
-                    count += 1
-                elif isinstance(record, Metadata):
-                    w.add_metadata(record.name, dict(record.metadata))
-                elif isinstance(record, Attachment):
-                    w.add_attachment(record.create_time, record.log_time, record.name,
-                                     record.media_type, record.data)
-        except DAMAGED as err:
-            error = f"{source}: {_damage(err, f)}"
-        w.finish()  # type: ignore[no-untyped-call]
-    return Recovered(count, bool(error), error)

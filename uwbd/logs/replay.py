@@ -19,7 +19,7 @@ import orjson
 from uwbd import journal
 from uwbd.codec import frame_from_dict
 from uwbd.config import parse
-from uwbd.logs.mcaplog import LogContents, LogMessage
+from uwbd.logs.reading import LogContents, LogMessage
 from uwbd.logs.sink import McapSink
 from uwbd.service.pipeline import Pipeline, PoseList, Sink, monotonic_pacer
 

@@ -8,7 +8,7 @@ file as fusing it. Here the file is read at once and each record is unpacked wit
 It handles exactly the files it can vouch for: anything it does not expect — a record
 cut short (a crash), a chunk whose CRC does not match, a compression other than zstd or
 none, a record whose fields do not fill it, a data-section CRC — raises :class:`UnusualRecordError`,
-and :func:`uwbd.logs.mcaplog.read_log` then reads the file with the library's reader,
+and :func:`uwbd.logs.reading.read_log` then reads the file with the library's reader,
 which says what is wrong and where.
 """
 

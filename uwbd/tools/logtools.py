@@ -23,7 +23,8 @@ from drivers.frames import Frame, ImuSample, UwbRanges
 from uwbd import config as cfgmod
 from uwbd.codec import frame_from_dict
 from uwbd.fusion.rotation import Array, quat_from_euler, quat_from_matrix
-from uwbd.logs.mcaplog import LogContents, LogWriter, SourceInfo, pose_message
+from uwbd.logs.mcaplog import LogWriter, SourceInfo, pose_message
+from uwbd.logs.reading import LogContents
 from uwbd.tools.evaluate import merge
 from uwbd.tools.importer import Dataset
 from uwbd.tools.simulator import Simulation, sensor_settings

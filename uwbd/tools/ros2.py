@@ -64,7 +64,7 @@ from uwbd.codec import frame_from_dict
 from uwbd.config import Config, parse
 from uwbd.fusion.rotation import quat_from_matrix, quat_to_matrix
 from uwbd.fusion.types import Pose
-from uwbd.logs.mcaplog import LogContents
+from uwbd.logs.reading import LogContents
 from uwbd.logs.replay import replay
 from uwbd.tools.logtools import load_recording
 

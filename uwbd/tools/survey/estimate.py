@@ -16,7 +16,7 @@ from drivers.frames import AnchorRanges, Frame, UwbRanges
 from uwbd.codec import frame_from_dict
 from uwbd.fusion.lsq import coplanar
 from uwbd.fusion.rotation import Array
-from uwbd.logs.mcaplog import LogContents
+from uwbd.logs.reading import LogContents
 from uwbd.tools.survey.adjustment import (
     Confined,
     Problem,
