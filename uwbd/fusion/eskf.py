@@ -106,8 +106,8 @@ class Eskf:
         self._q_rate[N_CORE + self._markov] = 0.0
         self._markov_var = (np.zeros(0) if aux_sigma is None
                             else np.asarray(aux_sigma)[self._markov] ** 2)
-        self._decay_epoch = np.ones(n_range_bias)
         self._no_decay = np.ones(n_range_bias)
+        self._decay_epoch = self._no_decay.copy()
         self._core = native.core  # None: the pure-Python code below
         self._clamp_key: tuple[Array, float] | None = None
         self._clamp_limit = np.zeros(0)
@@ -217,15 +217,13 @@ class Eskf:
         for i in range(3):
             self._dv_epoch[i] += self._sum_fn[i]
         self._epoch_propagated = True
+        symmetrised = False
         if self._core is not None:
             P = self.P = np.ascontiguousarray(self.P)
-            if not len(self._markov):  # symmetrised in the same call: the same numbers
-                self._core.propagate_core(P, self._Phi_epoch, self.q, self._sum_fn,
-                                          self._sum_w, T, self._q_rate, True)
-                self._reset_interval()
-                return
+            # with no Gauss–Markov step between, symmetrised in the same call (same numbers)
+            symmetrised = not len(self._markov)
             self._core.propagate_core(P, self._Phi_epoch, self.q, self._sum_fn, self._sum_w,
-                                      T, self._q_rate)
+                                      T, self._q_rate, symmetrised)
         else:
             R = self.R
             f_n = np.array(self._sum_fn) / T
@@ -241,8 +239,9 @@ class Eskf:
             P[:N_CORE, :] = Phi @ P[:N_CORE, :]
             P[:, :N_CORE] = P[:, :N_CORE] @ Phi.T
             P[self._diag] += self._q_rate * T
-        self._markov_step(P, T)
-        self.P = 0.5 * (P + P.T)
+        if not symmetrised:
+            self._markov_step(P, T)
+            self.P = 0.5 * (P + P.T)
         self._reset_interval()
 
     def _markov_step(self, P: Array, T: float) -> None:

@@ -80,7 +80,7 @@ class Health(NamedTuple):
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready (non-finite numbers as ``None``)."""
-        num = _rounded
+        num = _rounded  # (a module function: not made anew per call)
         return {"phase": self.phase.value, "healthy": self.healthy,
                 "faults": list(self.faults), "notes": list(self.notes),
                 "since_range_s": num(self.since_range_s),
