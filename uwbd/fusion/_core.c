@@ -775,6 +775,71 @@ static int fill_range_rows(const double pos[3], const double q[4], const double 
     return 0;
 }
 
+/* fuse_ranges on the epoch's own numbers (anchors k×3, ranges, var: k each), the rest as
+ * fuse_ranges takes them (nominal: p, v, q, b_g, b_a): what core_fuse_ranges and
+ * epoch_step (_epoch.c) share. (rows, q), None or NULL with an error set. */
+PyObject *uwbd_fuse_ranges_on(PyObject *P_obj, PyObject *dx_obj, PyObject *b_r_obj,
+                              PyObject *const *nominal, const double lever[3],
+                              const double *anchors, const double *ranges, const double *var,
+                              Py_ssize_t k, PyObject *columns, PyObject *H_obj,
+                              PyObject *y_obj, PyObject *R_obj, PyObject *decide,
+                              Py_ssize_t c0, Py_ssize_t c1)
+{
+    RowPolicy policy;
+    const RowPolicy *pol;
+    Nominal state;
+    if (get_decide(decide, &policy, &pol) < 0 || get_nominal(nominal, &state) < 0)
+        return NULL;
+    Py_buffer view[6]; /* P, dx, b_r, y_extra, H_extra, R_extra */
+    int got = 0;
+    PyObject *result = NULL;
+    double *H = NULL;
+    Py_ssize_t n = 0;
+    if (get_P(P_obj, &view[0], &n, 1) < 0)
+        return NULL;
+    got = 1;
+    if (get_doubles(dx_obj, &view[1], n, 1, "dx") < 0)
+        goto done;
+    got = 2;
+    if (get_doubles(b_r_obj, &view[2], n - N_CORE, 1, "b_r") < 0)
+        goto done;
+    got = 3;
+    if (get_doubles(y_obj, &view[3], -1, 0, "y_extra") < 0)
+        goto done;
+    got = 4;
+    Py_ssize_t e = view[3].len / 8, m = k + e;
+    if (get_doubles(H_obj, &view[4], e * n, 0, "H_extra") < 0)
+        goto done;
+    got = 5;
+    if (get_doubles(R_obj, &view[5], e, 0, "R_extra") < 0)
+        goto done;
+    got = 6;
+    H = PyMem_Calloc((size_t)(m * n + 2 * m), sizeof(double));
+    if (H == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    double *y = H + m * n, *R = y + m, closest;
+    if (fill_range_rows(state.p, state.q, lever, anchors, ranges, k,
+                        (const double *)view[2].buf, n, columns, H, y, &closest) < 0)
+        goto done;
+    if (!(closest >= 1e-3)) {
+        result = Py_NewRef(Py_None);
+        goto done;
+    }
+    memcpy(R, var, sizeof(double) * k);
+    memcpy(H + k * n, view[4].buf, sizeof(double) * e * n);
+    memcpy(y + k, view[3].buf, sizeof(double) * e);
+    memcpy(R + k, view[5].buf, sizeof(double) * e);
+    result = update_state((double *)view[0].buf, (double *)view[1].buf,
+                          (double *)view[2].buf, n, H, y, R, m, decide, pol, c0, c1, &state);
+done:
+    PyMem_Free(H);
+    for (int i = 0; i < got; i++)
+        PyBuffer_Release(&view[i]);
+    return result;
+}
+
 /* fuse_ranges(P, dx, p, v, q, b_g, b_a, b_r, lever, anchors (k×3), ranges (k), var (k),
  *             columns, H_extra (m×n), y_extra (m), R_extra (m), decide, c0, c1)
  * -> (rows, q) or None
@@ -792,70 +857,28 @@ static PyObject *core_fuse_ranges(PyObject *self, PyObject *const *args, Py_ssiz
     Py_ssize_t c0 = PyLong_AsSsize_t(args[17]), c1 = PyLong_AsSsize_t(args[18]);
     if (PyErr_Occurred())
         return NULL;
-    RowPolicy policy;
-    const RowPolicy *pol;
-    Nominal state;
     double lever[3];
-    if (get_decide(args[16], &policy, &pol) < 0 || get_nominal(args + 2, &state) < 0 ||
-        uwbd_get_vec(args[8], lever, 3, "lever"))
+    if (uwbd_get_vec(args[8], lever, 3, "lever"))
         return NULL;
-    Py_buffer view[9]; /* P, dx, b_r, ranges, anchors, var, y_extra, H_extra, R_extra */
+    Py_buffer view[3]; /* ranges, anchors, var */
     int got = 0;
     PyObject *result = NULL;
-    double *H = NULL;
-    Py_ssize_t n = 0;
-    if (get_P(args[0], &view[0], &n, 1) < 0)
+    if (get_doubles(args[10], &view[0], -1, 0, "ranges") < 0)
         return NULL;
     got = 1;
-    if (get_doubles(args[1], &view[1], n, 1, "dx") < 0)
+    Py_ssize_t k = view[0].len / 8;
+    if (get_doubles(args[9], &view[1], 3 * k, 0, "anchors") < 0)
         goto done;
     got = 2;
-    if (get_doubles(args[7], &view[2], n - N_CORE, 1, "b_r") < 0)
+    if (get_doubles(args[11], &view[2], k, 0, "var") < 0)
         goto done;
     got = 3;
-    if (get_doubles(args[10], &view[3], -1, 0, "ranges") < 0)
-        goto done;
-    got = 4;
-    Py_ssize_t k = view[3].len / 8;
-    if (get_doubles(args[9], &view[4], 3 * k, 0, "anchors") < 0)
-        goto done;
-    got = 5;
-    if (get_doubles(args[11], &view[5], k, 0, "var") < 0)
-        goto done;
-    got = 6;
-    if (get_doubles(args[14], &view[6], -1, 0, "y_extra") < 0)
-        goto done;
-    got = 7;
-    Py_ssize_t e = view[6].len / 8, m = k + e;
-    if (get_doubles(args[13], &view[7], e * n, 0, "H_extra") < 0)
-        goto done;
-    got = 8;
-    if (get_doubles(args[15], &view[8], e, 0, "R_extra") < 0)
-        goto done;
-    got = 9;
-    H = PyMem_Calloc((size_t)(m * n + 2 * m), sizeof(double));
-    if (H == NULL) {
-        PyErr_NoMemory();
-        goto done;
-    }
-    double *y = H + m * n, *R = y + m, closest;
-    if (fill_range_rows(state.p, state.q, lever, (const double *)view[4].buf,
-                        (const double *)view[3].buf, k, (const double *)view[2].buf, n,
-                        args[12], H, y, &closest) < 0)
-        goto done;
-    if (!(closest >= 1e-3)) {
-        result = Py_NewRef(Py_None);
-        goto done;
-    }
-    memcpy(R, view[5].buf, sizeof(double) * k);
-    memcpy(H + k * n, view[7].buf, sizeof(double) * e * n);
-    memcpy(y + k, view[6].buf, sizeof(double) * e);
-    memcpy(R + k, view[8].buf, sizeof(double) * e);
-    result = update_state((double *)view[0].buf, (double *)view[1].buf,
-                          (double *)view[2].buf, n, H, y, R, m, args[16], pol, c0, c1,
-                          &state);
+    PyObject *const nominal[5] = {args[2], args[3], args[4], args[5], args[6]};
+    result = uwbd_fuse_ranges_on(args[0], args[1], args[7], nominal, lever,
+                                 (const double *)view[1].buf, (const double *)view[0].buf,
+                                 (const double *)view[2].buf, k, args[12], args[13], args[14],
+                                 args[15], args[16], c0, c1);
 done:
-    PyMem_Free(H);
     for (int i = 0; i < got; i++)
         PyBuffer_Release(&view[i]);
     return result;
@@ -1342,8 +1365,44 @@ static PyObject *core_pose_numbers(PyObject *self, PyObject *const *args, Py_ssi
                          p[0], p[1], p[2], v[0], v[1], v[2], q[1], q[2], q[3], q[0]);
 }
 
-/* diagonal_out_of_bounds(P, limit) -> bool: a variance above its limit or below zero
- * (Eskf.clamp_covariance's test; NaN is neither, as in numpy's comparisons). */
+/* A variance of P above its limit or below zero (Eskf.clamp_covariance's test; NaN is
+ * neither, as in numpy's comparisons): 1, 0, or -1 with an error set. */
+int uwbd_diagonal_out_of_bounds(PyObject *P_obj, PyObject *limit)
+{
+    Py_buffer Pb, Lb;
+    Py_ssize_t n;
+    if (get_P(P_obj, &Pb, &n, 0) < 0)
+        return -1;
+    if (get_doubles(limit, &Lb, n, 0, "limit") < 0) {
+        PyBuffer_Release(&Pb);
+        return -1;
+    }
+    const double *P = (const double *)Pb.buf, *L = (const double *)Lb.buf;
+    int out = 0;
+    for (Py_ssize_t i = 0; i < n && !out; i++)
+        out = P[i * n + i] > L[i] || P[i * n + i] < 0.0;
+    PyBuffer_Release(&Pb);
+    PyBuffer_Release(&Lb);
+    return out;
+}
+
+/* Every entry of P finite and of magnitude below `bound`: 1, 0 (not so), or -1 with an
+ * error set. */
+int uwbd_all_finite_below(PyObject *P_obj, double bound)
+{
+    Py_buffer Pb;
+    Py_ssize_t n;
+    if (get_P(P_obj, &Pb, &n, 0) < 0)
+        return -1;
+    const double *P = (const double *)Pb.buf;
+    int ok = 1;
+    for (Py_ssize_t i = 0; i < n * n && ok; i++)
+        ok = fabs(P[i]) < bound; /* (false for NaN) */
+    PyBuffer_Release(&Pb);
+    return ok;
+}
+
+/* diagonal_out_of_bounds(P, limit) -> bool */
 static PyObject *core_diagonal_out_of_bounds(PyObject *self, PyObject *const *args,
                                              Py_ssize_t nargs)
 {
@@ -1352,21 +1411,8 @@ static PyObject *core_diagonal_out_of_bounds(PyObject *self, PyObject *const *ar
         PyErr_SetString(PyExc_TypeError, "diagonal_out_of_bounds takes 2 arguments");
         return NULL;
     }
-    Py_buffer Pb, Lb;
-    Py_ssize_t n;
-    if (get_P(args[0], &Pb, &n, 0) < 0)
-        return NULL;
-    if (get_doubles(args[1], &Lb, n, 0, "limit") < 0) {
-        PyBuffer_Release(&Pb);
-        return NULL;
-    }
-    const double *P = (const double *)Pb.buf, *L = (const double *)Lb.buf;
-    int out = 0;
-    for (Py_ssize_t i = 0; i < n && !out; i++)
-        out = P[i * n + i] > L[i] || P[i * n + i] < 0.0;
-    PyBuffer_Release(&Pb);
-    PyBuffer_Release(&Lb);
-    return PyBool_FromLong(out);
+    int out = uwbd_diagonal_out_of_bounds(args[0], args[1]);
+    return out < 0 ? NULL : PyBool_FromLong(out);
 }
 
 /* -- the rest test's moments ------------------------------------------------------------ */
@@ -1487,6 +1533,8 @@ static PyMethodDef core_methods[] = {
      "EpochFusion._outcomes: each row reported, counted, the health and anchor evidence."},
     {"imu_read", (PyCFunction)(void (*)(void))uwbd_imu_read, METH_FASTCALL,
      "The common IMU read whole (parse, spread, align, check, predict), or None."},
+    {"epoch_step", (PyCFunction)(void (*)(void))uwbd_epoch_step, METH_FASTCALL,
+     "Filter._update's common UWB message whole (running, aligned, tight), or None."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -1500,7 +1548,7 @@ PyMODINIT_FUNC PyInit__core(void)
 {
     if (uwbd_outcomes_init() < 0)
         return NULL;
-    if (uwbd_imu_read_init() < 0)
+    if (uwbd_imu_read_init() < 0 || uwbd_epoch_init() < 0)
         return NULL;
     return PyModule_Create(&core_module);
 }

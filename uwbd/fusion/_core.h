@@ -1,9 +1,10 @@
 /* What the C core's files share (_core.c: the filter's algebra; _imu_read.c: the common IMU
- * read in one call). */
+ * read in one call; _epoch.c: the common UWB message; _outcomes.c: its rows' outcomes). */
 #ifndef UWBD_CORE_H
 #define UWBD_CORE_H
 
 #include <Python.h>
+#include <stdint.h>
 
 #define N_CORE 15
 
@@ -18,10 +19,29 @@ void uwbd_predict_step(double p[3], double v[3], const double q[4], const double
                        const double ba[3], double sfn[3], double sw[3], const double acc[3],
                        const double gyro[3], double dt, double g, double qn[4]);
 
+/* fuse_ranges on the epoch's own numbers (anchors k×3, ranges, var), nominal = p, v, q,
+ * b_g, b_a: (rows, q), None (the reference's case), or NULL with an error set. */
+PyObject *uwbd_fuse_ranges_on(PyObject *P_obj, PyObject *dx_obj, PyObject *b_r_obj,
+                              PyObject *const *nominal, const double lever[3],
+                              const double *anchors, const double *ranges, const double *var,
+                              Py_ssize_t k, PyObject *columns, PyObject *H_obj,
+                              PyObject *y_obj, PyObject *R_obj, PyObject *decide,
+                              Py_ssize_t c0, Py_ssize_t c1);
+/* A variance of P above its limit or below zero: 1, 0, -1 (an error). */
+int uwbd_diagonal_out_of_bounds(PyObject *P_obj, PyObject *limit);
+/* Every entry of P finite and below `bound` in magnitude: 1, 0, -1 (an error). */
+int uwbd_all_finite_below(PyObject *P_obj, double bound);
+
 /* _imu_read.c */
+/* An int within ±2^62 (1), None (1 and *none set, if none is given), else 0; -1 an error. */
+int uwbd_as_i64(PyObject *v, int64_t *out, int *none);
 int uwbd_imu_read_init(void);
 PyObject *uwbd_imu_read(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 PyObject *uwbd_imu_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
+
+/* _epoch.c */
+int uwbd_epoch_init(void);
+PyObject *uwbd_epoch_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 
 /* _outcomes.c */
 int uwbd_outcomes_init(void);

@@ -88,8 +88,9 @@ static PyObject *attr(PyObject *ns, int name)
     return v;
 }
 
-/* An int within ±2^62 (1), None (1 and *none set, if none is given), else 0 (decline). */
-static int as_i64(PyObject *v, int64_t *out, int *none)
+/* An int within ±2^62 (1), None (1 and *none set, if none is given), else 0 (decline);
+ * -1 an error. */
+int uwbd_as_i64(PyObject *v, int64_t *out, int *none)
 {
     if (none != NULL)
         *none = v == Py_None;
@@ -109,7 +110,7 @@ static int as_i64(PyObject *v, int64_t *out, int *none)
 static int attr_i64(PyObject *ns, int name, int64_t *out, int *none)
 {
     PyObject *v = attr(ns, name);
-    return v == NULL ? -1 : as_i64(v, out, none);
+    return v == NULL ? -1 : uwbd_as_i64(v, out, none);
 }
 
 /* ns[name]'s truth value: 1 true, 0 false, -1 an error. */
@@ -151,7 +152,7 @@ static int item_i64(PyObject *dict, PyObject *key, int64_t *out, int *none)
         *none = 1;
         return PyErr_Occurred() ? -1 : 1;
     }
-    return as_i64(v, out, none);
+    return uwbd_as_i64(v, out, none);
 }
 
 /* -- values ------------------------------------------------------------------------------ */
@@ -374,7 +375,7 @@ static int step_takes(PyObject *const *fp, const double *c, Read *r)
 {
     int t, none;
     int64_t previous;
-    if ((t = as_i64(fp[F_WINDOW_NS], &previous, NULL)) <= 0)
+    if ((t = uwbd_as_i64(fp[F_WINDOW_NS], &previous, NULL)) <= 0)
         return t; /* (a window of 2^62 ns or more: Python's) */
     PyObject *filter = fp[F_FILTER];
     if ((t = attr_i64(filter, N_IMU_T, &r->prev, &none)) <= 0 || none)
@@ -591,7 +592,7 @@ PyObject *uwbd_imu_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         return NULL;
     Read r = {0};
     PyObject *o[O_COUNT] = {NULL}, *t_obj = args[1], *acc = args[2], *gyro = args[3];
-    int t = as_i64(t_obj, &r.t, NULL);
+    int t = uwbd_as_i64(t_obj, &r.t, NULL);
     if (t == 1 && !(PyTuple_CheckExact(acc) && floats_of(acc, r.acc, 3) &&
                     PyTuple_CheckExact(gyro) && floats_of(gyro, r.gyro, 3)))
         t = 0; /* (a sample not of plain floats: Python's) */
@@ -633,7 +634,7 @@ PyObject *uwbd_imu_read(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
             return NULL;
     Read r = {0};
     PyObject *o[O_COUNT] = {NULL};
-    int t = as_i64(t_obj, &r.t, NULL);
+    int t = uwbd_as_i64(t_obj, &r.t, NULL);
     if (t == 1)
         t = read_takes(parts, args[1], d, &r);
     if (t == 1)

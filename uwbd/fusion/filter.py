@@ -39,6 +39,7 @@ from __future__ import annotations
 import collections
 import functools
 import math
+from typing import Any
 
 import numpy as np
 
@@ -47,7 +48,7 @@ from uwbd.fusion import native
 from uwbd.fusion.alignment import HeadingAligner
 from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, Eskf
 from uwbd.fusion.fixes import RangeWindow
-from uwbd.fusion.fusing import EpochFusion
+from uwbd.fusion.fusing import MAX_RANGE_BIAS_SIGMA_M, MAX_SIGMA, EpochFusion
 from uwbd.fusion.gating import GatingCounters, chi2_quantile, gate
 from uwbd.fusion.health import HealthMonitor
 from uwbd.fusion.imu_check import ImuCheck
@@ -55,9 +56,11 @@ from uwbd.fusion.initialise import Start
 from uwbd.fusion.intrinsics import to_body
 from uwbd.fusion.lsq import LsqFix, coplanar
 from uwbd.fusion.measurements import (
+    RANGE_KEYS,
     Rows,
     height_rows,
     nhc_rows,
+    range_keys,
     zupt_rows,
 )
 from uwbd.fusion.mirror import WALL_NORMAL_Z, MirrorSide
@@ -66,7 +69,7 @@ from uwbd.fusion.propagation import NUMERICAL_ERRORS, ImuPropagation
 from uwbd.fusion.recovery import (
     NS,
 )
-from uwbd.fusion.rest import ImuWindow, UwbStillness
+from uwbd.fusion.rest import STILL_EVERY_NS, STILL_S, ImuWindow, UwbStillness
 from uwbd.fusion.robust import AnchorStats, RowPolicy, quality_scale
 from uwbd.fusion.rotation import Array
 from uwbd.fusion.settings import FilterConfig, Mode
@@ -160,6 +163,9 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         self.step_parts = self._step_parts()
         self.imu_step = (None if core is None
                          else functools.partial(core.imu_step, self.step_parts))
+        # the common UWB message whole on the C core (None: the reference, _update)
+        self.epoch_step = (None if core is None or config.mode is not Mode.TIGHT
+                           else functools.partial(core.epoch_step, self._epoch_parts()))
 
     def _layout(self) -> None:
         """What follows from the anchors: the mirror side of a plane of them, the height
@@ -202,6 +208,11 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
             return []
 
     def _update(self, uwb: UwbRanges) -> list[FusionReport]:
+        step = self.epoch_step
+        if step is not None:  # the common message, whole, on the C core
+            reports: list[FusionReport] | None = step(uwb)
+            if reports is not None:
+                return reports
         if self._first_t_ns is None:
             self._first_t_ns = uwb.t_ns
         result = gate(uwb, self.cfg.gating, self.gating)
@@ -261,6 +272,25 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         return reports
 
     # -- internals ------------------------------------------------------------------------
+    def _epoch_parts(self) -> tuple[Any, ...]:
+        """What the C core's common UWB step (``_core.epoch_step``, ``_epoch.c``) reads,
+        writes and calls, in that file's order: the namespaces of this filter, its gating
+        counters and health monitor; the stillness fixes, the range window, the anchors'
+        dicts, the made row policies and empty rows, the range rows' keys, the outcomes'
+        parts, the known anchors, the covariance limits; the numbers; and the Python steps
+        it calls for the rarer branches (each the reference of its step)."""
+        cfg = self.cfg
+        numbers = (cfg.gating.min_anchors, cfg.gating.min_range_m, cfg.gating.max_range_m,
+                   cfg.max_imu_gap_s, MIN_PROPAGATE_S, CONSTRAINT_EVERY_NS, STILL_EVERY_NS,
+                   STILL_S * 1e9, cfg.range_sigma_m**2, *self._lever, MAX_RANGE_BIAS_SIGMA_M)
+        calls = (self._track_fixes, self._constraints, self._fuse_epoch, self._fade,
+                 self._check_divergence, self._keep_covariance_sane, self._row_policy,
+                 self._no_rows, Rows.stack, range_keys, self._row_outcomes, np.zeros, np.array)
+        return (vars(self), vars(self.gating), vars(self.monitor), self.stillness.fixes,
+                self.ranges.latest, self._configured, self._resolved, self._policies,
+                self._empty_rows, RANGE_KEYS, self._outcome_parts(), cfg.gating.known_anchors,
+                MAX_SIGMA, tuple(map(float, numbers)), calls)
+
     def _snapshot(self) -> tuple[Nominal, Array]:
         ekf = self.ekf
         assert ekf is not None

@@ -67,16 +67,16 @@ def range_rows(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array, ranges
     return Rows(H, ranges - h, var, keys)
 
 
-_RANGE_KEYS: dict[int, tuple[str, str]] = {}  # anchor id -> its rows' (kind, key)
+RANGE_KEYS: dict[int, tuple[str, str]] = {}  # anchor id -> its rows' (kind, key)
 
 
 def range_keys(ids: list[int]) -> list[tuple[str, str]]:
     """What each range row is, ``("range", "<anchor id>")``: made once per anchor."""
-    return [_RANGE_KEYS.get(a) or _range_key(a) for a in ids]
+    return [RANGE_KEYS.get(a) or _range_key(a) for a in ids]
 
 
 def _range_key(anchor_id: int) -> tuple[str, str]:
-    key = _RANGE_KEYS[anchor_id] = ("range", str(anchor_id))
+    key = RANGE_KEYS[anchor_id] = ("range", str(anchor_id))
     return key
 
 

@@ -154,6 +154,12 @@ class UwbStillness:
         self._fixes: collections.deque[tuple[int, Array]] = collections.deque()
         self._sigma_m = 0.0  # horizontal σ of the latest fix
 
+    @property
+    def fixes(self) -> collections.deque[tuple[int, Array]]:
+        """The fixes kept, oldest first (read and trimmed in place by the C core's
+        epoch step, as :meth:`forget_before` does)."""
+        return self._fixes
+
     def wants_fix(self, t_ns: int) -> bool:
         return not self._fixes or t_ns - self._fixes[-1][0] >= STILL_EVERY_NS
 
