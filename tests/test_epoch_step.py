@@ -1,0 +1,247 @@
+"""The common UWB message whole on the C core (``_core.epoch_step``, uwbd/fusion/_epoch.c)
+against Filter._update, its reference: the same reports, poses, counters, health evidence,
+anchor statistics, range window and covariance, to the bit, through single ranges, epochs,
+faults and both real datasets; and every message it does not take declined with nothing
+changed."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from drivers.frames import AnchorRange, Frame, ImuSample, UwbRanges
+from uwbd.config import parse
+from uwbd.fusion import native
+from uwbd.fusion.filter import Filter
+from uwbd.fusion.settings import FilterConfig
+from uwbd.tools.evaluate import merge
+from uwbd.tools.importer import INROL_LEVER_ARM_M, INROL_MOUNTING, load_iasl, load_inrol
+from uwbd.tools.logtools import simulation_toml
+from uwbd.tools.simulator import Z_DOWN, SimConfig, ceiling_room, handheld_async, simulate
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+pytestmark = pytest.mark.skipif(native.core is None, reason=f"C core: {native.implementation}")
+
+
+def state(flt: Filter) -> str:
+    """Everything an update writes, as text (NaN compares equal so)."""
+    ekf = flt.ekf
+    nominal = None if ekf is None else (ekf.p, ekf.v, ekf.q, ekf.b_g, ekf.b_a, ekf._T,
+                                        ekf._sum_fn, ekf._sum_w, ekf._dv_epoch,
+                                        ekf.P.tolist(), ekf.b_r.tolist(), ekf._Phi_epoch.tolist())
+    monitor = {k: list(v) if k == "_outcomes" else v for k, v in vars(flt.monitor).items()}
+    return repr((nominal, flt.t_ns, dict(flt.counters), flt.gating, monitor,
+                 {a: vars(s) for a, s in flt.anchor_stats.items()}, flt.ranges.latest,
+                 [(t, p.tolist()) for t, p in flt.stillness.fixes], flt._fade_ns,
+                 flt._constraints_ns, flt._coasted, flt._aligned,
+                 None if flt._last_good_P is None else flt._last_good_P.tolist()))
+
+
+def twins(cfg: FilterConfig) -> tuple[Filter, Filter, list[int]]:
+    """Two filters, the first with the C step (its messages taken counted), the second
+    with the reference alone."""
+    fast, slow = Filter(cfg), Filter(cfg)
+    slow.epoch_step = None
+    step, taken = fast.epoch_step, [0, 0]
+    assert step is not None
+
+    def counted(uwb: UwbRanges) -> Any:
+        out = step(uwb)
+        taken[out is None] += 1
+        return out
+    fast.epoch_step = counted
+    return fast, slow, taken
+
+
+def run_both(cfg: FilterConfig, frames: list[Frame], check_every: int = 50) -> list[int]:
+    fast, slow, taken = twins(cfg)
+    for k, frame in enumerate(frames):
+        if isinstance(frame, ImuSample):
+            fast.predict(frame)
+            slow.predict(frame)
+            continue
+        a, b = fast.update(frame), slow.update(frame)
+        assert repr(a) == repr(b), f"message {k}"
+        assert repr(fast.pose()) == repr(slow.pose()), f"message {k}"
+        if k % check_every == 0:
+            assert state(fast) == state(slow), f"message {k}"
+    assert state(fast) == state(slow)
+    return taken
+
+
+@pytest.mark.parametrize("preset", ["handheld", "ceiling", "faults"])
+def test_epoch_step_matches_the_reference(preset: str) -> None:
+    """Single ranges at ~170 Hz (multipath, restarts of the alignment), epochs under a
+    ceiling, and a run through an IMU spike, a saturation, an IMU gap and a UWB outage."""
+    if preset == "faults":
+        sim = simulate(SimConfig(seed=2, imu_spikes_s=(12.0,),
+                                 imu_saturations_s=((16.0, 0.5),), imu_gaps_s=((20.0, 2.0),),
+                                 uwb_outages_s=((28.0, 6.0),)))
+    else:
+        sim = simulate(handheld_async(2) if preset == "handheld" else ceiling_room(2))
+    taken, declined = run_both(parse(simulation_toml(sim)).filter_config(),
+                               list(merge(sim.imu, sim.uwb)))
+    assert taken > 4 * declined  # the common message is the C step's
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="shared/data not beside the repository")
+@pytest.mark.parametrize("name", ["iasl-s1", "inrol-env1"])
+def test_epoch_step_matches_the_reference_on_real_runs(name: str) -> None:
+    """The first 40 s of the flight (Nooploop epochs) and of the handheld run (single ranges
+    with multipath)."""
+    load, mounting, lever = ((load_iasl, Z_DOWN, (0.0, 0.0, 0.0)) if name == "iasl-s1"
+                             else (load_inrol, INROL_MOUNTING, INROL_LEVER_ARM_M))
+    ds = load(DATA / name)
+    frames = list(merge(ds.imu, ds.uwb))
+    frames = [f for f in frames if f.t_ns < frames[0].t_ns + 40 * 10**9]
+    cfg = FilterConfig(anchors_m=ds.anchors_m, mounting_rotation=mounting, lever_arm_m=lever)
+    taken, declined = run_both(cfg, frames)
+    assert taken > 2 * declined
+
+
+@pytest.fixture(scope="module")
+def tracking() -> tuple[Filter, list[Frame]]:
+    """A filter running and aligned on single ranges, the C step taking them, and the rest
+    of its run."""
+    sim = simulate(handheld_async(4))
+    flt = Filter(parse(simulation_toml(sim)).filter_config())
+    frames = list(merge(sim.imu, sim.uwb))
+    for k, frame in enumerate(frames):
+        if isinstance(frame, ImuSample):
+            flt.predict(frame)
+        else:
+            flt.update(frame)
+        if flt._aligned and k > len(frames) // 2:
+            return flt, frames[k + 1:]
+    raise AssertionError("the filter never aligned")
+
+
+def _next_message(frames: list[Frame]) -> UwbRanges:
+    return next(f for f in frames if isinstance(f, UwbRanges))
+
+
+def _odd(uwb: UwbRanges, case: str, flt: Filter) -> UwbRanges:
+    r = uwb.ranges[0]
+    odd: dict[str, Callable[[], UwbRanges]] = {
+        "not finite": lambda: _with(uwb, dataclasses.replace(r, range_m=math.nan)),
+        "negative": lambda: _with(uwb, dataclasses.replace(r, range_m=-1.0)),
+        "too long": lambda: _with(uwb, dataclasses.replace(r, range_m=1e6)),
+        "with a quality": lambda: _with(uwb, dataclasses.replace(r, quality=90.0)),
+        "unknown anchor": lambda: _with(uwb, dataclasses.replace(r, anchor_id=987)),
+        "duplicate anchor": lambda: dataclasses.replace(uwb, ranges=(r, r)),
+        "an int range": lambda: _with(uwb, dataclasses.replace(r, range_m=3)),
+        "late": lambda: dataclasses.replace(uwb, t_ns=(flt.t_ns or 0) - 10**6),
+        "new anchor set": lambda: dataclasses.replace(
+            uwb, ranges=tuple(AnchorRange(a, 5.0) for a in sorted(flt._configured)[:2])),
+        "no ranges": lambda: dataclasses.replace(uwb, ranges=()),
+    }
+    return odd[case]()
+
+
+def _with(uwb: UwbRanges, r: AnchorRange) -> UwbRanges:
+    return dataclasses.replace(uwb, ranges=(r, *uwb.ranges[1:]))
+
+
+@pytest.mark.parametrize("case", ["not finite", "negative", "too long", "with a quality",
+                                  "unknown anchor", "duplicate anchor", "an int range",
+                                  "late", "new anchor set", "no ranges"])
+def test_messages_it_does_not_take_are_declined_with_nothing_changed(
+        case: str, tracking: tuple[Filter, list[Frame]]) -> None:
+    """A range the gate or the resolver says anything about, a late message, anchors whose
+    arrays are not made yet: None, and the filter as it was; the reference then takes it."""
+    flt, frames = tracking
+    step = flt.epoch_step
+    assert step is not None
+    uwb = _next_message(frames)
+    before = state(flt)
+    assert step(uwb) is not None or case == "new anchor set"  # (the common one is taken)
+    before = state(flt)
+    odd = _odd(uwb, case, flt)
+    assert step(odd) is None
+    assert state(flt) == before
+
+
+def test_while_aligning_recording_or_waiting_it_declines() -> None:
+    """Before the start, before the heading is aligned and with records for the smoother,
+    every message is the reference's."""
+    sim = simulate(handheld_async(5))
+    cfg = parse(simulation_toml(sim)).filter_config()
+    waiting, recording = Filter(cfg), Filter(cfg, record=True)
+    declined = {id(waiting): 0, id(recording): 0}
+    for flt in (waiting, recording):
+        step = flt.epoch_step
+        assert step is not None
+        for frame in list(merge(sim.imu, sim.uwb))[:6000]:
+            if isinstance(frame, ImuSample):
+                flt.predict(frame)
+                continue
+            if flt is recording or flt.ekf is None or not flt._aligned:
+                assert step(frame) is None
+                declined[id(flt)] += 1
+            flt.update(frame)
+    assert all(n > 100 for n in declined.values())
+    assert recording.records
+
+
+def test_no_step_without_the_core_or_when_loose() -> None:
+    cfg = FilterConfig(anchors_m={0: (0.0, 0.0, 0.0)})
+    assert Filter(dataclasses.replace(cfg, mode=cfg.mode.LOOSE)).epoch_step is None
+    with native.pure_python():
+        assert Filter(cfg).epoch_step is None
+
+
+def test_the_ranges_kept_are_the_references(tracking: tuple[Filter, list[Frame]]) -> None:
+    """RangeWindow's latest range of each anchor: the message's time, the anchor's position
+    as a list of floats, the range as a float (what ``add`` keeps)."""
+    flt, frames = tracking
+    uwb = _next_message(frames)
+    assert flt.epoch_step is not None and flt.epoch_step(uwb) is not None
+    r = uwb.ranges[0]
+    t, pos, rng = flt.ranges.latest[r.anchor_id]
+    assert t == uwb.t_ns and rng == r.range_m and type(rng) is float
+    assert pos == list(np.array(flt._configured[r.anchor_id], dtype=float).tolist())
+
+
+@pytest.mark.parametrize("odd", ["P not contiguous", "a variance out of bounds",
+                                 "odd anchor statistics", "a state not finite"])
+def test_the_rarer_branches_are_the_python_steps(odd: str) -> None:
+    """Once running, each twin is given the same odd state: the C step hands the fuse (P in
+    Fortran order), the clamp, the outcomes or the restart to the Python steps, and the
+    twins stay the same to the bit."""
+    sim = simulate(handheld_async(6))
+    fast, slow, taken = twins(parse(simulation_toml(sim)).filter_config())
+    frames = list(merge(sim.imu, sim.uwb))
+    done = False
+    for k, frame in enumerate(frames):
+        if isinstance(frame, ImuSample):
+            fast.predict(frame)
+            slow.predict(frame)
+            continue
+        assert repr(fast.update(frame)) == repr(slow.update(frame)), f"message {k}"
+        if not done and fast._aligned and k > len(frames) // 3:
+            done = True
+            for f in (fast, slow):
+                assert f.ekf is not None
+                if odd == "P not contiguous":
+                    f.ekf.P = np.asfortranarray(f.ekf.P)
+                elif odd == "a variance out of bounds":
+                    f.ekf.P[9, 9] = 10.0  # a gyro bias: the ranges barely see it
+                elif odd == "odd anchor statistics":
+                    stats = f.anchor_stats[next(iter(f.anchor_stats))]
+                    stats.rejected = 0.0  # type: ignore[assignment]
+                else:
+                    f.ekf.v[0] = math.inf
+        if done and k % 40 == 0:
+            assert state(fast) == state(slow), f"message {k}"
+    assert done and state(fast) == state(slow)
+    counters = fast.counters
+    if odd == "a variance out of bounds":
+        assert counters["covariance_clamped"] > 0
+    if odd == "a state not finite":
+        assert counters["restarts"] > 0
