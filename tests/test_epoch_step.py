@@ -240,6 +240,7 @@ def test_the_rarer_branches_are_the_python_steps(odd: str) -> None:
         if done and k % 40 == 0:
             assert state(fast) == state(slow), f"message {k}"
     assert done and state(fast) == state(slow)
+    assert taken[0] > taken[1]  # (and the common message was the C step's throughout)
     counters = fast.counters
     if odd == "a variance out of bounds":
         assert counters["covariance_clamped"] > 0
