@@ -10,7 +10,8 @@ from setuptools import Extension, setup
 setup(ext_modules=[
     Extension(
         "uwbd.fusion._core", ["uwbd/fusion/_core.c", "uwbd/fusion/_imu_read.c",
-                                "uwbd/fusion/_outcomes.c", "uwbd/fusion/_epoch.c"],
+                                "uwbd/fusion/_outcomes.c", "uwbd/fusion/_epoch.c",
+                                "uwbd/fusion/_pose.c"],
         depends=["uwbd/fusion/_core.h", "uwbd/_tuple.h"],
         # a * b + c rounded as Python rounds it (no fused multiply-add): the same bits
         extra_compile_args=["-O2", "-ffp-contract=off", "-fno-fast-math"],

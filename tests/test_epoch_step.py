@@ -1,5 +1,6 @@
-"""The common UWB message whole on the C core (``_core.epoch_step``, uwbd/fusion/_epoch.c)
-against Filter._update, its reference: the same reports, poses, counters, health evidence,
+"""The common UWB message and the common pose whole on the C core (``_core.epoch_step``,
+uwbd/fusion/_epoch.c; ``_core.pose_step``, uwbd/fusion/_pose.c) against Filter._update and
+Filter.pose, their reference: the same reports, poses, counters, health evidence,
 anchor statistics, range window and covariance, to the bit, through single ranges, epochs,
 faults and both real datasets; and every message it does not take declined with nothing
 changed."""
@@ -20,6 +21,7 @@ from uwbd.config import parse
 from uwbd.fusion import native
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.settings import FilterConfig
+from uwbd.fusion.types import Pose
 from uwbd.tools.evaluate import merge
 from uwbd.tools.importer import INROL_LEVER_ARM_M, INROL_MOUNTING, load_iasl, load_inrol
 from uwbd.tools.logtools import simulation_toml
@@ -44,10 +46,10 @@ def state(flt: Filter) -> str:
 
 
 def twins(cfg: FilterConfig) -> tuple[Filter, Filter, list[int]]:
-    """Two filters, the first with the C step (its messages taken counted), the second
-    with the reference alone."""
+    """Two filters, the first with the C steps (the messages its epoch step took counted),
+    the second with the reference alone."""
     fast, slow = Filter(cfg), Filter(cfg)
-    slow.epoch_step = None
+    slow.epoch_step = slow.pose_step = None
     step, taken = fast.epoch_step, [0, 0]
     assert step is not None
 
@@ -240,9 +242,42 @@ def test_the_rarer_branches_are_the_python_steps(odd: str) -> None:
         if done and k % 40 == 0:
             assert state(fast) == state(slow), f"message {k}"
     assert done and state(fast) == state(slow)
-    assert taken[0] > taken[1]  # (and the common message was the C step's throughout)
+    assert taken[0] > 1000  # (the common message the C step's, before and after)
     counters = fast.counters
     if odd == "a variance out of bounds":
         assert counters["covariance_clamped"] > 0
     if odd == "a state not finite":
         assert counters["restarts"] > 0
+
+
+@pytest.mark.parametrize("odd", ["an IMU gap", "inconsistent", "side unresolved",
+                                 "coasting", "P not contiguous", "not finite", "waiting"])
+def test_poses_it_does_not_make_are_the_references(odd: str) -> None:
+    """A fault, a note, coasting, a state the reference restarts from, no filter: the C pose
+    declines, and Filter.pose gives the reference's."""
+    sim = simulate(handheld_async(4))
+    fast, slow, _ = twins(parse(simulation_toml(sim)).filter_config())
+    frames = list(merge(sim.imu, sim.uwb))
+    for flt in (fast, slow):
+        for frame in frames[: len(frames) // 2]:
+            flt.predict(frame) if isinstance(frame, ImuSample) else flt.update(frame)
+        assert flt.ekf is not None
+        if flt is fast:  # (as it runs, the C core makes its poses)
+            assert fast.pose_step is not None and isinstance(fast.pose_step(), Pose)
+        if odd == "an IMU gap":
+            flt.monitor.imu_gap = True
+        elif odd == "inconsistent":
+            flt.monitor._inconsistent_since_ns = flt.t_ns
+        elif odd == "side unresolved":
+            flt.monitor.mirror_unresolved = True
+        elif odd == "coasting":
+            flt.t_ns = (flt.t_ns or 0) + 3 * 10**9
+        elif odd == "P not contiguous":
+            flt.ekf.P = np.asfortranarray(flt.ekf.P)
+        elif odd == "not finite":
+            flt.ekf.p[0] = math.nan
+        else:
+            flt.ekf = None
+    assert fast.pose_step is not None and fast.pose_step() is NotImplemented
+    assert repr(fast.pose()) == repr(slow.pose())
+    assert state(fast) == state(slow)

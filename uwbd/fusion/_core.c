@@ -1293,7 +1293,7 @@ done:
  * the navigation frame, [[Ppp, Ppθ Rᵀ], [R Pθp, R Pθθ Rᵀ]], row-major, made symmetric as
  * (M + Mᵀ)/2; while the heading is not aligned its yaw row and column are 0 and its
  * variance π² (_yaw_unknown); finite as the reference tells it (one sum, in its order). */
-static PyObject *core_pose_numbers(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+PyObject *uwbd_pose_numbers(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)self;
     if (nargs != 6) {
@@ -1515,7 +1515,7 @@ static PyMethodDef core_methods[] = {
      "After a fused update: P symmetrised and reset by G, in place."},
     {"fuse_ranges", (PyCFunction)(void (*)(void))core_fuse_ranges, METH_FASTCALL,
      "A tight epoch: the range rows and the extra rows fused in one call (or None)."},
-    {"pose_numbers", (PyCFunction)(void (*)(void))core_pose_numbers, METH_FASTCALL,
+    {"pose_numbers", (PyCFunction)(void (*)(void))uwbd_pose_numbers, METH_FASTCALL,
      "Filter.pose's numbers: covariance, sigma_xy, heading observable, p, v, xyzw."},
     {"diagonal_out_of_bounds", (PyCFunction)(void (*)(void))core_diagonal_out_of_bounds,
      METH_FASTCALL, "Any variance of P above its limit or below zero."},
@@ -1535,6 +1535,8 @@ static PyMethodDef core_methods[] = {
      "The common IMU read whole (parse, spread, align, check, predict), or None."},
     {"epoch_step", (PyCFunction)(void (*)(void))uwbd_epoch_step, METH_FASTCALL,
      "Filter._update's common UWB message whole (running, aligned, tight), or None."},
+    {"pose_step", (PyCFunction)(void (*)(void))uwbd_pose_step, METH_FASTCALL,
+     "Filter.pose whole while tracking or aligning without a fault, or NotImplemented."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -32,6 +32,9 @@ int uwbd_diagonal_out_of_bounds(PyObject *P_obj, PyObject *limit);
 /* Every entry of P finite and below `bound` in magnitude: 1, 0, -1 (an error). */
 int uwbd_all_finite_below(PyObject *P_obj, double bound);
 
+/* pose_numbers(P, q, p, v, aligned, max_yaw_sigma): Filter.pose's numbers, or None. */
+PyObject *uwbd_pose_numbers(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
+
 /* _imu_read.c */
 /* An int within ±2^62 (1), None (1 and *none set, if none is given), else 0; -1 an error. */
 int uwbd_as_i64(PyObject *v, int64_t *out, int *none);
@@ -42,6 +45,9 @@ PyObject *uwbd_imu_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 /* _epoch.c */
 int uwbd_epoch_init(void);
 PyObject *uwbd_epoch_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
+
+/* _pose.c */
+PyObject *uwbd_pose_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 
 /* _outcomes.c */
 int uwbd_outcomes_init(void);

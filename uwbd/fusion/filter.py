@@ -163,6 +163,8 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         self.step_parts = self._step_parts()
         self.imu_step = (None if core is None
                          else functools.partial(core.imu_step, self.step_parts))
+        self.pose_step = (None if core is None
+                          else functools.partial(core.pose_step, self._pose_parts()))
         # the common UWB message whole on the C core (None: the reference, _update)
         self.epoch_step = (None if core is None or config.mode is not Mode.TIGHT
                            else functools.partial(core.epoch_step, self._epoch_parts()))

@@ -1,6 +1,7 @@
 """What :class:`~uwbd.fusion.filter.Filter` says of itself (a mixin of it, as
 :mod:`.propagation`, :mod:`.recovery` and :mod:`.fusing` are): the pose, on the C core's
-``pose_numbers`` where it is built (``_pose_numbers`` the reference), the health record and
+``pose_step`` or ``pose_numbers`` where it is built (``pose`` and ``_pose_numbers`` the
+reference), the health record and
 the status's diagnostics."""
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import numpy as np
 
 from uwbd.fusion import native
 from uwbd.fusion.eskf import TH_, Eskf
-from uwbd.fusion.health import WAITING, Health, HealthMonitor
+from uwbd.fusion.health import NS, WAITING, Health, HealthMonitor, Phase
 from uwbd.fusion.mirror import MirrorSide
 from uwbd.fusion.robust import AnchorStats
 from uwbd.fusion.rotation import Array
@@ -35,6 +36,18 @@ class FilterOutputs:
     _aligned: bool
     _pose_map: Array  # (p, v, θ) -> (p, R θ), its R rows filled per pose
     _restart_not_finite: Callable[[int], None]  # the filter's (recovery)
+    pose_step: Any  # the C core's common pose (functools.partial), or None: the reference
+
+    def _pose_parts(self) -> tuple[Any, ...]:
+        """What the C core's common pose (``_core.pose_step``, ``_pose.c``) reads, in that
+        file's order: the namespaces of this filter and its health monitor, the monitor's
+        limits (the fault hold in ns), the types it makes, the two phases it gives and
+        their summaries."""
+        lim = self.monitor.limits
+        numbers = (lim.imu_fault_hold_s * NS, lim.range_timeout_s, lim.max_sigma_m,
+                   lim.coast_after_s, MAX_OBSERVABLE_YAW_SIGMA)
+        return (vars(self), vars(self.monitor), tuple(map(float, numbers)), Pose, Health,
+                Phase.TRACKING, Phase.ALIGNING, Phase.TRACKING.value, Phase.ALIGNING.value)
 
     def health(self) -> Health:
         """The health record, rebuilt from the evidence now."""
@@ -60,6 +73,11 @@ class FilterOutputs:
     def pose(self) -> Pose | None:
         """The pose now, or ``None`` before the start, while restarting, or when any of
         its numbers is not finite (which also restarts the filter)."""
+        step = self.pose_step
+        if step is not None:  # the common pose, whole, on the C core
+            pose: Pose | None = step()
+            if pose is not NotImplemented:
+                return pose
         ekf = self.ekf
         t_ns = self.t_ns
         if ekf is None or t_ns is None:
