@@ -1550,7 +1550,8 @@ PyMODINIT_FUNC PyInit__core(void)
 {
     if (uwbd_outcomes_init() < 0)
         return NULL;
-    if (uwbd_imu_read_init() < 0 || uwbd_epoch_init() < 0)
+    if (uwbd_imu_read_init() < 0 || uwbd_epoch_init() < 0 ||
+        uwbd_pose_init() < 0)
         return NULL;
     return PyModule_Create(&core_module);
 }

@@ -47,6 +47,7 @@ int uwbd_epoch_init(void);
 PyObject *uwbd_epoch_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 
 /* _pose.c */
+int uwbd_pose_init(void);
 PyObject *uwbd_pose_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 
 /* _outcomes.c */

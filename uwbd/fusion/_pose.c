@@ -30,12 +30,36 @@ enum { H_PHASE, H_FAULTS, H_NOTES, H_SINCE, H_SIGMA, H_RESETS, H_RESET_T, H_REAS
 enum { POSE_T, POSE_P, POSE_V, POSE_Q, POSE_COV, POSE_STATUS, POSE_OBSERVABLE, POSE_HEALTH,
        POSE_COUNT };
 #define EXACT (INT64_C(1) << 52) /* differences below this are exact as doubles */
+enum {
+    S_NUMERICAL_NS, S_IMU_FAULT_NS, S_INCONSISTENT_SINCE_NS, S_IMU_GAP, S_REJUDGING, S_MIRROR_UNRESOLVED, S_LAST_RANGE_NS, S_RESETS, S_LAST_RESET, S_EKF, S_T_NS, S_ALIGNED, S_P_MATRIX, S_Q, S_P, S_V, S_COUNT
+};
+static const char *const text[S_COUNT] = {
+    "_numerical_ns", "_imu_fault_ns", "_inconsistent_since_ns", "imu_gap", "_rejudging", "mirror_unresolved", "last_range_ns", "resets", "last_reset", "ekf", "t_ns", "_aligned", "P", "q", "p", "v",
+};
+static PyObject *str[S_COUNT];
+
+int uwbd_pose_init(void)
+{
+    for (int i = 0; i < S_COUNT; i++)
+        if ((str[i] = PyUnicode_InternFromString(text[i])) == NULL)
+            return -1;
+    return 0;
+}
+
+/* ns[name], borrowed; NULL when absent (an error cleared: the caller declines) */
+static PyObject *get(PyObject *ns, int name)
+{
+    PyObject *v = PyDict_GetItemWithError(ns, str[name]);
+    if (v == NULL)
+        PyErr_Clear();
+    return v;
+}
 
 /* the time since `name` (an int) is below hold_ns (a float) as Python compares them: 1 yes,
  * 0 no or None, -1 not exact (decline), -2 an error */
-static int within(PyObject *ns, const char *name, int64_t t, double hold_ns)
+static int within(PyObject *ns, int name, int64_t t, double hold_ns)
 {
-    PyObject *v = PyDict_GetItemString(ns, name); /* (borrowed; a missing one: None) */
+    PyObject *v = get(ns, name); /* (a missing one: None) */
     if (v == NULL || v == Py_None)
         return 0;
     int64_t x;
@@ -54,17 +78,17 @@ static PyObject *health(PyObject *const *parts, int64_t t, const double *c, int 
                         double sigma)
 {
     PyObject *m = parts[Q_MONITOR];
-    int a = within(m, "_numerical_ns", t, c[L_HOLD_NS]);
-    int b = a != 0 ? a : within(m, "_imu_fault_ns", t, c[L_HOLD_NS]);
+    int a = within(m, S_NUMERICAL_NS, t, c[L_HOLD_NS]);
+    int b = a != 0 ? a : within(m, S_IMU_FAULT_NS, t, c[L_HOLD_NS]);
     if (b == -2)
         return NULL;
-    PyObject *inconsistent = PyDict_GetItemString(m, "_inconsistent_since_ns");
-    PyObject *gap = PyDict_GetItemString(m, "imu_gap");
-    PyObject *rejudging = PyDict_GetItemString(m, "_rejudging");
-    PyObject *unresolved = PyDict_GetItemString(m, "mirror_unresolved");
-    PyObject *last = PyDict_GetItemString(m, "last_range_ns");
-    PyObject *resets = PyDict_GetItemString(m, "resets");
-    PyObject *reset = PyDict_GetItemString(m, "last_reset");
+    PyObject *inconsistent = get(m, S_INCONSISTENT_SINCE_NS);
+    PyObject *gap = get(m, S_IMU_GAP);
+    PyObject *rejudging = get(m, S_REJUDGING);
+    PyObject *unresolved = get(m, S_MIRROR_UNRESOLVED);
+    PyObject *last = get(m, S_LAST_RANGE_NS);
+    PyObject *resets = get(m, S_RESETS);
+    PyObject *reset = get(m, S_LAST_RESET);
     if (b != 0 || inconsistent != Py_None || gap != Py_False || rejudging != Py_False ||
         unresolved != Py_False || last == NULL || last == Py_None || resets == NULL ||
         reset == NULL || !(sigma <= c[L_MAX_SIGMA]))
@@ -115,8 +139,8 @@ PyObject *uwbd_pose_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs
             PyErr_Occurred())
             return NULL;
     PyObject *f = parts[Q_FILTER];
-    PyObject *ekf = PyDict_GetItemString(f, "ekf"), *t_obj = PyDict_GetItemString(f, "t_ns");
-    PyObject *aligned = PyDict_GetItemString(f, "_aligned");
+    PyObject *ekf = get(f, S_EKF), *t_obj = get(f, S_T_NS);
+    PyObject *aligned = get(f, S_ALIGNED);
     int64_t t;
     int none;
     if (ekf == NULL || ekf == Py_None || t_obj == NULL || aligned == NULL ||
@@ -127,21 +151,20 @@ PyObject *uwbd_pose_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs
     PyObject *ns = PyObject_GenericGetDict(ekf, NULL);
     if (ns == NULL)
         return NULL;
-    PyObject *P = PyDict_GetItemString(ns, "P"), *q = PyDict_GetItemString(ns, "q");
-    PyObject *p = PyDict_GetItemString(ns, "p"), *v = PyDict_GetItemString(ns, "v");
+    PyObject *P = get(ns, S_P_MATRIX), *q = get(ns, S_Q);
+    PyObject *p = get(ns, S_P), *v = get(ns, S_V);
     PyObject *yaw = PyFloat_FromDouble(c[L_MAX_YAW]), *numbers = NULL, *out = NULL;
-    Py_buffer view;
-    int contiguous = P != NULL && PyObject_GetBuffer(P, &view, PyBUF_C_CONTIGUOUS) == 0;
-    if (contiguous)
-        PyBuffer_Release(&view);
-    else
-        PyErr_Clear(); /* (np.ascontiguousarray would make another: Python's) */
-    if (yaw == NULL || !contiguous || q == NULL || p == NULL || v == NULL)
+    if (yaw == NULL)
+        goto done;
+    if (P == NULL || q == NULL || p == NULL || v == NULL)
         goto decline;
     PyObject *nargs_[6] = {P, q, p, v, aligned, yaw};
     numbers = uwbd_pose_numbers(NULL, nargs_, 6);
-    if (numbers == NULL)
-        goto done;
+    if (numbers == NULL) { /* P not C-contiguous (np.ascontiguousarray would make another),
+                            * or anything odd: Python's, which says so itself */
+        PyErr_Clear();
+        goto decline;
+    }
     if (numbers == Py_None || !PyTuple_Check(numbers) || PyTuple_GET_SIZE(numbers) != 6)
         goto decline; /* not finite: the reference restarts */
     int observable = PyTuple_GET_ITEM(numbers, 2) == Py_True;
