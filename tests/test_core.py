@@ -83,6 +83,25 @@ def test_propagation_symmetrised_in_c_is_numpys_to_the_bit(seed: int, n_aux: int
 
 @needs_core
 @settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31), st.integers(2, 8), st.floats(0.001, 2.0), st.booleans())
+def test_the_gauss_markov_step_in_c_is_numpys_to_the_bit(seed: int, n_aux: int, T: float,
+                                                       symmetrise: bool) -> None:
+    """markov_step (in place, symmetrised if asked) gives the bits of the numpy steps."""
+    fast, slow = twin(n_aux, seed)
+    slow.P, slow.b_r = fast.P.copy(), np.random.default_rng(seed).normal(size=n_aux)
+    fast.b_r = slow.b_r.copy()
+    P_c, P_np = fast.P, slow.P
+    assert fast._markov_step(P_c, T, symmetrise) is symmetrise
+    assert slow._markov_step(P_np, T, symmetrise) is False
+    if symmetrise:
+        P_np = 0.5 * (P_np + P_np.T)
+    assert np.array_equal(P_c, P_np) and np.array_equal(fast.b_r, slow.b_r)
+    assert np.array_equal(fast._decay_epoch, slow._decay_epoch)
+    assert len(fast._markov_columns) == n_aux // 2  # (every other state: τ = 3 s)
+
+
+@needs_core
+@settings(max_examples=30, deadline=None)
 @given(st.integers(0, 2**31), st.integers(0, 8))
 def test_predict_and_propagate_match_the_reference(seed: int, n_aux: int) -> None:
     fast, slow = twin(n_aux, seed)

@@ -573,6 +573,77 @@ static PyObject *core_reset_covariance(PyObject *self, PyObject *const *args,
     Py_RETURN_NONE;
 }
 
+/* markov_step(P, columns, phi, var, b_r, decay, symmetrise)
+ * Eskf._markov_step in place: the Gauss–Markov states (their P columns, ascending) decay
+ * by phi (e^(−T/τ), numpy's, given): their rows, then their columns of P times phi, their
+ * variances plus var (1 − phi²), their b_r and epoch decays times phi; with symmetrise,
+ * P ← (P + Pᵀ)/2 too, as numpy's 0.5 * (P + P.T) makes it (Eskf.propagate next). */
+static PyObject *core_markov_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 7 || !PyTuple_Check(args[1])) {
+        PyErr_SetString(PyExc_TypeError, "markov_step(P, columns, phi, var, b_r, decay, symmetrise)");
+        return NULL;
+    }
+    int symmetrise = PyObject_IsTrue(args[6]);
+    if (symmetrise < 0)
+        return NULL;
+    Py_ssize_t m = PyTuple_GET_SIZE(args[1]), n = 0;
+    Py_ssize_t *cols = PyMem_Malloc(sizeof(Py_ssize_t) * (m > 0 ? m : 1));
+    if (cols == NULL)
+        return PyErr_NoMemory();
+    Py_buffer view[5]; /* P, phi, var, b_r, decay */
+    int got = 0;
+    PyObject *out = NULL;
+    if (get_P(args[0], &view[0], &n, 1) < 0)
+        goto done;
+    got = 1;
+    for (Py_ssize_t a = 0; a < m; a++) {
+        cols[a] = PyLong_AsSsize_t(PyTuple_GET_ITEM(args[1], a));
+        if (cols[a] < N_CORE || cols[a] >= n || (a > 0 && cols[a] <= cols[a - 1])) {
+            if (!PyErr_Occurred())
+                PyErr_SetString(PyExc_ValueError, "markov_step: columns out of range or order");
+            goto done;
+        }
+    }
+    if (get_doubles(args[2], &view[1], m, 0, "phi") < 0)
+        goto done;
+    got = 2;
+    if (get_doubles(args[3], &view[2], m, 0, "var") < 0)
+        goto done;
+    got = 3;
+    if (get_doubles(args[4], &view[3], n - N_CORE, 1, "b_r") < 0)
+        goto done;
+    got = 4;
+    if (get_doubles(args[5], &view[4], n - N_CORE, 1, "decay") < 0)
+        goto done;
+    got = 5;
+    double *P = (double *)view[0].buf, *b_r = (double *)view[3].buf;
+    double *decay = (double *)view[4].buf;
+    const double *phi = (const double *)view[1].buf, *var = (const double *)view[2].buf;
+    for (Py_ssize_t a = 0; a < m; a++)
+        for (Py_ssize_t j = 0; j < n; j++)
+            P[cols[a] * n + j] *= phi[a];
+    for (Py_ssize_t i = 0; i < n; i++)
+        for (Py_ssize_t a = 0; a < m; a++)
+            P[i * n + cols[a]] *= phi[a];
+    for (Py_ssize_t a = 0; a < m; a++) {
+        P[cols[a] * n + cols[a]] += var[a] * (1.0 - phi[a] * phi[a]);
+        b_r[cols[a] - N_CORE] *= phi[a];
+        decay[cols[a] - N_CORE] *= phi[a];
+    }
+    if (symmetrise)
+        for (Py_ssize_t i = 0; i < n; i++)
+            for (Py_ssize_t j = i; j < n; j++)
+                P[i * n + j] = P[j * n + i] = 0.5 * (P[i * n + j] + P[j * n + i]);
+    out = Py_NewRef(Py_None);
+done:
+    for (int i = 0; i < got; i++)
+        PyBuffer_Release(&view[i]);
+    PyMem_Free(cols);
+    return out;
+}
+
 /* The nominal state a fused update corrects: p, v, q, b_g, b_a from the caller's lists
  * (p, v, b_g and b_a are written back in place; q is returned anew, as in Python). */
 typedef struct {
@@ -1507,6 +1578,8 @@ static PyMethodDef core_methods[] = {
      "Eskf.predict: one IMU sample (p, v, sums in place; returns the new q)."},
     {"propagate_core", (PyCFunction)(void (*)(void))core_propagate, METH_FASTCALL,
      "Eskf.propagate's core rows and columns, in place on P and Phi_epoch."},
+    {"markov_step", (PyCFunction)(void (*)(void))core_markov_step, METH_FASTCALL,
+     "Eskf._markov_step in place (the decays given), and P symmetrised if asked."},
     {"update_and_inject", (PyCFunction)(void (*)(void))core_update_and_inject, METH_FASTCALL,
      "Eskf.sequential_update whole: the rows, then P reset and the state corrected."},
     {"turn_attitude_covariance", (PyCFunction)(void (*)(void))core_turn_attitude_covariance,

@@ -103,6 +103,7 @@ class Eskf:
         self._q_rate[N_CORE:] = noise.range_bias**2
         self._tau = np.full(n_range_bias, np.inf) if aux_tau_s is None else np.asarray(aux_tau_s)
         self._markov = np.flatnonzero(np.isfinite(self._tau))
+        self._markov_columns = tuple(N_CORE + int(i) for i in self._markov)  # (for C)
         self._q_rate[N_CORE + self._markov] = 0.0
         self._markov_var = (np.zeros(0) if aux_sigma is None
                             else np.asarray(aux_sigma)[self._markov] ** 2)
@@ -239,23 +240,33 @@ class Eskf:
             P[:N_CORE, :] = Phi @ P[:N_CORE, :]
             P[:, :N_CORE] = P[:, :N_CORE] @ Phi.T
             P[self._diag] += self._q_rate * T
-        if not symmetrised:
-            self._markov_step(P, T)
+        if not symmetrised and not self._markov_step(P, T, symmetrise=True):
             self.P = 0.5 * (P + P.T)
         self._reset_interval()
 
-    def _markov_step(self, P: Array, T: float) -> None:
-        """Gauss–Markov states decay towards 0 over ``T``; Q keeps their σ stationary."""
+    def _markov_step(self, P: Array, T: float, symmetrise: bool = False) -> bool:
+        """Gauss–Markov states decay towards 0 over ``T``; Q keeps their σ stationary. On
+        the C core (in place), with ``symmetrise`` P is made symmetric in the same call, as
+        ``0.5 * (P + P.T)`` makes it: True then."""
         m = self._markov
-        if len(m):
-            self._epoch_propagated = True  # the decays are no longer ones
-            phi = np.exp(-T / self._tau[m])
-            k = N_CORE + m
-            P[k, :] *= phi[:, None]
-            P[:, k] *= phi[None, :]
-            P[k, k] += self._markov_var * (1.0 - phi * phi)
-            self.b_r[m] *= phi
-            self._decay_epoch[m] *= phi
+        if not len(m):
+            return False
+        self._epoch_propagated = True  # the decays are no longer ones
+        phi = np.exp(-T / self._tau[m])
+        core = self._core
+        b_r, decay = self.b_r, self._decay_epoch
+        if core is not None and P.flags.c_contiguous and b_r.flags.c_contiguous \
+                and decay.flags.c_contiguous:
+            core.markov_step(P, self._markov_columns, phi, self._markov_var, b_r, decay,
+                             symmetrise)
+            return symmetrise
+        k = N_CORE + m
+        P[k, :] *= phi[:, None]
+        P[:, k] *= phi[None, :]
+        P[k, k] += self._markov_var * (1.0 - phi * phi)
+        b_r[m] *= phi
+        decay[m] *= phi
+        return False
 
     def coast(self, dt: float, accel_sigma_mps2: float, yaw_rate_sigma_rps: float,
               tilt_rate_sigma_rps: float) -> None:
