@@ -211,11 +211,12 @@ def test_the_ranges_kept_are_the_references(tracking: tuple[Filter, list[Frame]]
 
 
 @pytest.mark.parametrize("odd", ["P not contiguous", "a variance out of bounds",
-                                 "odd anchor statistics", "a state not finite"])
+                                 "odd anchor statistics", "a state not finite",
+                                 "a position not a number"])
 def test_the_rarer_branches_are_the_python_steps(odd: str) -> None:
     """Once running, each twin is given the same odd state: the C step hands the fuse (P in
-    Fortran order), the clamp, the outcomes or the restart to the Python steps, and the
-    twins stay the same to the bit."""
+    Fortran order; a NaN distance, which the C fuse declines), the clamp, the outcomes or
+    the restart to the Python steps, and the twins stay the same to the bit."""
     sim = simulate(handheld_async(6))
     fast, slow, taken = twins(parse(simulation_toml(sim)).filter_config())
     frames = list(merge(sim.imu, sim.uwb))
@@ -237,8 +238,10 @@ def test_the_rarer_branches_are_the_python_steps(odd: str) -> None:
                 elif odd == "odd anchor statistics":
                     stats = f.anchor_stats[next(iter(f.anchor_stats))]
                     stats.rejected = 0.0  # type: ignore[assignment]
-                else:
+                elif odd == "a state not finite":
                     f.ekf.v[0] = math.inf
+                else:
+                    f.ekf.p[0] = math.nan
         if done and k % 40 == 0:
             assert state(fast) == state(slow), f"message {k}"
     assert done and state(fast) == state(slow)
@@ -246,7 +249,7 @@ def test_the_rarer_branches_are_the_python_steps(odd: str) -> None:
     counters = fast.counters
     if odd == "a variance out of bounds":
         assert counters["covariance_clamped"] > 0
-    if odd == "a state not finite":
+    if odd in ("a state not finite", "a position not a number"):
         assert counters["restarts"] > 0
 
 
@@ -281,3 +284,13 @@ def test_poses_it_does_not_make_are_the_references(odd: str) -> None:
     assert fast.pose_step is not None and fast.pose_step() is NotImplemented
     assert repr(fast.pose()) == repr(slow.pose())
     assert state(fast) == state(slow)
+
+
+def test_known_anchors_of_any_container_are_pythons_in() -> None:
+    """``known_anchors`` given as a tuple (it is tested with ``in``): taken alike."""
+    sim = simulate(handheld_async(2))
+    cfg = parse(simulation_toml(sim)).filter_config()
+    cfg = dataclasses.replace(cfg, gating=dataclasses.replace(
+        cfg.gating, known_anchors=tuple(sorted(cfg.anchors_m)[:-1])))  # type: ignore[arg-type]
+    taken, declined = run_both(cfg, list(merge(sim.imu, sim.uwb))[:12000], check_every=200)
+    assert taken > 0 and declined > 0  # (the last anchor's ranges: rejected, Python's)

@@ -200,7 +200,7 @@ static int ranges_take(PyObject *const *parts, PyObject *uwb, const double *c, T
         for (Py_ssize_t j = 0; ok && j < i; j++)
             ok = seen[j] != a;
         PyObject *known = parts[E_KNOWN];
-        int known_ok = !ok || known == Py_None ? 1 : PySet_Contains(known, id);
+        int known_ok = !ok || known == Py_None ? 1 : PySequence_Contains(known, id);
         PyObject *pos = !ok || known_ok <= 0 ? NULL
                                              : PyDict_GetItemWithError(parts[E_CONFIGURED], id);
         PyList_SET_ITEM(m->ids, i, id); /* (steals id) */
@@ -223,6 +223,17 @@ static int ranges_take(PyObject *const *parts, PyObject *uwb, const double *c, T
     }
     Py_INCREF(m->arrays);
     t = PyTuple_Check(m->arrays) && PyTuple_GET_SIZE(m->arrays) == 2;
+    if (t) { /* the anchors k×3 floats, as Filter._resolve makes them (else Python's) */
+        Py_buffer view;
+        if (PyObject_GetBuffer(PyTuple_GET_ITEM(m->arrays, 0), &view,
+                               PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) {
+            PyErr_Clear();
+            t = 0;
+        } else {
+            t = view.len == k * 3 * 8 && view.format != NULL && strcmp(view.format, "d") == 0;
+            PyBuffer_Release(&view);
+        }
+    }
 done:
     Py_DECREF(ranges);
     return t;
@@ -488,7 +499,10 @@ static int extra_rows(PyObject *const *parts, PyObject *const *calls, PyObject *
                       PyObject *n_obj, Take *m, PyObject **extra, PyObject **keys,
                       PyObject **policy)
 {
-    if (constraints != NULL && PyObject_IsTrue(constraints)) {
+    int due = PyObject_IsTrue(constraints);
+    if (due < 0)
+        return -1;
+    if (due) {
         *extra = PyObject_CallOneArg(calls[C_STACK], constraints);
     } else {
         *extra = PyDict_GetItemWithError(parts[E_EMPTY_ROWS], n_obj);
@@ -570,10 +584,11 @@ static int extra_rows(PyObject *const *parts, PyObject *const *calls, PyObject *
 /* The covariance kept within bounds (_keep_covariance_sane: Python's when anything is to
  * be clamped, or the limits not yet made) */
 static int keep_sane(PyObject *const *parts, PyObject *const *calls, PyObject *ekf_ns,
-                     PyObject *P, const double *c)
+                     const double *c)
 {
     PyObject *key = attr(ekf_ns, N_CLAMP_KEY), *limit = attr(ekf_ns, N_CLAMP_LIMIT);
-    if (key == NULL || limit == NULL)
+    PyObject *P = attr(ekf_ns, N_P_MATRIX);
+    if (key == NULL || limit == NULL || P == NULL)
         return -1;
     int out = 1;
     if (PyTuple_Check(key) && PyTuple_GET_SIZE(key) == 2 &&
@@ -607,11 +622,17 @@ static PyObject *fuse(PyObject *const *parts, PyObject *t_obj, const double *c, 
     t = t && m->t - good < EXACT && good - m->t < EXACT &&
         (double)(m->t - good) / 1e9 <= c[K_MAX_GAP];
     PyObject *out = NULL, *extra = NULL, *keys = NULL, *policy = NULL, *dx = NULL;
+    /* (held as new references: the Python steps called below may drop theirs) */
     PyObject *columns = NULL, *fused = NULL, *P = t ? attr(m->ekf_ns, N_P_MATRIX) : NULL;
     PyObject *b_r = P == NULL ? NULL : attr(m->ekf_ns, N_B_R);
     PyObject *range_columns = b_r == NULL ? NULL : attr(f, N_RANGE_COLUMNS);
-    if (range_columns == NULL)
+    if (range_columns == NULL) {
+        P = b_r = NULL;
         goto python;
+    }
+    Py_INCREF(P);
+    Py_INCREF(b_r);
+    Py_INCREF(range_columns);
     /* P as Eskf.fuse_ranges leaves it (np.ascontiguousarray): else Python's */
     Py_buffer view;
     if (PyObject_GetBuffer(P, &view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) < 0) {
@@ -676,16 +697,18 @@ static PyObject *fuse(PyObject *const *parts, PyObject *t_obj, const double *c, 
         Py_DECREF(out);
         out = PyObject_Vectorcall(calls[C_ROW_OUTCOMES], args + 1, 3, NULL);
     }
-    if (out != NULL && keep_sane(parts, calls, m->ekf_ns, P, c) < 0)
+    if (out != NULL && keep_sane(parts, calls, m->ekf_ns, c) < 0)
         Py_CLEAR(out);
     goto done;
 python:
     if (!PyErr_Occurred()) {
         PyObject *ones = PyTuple_GET_ITEM(m->arrays, 1);
-        out = call_with_epoch(calls, C_FUSE_EPOCH, t_obj, m, ones, Py_None,
-                              constraints == NULL ? Py_None : constraints);
+        out = call_with_epoch(calls, C_FUSE_EPOCH, t_obj, m, ones, Py_None, constraints);
     }
 done:
+    Py_XDECREF(P);
+    Py_XDECREF(b_r);
+    Py_XDECREF(range_columns);
     Py_XDECREF(extra);
     Py_XDECREF(keys);
     Py_XDECREF(policy);
@@ -796,11 +819,13 @@ PyObject *uwbd_epoch_step(PyObject *self, PyObject *const *args, Py_ssize_t narg
         set_attr(parts[E_FILTER], N_COASTED, Py_False) < 0 ||
         track_fixes(parts, t_obj, c, &m) < 0)
         goto done;
-    PyObject *constraints = NULL;
+    PyObject *constraints; /* the rows due, else Python's `constraints = []` */
     if (m.due) {
         if (set_attr(parts[E_FILTER], N_CONSTRAINTS_NS, t_obj) < 0 ||
             (constraints = PyObject_CallNoArgs(calls[C_CONSTRAINTS])) == NULL)
             goto done;
+    } else if ((constraints = PyList_New(0)) == NULL) {
+        goto done;
     }
     out = fuse(parts, t_obj, c, &m, constraints);
     Py_XDECREF(constraints);
