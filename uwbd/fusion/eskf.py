@@ -20,7 +20,7 @@ import numpy as np
 
 from uwbd.fusion import native
 from uwbd.fusion.robust import RowPolicy
-from uwbd.fusion.rotation import Array, quat_mul, quat_to_matrix, skew
+from uwbd.fusion.rotation import Array, quat_to_matrix, skew
 
 GRAVITY_MPS2 = 9.80665
 Vector = Sequence[float] | Array
@@ -185,19 +185,27 @@ class Eskf:
         alignment) and restart the heading's variance at ``yaw_sigma_rad``, uncorrelated with
         the rest; roll and pitch statistics are kept. The velocity is left alone: position
         fixes kept it right while the heading was wrong."""
-        q = quat_mul(np.array([math.cos(dpsi / 2), 0.0, 0.0, math.sin(dpsi / 2)]),
-                     np.array(self.q))
+        # quat_mul((cos, 0, 0, sin), q) term by term in floats: numpy's float64 arithmetic,
+        # the same bits at a tenth of the cost (it runs at every update while aligning)
+        c, s = math.cos(dpsi / 2), math.sin(dpsi / 2)
+        w, x, y, z = self.q
+        q = np.array((c * w - 0.0 * x - 0.0 * y - s * z, c * x + 0.0 * w + 0.0 * z - s * y,
+                      c * y - 0.0 * z + 0.0 * w + s * x, c * z + 0.0 * y - 0.0 * x + s * w))
         self.q = (q / np.linalg.norm(q)).tolist()
-        R = self.R
         k = TH_.start + 2  # nav-frame yaw error
         if self._core is not None:  # the same, on the attitude rows and columns only
+            w, x, y, z = self.q  # R (quat_to_matrix) row by row, and its transpose
+            R = (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
             P = self.P = np.ascontiguousarray(self.P)
-            self._core.turn_attitude_covariance(P, R.ravel().tolist())
+            self._core.turn_attitude_covariance(P, R)
             P[k, :] = 0.0
             P[:, k] = 0.0
             P[k, k] = yaw_sigma_rad**2
-            self._core.turn_attitude_covariance(P, R.T.ravel().tolist())
+            self._core.turn_attitude_covariance(P, R[0::3] + R[1::3] + R[2::3])
             return
+        R = self.R
         T = self._I.copy()  # body-frame attitude error -> nav-frame attitude error
         T[TH_, TH_] = R
         P = T @ self.P @ T.T
