@@ -195,15 +195,15 @@ class Eskf:
         k = TH_.start + 2  # nav-frame yaw error
         if self._core is not None:  # the same, on the attitude rows and columns only
             w, x, y, z = self.q  # R (quat_to_matrix) row by row, and its transpose
-            R = (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            G = (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
                  2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
                  2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
             P = self.P = np.ascontiguousarray(self.P)
-            self._core.turn_attitude_covariance(P, R)
+            self._core.turn_attitude_covariance(P, G)
             P[k, :] = 0.0
             P[:, k] = 0.0
             P[k, k] = yaw_sigma_rad**2
-            self._core.turn_attitude_covariance(P, R[0::3] + R[1::3] + R[2::3])
+            self._core.turn_attitude_covariance(P, G[0::3] + G[1::3] + G[2::3])
             return
         R = self.R
         T = self._I.copy()  # body-frame attitude error -> nav-frame attitude error

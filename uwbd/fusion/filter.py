@@ -226,24 +226,38 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         if len(ids) == 0:
             return reports
         self.ranges.add(uwb.t_ns, ids, anchors, ranges)
-        fix = None
-        if self.ekf is None or self.cfg.mode is Mode.LOOSE or not self._aligned:
-            fix = self.ranges.fix(uwb.t_ns, ids, anchors, ranges, self._antenna())
-            if fix is not None:
-                self._fixes.append((uwb.t_ns, fix.position_m))
+        fix = self._epoch_fix(uwb.t_ns, ids, anchors, ranges)
+        return self._fuse_message(uwb.t_ns, ids, anchors, ranges, r_scale, fix, reports)
+
+    def _epoch_fix(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array
+                   ) -> LsqFix | None:
+        """The message's UWB-only fix where one serves (to start, to align the heading, as
+        loose mode's measurement), kept for the start; None where none does or can be made."""
+        if self.ekf is not None and self.cfg.mode is not Mode.LOOSE and self._aligned:
+            return None
+        fix = self.ranges.fix(t_ns, ids, anchors, ranges, self._antenna())
+        if fix is not None:
+            self._fixes.append((t_ns, fix.position_m))
+        return fix
+
+    def _fuse_message(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
+                      r_scale: Array, fix: LsqFix | None, reports: list[FusionReport]
+                      ) -> list[FusionReport]:
+        """The rest of :meth:`_update` once the message's ranges are kept and its fix is
+        made (the C core's epoch step hands a message here when the fix flipped the side)."""
         if self.mirror.take_flip():
-            self._restart(uwb.t_ns, "mirror side flipped by the ranges")
+            self._restart(t_ns, "mirror side flipped by the ranges")
         self.monitor.mirror_unresolved = self.mirror.unresolved
         if self.ekf is None:
             if self._new_anchors:  # reported since the last start: laid out before the next
                 self._new_anchors = False
                 self._layout()
-            self._try_start(uwb.t_ns, fix)
+            self._try_start(t_ns, fix)
             return reports
-        if self.t_ns is not None and uwb.t_ns < self.t_ns:
+        if self.t_ns is not None and t_ns < self.t_ns:
             self.counters["uwb_late"] += 1  # older than the state: the aligner's job
             return reports
-        self._predict_to(uwb.t_ns)
+        self._predict_to(t_ns)
         ekf = self.ekf
         if ekf.interval_s >= MIN_PROPAGATE_S or self.records is not None or not self._aligned:
             ekf.propagate()  # single ranges at 100+ Hz share one propagation per 20 ms
@@ -252,24 +266,24 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         linked = self._aligned and not self._coasted
         self._coasted = False
         if not self._aligned:
-            self._hold_heading(uwb.t_ns, dv, fix)
-        self._track_fixes(uwb.t_ns, ids, anchors, ranges, fix)
+            self._hold_heading(t_ns, dv, fix)
+        self._track_fixes(t_ns, ids, anchors, ranges, fix)
         constraints: list[Rows] = []
-        if uwb.t_ns - self._constraints_ns >= CONSTRAINT_EVERY_NS:
+        if t_ns - self._constraints_ns >= CONSTRAINT_EVERY_NS:
             # pseudo-measurements at a fixed rate: at 170 single ranges a second they would
             # otherwise weigh 17 times what they do with 10 Hz epochs
-            self._constraints_ns = uwb.t_ns
+            self._constraints_ns = t_ns
             constraints = self._constraints()
         prior = self._snapshot() if self.records is not None else None
-        reports += self._fuse_epoch(uwb.t_ns, ids, anchors, ranges, r_scale, fix, constraints)
-        self._fade(uwb.t_ns, ids, anchors, ranges)
-        if self._check_divergence(uwb.t_ns, ids, anchors, ranges):
+        reports += self._fuse_epoch(t_ns, ids, anchors, ranges, r_scale, fix, constraints)
+        self._fade(t_ns, ids, anchors, ranges)
+        if self._check_divergence(t_ns, ids, anchors, ranges):
             linked = False
         elif self.ekf is not None:
             self._last_good_P = self.ekf.P.copy()
         if prior is not None and self.records is not None and self.ekf is not None:
             assert Phi is not None
-            self.records.append(EpochRecord(uwb.t_ns, *prior, *self._snapshot(),
+            self.records.append(EpochRecord(t_ns, *prior, *self._snapshot(),
                                             Phi if linked else None))
         return reports
 
