@@ -50,12 +50,14 @@ def twins(cfg: FilterConfig) -> tuple[Filter, Filter, list[int]]:
     the second with the reference alone."""
     fast, slow = Filter(cfg), Filter(cfg)
     slow.epoch_step = slow.pose_step = None
-    step, taken = fast.epoch_step, [0, 0]
+    step, taken = fast.epoch_step, [0, 0, 0]  # taken, declined, taken while aligning
     assert step is not None
 
     def counted(uwb: UwbRanges) -> Any:
+        aligning = fast.ekf is not None and not fast._aligned
         out = step(uwb)
         taken[out is None] += 1
+        taken[2] += out is not None and aligning
         return out
     fast.epoch_step = counted
     return fast, slow, taken
@@ -87,9 +89,10 @@ def test_epoch_step_matches_the_reference(preset: str) -> None:
                                  uwb_outages_s=((28.0, 6.0),)))
     else:
         sim = simulate(handheld_async(2) if preset == "handheld" else ceiling_room(2))
-    taken, declined = run_both(parse(simulation_toml(sim)).filter_config(),
-                               list(merge(sim.imu, sim.uwb)))
+    taken, declined, aligning = run_both(parse(simulation_toml(sim)).filter_config(),
+                                         list(merge(sim.imu, sim.uwb)))
     assert taken > 4 * declined  # the common message is the C step's
+    assert aligning > 50  # (while the heading is held too)
 
 
 @pytest.mark.skipif(not DATA.is_dir(), reason="shared/data not beside the repository")
@@ -103,7 +106,7 @@ def test_epoch_step_matches_the_reference_on_real_runs(name: str) -> None:
     frames = list(merge(ds.imu, ds.uwb))
     frames = [f for f in frames if f.t_ns < frames[0].t_ns + 40 * 10**9]
     cfg = FilterConfig(anchors_m=ds.anchors_m, mounting_rotation=mounting, lever_arm_m=lever)
-    taken, declined = run_both(cfg, frames)
+    taken, declined, _ = run_both(cfg, frames)
     assert taken > 2 * declined
 
 
@@ -169,9 +172,9 @@ def test_messages_it_does_not_take_are_declined_with_nothing_changed(
     assert state(flt) == before
 
 
-def test_while_aligning_recording_or_waiting_it_declines() -> None:
-    """Before the start, before the heading is aligned and with records for the smoother,
-    every message is the reference's."""
+def test_while_waiting_or_recording_it_declines() -> None:
+    """Before the start and with records for the smoother, every message is the
+    reference's."""
     sim = simulate(handheld_async(5))
     cfg = parse(simulation_toml(sim)).filter_config()
     waiting, recording = Filter(cfg), Filter(cfg, record=True)
@@ -183,7 +186,7 @@ def test_while_aligning_recording_or_waiting_it_declines() -> None:
             if isinstance(frame, ImuSample):
                 flt.predict(frame)
                 continue
-            if flt is recording or flt.ekf is None or not flt._aligned:
+            if flt is recording or flt.ekf is None:
                 assert step(frame) is None
                 declined[id(flt)] += 1
             flt.update(frame)
@@ -292,5 +295,43 @@ def test_known_anchors_of_any_container_are_pythons_in() -> None:
     cfg = parse(simulation_toml(sim)).filter_config()
     cfg = dataclasses.replace(cfg, gating=dataclasses.replace(
         cfg.gating, known_anchors=tuple(sorted(cfg.anchors_m)[:-1])))  # type: ignore[arg-type]
-    taken, declined = run_both(cfg, list(merge(sim.imu, sim.uwb))[:12000], check_every=200)
+    taken, declined, _ = run_both(cfg, list(merge(sim.imu, sim.uwb))[:12000],
+                                  check_every=200)
     assert taken > 0 and declined > 0  # (the last anchor's ranges: rejected, Python's)
+
+
+def test_a_side_flipped_by_the_fix_while_aligning_is_the_references() -> None:
+    """While aligning, the message's fix may flip the mirror side (the ranges tell it): the
+    C step hands the rest of the message to Python (a restart), the twins stay the same."""
+    sim = simulate(handheld_async(3))
+    fast, slow, taken = twins(parse(simulation_toml(sim)).filter_config())
+    flipped: list[Filter] = []
+    handed: list[bool] = []
+    for k, frame in enumerate(merge(sim.imu, sim.uwb)):
+        if isinstance(frame, ImuSample):
+            fast.predict(frame)
+            slow.predict(frame)
+            continue
+        if not flipped and fast.ekf is not None and not fast._aligned and taken[2] > 20:
+            for flt in (fast, slow):  # the next fix flips the side, as weigh() would
+                fix_once = flt.ranges.fix
+
+                def flipping(*args: Any, flt: Filter = flt, fix: Any = fix_once,
+                             **kwargs: Any) -> Any:
+                    out = fix(*args, **kwargs)
+                    flt.ranges.fix = fix  # type: ignore[method-assign]
+                    flt.mirror.flipped = True
+                    flipped.append(flt)
+                    return out
+                flt.ranges.fix = flipping  # type: ignore[method-assign]
+        before = taken[0]
+        assert repr(fast.update(frame)) == repr(slow.update(frame)), f"message {k}"
+        if len(flipped) == 2 and not handed:
+            handed.append(taken[0] == before + 1)  # the flipping message: the C step's
+        assert repr(fast.pose()) == repr(slow.pose())
+        if len(flipped) == 2 and k % 25 == 0:
+            assert state(fast) == state(slow), f"message {k}"
+        if len(flipped) == 2 and fast._aligned:
+            break
+    assert len(flipped) == 2 and fast.counters["restarts"] == slow.counters["restarts"] == 1
+    assert handed == [True] and state(fast) == state(slow)

@@ -1,22 +1,24 @@
 /* uwbd.fusion._core.epoch_step: the common UWB message, whole, in one call.
  *
- * Almost every UWB message reaches a filter that is running, aligned and tightly coupled,
- * with every range sound and to a configured anchor: Filter._update then gates the ranges
+ * Almost every UWB message reaches a filter that is running and tightly coupled, with
+ * every range sound and to a configured anchor: Filter._update then gates the ranges
  * (gating.gate), resolves their anchors (Filter._resolve), keeps them (RangeWindow.add),
- * brings the state to the message (_predict_to, propagate, take_epoch), tracks the UWB
- * stillness (_track_fixes), adds the constraint rows when due (_constraints), fuses the
- * epoch (_fuse_epoch: Eskf.fuse_ranges, the rows' outcomes, the covariance kept sane),
- * fades (_fade) and checks for divergence (_check_divergence). epoch_step does the same,
- * in that order, on the same attributes, with the same arithmetic (the same bits); the
- * rarer branches on the way (a stillness fix due, the constraint rows, an inconsistent or
- * diverged state, a covariance out of bounds, a fuse the C core declines, outcomes it does
- * not expect) it calls the Python methods for, so that the Python code stays the
- * reference of every step.
+ * while aligning makes the message's fix (_epoch_fix), brings the state to the message
+ * (_predict_to, propagate, take_epoch), holds the heading while aligning (_hold_heading),
+ * tracks the UWB stillness (_track_fixes), adds the constraint rows when due
+ * (_constraints), fuses the epoch (_fuse_epoch: Eskf.fuse_ranges, the rows' outcomes, the
+ * covariance kept sane), fades (_fade) and checks for divergence (_check_divergence).
+ * epoch_step does the same, in that order, on the same attributes, with the same
+ * arithmetic (the same bits); the rarer branches on the way (the fix and the held heading
+ * while aligning, a stillness fix due, the constraint rows, a side flipped by the fix, an
+ * inconsistent or diverged state, a covariance out of bounds, a fuse the C core declines,
+ * outcomes it does not expect) it calls the Python methods for, so that the Python code
+ * stays the reference of every step.
  *
  * It declines (returns None, having changed nothing) before its first write for anything
  * else: a range the gate or the resolver would say anything about, a first message, a
- * filter waiting, aligning, coasting, re-levelling or recording, a late message, a side
- * flipped, the anchors' arrays not made yet; Filter._update then takes the message.
+ * filter waiting, coasting, re-levelling or recording, a late message, a side flipped
+ * before, the anchors' arrays not made yet; Filter._update then takes the message.
  *
  *   epoch_step(parts, uwb) -> [FusionReport] | None
  * parts: Filter._epoch_parts, in the order of the enum below.
@@ -36,11 +38,13 @@ enum {
 };
 enum {  /* parts[E_NUMBERS]: floats */
     K_MIN_ANCHORS, K_MIN_RANGE, K_MAX_RANGE, K_MAX_GAP, K_MIN_PROPAGATE, K_CONSTRAINT_NS,
-    K_STILL_EVERY_NS, K_STILL_NS, K_RANGE_VAR, K_LEVER, K_AUX_SIGMA = K_LEVER + 3, K_COUNT
+    K_STILL_EVERY_NS, K_STILL_NS, K_RANGE_VAR, K_LEVER, K_AUX_SIGMA = K_LEVER + 3,
+    K_ATTITUDE, K_GYRO_BIAS_END, K_IMU_BIAS_END, K_COUNT
 };
 enum {  /* parts[E_CALLS] */
     C_TRACK_FIXES, C_CONSTRAINTS, C_FUSE_EPOCH, C_FADE, C_CHECK_DIVERGENCE, C_KEEP_SANE,
-    C_ROW_POLICY, C_NO_ROWS, C_STACK, C_RANGE_KEYS, C_ROW_OUTCOMES, C_ZEROS, C_ARRAY, C_COUNT
+    C_ROW_POLICY, C_NO_ROWS, C_STACK, C_RANGE_KEYS, C_ROW_OUTCOMES, C_ZEROS, C_ARRAY,
+    C_EPOCH_FIX, C_FUSE_MESSAGE, C_HOLD_HEADING, C_COUNT
 };
 #define MAX_K 64                   /* more ranges in one message: Python's */
 #define EXACT (INT64_C(1) << 52)   /* differences below this are exact as doubles */
@@ -53,7 +57,7 @@ enum {
     N_MIRROR_UNRESOLVED, N_IMU_GAP, N_SINCE, N_C_CORE, N_P_MATRIX, N_B_R, N_P, N_V, N_Q, N_BG,
     N_BA, N_SUM_FN, N_SUM_W, N_INTERVAL, N_GRAVITY, N_DV, N_PROPAGATED, N_PHI, N_I_CORE,
     N_DECAY, N_NO_DECAY, N_LAST_DX, N_CLAMP_KEY, N_CLAMP_LIMIT, N_PROPAGATE, N_COPY,
-    N_POPLEFT, N_COUNT
+    N_POPLEFT, N_AT_REST, N_COUNT
 };
 static const char *const name_text[N_COUNT] = {
     "t_ns", "ranges", "anchor_id", "range_m", "quality", "_first_t_ns", "ekf", "_aligned",
@@ -63,7 +67,7 @@ static const char *const name_text[N_COUNT] = {
     "_inconsistent_since_ns", "_core", "P", "b_r", "p", "v", "q", "b_g", "b_a", "_sum_fn",
     "_sum_w", "_T", "gravity_mps2", "_dv_epoch", "_epoch_propagated", "_Phi_epoch",
     "_I_core", "_decay_epoch", "_no_decay", "last_dx", "_clamp_key", "_clamp_limit",
-    "propagate", "copy", "popleft",
+    "propagate", "copy", "popleft", "_at_rest",
 };
 static PyObject *names[N_COUNT];
 static PyObject *empty_tuple;
@@ -134,7 +138,9 @@ typedef struct {
     PyObject *ekf, *ekf_ns;
     PyObject *lists[7]; /* p, v, q, b_g, b_a, _sum_fn, _sum_w */
     double st[7][4], gravity, interval;
-    int resolved, due;
+    int aligned, due;
+    PyObject *fix;      /* the message's fix while aligning (_epoch_fix), else None */
+    double dv[3];       /* take_epoch's Σ R f Δt, for the heading held while aligning */
     PyObject *ranges;   /* np.array of the ranges, made when a Python step wants it */
 } Take;
 
@@ -148,6 +154,7 @@ static void release(Take *m)
     for (int i = 0; i < 7; i++)
         Py_CLEAR(m->lists[i]);
     Py_CLEAR(m->ranges);
+    Py_CLEAR(m->fix);
 }
 
 /* ns[name] as an int (1), not one within bounds (0: decline), -1 an error */
@@ -239,7 +246,7 @@ done:
     return t;
 }
 
-/* The filter's side: running, aligned, not recording, the message in order, the IMU fresh
+/* The filter's side: running, not recording, the message in order, the IMU fresh
  * (_predict_to holds the last sample), the side not flipped, the state as Eskf.predict
  * reads it. 1, 0 or -1 as above; everything is read and nothing written. */
 static int filter_take(PyObject *const *parts, const double *c, Take *m)
@@ -248,10 +255,11 @@ static int filter_take(PyObject *const *parts, const double *c, Take *m)
     int64_t x;
     int t;
     if ((v = attr(f, N_FIRST_T)) == NULL || (t = v != Py_None) <= 0 ||
-        (v = attr(f, N_ALIGNED)) == NULL || (t = v == Py_True) <= 0 ||
+        (v = attr(f, N_ALIGNED)) == NULL || (t = v == Py_True || v == Py_False) <= 0 ||
         (v = attr(f, N_RECORDS)) == NULL || (t = v == Py_None) <= 0 ||
         (v = attr(f, N_RELEVEL)) == NULL || (t = v == Py_None) <= 0)
         return v == NULL ? -1 : 0;
+    m->aligned = attr(f, N_ALIGNED) == Py_True;
     if ((t = attr_int(f, N_T_NS, &m->state_t)) <= 0)
         return t;
     if (m->t < m->state_t || m->t - m->state_t >= EXACT)
@@ -271,13 +279,10 @@ static int filter_take(PyObject *const *parts, const double *c, Take *m)
     if (mirror == NULL)
         return -1;
     PyObject *flipped = PyObject_GetAttr(mirror, names[N_FLIPPED]);
-    PyObject *resolved = flipped == NULL ? NULL : PyObject_GetAttr(mirror, names[N_RESOLVED]);
-    m->resolved = resolved == NULL ? -1 : PyObject_IsTrue(resolved);
-    t = flipped == Py_False;
-    Py_XDECREF(flipped);
-    Py_XDECREF(resolved);
-    if (m->resolved < 0)
+    if (flipped == NULL)
         return -1;
+    t = flipped == Py_False;
+    Py_DECREF(flipped);
     if (!t)
         return 0;
     /* the constraint rows due (t_ns - _constraints_ns >= every, the start value -2^63) */
@@ -322,7 +327,7 @@ static int filter_take(PyObject *const *parts, const double *c, Take *m)
 
 /* -- the writes, in Filter._update's order ---------------------------------------------- */
 
-/* gate's counters, RangeWindow.add, the side's note: 0, or -1 with an error set */
+/* gate's counters, RangeWindow.add: 0, or -1 with an error set */
 static int keep_ranges(PyObject *const *parts, PyObject *t_obj, Take *m)
 {
     PyObject *gating = parts[E_GATING];
@@ -350,9 +355,18 @@ static int keep_ranges(PyObject *const *parts, PyObject *t_obj, Take *m)
         Py_XDECREF(item);
     }
     PyBuffer_Release(&view);
-    if (rc < 0)
-        return -1;
-    return set_attr(parts[E_MONITOR], N_MIRROR_UNRESOLVED, m->resolved ? Py_False : Py_True);
+    return rc;
+}
+
+/* The side's note (monitor.mirror_unresolved = mirror.unresolved), after the fix */
+static int note_side(PyObject *const *parts)
+{
+    PyObject *mirror = attr(parts[E_FILTER], N_MIRROR);
+    PyObject *resolved = mirror == NULL ? NULL : PyObject_GetAttr(mirror, names[N_RESOLVED]);
+    int yes = resolved == NULL ? -1 : PyObject_IsTrue(resolved);
+    Py_XDECREF(resolved);
+    return yes < 0 ? -1
+                   : set_attr(parts[E_MONITOR], N_MIRROR_UNRESOLVED, yes ? Py_False : Py_True);
 }
 
 /* _predict_to (the IMU fresh), then the propagation if due and take_epoch(False) */
@@ -379,13 +393,21 @@ static int predict_to(PyObject *const *parts, PyObject *t_obj, const double *c, 
             set_attr(parts[E_FILTER], N_T_NS, t_obj) < 0)
             return -1;
     }
-    if (interval >= c[K_MIN_PROPAGATE]) {
+    if (interval >= c[K_MIN_PROPAGATE] || !m->aligned) {
         PyObject *rc = PyObject_CallMethodNoArgs(m->ekf, names[N_PROPAGATE]);
         if (rc == NULL)
             return -1;
         Py_DECREF(rc);
     }
-    /* take_epoch(False): Σ R f Δt restarts; Φ and the decays too, once propagated */
+    /* take_epoch(False): Σ R f Δt kept for the held heading, and restarted; Φ and the
+     * decays too, once propagated */
+    PyObject *sums = attr(e, N_DV);
+    if (sums == NULL)
+        return -1;
+    if (!floats_of(sums, m->dv, 3, 1)) {
+        PyErr_SetString(PyExc_TypeError, "epoch_step: _dv_epoch not a list of 3 floats");
+        return -1;
+    }
     double zero[3] = {0.0, 0.0, 0.0};
     PyObject *dv = uwbd_floats(zero, 3, 1);
     if (dv == NULL || set_attr(e, N_DV, dv) < 0) {
@@ -458,7 +480,7 @@ static int track_fixes(PyObject *const *parts, PyObject *t_obj, const double *c,
     }
     if (wants) { /* (and a fix time not as expected: Python's own) */
         PyObject *rc = call_with_epoch(&PyTuple_GET_ITEM(parts[E_CALLS], 0), C_TRACK_FIXES,
-                                       t_obj, m, Py_None, NULL, NULL);
+                                       t_obj, m, m->fix, NULL, NULL);
         Py_XDECREF(rc);
         return rc == NULL ? -1 : 0;
     }
@@ -613,14 +635,29 @@ static PyObject *fuse(PyObject *const *parts, PyObject *t_obj, const double *c, 
     PyObject *ekf = attr(f, N_EKF), *v;
     if (ekf == NULL)
         return NULL;
-    int64_t good;
-    int t = ekf == m->ekf && (v = attr(f, N_ALIGNED)) != NULL && v == Py_True &&
-            (v = attr(f, N_RELEVEL)) != NULL && v == Py_None ? attr_int(f, N_GOOD_T, &good) : 0;
-    if (t < 0 || PyErr_Occurred())
+    /* _considered(): the states an update may not correct */
+    int64_t good, now;
+    int t = ekf == m->ekf;
+    int fresh = t && (v = attr(f, N_RELEVEL)) != NULL && v == Py_None
+                    ? attr_int(f, N_GOOD_T, &good) : 0;
+    if (fresh == 1 && (fresh = attr_int(f, N_T_NS, &now)) == 1)
+        fresh = now - good < EXACT && good - now < EXACT &&
+                (double)(now - good) / 1e9 <= c[K_MAX_GAP];
+    PyObject *aligned = t ? attr(f, N_ALIGNED) : NULL, *at_rest = t ? attr(f, N_AT_REST) : NULL;
+    if (fresh < 0 || PyErr_Occurred())
         return NULL;
-    /* _considered(): None while the IMU is fresh and the heading aligned */
-    t = t && m->t - good < EXACT && good - m->t < EXACT &&
-        (double)(m->t - good) / 1e9 <= c[K_MAX_GAP];
+    int holding = aligned == NULL || at_rest == NULL ? 0
+                  : !PyObject_IsTrue(aligned) && !PyObject_IsTrue(at_rest);
+    if (PyErr_Occurred())
+        return NULL;
+    Py_ssize_t c0 = 0, c1 = 0; /* None */
+    if (!fresh) {
+        c0 = (Py_ssize_t)c[K_ATTITUDE];
+        c1 = (Py_ssize_t)c[K_IMU_BIAS_END];
+    } else if (holding) {
+        c0 = (Py_ssize_t)c[K_ATTITUDE];
+        c1 = (Py_ssize_t)c[K_GYRO_BIAS_END];
+    }
     PyObject *out = NULL, *extra = NULL, *keys = NULL, *policy = NULL, *dx = NULL;
     /* (held as new references: the Python steps called below may drop theirs) */
     PyObject *columns = NULL, *fused = NULL, *P = t ? attr(m->ekf_ns, N_P_MATRIX) : NULL;
@@ -678,7 +715,7 @@ static PyObject *fuse(PyObject *const *parts, PyObject *t_obj, const double *c, 
             : uwbd_fuse_ranges_on(P, dx, b_r, nominal, c + K_LEVER,
                                   (const double *)anchors.buf, m->r, var, m->k, columns,
                                   PyTuple_GET_ITEM(extra, 0), PyTuple_GET_ITEM(extra, 1),
-                                  PyTuple_GET_ITEM(extra, 2), policy, 0, 0);
+                                  PyTuple_GET_ITEM(extra, 2), policy, c0, c1);
     PyBuffer_Release(&anchors);
     if (!shaped)
         PyErr_SetString(PyExc_TypeError, "epoch_step: an anchors array not of k x 3 floats");
@@ -703,7 +740,7 @@ static PyObject *fuse(PyObject *const *parts, PyObject *t_obj, const double *c, 
 python:
     if (!PyErr_Occurred()) {
         PyObject *ones = PyTuple_GET_ITEM(m->arrays, 1);
-        out = call_with_epoch(calls, C_FUSE_EPOCH, t_obj, m, ones, Py_None, constraints);
+        out = call_with_epoch(calls, C_FUSE_EPOCH, t_obj, m, ones, m->fix, constraints);
     }
 done:
     Py_XDECREF(P);
@@ -815,9 +852,40 @@ PyObject *uwbd_epoch_step(PyObject *self, PyObject *const *args, Py_ssize_t narg
     }
     /* Taken: from here on, the writes and the steps, in Filter._update's order. */
     PyObject *const *calls = &PyTuple_GET_ITEM(parts[E_CALLS], 0);
-    if (keep_ranges(parts, t_obj, &m) < 0 || predict_to(parts, t_obj, c, &m) < 0 ||
-        set_attr(parts[E_FILTER], N_COASTED, Py_False) < 0 ||
-        track_fixes(parts, t_obj, c, &m) < 0)
+    m.fix = Py_NewRef(Py_None);
+    if (keep_ranges(parts, t_obj, &m) < 0)
+        goto done;
+    if (!m.aligned) { /* the fix (Python's); a side it flipped: the rest is Python's too */
+        Py_SETREF(m.fix, call_with_epoch(calls, C_EPOCH_FIX, t_obj, &m, NULL, NULL, NULL));
+        PyObject *mirror = m.fix == NULL ? NULL : attr(parts[E_FILTER], N_MIRROR);
+        PyObject *flipped = mirror == NULL ? NULL : PyObject_GetAttr(mirror, names[N_FLIPPED]);
+        if (flipped == NULL)
+            goto done;
+        int same = flipped == Py_False;
+        Py_DECREF(flipped);
+        if (!same) {
+            PyObject *none_yet = PyList_New(0);
+            out = none_yet == NULL ? NULL
+                  : call_with_epoch(calls, C_FUSE_MESSAGE, t_obj, &m,
+                                    PyTuple_GET_ITEM(m.arrays, 1), m.fix, none_yet);
+            Py_XDECREF(none_yet);
+            goto done;
+        }
+    }
+    if (note_side(parts) < 0 || predict_to(parts, t_obj, c, &m) < 0 ||
+        set_attr(parts[E_FILTER], N_COASTED, Py_False) < 0)
+        goto done;
+    if (!m.aligned) { /* _hold_heading(t_ns, dv, fix) */
+        PyObject *dv = uwbd_floats(m.dv, 3, 0);
+        PyObject *args_[3] = {t_obj, dv, m.fix};
+        PyObject *rc = dv == NULL ? NULL
+                       : PyObject_Vectorcall(calls[C_HOLD_HEADING], args_, 3, NULL);
+        Py_XDECREF(dv);
+        if (rc == NULL)
+            goto done;
+        Py_DECREF(rc);
+    }
+    if (track_fixes(parts, t_obj, c, &m) < 0)
         goto done;
     PyObject *constraints; /* the rows due, else Python's `constraints = []` */
     if (m.due) {

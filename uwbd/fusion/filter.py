@@ -48,7 +48,13 @@ from uwbd.fusion import native
 from uwbd.fusion.alignment import HeadingAligner
 from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, Eskf
 from uwbd.fusion.fixes import RangeWindow
-from uwbd.fusion.fusing import MAX_RANGE_BIAS_SIGMA_M, MAX_SIGMA, EpochFusion
+from uwbd.fusion.fusing import (
+    ATTITUDE_AND_GYRO_BIAS,
+    ATTITUDE_AND_IMU_BIASES,
+    MAX_RANGE_BIAS_SIGMA_M,
+    MAX_SIGMA,
+    EpochFusion,
+)
 from uwbd.fusion.gating import GatingCounters, chi2_quantile, gate
 from uwbd.fusion.health import HealthMonitor
 from uwbd.fusion.imu_check import ImuCheck
@@ -298,10 +304,13 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         cfg = self.cfg
         numbers = (cfg.gating.min_anchors, cfg.gating.min_range_m, cfg.gating.max_range_m,
                    cfg.max_imu_gap_s, MIN_PROPAGATE_S, CONSTRAINT_EVERY_NS, STILL_EVERY_NS,
-                   STILL_S * 1e9, cfg.range_sigma_m**2, *self._lever, MAX_RANGE_BIAS_SIGMA_M)
+                   STILL_S * 1e9, cfg.range_sigma_m**2, *self._lever, MAX_RANGE_BIAS_SIGMA_M,
+                   ATTITUDE_AND_GYRO_BIAS.start, ATTITUDE_AND_GYRO_BIAS.stop,
+                   ATTITUDE_AND_IMU_BIASES.stop)
         calls = (self._track_fixes, self._constraints, self._fuse_epoch, self._fade,
                  self._check_divergence, self._keep_covariance_sane, self._row_policy,
-                 self._no_rows, Rows.stack, range_keys, self._row_outcomes, np.zeros, np.array)
+                 self._no_rows, Rows.stack, range_keys, self._row_outcomes, np.zeros, np.array,
+                 self._epoch_fix, self._fuse_message, self._hold_heading)
         return (vars(self), vars(self.gating), vars(self.monitor), self.stillness.fixes,
                 self.ranges.latest, self._configured, self._resolved, self._policies,
                 self._empty_rows, RANGE_KEYS, self._outcome_parts(), cfg.gating.known_anchors,
