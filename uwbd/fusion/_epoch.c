@@ -140,7 +140,7 @@ typedef struct {
     double st[7][4], gravity, interval;
     int aligned, due;
     PyObject *fix;      /* the message's fix while aligning (_epoch_fix), else None */
-    double dv[3];       /* take_epoch's Σ R f Δt, for the heading held while aligning */
+    PyObject *dv;       /* take_epoch's Σ R f Δt, for the heading held while aligning */
     PyObject *ranges;   /* np.array of the ranges, made when a Python step wants it */
 } Take;
 
@@ -155,6 +155,7 @@ static void release(Take *m)
         Py_CLEAR(m->lists[i]);
     Py_CLEAR(m->ranges);
     Py_CLEAR(m->fix);
+    Py_CLEAR(m->dv);
 }
 
 /* ns[name] as an int (1), not one within bounds (0: decline), -1 an error */
@@ -404,17 +405,22 @@ static int predict_to(PyObject *const *parts, PyObject *t_obj, const double *c, 
     PyObject *sums = attr(e, N_DV);
     if (sums == NULL)
         return -1;
-    if (!floats_of(sums, m->dv, 3, 1)) {
-        PyErr_SetString(PyExc_TypeError, "epoch_step: _dv_epoch not a list of 3 floats");
-        return -1;
-    }
+    Py_INCREF(sums);
     double zero[3] = {0.0, 0.0, 0.0};
     PyObject *dv = uwbd_floats(zero, 3, 1);
-    if (dv == NULL || set_attr(e, N_DV, dv) < 0) {
-        Py_XDECREF(dv);
+    int failed = dv == NULL || set_attr(e, N_DV, dv) < 0;
+    Py_XDECREF(dv);
+    /* (dv[0], dv[1], dv[2]) of what was there, as take_epoch returns it */
+    PyObject *items[3] = {NULL, NULL, NULL};
+    for (int i = 0; i < 3 && !failed; i++)
+        failed = (items[i] = PySequence_GetItem(sums, i)) == NULL;
+    Py_DECREF(sums);
+    if (!failed)
+        m->dv = PyTuple_Pack(3, items[0], items[1], items[2]);
+    for (int i = 0; i < 3; i++)
+        Py_XDECREF(items[i]);
+    if (failed || m->dv == NULL)
         return -1;
-    }
-    Py_DECREF(dv);
     PyObject *propagated = attr(e, N_PROPAGATED);
     int yes = propagated == NULL ? -1 : PyObject_IsTrue(propagated);
     if (yes <= 0)
@@ -876,11 +882,8 @@ PyObject *uwbd_epoch_step(PyObject *self, PyObject *const *args, Py_ssize_t narg
         set_attr(parts[E_FILTER], N_COASTED, Py_False) < 0)
         goto done;
     if (!m.aligned) { /* _hold_heading(t_ns, dv, fix) */
-        PyObject *dv = uwbd_floats(m.dv, 3, 0);
-        PyObject *args_[3] = {t_obj, dv, m.fix};
-        PyObject *rc = dv == NULL ? NULL
-                       : PyObject_Vectorcall(calls[C_HOLD_HEADING], args_, 3, NULL);
-        Py_XDECREF(dv);
+        PyObject *args_[3] = {t_obj, m.dv, m.fix};
+        PyObject *rc = PyObject_Vectorcall(calls[C_HOLD_HEADING], args_, 3, NULL);
         if (rc == NULL)
             goto done;
         Py_DECREF(rc);
