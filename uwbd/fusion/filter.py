@@ -21,6 +21,10 @@ the sequence it runs; each step's policy has a module of its own:
 * :mod:`.outputs` — the pose, the health record, the diagnostics (a mixin of this class);
 * :mod:`.eskf` — the algebra (docs/ekf.md).
 
+Where the C core is built, the common UWB message and the common pose run whole in it
+(``epoch_step``, ``_epoch.c``; ``pose_step``, ``_pose.c``), calling the steps here for the
+rarer branches; the Python below is their reference, to the bit (tests/test_epoch_step.py).
+
 Life cycle: **waiting** (collect IMU and fixes), start at rest or while moving, **aligning**
 (heading held until the vehicle has moved enough), **tracking**. A rejected IMU burst or an
 IMU gap widens the covariance for what was not seen; one longer than
