@@ -335,3 +335,20 @@ def test_a_side_flipped_by_the_fix_while_aligning_is_the_references() -> None:
             break
     assert len(flipped) == 2 and fast.counters["restarts"] == slow.counters["restarts"] == 1
     assert handed == [True] and state(fast) == state(slow)
+
+
+def test_the_epochs_transition_is_kept_for_the_smoother_only() -> None:
+    """Φ over an epoch is multiplied up only where the smoother asks for it (``record``);
+    asking an Eskf that does not keep it is a bug, said loudly."""
+    sim = simulate(handheld_async(5))
+    cfg = parse(simulation_toml(sim)).filter_config()
+    plain, recording = Filter(cfg), Filter(cfg, record=True)
+    for flt in (plain, recording):
+        for frame in merge(sim.imu, sim.uwb):
+            flt.predict(frame) if isinstance(frame, ImuSample) else flt.update(frame)
+            if flt.ekf is not None:
+                break
+    assert plain.ekf is not None and recording.ekf is not None
+    assert not plain.ekf.keep_transition and recording.ekf.keep_transition
+    with pytest.raises(RuntimeError, match="keep_transition"):
+        plain.ekf.take_epoch(with_phi=True)

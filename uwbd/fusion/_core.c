@@ -222,7 +222,8 @@ static void nonzeros(const double M[N_CORE][N_CORE], int nz[N_CORE][N_CORE], int
 /* propagate_core(P, Phi_epoch, q, sum_fn, sum_w, T, q_rate[, symmetrise])
  * The core part of Eskf.propagate, in place on P (n×n) and Phi_epoch (15×15):
  * F from the mean specific force and rate over T, Φ = I + A + A²/2 with A = F T,
- * Φ_epoch ← Φ Φ_epoch, P ← Φ P Φᵀ on the core rows and columns, P += diag(q_rate) T;
+ * Φ_epoch ← Φ Φ_epoch (Phi_epoch None: not kept), P ← Φ P Φᵀ on the core rows and
+ * columns, P += diag(q_rate) T;
  * with symmetrise (no Gauss–Markov step to come between), P ← (P + Pᵀ)/2 too, as numpy's
  * 0.5 * (P + P.T) makes it (the same bits: a sum of two does not depend on their order). */
 static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
@@ -251,16 +252,18 @@ static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_
         PyErr_SetString(PyExc_ValueError, "P must be square, at least 15x15");
         return NULL;
     }
-    if (get_doubles(args[1], &Eb, N_CORE * N_CORE, 1, "Phi_epoch") < 0) {
+    int keep = args[1] != Py_None; /* Φ_epoch kept (for the smoother), else None */
+    if (keep && get_doubles(args[1], &Eb, N_CORE * N_CORE, 1, "Phi_epoch") < 0) {
         PyBuffer_Release(&Pb);
         return NULL;
     }
     if (get_doubles(args[6], &Qb, n, 0, "q_rate") < 0) {
         PyBuffer_Release(&Pb);
-        PyBuffer_Release(&Eb);
+        if (keep)
+            PyBuffer_Release(&Eb);
         return NULL;
     }
-    double *P = (double *)Pb.buf, *E = (double *)Eb.buf;
+    double *P = (double *)Pb.buf, *E = keep ? (double *)Eb.buf : NULL;
     const double *qr = (const double *)Qb.buf;
     double R[3][3];
     quat_to_matrix(q, R);
@@ -300,19 +303,21 @@ static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_
     nonzeros(Phi, nz, count);
     /* Φ_epoch ← Φ Φ_epoch */
     double tmp[N_CORE * N_CORE];
-    for (int i = 0; i < N_CORE; i++)
+    for (int i = 0; keep && i < N_CORE; i++)
         for (int j = 0; j < N_CORE; j++) {
             double s = 0.0;
             for (int c = 0; c < count[i]; c++)
                 s += Phi[i][nz[i][c]] * E[nz[i][c] * N_CORE + j];
             tmp[i * N_CORE + j] = s;
         }
-    memcpy(E, tmp, sizeof tmp);
+    if (keep)
+        memcpy(E, tmp, sizeof tmp);
     /* P[:15, :] ← Φ P[:15, :] (15×n), then P[:, :15] ← P[:, :15] Φᵀ (n×15) */
     double *rows = PyMem_Malloc(sizeof(double) * N_CORE * n);
     if (rows == NULL) {
         PyBuffer_Release(&Pb);
-        PyBuffer_Release(&Eb);
+        if (keep)
+            PyBuffer_Release(&Eb);
         PyBuffer_Release(&Qb);
         return PyErr_NoMemory();
     }
@@ -342,7 +347,8 @@ static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_
             for (Py_ssize_t j = i; j < n; j++)
                 P[i * n + j] = P[j * n + i] = 0.5 * (P[i * n + j] + P[j * n + i]);
     PyBuffer_Release(&Pb);
-    PyBuffer_Release(&Eb);
+    if (keep)
+        PyBuffer_Release(&Eb);
     PyBuffer_Release(&Qb);
     Py_RETURN_NONE;
 }

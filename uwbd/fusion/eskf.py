@@ -86,6 +86,7 @@ class Eskf:
         # since the last take_epoch(): the core's Φ (smoothing) and the INS's own Δv (heading
         # alignment), over however many propagate() calls
         self._Phi_epoch = np.eye(N_CORE)
+        self.keep_transition = True  # Φ kept for take_epoch(with_phi); off, not multiplied
         self._dv_epoch = [0.0, 0.0, 0.0]
         self._epoch_propagated = False  # Φ and the decays differ from I and 1
         # constants of propagate() and update()
@@ -169,6 +170,8 @@ class Eskf:
         measurement, over the propagated intervals."""
         Phi = None
         if with_phi:
+            if not self.keep_transition:
+                raise RuntimeError("take_epoch(with_phi=True) with keep_transition off")
             Phi = np.eye(self.n)
             Phi[:N_CORE, :N_CORE] = self._Phi_epoch
             Phi[N_CORE:, N_CORE:] = np.diag(self._decay_epoch)
@@ -231,8 +234,9 @@ class Eskf:
             P = self.P = np.ascontiguousarray(self.P)
             # with no Gauss–Markov step between, symmetrised in the same call (same numbers)
             symmetrised = not len(self._markov)
-            self._core.propagate_core(P, self._Phi_epoch, self.q, self._sum_fn, self._sum_w,
-                                      T, self._q_rate, symmetrised)
+            self._core.propagate_core(P, self._Phi_epoch if self.keep_transition else None,
+                                      self.q, self._sum_fn, self._sum_w, T, self._q_rate,
+                                      symmetrised)
         else:
             R = self.R
             f_n = np.array(self._sum_fn) / T
@@ -243,7 +247,8 @@ class Eskf:
             F[TH_, TH_] = -skew(w)
             A = F * T
             Phi = self._I_core + A + 0.5 * (A @ A)
-            self._Phi_epoch = Phi @ self._Phi_epoch
+            if self.keep_transition:
+                self._Phi_epoch = Phi @ self._Phi_epoch
             P = self.P
             P[:N_CORE, :] = Phi @ P[:N_CORE, :]
             P[:, :N_CORE] = P[:, :N_CORE] @ Phi.T

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import collections
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -67,6 +67,7 @@ class Recovery:
     _tilt_bad_ns: int | None
     _position_reset_ns: int
     _fade_ns: int | None
+    records: list[Any] | None  # the smoother's epochs (Filter's ``record``)
     def _try_start(self, t_ns: int, fix: LsqFix | None) -> None:
         cfg = self.cfg
         if fix is None or self.window.means() is None:
@@ -137,6 +138,7 @@ class Recovery:
 
     def _begin(self, start: tuple[Eskf, str], t_ns: int) -> None:
         self.ekf, how = start
+        self.ekf.keep_transition = self.records is not None  # Φ: only the smoother's
         self.t_ns = t_ns
         self._carry = None
         self._start_started_ns = None
