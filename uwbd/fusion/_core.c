@@ -321,24 +321,32 @@ static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_
         PyBuffer_Release(&Qb);
         return PyErr_NoMemory();
     }
-    for (int i = 0; i < N_CORE; i++)
-        for (Py_ssize_t j = 0; j < n; j++) {
-            double s = 0.0;
-            for (int c = 0; c < count[i]; c++)
-                s += Phi[i][nz[i][c]] * P[nz[i][c] * n + j];
-            rows[i * n + j] = s;
+    for (int i = 0; i < N_CORE; i++) { /* each sum in the order above, along a row at once */
+        double *restrict out = rows + i * n;
+        for (Py_ssize_t j = 0; j < n; j++)
+            out[j] = 0.0;
+        for (int c = 0; c < count[i]; c++) {
+            const double f = Phi[i][nz[i][c]], *restrict in = P + nz[i][c] * n;
+            for (Py_ssize_t j = 0; j < n; j++)
+                out[j] += f * in[j];
         }
-    memcpy(P, rows, sizeof(double) * N_CORE * n);
-    for (Py_ssize_t i = 0; i < n; i++) {
-        double row[N_CORE];
-        for (int j = 0; j < N_CORE; j++) {
-            double s = 0.0;
-            for (int c = 0; c < count[j]; c++)
-                s += P[i * n + nz[j][c]] * Phi[j][nz[j][c]];
-            row[j] = s;
-        }
-        memcpy(P + i * n, row, sizeof row);
     }
+    memcpy(P, rows, sizeof(double) * N_CORE * n);
+    /* then P[:, :15] Φᵀ: column j of it (in rows, as row j) summed in the same order */
+    for (int j = 0; j < N_CORE; j++) {
+        double *restrict out = rows + j * n;
+        for (Py_ssize_t i = 0; i < n; i++)
+            out[i] = 0.0;
+        for (int c = 0; c < count[j]; c++) {
+            const int k = nz[j][c];
+            const double f = Phi[j][k];
+            for (Py_ssize_t i = 0; i < n; i++)
+                out[i] += P[i * n + k] * f;
+        }
+    }
+    for (Py_ssize_t i = 0; i < n; i++)
+        for (int j = 0; j < N_CORE; j++)
+            P[i * n + j] = rows[j * n + i];
     PyMem_Free(rows);
     for (Py_ssize_t i = 0; i < n; i++)
         P[i * n + i] += qr[i] * T;
