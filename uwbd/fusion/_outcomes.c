@@ -405,7 +405,7 @@ PyObject *uwbd_outcomes(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         PyErr_Clear();
         Py_RETURN_NOTIMPLEMENTED;
     }
-    Monitor mon;
+    Monitor mon = {0}; /* (every field read_monitor leaves unset is read only when set) */
     if (read_monitor(m, &mon) < 0) {
         PyErr_Clear();
         Py_RETURN_NOTIMPLEMENTED;
