@@ -1443,11 +1443,24 @@ PyObject *uwbd_pose_numbers(PyObject *self, PyObject *const *args, Py_ssize_t na
     /* max(x, 0.0) as Python takes it: x unless 0.0 is larger (-0.0 and NaN stay) */
     double sigma_xy = sqrt(0.0 > xy ? 0.0 : xy);
     int observable = aligned && sqrt(0.0 > yaw ? 0.0 : yaw) < max_yaw_sigma;
-    PyObject *c = uwbd_floats(cov, 36, 0);
-    if (c == NULL)
+    /* (cov, σ_xy, observable, p, v, xyzw), made item by item (Py_BuildValue parses its
+     * format on every pose) */
+    const double xyzw[4] = {q[1], q[2], q[3], q[0]};
+    PyObject *out = PyTuple_New(6);
+    if (out == NULL)
         return NULL;
-    return Py_BuildValue("(NdN(ddd)(ddd)(dddd))", c, sigma_xy, PyBool_FromLong(observable),
-                         p[0], p[1], p[2], v[0], v[1], v[2], q[1], q[2], q[3], q[0]);
+    PyObject *items[6] = {uwbd_floats(cov, 36, 0), PyFloat_FromDouble(sigma_xy),
+                          PyBool_FromLong(observable), uwbd_floats(p, 3, 0),
+                          uwbd_floats(v, 3, 0), uwbd_floats(xyzw, 4, 0)};
+    for (int i = 0; i < 6; i++) {
+        if (items[i] == NULL)
+            Py_CLEAR(out);
+        if (out != NULL)
+            PyTuple_SET_ITEM(out, i, items[i]);
+        else
+            Py_XDECREF(items[i]);
+    }
+    return out;
 }
 
 /* A variance of P above its limit or below zero (Eskf.clamp_covariance's test; NaN is
