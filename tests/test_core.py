@@ -83,11 +83,14 @@ def test_propagation_symmetrised_in_c_is_numpys_to_the_bit(seed: int, n_aux: int
 
 @needs_core
 @settings(max_examples=30, deadline=None)
-@given(st.integers(0, 2**31), st.integers(2, 8), st.floats(0.001, 2.0), st.booleans())
+@given(st.integers(0, 2**31), st.integers(2, 8), st.floats(0.001, 2.0), st.booleans(),
+       st.booleans())
 def test_the_gauss_markov_step_in_c_is_numpys_to_the_bit(seed: int, n_aux: int, T: float,
-                                                       symmetrise: bool) -> None:
-    """markov_step (in place, symmetrised if asked) gives the bits of the numpy steps."""
+                                                       symmetrise: bool, keep: bool) -> None:
+    """markov_step (in place, symmetrised if asked) gives the bits of the numpy steps; the
+    epoch's decays move only where the transition is kept (for the smoother)."""
     fast, slow = twin(n_aux, seed)
+    fast.keep_transition = slow.keep_transition = keep
     slow.P, slow.b_r = fast.P.copy(), np.random.default_rng(seed).normal(size=n_aux)
     fast.b_r = slow.b_r.copy()
     P_c, P_np = fast.P, slow.P
@@ -97,6 +100,7 @@ def test_the_gauss_markov_step_in_c_is_numpys_to_the_bit(seed: int, n_aux: int, 
         P_np = 0.5 * (P_np + P_np.T)
     assert np.array_equal(P_c, P_np) and np.array_equal(fast.b_r, slow.b_r)
     assert np.array_equal(fast._decay_epoch, slow._decay_epoch)
+    assert keep or (fast._decay_epoch == 1.0).all()
     assert len(fast._markov_columns) == n_aux // 2  # (every other state: τ = 3 s)
 
 

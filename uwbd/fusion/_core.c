@@ -590,7 +590,8 @@ static PyObject *core_reset_covariance(PyObject *self, PyObject *const *args,
 /* markov_step(P, columns, phi, var, b_r, decay, symmetrise)
  * Eskf._markov_step in place: the Gauss–Markov states (their P columns, ascending) decay
  * by phi (e^(−T/τ), numpy's, given): their rows, then their columns of P times phi, their
- * variances plus var (1 − phi²), their b_r and epoch decays times phi; with symmetrise,
+ * variances plus var (1 − phi²), their b_r and epoch decays (None: not kept) times phi;
+ * with symmetrise,
  * P ← (P + Pᵀ)/2 too, as numpy's 0.5 * (P + P.T) makes it (Eskf.propagate next). */
 static PyObject *core_markov_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
@@ -629,11 +630,12 @@ static PyObject *core_markov_step(PyObject *self, PyObject *const *args, Py_ssiz
     if (get_doubles(args[4], &view[3], n - N_CORE, 1, "b_r") < 0)
         goto done;
     got = 4;
-    if (get_doubles(args[5], &view[4], n - N_CORE, 1, "decay") < 0)
+    int decays = args[5] != Py_None; /* the epoch's decays kept (for the smoother) */
+    if (decays && get_doubles(args[5], &view[4], n - N_CORE, 1, "decay") < 0)
         goto done;
-    got = 5;
+    got = 4 + decays;
     double *P = (double *)view[0].buf, *b_r = (double *)view[3].buf;
-    double *decay = (double *)view[4].buf;
+    double *decay = decays ? (double *)view[4].buf : NULL;
     const double *phi = (const double *)view[1].buf, *var = (const double *)view[2].buf;
     for (Py_ssize_t a = 0; a < m; a++)
         for (Py_ssize_t j = 0; j < n; j++)
@@ -644,7 +646,8 @@ static PyObject *core_markov_step(PyObject *self, PyObject *const *args, Py_ssiz
     for (Py_ssize_t a = 0; a < m; a++) {
         P[cols[a] * n + cols[a]] += var[a] * (1.0 - phi[a] * phi[a]);
         b_r[cols[a] - N_CORE] *= phi[a];
-        decay[cols[a] - N_CORE] *= phi[a];
+        if (decays)
+            decay[cols[a] - N_CORE] *= phi[a];
     }
     if (symmetrise)
         for (Py_ssize_t i = 0; i < n; i++)

@@ -10,8 +10,8 @@ def predict(p: list[float], v: list[float], q: Sequence[float], b_g: Sequence[fl
 def propagate_core(P: Any, Phi_epoch: Any, q: Sequence[float], sum_fn: Sequence[float],
                    sum_w: Sequence[float], T: float, q_rate: Any,
                    symmetrise: bool = False) -> None: ...
-def markov_step(P: Any, columns: tuple[int, ...], phi: Any, var: Any, b_r: Any, decay: Any,
-                symmetrise: bool) -> None: ...
+def markov_step(P: Any, columns: tuple[int, ...], phi: Any, var: Any, b_r: Any,
+                decay: Any | None, symmetrise: bool) -> None: ...
 def update_and_inject(P: Any, H: Any, y: Any, R: Any,
                       decide: Callable[[int, float, float], float] | tuple[Any, ...], c0: int,
                       c1: int, dx: Any, p: list[float], v: list[float], q: list[float],

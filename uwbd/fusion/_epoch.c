@@ -57,7 +57,7 @@ enum {
     N_MIRROR_UNRESOLVED, N_IMU_GAP, N_SINCE, N_C_CORE, N_P_MATRIX, N_B_R, N_P, N_V, N_Q, N_BG,
     N_BA, N_SUM_FN, N_SUM_W, N_INTERVAL, N_GRAVITY, N_DV, N_PROPAGATED, N_PHI, N_I_CORE,
     N_DECAY, N_NO_DECAY, N_LAST_DX, N_CLAMP_KEY, N_CLAMP_LIMIT, N_PROPAGATE, N_COPY,
-    N_POPLEFT, N_AT_REST, N_COUNT
+    N_POPLEFT, N_AT_REST, N_KEEP, N_COUNT
 };
 static const char *const name_text[N_COUNT] = {
     "t_ns", "ranges", "anchor_id", "range_m", "quality", "_first_t_ns", "ekf", "_aligned",
@@ -67,7 +67,7 @@ static const char *const name_text[N_COUNT] = {
     "_inconsistent_since_ns", "_core", "P", "b_r", "p", "v", "q", "b_g", "b_a", "_sum_fn",
     "_sum_w", "_T", "gravity_mps2", "_dv_epoch", "_epoch_propagated", "_Phi_epoch",
     "_I_core", "_decay_epoch", "_no_decay", "last_dx", "_clamp_key", "_clamp_limit",
-    "propagate", "copy", "popleft", "_at_rest",
+    "propagate", "copy", "popleft", "_at_rest", "keep_transition",
 };
 static PyObject *names[N_COUNT];
 static PyObject *empty_tuple;
@@ -427,6 +427,9 @@ static int predict_to(PyObject *const *parts, PyObject *t_obj, const double *c, 
         return yes;
     if (set_attr(e, N_PROPAGATED, Py_False) < 0)
         return -1;
+    PyObject *keep = attr(e, N_KEEP); /* Φ and the decays kept (else identity and ones) */
+    if (keep == NULL || (yes = PyObject_IsTrue(keep)) <= 0)
+        return keep == NULL ? -1 : yes;
     const int from[2] = {N_I_CORE, N_NO_DECAY}, to[2] = {N_PHI, N_DECAY};
     for (int i = 0; i < 2; i++) {
         PyObject *src = attr(e, from[i]);

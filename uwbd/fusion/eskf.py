@@ -179,8 +179,9 @@ class Eskf:
         self._dv_epoch = [0.0, 0.0, 0.0]
         if self._epoch_propagated:  # else both are still identity and ones
             self._epoch_propagated = False
-            self._Phi_epoch = self._I_core.copy()  # (np.eye: 1 µs more)
-            self._decay_epoch = self._no_decay.copy()
+            if self.keep_transition:  # (else never multiplied: still identity and ones)
+                self._Phi_epoch = self._I_core.copy()  # (np.eye: 1 µs more)
+                self._decay_epoch = self._no_decay.copy()
         return Phi, (dv[0], dv[1], dv[2])
 
     def rotate_heading(self, dpsi: float, yaw_sigma_rad: float) -> None:
@@ -267,9 +268,10 @@ class Eskf:
         self._epoch_propagated = True  # the decays are no longer ones
         phi = np.exp(-T / self._tau[m])
         core = self._core
-        b_r, decay = self.b_r, self._decay_epoch
+        b_r = self.b_r
+        decay = self._decay_epoch if self.keep_transition else None  # (Φ's diagonal part)
         if core is not None and P.flags.c_contiguous and b_r.flags.c_contiguous \
-                and decay.flags.c_contiguous:
+                and (decay is None or decay.flags.c_contiguous):
             core.markov_step(P, self._markov_columns, phi, self._markov_var, b_r, decay,
                              symmetrise)
             return symmetrise
@@ -278,7 +280,8 @@ class Eskf:
         P[:, k] *= phi[None, :]
         P[k, k] += self._markov_var * (1.0 - phi * phi)
         b_r[m] *= phi
-        decay[m] *= phi
+        if decay is not None:
+            decay[m] *= phi
         return False
 
     def coast(self, dt: float, accel_sigma_mps2: float, yaw_rate_sigma_rps: float,
