@@ -98,6 +98,43 @@ PyObject *uwbd_floats(const double *v, Py_ssize_t n, int as_list)
     return out;
 }
 
+/* n floats out of a list (or, unless list_only, a tuple) of exactly n Python floats: 1
+ * (out filled), else 0 (not so: the callers decline). */
+int uwbd_floats_of(PyObject *seq, double *out, Py_ssize_t n, int list_only)
+{
+    PyObject **items;
+    if (PyList_CheckExact(seq) && PyList_GET_SIZE(seq) == n)
+        items = ((PyListObject *)seq)->ob_item;
+    else if (!list_only && PyTuple_CheckExact(seq) && PyTuple_GET_SIZE(seq) == n)
+        items = ((PyTupleObject *)seq)->ob_item;
+    else
+        return 0;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (!PyFloat_CheckExact(items[i]))
+            return 0;
+        out[i] = PyFloat_AS_DOUBLE(items[i]);
+    }
+    return 1;
+}
+
+/* The first n numbers of a tuple as doubles (a step's parts): 0, or -1 with an error set. */
+int uwbd_doubles_of(PyObject *tuple, double *out, Py_ssize_t n)
+{
+    for (Py_ssize_t i = 0; i < n; i++)
+        if ((out[i] = PyFloat_AsDouble(PyTuple_GET_ITEM(tuple, i))) == -1.0 && PyErr_Occurred())
+            return -1;
+    return 0;
+}
+
+/* Each of the n names interned (the namespaces are read by these keys): 0, or -1. */
+int uwbd_intern(const char *const *text, PyObject **out, int n)
+{
+    for (int i = 0; i < n; i++)
+        if ((out[i] = PyUnicode_InternFromString(text[i])) == NULL)
+            return -1;
+    return 0;
+}
+
 /* q ⊗ Exp(θ), normalised: eskf._turned */
 static void turned(const double q[4], double tx, double ty, double tz, double out[4])
 {
@@ -597,7 +634,8 @@ static PyObject *core_markov_step(PyObject *self, PyObject *const *args, Py_ssiz
 {
     (void)self;
     if (nargs != 7 || !PyTuple_Check(args[1])) {
-        PyErr_SetString(PyExc_TypeError, "markov_step(P, columns, phi, var, b_r, decay, symmetrise)");
+        PyErr_SetString(PyExc_TypeError,
+                        "markov_step(P, columns, phi, var, b_r, decay, symmetrise)");
         return NULL;
     }
     int symmetrise = PyObject_IsTrue(args[6]);

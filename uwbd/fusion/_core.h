@@ -12,6 +12,13 @@
 int uwbd_get_vec(PyObject *seq, double *out, Py_ssize_t n, const char *what);
 /* A new list (as_list) or tuple of n floats; NULL with an error set. */
 PyObject *uwbd_floats(const double *v, Py_ssize_t n, int as_list);
+/* n floats out of a list (or, unless list_only, a tuple) of exactly n Python floats: 1, else
+ * 0 (the callers decline). */
+int uwbd_floats_of(PyObject *seq, double *out, Py_ssize_t n, int list_only);
+/* The first n numbers of a tuple as doubles: 0, or -1 with an error set. */
+int uwbd_doubles_of(PyObject *tuple, double *out, Py_ssize_t n);
+/* Each of the n names interned: 0, or -1 with an error set. */
+int uwbd_intern(const char *const *text, PyObject **out, int n);
 /* Store doubles back into an existing list of that length, in place. */
 int uwbd_set_list(PyObject *list, const double *v, Py_ssize_t n);
 /* Eskf.predict's arithmetic: p, v, sum_fn, sum_w in place, the new q in qn. */

@@ -74,9 +74,8 @@ static PyObject *empty_tuple;
 
 int uwbd_epoch_init(void)
 {
-    for (int i = 0; i < N_COUNT; i++)
-        if ((names[i] = PyUnicode_InternFromString(name_text[i])) == NULL)
-            return -1;
+    if (uwbd_intern(name_text, names, N_COUNT) < 0)
+        return -1;
     return (empty_tuple = PyTuple_New(0)) == NULL ? -1 : 0;
 }
 
@@ -109,24 +108,6 @@ static int add_to(PyObject *ns, int name, Py_ssize_t k)
     return rc;
 }
 
-/* n floats out of a list (or, unless list_only, a tuple) of exactly n floats: 1, else 0. */
-static int floats_of(PyObject *seq, double *out, Py_ssize_t n, int list_only)
-{
-    PyObject **items;
-    if (PyList_CheckExact(seq) && PyList_GET_SIZE(seq) == n)
-        items = ((PyListObject *)seq)->ob_item;
-    else if (!list_only && PyTuple_CheckExact(seq) && PyTuple_GET_SIZE(seq) == n)
-        items = ((PyTupleObject *)seq)->ob_item;
-    else
-        return 0;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        if (!PyFloat_CheckExact(items[i]))
-            return 0;
-        out[i] = PyFloat_AS_DOUBLE(items[i]);
-    }
-    return 1;
-}
-
 /* A message taken: what the checks read (new references where held). */
 typedef struct {
     int64_t t, state_t;
@@ -135,12 +116,15 @@ typedef struct {
     PyObject *ids;      /* the anchor ids, a list */
     PyObject *key;      /* tuple(ids) */
     PyObject *arrays;   /* Filter._resolved[key]: (anchors, ones) */
+    Py_buffer view;     /* of the anchors array (held while view_held) */
+    int view_held;
+    const double *anchors; /* its k×3 floats */
     PyObject *ekf, *ekf_ns;
     PyObject *lists[7]; /* p, v, q, b_g, b_a, _sum_fn, _sum_w */
     double st[7][4], gravity, interval;
     int aligned, due;
     PyObject *fix;      /* the message's fix while aligning (_epoch_fix), else None */
-    PyObject *dv;       /* take_epoch's Σ R f Δt, for the heading held while aligning */
+    PyObject *dv;       /* take_epoch's Σ R f Δt (the list it was), for the held heading */
     PyObject *ranges;   /* np.array of the ranges, made when a Python step wants it */
 } Take;
 
@@ -154,6 +138,9 @@ static void release(Take *m)
     for (int i = 0; i < 7; i++)
         Py_CLEAR(m->lists[i]);
     Py_CLEAR(m->ranges);
+    if (m->view_held)
+        PyBuffer_Release(&m->view);
+    m->view_held = 0;
     Py_CLEAR(m->fix);
     Py_CLEAR(m->dv);
 }
@@ -232,14 +219,15 @@ static int ranges_take(PyObject *const *parts, PyObject *uwb, const double *c, T
     Py_INCREF(m->arrays);
     t = PyTuple_Check(m->arrays) && PyTuple_GET_SIZE(m->arrays) == 2;
     if (t) { /* the anchors k×3 floats, as Filter._resolve makes them (else Python's) */
-        Py_buffer view;
-        if (PyObject_GetBuffer(PyTuple_GET_ITEM(m->arrays, 0), &view,
+        if (PyObject_GetBuffer(PyTuple_GET_ITEM(m->arrays, 0), &m->view,
                                PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) {
             PyErr_Clear();
             t = 0;
         } else {
-            t = view.len == k * 3 * 8 && view.format != NULL && strcmp(view.format, "d") == 0;
-            PyBuffer_Release(&view);
+            m->view_held = 1;
+            t = m->view.len == k * 3 * 8 && m->view.format != NULL &&
+                strcmp(m->view.format, "d") == 0;
+            m->anchors = (const double *)m->view.buf;
         }
     }
 done:
@@ -273,8 +261,8 @@ static int filter_take(PyObject *const *parts, const double *c, Take *m)
     if (last == NULL)
         return -1;
     if (!PyTuple_CheckExact(last) || PyTuple_GET_SIZE(last) != 2 ||
-        !floats_of(PyTuple_GET_ITEM(last, 0), m->acc, 3, 0) ||
-        !floats_of(PyTuple_GET_ITEM(last, 1), m->gyro, 3, 0))
+        !uwbd_floats_of(PyTuple_GET_ITEM(last, 0), m->acc, 3, 0) ||
+        !uwbd_floats_of(PyTuple_GET_ITEM(last, 1), m->gyro, 3, 0))
         return 0;
     PyObject *mirror = attr(f, N_MIRROR);
     if (mirror == NULL)
@@ -312,7 +300,7 @@ static int filter_take(PyObject *const *parts, const double *c, Take *m)
     for (int i = 0; i < 7; i++) {
         if ((v = attr(m->ekf_ns, which[i])) == NULL)
             return -1;
-        if (!floats_of(v, m->st[i], sizes[i], which[i] != N_Q))
+        if (!uwbd_floats_of(v, m->st[i], sizes[i], which[i] != N_Q))
             return 0;
         m->lists[i] = Py_NewRef(v);
     }
@@ -334,16 +322,7 @@ static int keep_ranges(PyObject *const *parts, PyObject *t_obj, Take *m)
     PyObject *gating = parts[E_GATING];
     if (add_to(gating, N_EPOCHS, 1) < 0 || add_to(gating, N_PASSED, m->k) < 0)
         return -1;
-    Py_buffer view;
-    if (PyObject_GetBuffer(PyTuple_GET_ITEM(m->arrays, 0), &view,
-                           PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
-        return -1;
-    if (view.len != m->k * 3 * 8 || view.format == NULL || strcmp(view.format, "d") != 0) {
-        PyBuffer_Release(&view);
-        PyErr_SetString(PyExc_TypeError, "epoch_step: an anchors array not of k x 3 floats");
-        return -1;
-    }
-    const double *a = (const double *)view.buf;
+    const double *a = m->anchors;
     int rc = 0;
     for (Py_ssize_t i = 0; i < m->k && rc == 0; i++) {
         PyObject *pos = uwbd_floats(a + 3 * i, 3, 1);
@@ -355,7 +334,6 @@ static int keep_ranges(PyObject *const *parts, PyObject *t_obj, Take *m)
         Py_XDECREF(r);
         Py_XDECREF(item);
     }
-    PyBuffer_Release(&view);
     return rc;
 }
 
@@ -400,26 +378,16 @@ static int predict_to(PyObject *const *parts, PyObject *t_obj, const double *c, 
             return -1;
         Py_DECREF(rc);
     }
-    /* take_epoch(False): Σ R f Δt kept for the held heading, and restarted; Φ and the
-     * decays too, once propagated */
-    PyObject *sums = attr(e, N_DV);
-    if (sums == NULL)
+    /* take_epoch(False): Σ R f Δt restarted (what it was kept for the held heading); Φ and
+     * the decays too, once propagated */
+    if ((m->dv = attr(e, N_DV)) == NULL)
         return -1;
-    Py_INCREF(sums);
+    Py_INCREF(m->dv);
     double zero[3] = {0.0, 0.0, 0.0};
     PyObject *dv = uwbd_floats(zero, 3, 1);
     int failed = dv == NULL || set_attr(e, N_DV, dv) < 0;
     Py_XDECREF(dv);
-    /* (dv[0], dv[1], dv[2]) of what was there, as take_epoch returns it */
-    PyObject *items[3] = {NULL, NULL, NULL};
-    for (int i = 0; i < 3 && !failed; i++)
-        failed = (items[i] = PySequence_GetItem(sums, i)) == NULL;
-    Py_DECREF(sums);
-    if (!failed)
-        m->dv = PyTuple_Pack(3, items[0], items[1], items[2]);
-    for (int i = 0; i < 3; i++)
-        Py_XDECREF(items[i]);
-    if (failed || m->dv == NULL)
+    if (failed)
         return -1;
     PyObject *propagated = attr(e, N_PROPAGATED);
     int yes = propagated == NULL ? -1 : PyObject_IsTrue(propagated);
@@ -714,20 +682,9 @@ static PyObject *fuse(PyObject *const *parts, PyObject *t_obj, const double *c, 
     double var[MAX_K];
     for (Py_ssize_t i = 0; i < m->k; i++)
         var[i] = c[K_RANGE_VAR];
-    Py_buffer anchors;
-    if (PyObject_GetBuffer(PyTuple_GET_ITEM(m->arrays, 0), &anchors,
-                           PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0)
-        goto done;
-    int shaped = anchors.len == m->k * 3 * 8 && anchors.format != NULL &&
-                 strcmp(anchors.format, "d") == 0;
-    fused = !shaped ? NULL
-            : uwbd_fuse_ranges_on(P, dx, b_r, nominal, c + K_LEVER,
-                                  (const double *)anchors.buf, m->r, var, m->k, columns,
-                                  PyTuple_GET_ITEM(extra, 0), PyTuple_GET_ITEM(extra, 1),
-                                  PyTuple_GET_ITEM(extra, 2), policy, c0, c1);
-    PyBuffer_Release(&anchors);
-    if (!shaped)
-        PyErr_SetString(PyExc_TypeError, "epoch_step: an anchors array not of k x 3 floats");
+    fused = uwbd_fuse_ranges_on(P, dx, b_r, nominal, c + K_LEVER, m->anchors, m->r, var, m->k,
+                                columns, PyTuple_GET_ITEM(extra, 0), PyTuple_GET_ITEM(extra, 1),
+                                PyTuple_GET_ITEM(extra, 2), policy, c0, c1);
     if (fused == NULL)
         goto done;
     if (fused == Py_None)
@@ -795,7 +752,7 @@ static int after_fuse(PyObject *const *parts, PyObject *t_obj, Take *m)
             PyObject *v = attr(m->ekf_ns, which[i]);
             if (v == NULL)
                 return -1;
-            sound = floats_of(v, x, which[i] == N_Q ? 4 : 3, 0);
+            sound = uwbd_floats_of(v, x, which[i] == N_Q ? 4 : 3, 0);
             for (int j = 0; j < (which[i] == N_Q ? 4 : 3) && sound; j++)
                 sound = fabs(x[j]) < HUGE_ENTRY;
         }
@@ -842,10 +799,8 @@ PyObject *uwbd_epoch_step(PyObject *self, PyObject *const *args, Py_ssize_t narg
     }
     PyObject *const *parts = &PyTuple_GET_ITEM(args[0], 0);
     double c[K_COUNT];
-    for (int i = 0; i < K_COUNT; i++)
-        if ((c[i] = PyFloat_AsDouble(PyTuple_GET_ITEM(parts[E_NUMBERS], i))) == -1.0 &&
-            PyErr_Occurred())
-            return NULL;
+    if (uwbd_doubles_of(parts[E_NUMBERS], c, K_COUNT) < 0)
+        return NULL;
     Take m = {0};
     PyObject *t_obj = PyObject_GetAttr(args[1], names[N_T_NS]), *out = NULL;
     if (t_obj == NULL)
@@ -884,9 +839,18 @@ PyObject *uwbd_epoch_step(PyObject *self, PyObject *const *args, Py_ssize_t narg
     if (note_side(parts) < 0 || predict_to(parts, t_obj, c, &m) < 0 ||
         set_attr(parts[E_FILTER], N_COASTED, Py_False) < 0)
         goto done;
-    if (!m.aligned) { /* _hold_heading(t_ns, dv, fix) */
-        PyObject *args_[3] = {t_obj, m.dv, m.fix};
-        PyObject *rc = PyObject_Vectorcall(calls[C_HOLD_HEADING], args_, 3, NULL);
+    if (!m.aligned) { /* _hold_heading(t_ns, (dv[0], dv[1], dv[2]), fix), as take_epoch */
+        PyObject *items[3] = {NULL, NULL, NULL}, *dv = NULL;
+        for (int i = 0; i < 3 && (i == 0 || items[i - 1] != NULL); i++)
+            items[i] = PySequence_GetItem(m.dv, i);
+        if (items[2] != NULL)
+            dv = PyTuple_Pack(3, items[0], items[1], items[2]);
+        for (int i = 0; i < 3; i++)
+            Py_XDECREF(items[i]);
+        PyObject *args_[3] = {t_obj, dv, m.fix};
+        PyObject *rc = dv == NULL ? NULL
+                       : PyObject_Vectorcall(calls[C_HOLD_HEADING], args_, 3, NULL);
+        Py_XDECREF(dv);
         if (rc == NULL)
             goto done;
         Py_DECREF(rc);

@@ -67,10 +67,7 @@ static PyObject *names[N_COUNT];
 
 int uwbd_imu_read_init(void)
 {
-    for (int i = 0; i < N_COUNT; i++)
-        if ((names[i] = PyUnicode_InternFromString(name_text[i])) == NULL)
-            return -1;
-    return 0;
+    return uwbd_intern(name_text, names, N_COUNT);
 }
 
 /* -- attributes -------------------------------------------------------------------------
@@ -157,24 +154,6 @@ static int item_i64(PyObject *dict, PyObject *key, int64_t *out, int *none)
 
 /* -- values ------------------------------------------------------------------------------ */
 
-/* n floats out of a list or tuple of exactly n floats (the state's vectors): 1, else 0. */
-static int floats_of(PyObject *seq, double *out, Py_ssize_t n)
-{
-    PyObject **items;
-    if (PyList_CheckExact(seq) && PyList_GET_SIZE(seq) == n)
-        items = ((PyListObject *)seq)->ob_item;
-    else if (PyTuple_CheckExact(seq) && PyTuple_GET_SIZE(seq) == n)
-        items = ((PyTupleObject *)seq)->ob_item;
-    else
-        return 0;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        if (!PyFloat_CheckExact(items[i]))
-            return 0;
-        out[i] = PyFloat_AS_DOUBLE(items[i]);
-    }
-    return 1;
-}
-
 /* M v - b, as intrinsics._affine */
 static void affine(const double *M, const double *b, const double v[3], double out[3])
 {
@@ -216,8 +195,8 @@ static int check_passes(PyObject *check, const double *c, const double acc[3],
         return got; /* no jump test after a run of them */
     double la[3], lg[3];
     if (!PyTuple_CheckExact(last) || PyTuple_GET_SIZE(last) != 2 ||
-        !floats_of(PyTuple_GET_ITEM(last, 0), la, 3) ||
-        !floats_of(PyTuple_GET_ITEM(last, 1), lg, 3))
+        !uwbd_floats_of(PyTuple_GET_ITEM(last, 0), la, 3, 0) ||
+        !uwbd_floats_of(PyTuple_GET_ITEM(last, 1), lg, 3, 0))
         return 0;
     double da = 0.0, dg = 0.0;
     for (int i = 0; i < 3; i++) {
@@ -323,7 +302,7 @@ static int nominal(PyObject *ekf, Read *r)
         PyObject *v = attr(r->ekf, which[i]);
         if (v == NULL)
             return -1;
-        if ((written[i] && !PyList_CheckExact(v)) || !floats_of(v, r->st[i], sizes[i]))
+        if (!uwbd_floats_of(v, r->st[i], sizes[i], written[i]))
             return 0;
         Py_INCREF(v);
         r->lists[i] = v;
@@ -522,12 +501,9 @@ static int numbers_of(PyObject *consts, double c[C_COUNT])
     static PyObject *seen = NULL;
     static double kept[C_COUNT];
     if (consts != seen) {
-        for (int i = 0; i < C_COUNT; i++) {
-            kept[i] = PyFloat_AsDouble(PyTuple_GET_ITEM(consts, i));
-            if (kept[i] == -1.0 && PyErr_Occurred()) {
-                Py_CLEAR(seen);
-                return -1;
-            }
+        if (uwbd_doubles_of(consts, kept, C_COUNT) < 0) {
+            Py_CLEAR(seen);
+            return -1;
         }
         Py_INCREF(consts);
         Py_XSETREF(seen, consts);
@@ -593,8 +569,8 @@ PyObject *uwbd_imu_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     Read r = {0};
     PyObject *o[O_COUNT] = {NULL}, *t_obj = args[1], *acc = args[2], *gyro = args[3];
     int t = uwbd_as_i64(t_obj, &r.t, NULL);
-    if (t == 1 && !(PyTuple_CheckExact(acc) && floats_of(acc, r.acc, 3) &&
-                    PyTuple_CheckExact(gyro) && floats_of(gyro, r.gyro, 3)))
+    if (t == 1 && !(PyTuple_CheckExact(acc) && uwbd_floats_of(acc, r.acc, 3, 0) &&
+                    PyTuple_CheckExact(gyro) && uwbd_floats_of(gyro, r.gyro, 3, 0)))
         t = 0; /* (a sample not of plain floats: Python's) */
     if (t == 1)
         t = step_takes(fp, c, &r);

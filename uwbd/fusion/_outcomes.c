@@ -46,10 +46,7 @@ static PyObject *str[S_COUNT];
 
 int uwbd_outcomes_init(void)
 {
-    for (int i = 0; i < S_COUNT; i++)
-        if ((str[i] = PyUnicode_InternFromString(text[i])) == NULL)
-            return -1;
-    return 0;
+    return uwbd_intern(text, str, S_COUNT);
 }
 
 static int is_kind(PyObject *kind, int which)

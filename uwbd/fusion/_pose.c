@@ -31,19 +31,20 @@ enum { POSE_T, POSE_P, POSE_V, POSE_Q, POSE_COV, POSE_STATUS, POSE_OBSERVABLE, P
        POSE_COUNT };
 #define EXACT (INT64_C(1) << 52) /* differences below this are exact as doubles */
 enum {
-    S_NUMERICAL_NS, S_IMU_FAULT_NS, S_INCONSISTENT_SINCE_NS, S_IMU_GAP, S_REJUDGING, S_MIRROR_UNRESOLVED, S_LAST_RANGE_NS, S_RESETS, S_LAST_RESET, S_EKF, S_T_NS, S_ALIGNED, S_P_MATRIX, S_Q, S_P, S_V, S_COUNT
+    S_NUMERICAL_NS, S_IMU_FAULT_NS, S_INCONSISTENT_SINCE_NS, S_IMU_GAP, S_REJUDGING,
+    S_MIRROR_UNRESOLVED, S_LAST_RANGE_NS, S_RESETS, S_LAST_RESET, S_EKF, S_T_NS, S_ALIGNED,
+    S_P_MATRIX, S_Q, S_P, S_V, S_COUNT
 };
 static const char *const text[S_COUNT] = {
-    "_numerical_ns", "_imu_fault_ns", "_inconsistent_since_ns", "imu_gap", "_rejudging", "mirror_unresolved", "last_range_ns", "resets", "last_reset", "ekf", "t_ns", "_aligned", "P", "q", "p", "v",
+    "_numerical_ns", "_imu_fault_ns", "_inconsistent_since_ns", "imu_gap", "_rejudging",
+    "mirror_unresolved", "last_range_ns", "resets", "last_reset", "ekf", "t_ns", "_aligned",
+    "P", "q", "p", "v",
 };
 static PyObject *str[S_COUNT];
 
 int uwbd_pose_init(void)
 {
-    for (int i = 0; i < S_COUNT; i++)
-        if ((str[i] = PyUnicode_InternFromString(text[i])) == NULL)
-            return -1;
-    return 0;
+    return uwbd_intern(text, str, S_COUNT);
 }
 
 /* ns[name], borrowed; NULL when absent (an error cleared: the caller declines) */
@@ -134,10 +135,8 @@ PyObject *uwbd_pose_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs
     }
     PyObject *const *parts = &PyTuple_GET_ITEM(args[0], 0);
     double c[L_COUNT];
-    for (int i = 0; i < L_COUNT; i++)
-        if ((c[i] = PyFloat_AsDouble(PyTuple_GET_ITEM(parts[Q_NUMBERS], i))) == -1.0 &&
-            PyErr_Occurred())
-            return NULL;
+    if (uwbd_doubles_of(parts[Q_NUMBERS], c, L_COUNT) < 0)
+        return NULL;
     PyObject *f = parts[Q_FILTER];
     PyObject *ekf = get(f, S_EKF), *t_obj = get(f, S_T_NS);
     PyObject *aligned = get(f, S_ALIGNED);
