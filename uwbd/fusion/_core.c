@@ -206,6 +206,60 @@ void uwbd_predict_step(double p[3], double v[3], const double q[4], const double
     turned(q, wx, wy, wz, qn);
 }
 
+int uwbd_nominal_read(PyObject *ns, PyObject *const *keys, UwbdNominal *s)
+{
+    const int sizes[7] = {3, 3, 4, 3, 3, 3, 3};
+    for (int i = 0; i < 7; i++) {
+        PyObject *v = PyDict_GetItemWithError(ns, keys[i]);
+        if (v == NULL) {
+            if (!PyErr_Occurred())
+                PyErr_Format(PyExc_AttributeError, "the Eskf has no attribute %U", keys[i]);
+            return -1;
+        }
+        if (!uwbd_floats_of(v, s->st[i], sizes[i], i != 2))
+            return 0;
+        s->lists[i] = Py_NewRef(v);
+    }
+    PyObject *g = PyDict_GetItemWithError(ns, keys[7]);
+    PyObject *interval = g == NULL ? NULL : PyDict_GetItemWithError(ns, keys[8]);
+    if (interval == NULL) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_AttributeError, "the Eskf has no gravity_mps2 or _T");
+        return -1;
+    }
+    if (!PyFloat_CheckExact(g) || !PyFloat_CheckExact(interval))
+        return 0;
+    s->gravity = PyFloat_AS_DOUBLE(g);
+    s->interval = PyFloat_AS_DOUBLE(interval);
+    return 1;
+}
+
+int uwbd_nominal_predict(UwbdNominal *s, PyObject *ns, PyObject *const *keys,
+                         const double acc[3], const double gyro[3], double dt,
+                         double *interval)
+{
+    double qn[4];
+    uwbd_predict_step(s->st[0], s->st[1], s->st[2], s->st[3], s->st[4], s->st[5], s->st[6],
+                      acc, gyro, dt, s->gravity, qn);
+    if (uwbd_set_list(s->lists[0], s->st[0], 3) || uwbd_set_list(s->lists[1], s->st[1], 3) ||
+        uwbd_set_list(s->lists[5], s->st[5], 3) || uwbd_set_list(s->lists[6], s->st[6], 3))
+        return -1;
+    PyObject *q = uwbd_floats(qn, 4, 1);
+    int failed = q == NULL || PyDict_SetItem(ns, keys[2], q) < 0;
+    Py_XDECREF(q);
+    *interval = s->interval + dt;
+    PyObject *T = failed ? NULL : PyFloat_FromDouble(*interval);
+    failed = T == NULL || PyDict_SetItem(ns, keys[8], T) < 0;
+    Py_XDECREF(T);
+    return failed ? -1 : 0;
+}
+
+void uwbd_nominal_release(UwbdNominal *s)
+{
+    for (int i = 0; i < 7; i++)
+        Py_CLEAR(s->lists[i]);
+}
+
 /* predict(p, v, q, b_g, b_a, sum_fn, sum_w, acc_b, gyro_b, dt, gravity) -> new q (list)
  * p, v, sum_fn, sum_w are updated in place; Eskf.predict in eskf.py, step by step. */
 static PyObject *core_predict(PyObject *self, PyObject *const *args, Py_ssize_t nargs)

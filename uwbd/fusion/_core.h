@@ -42,6 +42,23 @@ int uwbd_all_finite_below(PyObject *P_obj, double bound);
 /* pose_numbers(P, q, p, v, aligned, max_yaw_sigma): Filter.pose's numbers, or None. */
 PyObject *uwbd_pose_numbers(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 
+/* The running Eskf's nominal state as Eskf.predict reads and writes it (its namespace's
+ * p, v, q, b_g, b_a, _sum_fn, _sum_w: new references; their numbers; gravity; _T). */
+typedef struct {
+    PyObject *lists[7];
+    double st[7][4], gravity, interval;
+} UwbdNominal;
+#define UWBD_NOMINAL_KEYS 9 /* p, v, q, b_g, b_a, _sum_fn, _sum_w, gravity_mps2, _T */
+/* Read by those keys from the Eskf's namespace: 1 as expected (lists of floats, q a list or
+ * tuple; floats), 0 not (decline), -1 an error. */
+int uwbd_nominal_read(PyObject *ns, PyObject *const *keys, UwbdNominal *s);
+/* Eskf.predict on it (p, v and the sums in place, q and _T stored anew): 0, or -1 with an
+ * error set; *interval: _T now. */
+int uwbd_nominal_predict(UwbdNominal *s, PyObject *ns, PyObject *const *keys,
+                         const double acc[3], const double gyro[3], double dt,
+                         double *interval);
+void uwbd_nominal_release(UwbdNominal *s);
+
 /* _imu_read.c */
 /* An int within ±2^62 (1), None (1 and *none set, if none is given), else 0; -1 an error. */
 int uwbd_as_i64(PyObject *v, int64_t *out, int *none);

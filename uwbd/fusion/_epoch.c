@@ -70,12 +70,17 @@ static const char *const name_text[N_COUNT] = {
     "propagate", "copy", "popleft", "_at_rest", "keep_transition",
 };
 static PyObject *names[N_COUNT];
+static PyObject *nominal_keys[UWBD_NOMINAL_KEYS];
 static PyObject *empty_tuple;
 
 int uwbd_epoch_init(void)
 {
     if (uwbd_intern(name_text, names, N_COUNT) < 0)
         return -1;
+    const int keys[UWBD_NOMINAL_KEYS] = {N_P, N_V, N_Q, N_BG, N_BA, N_SUM_FN, N_SUM_W,
+                                         N_GRAVITY, N_INTERVAL};
+    for (int i = 0; i < UWBD_NOMINAL_KEYS; i++)
+        nominal_keys[i] = names[keys[i]];
     return (empty_tuple = PyTuple_New(0)) == NULL ? -1 : 0;
 }
 
@@ -120,8 +125,7 @@ typedef struct {
     int view_held;
     const double *anchors; /* its k×3 floats */
     PyObject *ekf, *ekf_ns;
-    PyObject *lists[7]; /* p, v, q, b_g, b_a, _sum_fn, _sum_w */
-    double st[7][4], gravity, interval;
+    UwbdNominal nom;    /* the Eskf's nominal state */
     int aligned, due;
     PyObject *fix;      /* the message's fix while aligning (_epoch_fix), else None */
     PyObject *dv;       /* take_epoch's Σ R f Δt (the list it was), for the held heading */
@@ -135,8 +139,7 @@ static void release(Take *m)
     Py_CLEAR(m->arrays);
     Py_CLEAR(m->ekf);
     Py_CLEAR(m->ekf_ns);
-    for (int i = 0; i < 7; i++)
-        Py_CLEAR(m->lists[i]);
+    uwbd_nominal_release(&m->nom);
     Py_CLEAR(m->ranges);
     if (m->view_held)
         PyBuffer_Release(&m->view);
@@ -295,23 +298,7 @@ static int filter_take(PyObject *const *parts, const double *c, Take *m)
         return -1;
     if (v == Py_None)
         return 0;
-    const int sizes[7] = {3, 3, 4, 3, 3, 3, 3};
-    const int which[7] = {N_P, N_V, N_Q, N_BG, N_BA, N_SUM_FN, N_SUM_W};
-    for (int i = 0; i < 7; i++) {
-        if ((v = attr(m->ekf_ns, which[i])) == NULL)
-            return -1;
-        if (!uwbd_floats_of(v, m->st[i], sizes[i], which[i] != N_Q))
-            return 0;
-        m->lists[i] = Py_NewRef(v);
-    }
-    PyObject *g = attr(m->ekf_ns, N_GRAVITY), *interval = attr(m->ekf_ns, N_INTERVAL);
-    if (g == NULL || interval == NULL)
-        return -1;
-    if (!PyFloat_CheckExact(g) || !PyFloat_CheckExact(interval))
-        return 0;
-    m->gravity = PyFloat_AS_DOUBLE(g);
-    m->interval = PyFloat_AS_DOUBLE(interval);
-    return 1;
+    return uwbd_nominal_read(m->ekf_ns, nominal_keys, &m->nom);
 }
 
 /* -- the writes, in Filter._update's order ---------------------------------------------- */
@@ -353,22 +340,10 @@ static int predict_to(PyObject *const *parts, PyObject *t_obj, const double *c, 
 {
     PyObject *e = m->ekf_ns;
     double dt = (double)(m->t - m->state_t) / 1e9;
-    double interval = m->interval;
+    double interval = m->nom.interval;
     if (dt > 0) {
-        double qn[4];
-        uwbd_predict_step(m->st[0], m->st[1], m->st[2], m->st[3], m->st[4], m->st[5],
-                          m->st[6], m->acc, m->gyro, dt, m->gravity, qn);
-        if (uwbd_set_list(m->lists[0], m->st[0], 3) || uwbd_set_list(m->lists[1], m->st[1], 3) ||
-            uwbd_set_list(m->lists[5], m->st[5], 3) || uwbd_set_list(m->lists[6], m->st[6], 3))
-            return -1;
-        PyObject *q = uwbd_floats(qn, 4, 1);
-        int failed = q == NULL || set_attr(e, N_Q, q) < 0;
-        Py_XDECREF(q);
-        interval += dt;
-        PyObject *T = failed ? NULL : PyFloat_FromDouble(interval);
-        failed = T == NULL || set_attr(e, N_INTERVAL, T) < 0;
-        Py_XDECREF(T);
-        if (failed || set_attr(parts[E_MONITOR], N_IMU_GAP, Py_False) < 0 ||
+        if (uwbd_nominal_predict(&m->nom, e, nominal_keys, m->acc, m->gyro, dt, &interval) < 0 ||
+            set_attr(parts[E_MONITOR], N_IMU_GAP, Py_False) < 0 ||
             set_attr(parts[E_FILTER], N_T_NS, t_obj) < 0)
             return -1;
     }

@@ -64,10 +64,17 @@ static const char *const name_text[N_COUNT] = {
     "_sum_fn", "_sum_w", "_T", "gravity_mps2", "append", "popleft",
 };
 static PyObject *names[N_COUNT];
+static PyObject *nominal_keys[UWBD_NOMINAL_KEYS];
 
 int uwbd_imu_read_init(void)
 {
-    return uwbd_intern(name_text, names, N_COUNT);
+    if (uwbd_intern(name_text, names, N_COUNT) < 0)
+        return -1;
+    const int keys[UWBD_NOMINAL_KEYS] = {N_P, N_V, N_Q, N_BG, N_BA, N_SUM_FN, N_SUM_W,
+                                         N_GRAVITY, N_INTERVAL};
+    for (int i = 0; i < UWBD_NOMINAL_KEYS; i++)
+        nominal_keys[i] = names[keys[i]];
+    return 0;
 }
 
 /* -- attributes -------------------------------------------------------------------------
@@ -240,8 +247,7 @@ typedef struct {
     int has_period, first_none, filter_running;
     double acc[3], gyro[3], temp, ab[3], gb[3]; /* raw, and in body axes */
     PyObject *ekf;     /* the filter's Eskf namespace (new), NULL before the start */
-    PyObject *lists[7]; /* in it: p, v, q, b_g, b_a, _sum_fn, _sum_w (new references) */
-    double st[7][4], gravity, interval;
+    UwbdNominal nom;   /* its nominal state */
 } Read;
 
 enum { O_ACC, O_GYRO, O_TEMP, O_SAMPLE, O_BYTES_IN, O_BASE, O_FRAMES, O_PERIOD, O_PAIR,
@@ -250,8 +256,7 @@ enum { O_ACC, O_GYRO, O_TEMP, O_SAMPLE, O_BYTES_IN, O_BASE, O_FRAMES, O_PERIOD, 
 static void release(Read *r, PyObject **o)
 {
     Py_CLEAR(r->ekf);
-    for (int i = 0; i < 7; i++)
-        Py_CLEAR(r->lists[i]);
+    uwbd_nominal_release(&r->nom);
     for (int i = 0; i < O_COUNT; i++)
         Py_CLEAR(o[i]);
 }
@@ -286,34 +291,6 @@ static int wit_cycle(PyObject *parser, PyObject *data, const double *d, Read *r)
         r->gyro[i] = (double)le16(b + 13 + 2 * i) / d[D_GYRO];
     }
     r->temp = (double)le16(b + 19) / d[D_TEMP];
-    return 1;
-}
-
-/* The running filter's nominal state, as Eskf.predict reads it: 1 as expected (lists of
- * floats where the step writes, floats), 0 not (decline), -1 an error. */
-static int nominal(PyObject *ekf, Read *r)
-{
-    const int sizes[7] = {3, 3, 4, 3, 3, 3, 3};
-    const int which[7] = {N_P, N_V, N_Q, N_BG, N_BA, N_SUM_FN, N_SUM_W};
-    const int written[7] = {1, 1, 0, 0, 0, 1, 1};
-    if ((r->ekf = PyObject_GenericGetDict(ekf, NULL)) == NULL)
-        return -1;
-    for (int i = 0; i < 7; i++) {
-        PyObject *v = attr(r->ekf, which[i]);
-        if (v == NULL)
-            return -1;
-        if (!uwbd_floats_of(v, r->st[i], sizes[i], written[i]))
-            return 0;
-        Py_INCREF(v);
-        r->lists[i] = v;
-    }
-    PyObject *g = attr(r->ekf, N_GRAVITY), *interval = attr(r->ekf, N_INTERVAL);
-    if (g == NULL || interval == NULL)
-        return -1;
-    if (!PyFloat_CheckExact(g) || !PyFloat_CheckExact(interval))
-        return 0;
-    r->gravity = PyFloat_AS_DOUBLE(g);
-    r->interval = PyFloat_AS_DOUBLE(interval);
     return 1;
 }
 
@@ -380,7 +357,9 @@ static int step_takes(PyObject *const *fp, const double *c, Read *r)
     int64_t ahead = r->t - r->state_t;
     if (ahead >= LIMIT_NS || ahead <= -LIMIT_NS)
         return 0;
-    return nominal(ekf, r);
+    if ((r->ekf = PyObject_GenericGetDict(ekf, NULL)) == NULL)
+        return -1;
+    return uwbd_nominal_read(r->ekf, nominal_keys, &r->nom);
 }
 
 /* Every object the read's own writes store, made now: 0, or -1 with an error set. */
@@ -467,29 +446,14 @@ static int window_add(PyObject *const *fp, PyObject *row, PyObject *added, PyObj
     }
 }
 
-/* Eskf.predict on the C core, on the state nominal() read: 1 done and the covariance is
- * due, 0 done, -1 an error. */
+/* Eskf.predict on the C core, on the state read: 1 done and the covariance is due, 0 done,
+ * -1 an error. */
 static int predict(Read *r, const double acc[3], const double gyro[3], double dt,
                    double propagate_every_s)
 {
-    double qn[4];
-    uwbd_predict_step(r->st[0], r->st[1], r->st[2], r->st[3], r->st[4], r->st[5], r->st[6],
-                      acc, gyro, dt, r->gravity, qn);
-    if (uwbd_set_list(r->lists[0], r->st[0], 3) || uwbd_set_list(r->lists[1], r->st[1], 3) ||
-        uwbd_set_list(r->lists[5], r->st[5], 3) || uwbd_set_list(r->lists[6], r->st[6], 3))
+    double interval;
+    if (uwbd_nominal_predict(&r->nom, r->ekf, nominal_keys, acc, gyro, dt, &interval) < 0)
         return -1;
-    PyObject *q = uwbd_floats(qn, 4, 1);
-    if (q == NULL)
-        return -1;
-    int failed = set_attr(r->ekf, N_Q, q) < 0;
-    Py_DECREF(q);
-    double interval = r->interval + dt;
-    PyObject *T = failed ? NULL : PyFloat_FromDouble(interval);
-    if (T == NULL || set_attr(r->ekf, N_INTERVAL, T) < 0) {
-        Py_XDECREF(T);
-        return -1;
-    }
-    Py_DECREF(T);
     return interval >= propagate_every_s;
 }
 
