@@ -206,7 +206,17 @@ void uwbd_predict_step(double p[3], double v[3], const double q[4], const double
     turned(q, wx, wy, wz, qn);
 }
 
-int uwbd_nominal_read(PyObject *ns, PyObject *const *keys, UwbdNominal *s)
+/* the Eskf's attributes the nominal state is read from and written to */
+static const char *const nominal_text[9] = {"p", "v", "q", "b_g", "b_a", "_sum_fn", "_sum_w",
+                                            "gravity_mps2", "_T"};
+static PyObject *keys[9];
+
+int uwbd_nominal_init(void)
+{
+    return uwbd_intern(nominal_text, keys, 9);
+}
+
+int uwbd_nominal_read(PyObject *ns, UwbdNominal *s)
 {
     const int sizes[7] = {3, 3, 4, 3, 3, 3, 3};
     for (int i = 0; i < 7; i++) {
@@ -234,9 +244,8 @@ int uwbd_nominal_read(PyObject *ns, PyObject *const *keys, UwbdNominal *s)
     return 1;
 }
 
-int uwbd_nominal_predict(UwbdNominal *s, PyObject *ns, PyObject *const *keys,
-                         const double acc[3], const double gyro[3], double dt,
-                         double *interval)
+int uwbd_nominal_predict(UwbdNominal *s, PyObject *ns, const double acc[3],
+                         const double gyro[3], double dt, double *interval)
 {
     double qn[4];
     uwbd_predict_step(s->st[0], s->st[1], s->st[2], s->st[3], s->st[4], s->st[5], s->st[6],
@@ -1745,7 +1754,7 @@ PyMODINIT_FUNC PyInit__core(void)
 {
     if (uwbd_outcomes_init() < 0)
         return NULL;
-    if (uwbd_imu_read_init() < 0 || uwbd_epoch_init() < 0 ||
+    if (uwbd_nominal_init() < 0 || uwbd_imu_read_init() < 0 || uwbd_epoch_init() < 0 ||
         uwbd_pose_init() < 0)
         return NULL;
     return PyModule_Create(&core_module);

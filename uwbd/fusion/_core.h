@@ -48,15 +48,14 @@ typedef struct {
     PyObject *lists[7];
     double st[7][4], gravity, interval;
 } UwbdNominal;
-#define UWBD_NOMINAL_KEYS 9 /* p, v, q, b_g, b_a, _sum_fn, _sum_w, gravity_mps2, _T */
-/* Read by those keys from the Eskf's namespace: 1 as expected (lists of floats, q a list or
- * tuple; floats), 0 not (decline), -1 an error. */
-int uwbd_nominal_read(PyObject *ns, PyObject *const *keys, UwbdNominal *s);
+int uwbd_nominal_init(void);
+/* Read from the Eskf's namespace: 1 as expected (lists of floats, q a list or tuple;
+ * floats), 0 not (decline), -1 an error. */
+int uwbd_nominal_read(PyObject *ns, UwbdNominal *s);
 /* Eskf.predict on it (p, v and the sums in place, q and _T stored anew): 0, or -1 with an
  * error set; *interval: _T now. */
-int uwbd_nominal_predict(UwbdNominal *s, PyObject *ns, PyObject *const *keys,
-                         const double acc[3], const double gyro[3], double dt,
-                         double *interval);
+int uwbd_nominal_predict(UwbdNominal *s, PyObject *ns, const double acc[3],
+                         const double gyro[3], double dt, double *interval);
 void uwbd_nominal_release(UwbdNominal *s);
 
 /* _imu_read.c */

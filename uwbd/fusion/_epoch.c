@@ -51,36 +51,29 @@ enum {  /* parts[E_CALLS] */
 #define HUGE_ENTRY 1e300           /* below this, no sum of the state's numbers overflows */
 
 enum {
-    N_T_NS, N_RANGES, N_ANCHOR_ID, N_RANGE_M, N_QUALITY, N_FIRST_T, N_EKF, N_ALIGNED,
-    N_RECORDS, N_RELEVEL, N_GOOD_T, N_LAST_IMU, N_CONSTRAINTS_NS, N_FADE_NS, N_MIRROR,
-    N_RANGE_COLUMNS, N_COASTED, N_LAST_GOOD_P, N_EPOCHS, N_PASSED, N_FLIPPED, N_RESOLVED,
-    N_MIRROR_UNRESOLVED, N_IMU_GAP, N_SINCE, N_C_CORE, N_P_MATRIX, N_B_R, N_P, N_V, N_Q, N_BG,
-    N_BA, N_SUM_FN, N_SUM_W, N_INTERVAL, N_GRAVITY, N_DV, N_PROPAGATED, N_PHI, N_I_CORE,
-    N_DECAY, N_NO_DECAY, N_LAST_DX, N_CLAMP_KEY, N_CLAMP_LIMIT, N_PROPAGATE, N_COPY,
-    N_POPLEFT, N_AT_REST, N_KEEP, N_COUNT
+    N_T_NS, N_RANGES, N_ANCHOR_ID, N_RANGE_M, N_QUALITY, N_FIRST_T, N_EKF, N_ALIGNED, N_RECORDS,
+    N_RELEVEL, N_GOOD_T, N_LAST_IMU, N_CONSTRAINTS_NS, N_FADE_NS, N_MIRROR, N_RANGE_COLUMNS,
+    N_COASTED, N_LAST_GOOD_P, N_EPOCHS, N_PASSED, N_FLIPPED, N_RESOLVED, N_MIRROR_UNRESOLVED,
+    N_IMU_GAP, N_SINCE, N_C_CORE, N_P_MATRIX, N_B_R, N_P, N_V, N_Q, N_BG, N_BA, N_DV,
+    N_PROPAGATED, N_PHI, N_I_CORE, N_DECAY, N_NO_DECAY, N_LAST_DX, N_CLAMP_KEY, N_CLAMP_LIMIT,
+    N_PROPAGATE, N_COPY, N_POPLEFT, N_AT_REST, N_KEEP, N_COUNT
 };
 static const char *const name_text[N_COUNT] = {
     "t_ns", "ranges", "anchor_id", "range_m", "quality", "_first_t_ns", "ekf", "_aligned",
-    "records", "_relevel", "_good_imu_ns", "_last_imu", "_constraints_ns", "_fade_ns",
-    "mirror", "_range_columns", "_coasted", "_last_good_P", "epochs_passed",
-    "ranges_passed", "flipped", "resolved", "mirror_unresolved", "imu_gap",
-    "_inconsistent_since_ns", "_core", "P", "b_r", "p", "v", "q", "b_g", "b_a", "_sum_fn",
-    "_sum_w", "_T", "gravity_mps2", "_dv_epoch", "_epoch_propagated", "_Phi_epoch",
-    "_I_core", "_decay_epoch", "_no_decay", "last_dx", "_clamp_key", "_clamp_limit",
-    "propagate", "copy", "popleft", "_at_rest", "keep_transition",
+    "records", "_relevel", "_good_imu_ns", "_last_imu", "_constraints_ns", "_fade_ns", "mirror",
+    "_range_columns", "_coasted", "_last_good_P", "epochs_passed", "ranges_passed", "flipped",
+    "resolved", "mirror_unresolved", "imu_gap", "_inconsistent_since_ns", "_core", "P", "b_r",
+    "p", "v", "q", "b_g", "b_a", "_dv_epoch", "_epoch_propagated", "_Phi_epoch", "_I_core",
+    "_decay_epoch", "_no_decay", "last_dx", "_clamp_key", "_clamp_limit", "propagate", "copy",
+    "popleft", "_at_rest", "keep_transition",
 };
 static PyObject *names[N_COUNT];
-static PyObject *nominal_keys[UWBD_NOMINAL_KEYS];
 static PyObject *empty_tuple;
 
 int uwbd_epoch_init(void)
 {
     if (uwbd_intern(name_text, names, N_COUNT) < 0)
         return -1;
-    const int keys[UWBD_NOMINAL_KEYS] = {N_P, N_V, N_Q, N_BG, N_BA, N_SUM_FN, N_SUM_W,
-                                         N_GRAVITY, N_INTERVAL};
-    for (int i = 0; i < UWBD_NOMINAL_KEYS; i++)
-        nominal_keys[i] = names[keys[i]];
     return (empty_tuple = PyTuple_New(0)) == NULL ? -1 : 0;
 }
 
@@ -298,7 +291,7 @@ static int filter_take(PyObject *const *parts, const double *c, Take *m)
         return -1;
     if (v == Py_None)
         return 0;
-    return uwbd_nominal_read(m->ekf_ns, nominal_keys, &m->nom);
+    return uwbd_nominal_read(m->ekf_ns, &m->nom);
 }
 
 /* -- the writes, in Filter._update's order ---------------------------------------------- */
@@ -342,7 +335,7 @@ static int predict_to(PyObject *const *parts, PyObject *t_obj, const double *c, 
     double dt = (double)(m->t - m->state_t) / 1e9;
     double interval = m->nom.interval;
     if (dt > 0) {
-        if (uwbd_nominal_predict(&m->nom, e, nominal_keys, m->acc, m->gyro, dt, &interval) < 0 ||
+        if (uwbd_nominal_predict(&m->nom, e, m->acc, m->gyro, dt, &interval) < 0 ||
             set_attr(parts[E_MONITOR], N_IMU_GAP, Py_False) < 0 ||
             set_attr(parts[E_FILTER], N_T_NS, t_obj) < 0)
             return -1;

@@ -53,28 +53,20 @@ enum {  /* step parts[F_CONSTS]: floats */
 enum {
     N_BUF, N_CLOSING, N_LAST_TYPE, N_CYCLE_MAX, N_CYCLE, N_BASE, N_CYCLE_T, N_BYTES_IN,
     N_FRAMES, N_WAIT, N_HEAP, N_RELEASED, N_CLOCK, N_IMU_T, N_EKF, N_RELEVEL, N_T, N_FIRST_T,
-    N_GOOD_T, N_LAST_IMU, N_LAST_GOOD, N_JUMP_RUN, N_BURST, N_LAST_NS, N_ADDED, N_P, N_V, N_Q,
-    N_BG, N_BA, N_SUM_FN, N_SUM_W, N_INTERVAL, N_GRAVITY, N_APPEND, N_POPLEFT, N_COUNT
+    N_GOOD_T, N_LAST_IMU, N_LAST_GOOD, N_JUMP_RUN, N_BURST, N_LAST_NS, N_ADDED, N_APPEND,
+    N_POPLEFT, N_COUNT
 };
 static const char *const name_text[N_COUNT] = {
     "_buf", "_closing_type", "_last_type", "_cycle_max", "_cycle", "_base", "_cycle_t_ns",
-    "bytes_in", "frames", "wait_ns", "_heap", "_released_ns", "_clock_ns", "_imu_t_ns",
-    "ekf", "_relevel", "t_ns", "_first_t_ns", "_good_imu_ns", "_last_imu", "last_good",
-    "_jump_run", "_burst_start_ns", "_last_ns", "_added", "p", "v", "q", "b_g", "b_a",
-    "_sum_fn", "_sum_w", "_T", "gravity_mps2", "append", "popleft",
+    "bytes_in", "frames", "wait_ns", "_heap", "_released_ns", "_clock_ns", "_imu_t_ns", "ekf",
+    "_relevel", "t_ns", "_first_t_ns", "_good_imu_ns", "_last_imu", "last_good", "_jump_run",
+    "_burst_start_ns", "_last_ns", "_added", "append", "popleft",
 };
 static PyObject *names[N_COUNT];
-static PyObject *nominal_keys[UWBD_NOMINAL_KEYS];
 
 int uwbd_imu_read_init(void)
 {
-    if (uwbd_intern(name_text, names, N_COUNT) < 0)
-        return -1;
-    const int keys[UWBD_NOMINAL_KEYS] = {N_P, N_V, N_Q, N_BG, N_BA, N_SUM_FN, N_SUM_W,
-                                         N_GRAVITY, N_INTERVAL};
-    for (int i = 0; i < UWBD_NOMINAL_KEYS; i++)
-        nominal_keys[i] = names[keys[i]];
-    return 0;
+    return uwbd_intern(name_text, names, N_COUNT);
 }
 
 /* -- attributes -------------------------------------------------------------------------
@@ -359,7 +351,7 @@ static int step_takes(PyObject *const *fp, const double *c, Read *r)
         return 0;
     if ((r->ekf = PyObject_GenericGetDict(ekf, NULL)) == NULL)
         return -1;
-    return uwbd_nominal_read(r->ekf, nominal_keys, &r->nom);
+    return uwbd_nominal_read(r->ekf, &r->nom);
 }
 
 /* Every object the read's own writes store, made now: 0, or -1 with an error set. */
@@ -452,7 +444,7 @@ static int predict(Read *r, const double acc[3], const double gyro[3], double dt
                    double propagate_every_s)
 {
     double interval;
-    if (uwbd_nominal_predict(&r->nom, r->ekf, nominal_keys, acc, gyro, dt, &interval) < 0)
+    if (uwbd_nominal_predict(&r->nom, r->ekf, acc, gyro, dt, &interval) < 0)
         return -1;
     return interval >= propagate_every_s;
 }
