@@ -21,6 +21,9 @@ setup(ext_modules=[
     # the per-message loops of reading a whole log (uwbd/logs/scan.py, mcaplog.py)
     Extension("uwbd.logs._scan", ["uwbd/logs/_scan.c"], depends=["uwbd/_tuple.h"],
               extra_compile_args=["-O2"], optional=True),
+    # the output log's common IMU read, its two records in one call (uwbd/logs/mcaplog.py)
+    Extension("uwbd.logs._records", ["uwbd/logs/_records.c"], extra_compile_args=["-O2"],
+              optional=True),
     # the common Nooploop read in one call (drivers/nlink.py, drivers/accel.py)
     Extension("drivers._frames", ["drivers/_frames.c"], extra_compile_args=["-O2"],
               optional=True),

@@ -41,6 +41,9 @@ class Recorder(PoseList):
     def frame(self, frame: object) -> None:
         self.frames.append(frame)
 
+    def read(self, source: str, t_ns: int, data: bytes, frame: object) -> None:
+        self.frames.append(frame)
+
 
 def reads(seconds: float, seed: int, faults: Faults | None = None,
           edit: Callable[[ImuSample, int], ImuSample | None] | None = None,

@@ -390,6 +390,9 @@ class Broken:
     def frame(self, frame: Frame) -> None:
         raise RuntimeError("frame broke")
 
+    def read(self, source: str, t_ns: int, data: bytes, frame: Frame) -> None:
+        raise RuntimeError("read broke")
+
     def pose(self, pose: Pose) -> None:
         raise ValueError("pose broke")
 

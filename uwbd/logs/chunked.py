@@ -104,17 +104,17 @@ class ChunkedWriter:
         chunk += head
         chunk += data
         if len(chunk) > self._chunk_size:
-            self._finish_chunk()
+            self.end_chunk()
 
     def flush(self) -> None:
         """The open chunk written out, the stream flushed (not fsynced)."""
-        self._finish_chunk()
+        self.end_chunk()
         self._out.flush()
 
     def finish(self) -> None:
         """The last chunk, the data end, the summary (schemas, channels, statistics, chunk and
         metadata indexes, their offsets) and the footer. Does not close the stream."""
-        self._finish_chunk()
+        self.end_chunk()
         self._out.write(_record(DataEnd(data_section_crc=0)))  # 0: not computed
         summary_start = self._out.tell()
         summary = bytearray()
@@ -146,7 +146,9 @@ class ChunkedWriter:
                                        summary_offset_start=offset_start, summary_crc=crc)))
         self._out.write(MCAP0_MAGIC)
 
-    def _finish_chunk(self) -> None:
+    def end_chunk(self) -> None:
+        """The open chunk compressed and written with its message indexes (nothing when it
+        holds no message)."""
         if not self._index:
             return  # schemas and channels wait for the chunk of their first message
         # the messages' time span and counts, from the index (log time, offset, …)

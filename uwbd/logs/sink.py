@@ -24,6 +24,11 @@ RETRY_NS = 5_000_000_000  # after a failure, a new log file is tried this often
 LOG = journal.get("log")
 
 
+def _records(action: Callable[..., None]) -> int:
+    """How many log records one call of ``action`` writes."""
+    return 2 if action is LogWriter.read else 1
+
+
 class McapSink:
     """Writes the pipeline to MCAP files: one file, or a rotating series in a directory.
 
@@ -148,7 +153,8 @@ class McapSink:
     def _write(self, t_ns: int, action: Callable[..., None], *args: Any) -> None:
         """``action`` (a :class:`LogWriter` method) with ``args``, written behind."""
         if self.error and self._paused(t_ns):
-            self.records_lost += 1  # logging has stopped: keep nothing until the next try
+            # logging has stopped: keep nothing until the next try
+            self.records_lost += _records(action)
             return
         behind = self._behind
         behind.append((t_ns, action, args))
@@ -169,7 +175,7 @@ class McapSink:
             if log is None or due:
                 log = self._writer(t_ns)
                 if log is None:
-                    self.records_lost += 1
+                    self.records_lost += _records(action)
                     continue
                 due = t_ns - self._flushed_ns >= FLUSH_PERIOD_NS  # a new file: not yet
             try:
@@ -215,6 +221,10 @@ class McapSink:
 
     def frame(self, frame: Frame) -> None:
         self._write(frame.t_ns, LogWriter.frame, frame)
+
+    def read(self, source: str, t_ns: int, data: bytes, frame: Frame) -> None:
+        """:meth:`raw` and then :meth:`frame`, kept as one (:meth:`LogWriter.read`)."""
+        self._write(t_ns, LogWriter.read, source, t_ns, data, frame)
 
     def pose(self, pose: Pose) -> None:
         # encoded now, once with the other sinks (pose_json), written behind

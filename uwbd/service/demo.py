@@ -65,6 +65,9 @@ class LiveView:
     def frame(self, frame: Frame) -> None:
         """Not shown."""
 
+    def read(self, source: str, t_ns: int, data: bytes, frame: Frame) -> None:
+        """Not shown."""
+
     def pose(self, pose: Pose) -> None:
         self.last = pose
         t_s = (pose.t_ns - self.start_ns) / 1e9

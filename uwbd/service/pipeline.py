@@ -11,9 +11,10 @@ parser, the aligner and the filter do with it, to the bit; anything else goes th
 
 Poses leave after every UWB update and, between updates, at most every
 ``pose_period_ns`` of data time; status every ``status_period_ns``. Sinks receive
-everything (raw bytes, frames, poses, status). Each call to a sink is guarded: a sink that
-raises is counted and reported (a warning line, ``sink_errors`` in the status) and the
-others, the log among them, still get every record.
+everything (raw bytes, frames, poses, status); a read the C read took whole comes to them
+in one call, ``read`` (its bytes, then its frame). Each call to a sink is guarded: a sink
+that raises is counted and reported (a warning line, ``sink_errors`` in the status) and
+the others, the log among them, still get every record.
 """
 
 from __future__ import annotations
@@ -36,6 +37,9 @@ class Sink(Protocol):
     def raw(self, source: str, t_ns: int, data: bytes) -> None: ...
 
     def frame(self, frame: Frame) -> None: ...
+
+    def read(self, source: str, t_ns: int, data: bytes, frame: Frame) -> None:
+        """``raw(source, t_ns, data)`` and then ``frame(frame)``, in one call."""
 
     def pose(self, pose: Pose) -> None: ...
 
@@ -66,6 +70,7 @@ class Pipeline:
         self.sink_trouble: dict[int, SinkTrouble] = {}  # by id(sink)
         self._raw = [s.raw for s in self.sinks]
         self._frame = [s.frame for s in self.sinks]
+        self._read = [s.read for s in self.sinks]
         self._pose = [s.pose for s in self.sinks]
         self._status = [s.status for s in self.sinks]
         self.parsers: dict[str, Parser] = {s.name: PARSERS[s.driver]() for s in config.sources}
@@ -98,20 +103,24 @@ class Pipeline:
         if parser is None:
             self.unknown_sources += 1
             return
-        for call in self._raw:
-            try:
-                call(source, t_ns, data)
-            except Exception as err:
-                self._sink_failed(call, err)
         fast = self._imu_read.get(source)
         sample = None if fast is None else fast(data, t_ns)
         if sample is None:
+            for call in self._raw:
+                try:
+                    call(source, t_ns, data)
+                except Exception as err:
+                    self._sink_failed(call, err)
             self._frames(self._spread(source, parser.feed(data, t_ns)))
         else:  # the common IMU read, parsed and integrated in one call of the C core
             body = None
             if sample.__class__ is tuple:  # and the covariance is due
                 sample, body = sample
-            self._frame_to_sinks(sample)  # (after the INS step: no sink reads the filter)
+            for read in self._read:  # its bytes and its sample (no sink reads the filter)
+                try:
+                    read(source, t_ns, data, sample)
+                except Exception as err:
+                    self._sink_failed(read, err)
             if body is not None:
                 self.filter.finish_prediction(sample.t_ns, body)
             if sample.t_ns - self._last_pose_ns >= self._pose_period_ns:
@@ -179,6 +188,7 @@ class Pipeline:
         self.sinks.append(sink)
         self._raw.append(sink.raw)
         self._frame.append(sink.frame)
+        self._read.append(sink.read)
         self._pose.append(sink.pose)
         self._status.append(sink.status)
 
@@ -199,16 +209,13 @@ class Pipeline:
 
     def _frames(self, frames: Sequence[Frame]) -> None:
         for frame in frames:
-            self._frame_to_sinks(frame)
+            for call in self._frame:
+                try:
+                    call(frame)
+                except Exception as err:
+                    self._sink_failed(call, err)
             for ready in self.aligner.push(frame):
                 self._fuse(ready)
-
-    def _frame_to_sinks(self, frame: Frame) -> None:
-        for call in self._frame:
-            try:
-                call(frame)
-            except Exception as err:
-                self._sink_failed(call, err)
 
     def _fuse(self, frame: Frame) -> None:
         flt = self.filter
@@ -303,6 +310,9 @@ class PoseList:
 
     def frame(self, frame: Frame) -> None:
         """Frames are not kept."""
+
+    def read(self, source: str, t_ns: int, data: bytes, frame: Frame) -> None:
+        """Neither are kept."""
 
     def pose(self, pose: Pose) -> None:
         self.poses.append(pose)
