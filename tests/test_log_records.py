@@ -6,8 +6,6 @@ from __future__ import annotations
 import math
 import os
 import struct
-import subprocess
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -129,21 +127,6 @@ def test_a_read_whose_time_the_log_cannot_hold_keeps_its_frame(tmp_path: Path) -
         with pytest.raises(struct.error):
             log.read("imu", -1, b"\x55" * 11, sample)
     assert [m.topic for m in read_log(path).messages] == ["/raw/imu", "/imu", "/imu"]
-
-
-@pytest.fixture
-def small_disk(tmp_path: Path) -> Iterator[Path]:
-    """A folder on a 256 kB tmpfs (root and mount, else the test is skipped)."""
-    folder = tmp_path / "small"
-    folder.mkdir()
-    if os.geteuid() != 0 or subprocess.run(
-            ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(folder)],
-            capture_output=True, check=False).returncode != 0:
-        pytest.skip("needs a small tmpfs (root and mount)")
-    try:
-        yield folder
-    finally:
-        subprocess.run(["umount", str(folder)], check=False)
 
 
 def _writer(name: str, monkeypatch: pytest.MonkeyPatch) -> None:

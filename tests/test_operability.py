@@ -538,44 +538,36 @@ def test_output_into_head_ends_quietly(tmp_path: Path, sim_log: Path) -> None:
         assert "Exception ignored" not in result.stderr
 
 
-def test_a_full_disk_pauses_the_log_and_every_record_is_accounted_for(tmp_path: Path) -> None:
+def test_a_full_disk_pauses_the_log_and_every_record_is_accounted_for(small_disk: Path) -> None:
     """Retries while the disk is still full claim nothing and leave no junk; once there is
     room the log resumes; every record is either in a finished file or counted lost."""
-    folder = tmp_path / "small"
-    folder.mkdir()
-    if os.geteuid() != 0 or subprocess.run(
-            ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(folder)],
-            capture_output=True, check=False).returncode != 0:
-        pytest.skip("needs a small tmpfs (root and mount)")
-    try:
-        filler = folder / "filler"
-        filler.write_bytes(b"\0" * 150_000)
-        log = McapSink(parse(""), directory=folder)
-        t_ns, written, states = 1_700_000_000 * 10**9, 0, []
-        for k in range(3000):  # 30 s of data at 100 records/s
-            if k == 2000:
-                filler.unlink()  # room again
-            # incompressible until the disk is full, then small, so it does not fill again
-            pad = os.urandom(200 if k < 2000 else 4).hex()
-            log.json("/a", t_ns, {"k": k, "pad": pad})
-            written += 1
-            t_ns += 10_000_000
-            states.append(bool(log.error))
-        log.close()
-        assert True in states[:2000] and states[-1] is False  # paused while full, then not
-        paused = states.index(True)
-        assert all(states[paused:2000])  # no retry in between claimed to have resumed
-        files = [p for p in log.files if p.exists()]
-        assert files == log.files  # every file it names is there: no half-made ones dropped
-        assert sorted(folder.glob("*.mcap")) == sorted(files)
-        kept = 0
-        for path in files:  # each one finished: no recovery needed
-            contents = read_log(path)
-            assert not contents.truncated, contents.error
-            kept += sum(m.topic == "/a" for m in contents.messages)
-        assert kept + log.records_lost == written and log.records_lost > 0
-    finally:
-        subprocess.run(["umount", str(folder)], check=False)
+    folder = small_disk
+    filler = folder / "filler"
+    filler.write_bytes(b"\0" * 150_000)
+    log = McapSink(parse(""), directory=folder)
+    t_ns, written, states = 1_700_000_000 * 10**9, 0, []
+    for k in range(3000):  # 30 s of data at 100 records/s
+        if k == 2000:
+            filler.unlink()  # room again
+        # incompressible until the disk is full, then small, so it does not fill again
+        pad = os.urandom(200 if k < 2000 else 4).hex()
+        log.json("/a", t_ns, {"k": k, "pad": pad})
+        written += 1
+        t_ns += 10_000_000
+        states.append(bool(log.error))
+    log.close()
+    assert True in states[:2000] and states[-1] is False  # paused while full, then not
+    paused = states.index(True)
+    assert all(states[paused:2000])  # no retry in between claimed to have resumed
+    files = [p for p in log.files if p.exists()]
+    assert files == log.files  # every file it names is there: no half-made ones dropped
+    assert sorted(folder.glob("*.mcap")) == sorted(files)
+    kept = 0
+    for path in files:  # each one finished: no recovery needed
+        contents = read_log(path)
+        assert not contents.truncated, contents.error
+        kept += sum(m.topic == "/a" for m in contents.messages)
+    assert kept + log.records_lost == written and log.records_lost > 0
 
 
 def test_a_damaged_chunk_is_said_and_what_came_before_is_used(tmp_path: Path,
