@@ -38,10 +38,7 @@ class Recorder(PoseList):
         super().__init__()
         self.frames: list[object] = []
 
-    def frame(self, frame: object) -> None:
-        self.frames.append(frame)
-
-    def read(self, source: str, t_ns: int, data: bytes, frame: object) -> None:
+    def frame(self, frame: object) -> None:  # (it has no read: the pipeline calls this)
         self.frames.append(frame)
 
 

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import struct
@@ -127,6 +128,18 @@ def test_a_read_whose_time_the_log_cannot_hold_keeps_its_frame(tmp_path: Path) -
         with pytest.raises(struct.error):
             log.read("imu", -1, b"\x55" * 11, sample)
     assert [m.topic for m in read_log(path).messages] == ["/raw/imu", "/imu", "/imu"]
+
+
+def test_a_read_neither_of_whose_records_the_log_can_hold_counts_two(tmp_path: Path) -> None:
+    sample = ImuSample(EPOCH_NS, (0.0, 0.0, 9.8), (0.0, 0.0, 0.0), 25.0)
+    log = McapSink(parse(""), path=tmp_path / "x.mcap")
+    log.read("imu", EPOCH_NS, b"\x55" * 11, sample)
+    log.read("imu", -1, b"\x55" * 11, dataclasses.replace(sample, t_ns=-2))  # neither
+    log.read("imu", -1, b"\x55" * 11, sample)  # its frame only
+    log.close()
+    assert log.bad_records == 3
+    assert [m.topic for m in read_log(tmp_path / "x.mcap").messages
+            if m.topic.startswith(("/raw", "/imu"))] == ["/raw/imu", "/imu", "/imu"]
 
 
 def _writer(name: str, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -89,6 +89,17 @@ def pose_to_message(pose: Pose, frame_id: str = NAV_FRAME_ID) -> dict[str, Any]:
         "health": known(pose.health.as_dict())}, frame_id)
 
 
+class UnencodableError(ValueError):
+    """``records`` records of one call could not be encoded (none of them written)."""
+
+    def __init__(self, records: int, reason: str) -> None:
+        super().__init__(reason)
+        self.records = records
+
+
+UNENCODABLE = (TypeError, ValueError, struct.error)  # what a record that cannot be encoded raises
+
+
 class _Encoded:
     """The last pose encoded (a one-entry memo for :func:`pose_json`)."""
 
@@ -216,8 +227,11 @@ class LogWriter:
         except OSError:
             self.unflushed += 1
             raise
-        except (TypeError, ValueError, struct.error):
-            self.frame(frame)  # a read its record cannot hold keeps its frame's
+        except UNENCODABLE as err:
+            try:
+                self.frame(frame)  # a read its record cannot hold keeps its frame's
+            except UNENCODABLE as also:
+                raise UnencodableError(2, f"{err}; and its frame: {also}") from also
             raise
         self.frame(frame)
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import struct
 from collections.abc import Callable
 from datetime import datetime, timezone
 from pathlib import Path
@@ -15,7 +14,7 @@ from uwbd import journal
 from uwbd.config import Config
 from uwbd.fusion.types import Pose
 from uwbd.logs.foxglove import FoxgloveView
-from uwbd.logs.mcaplog import LogWriter, SourceInfo, finish_cut, pose_json
+from uwbd.logs.mcaplog import UNENCODABLE, LogWriter, SourceInfo, finish_cut, pose_json
 
 FLUSH_PERIOD_NS = 1_000_000_000  # the log is handed to the OS about once a second
 WRITE_BEHIND_NS = 100_000_000  # records wait this long in memory, then are written together
@@ -187,9 +186,10 @@ class McapSink:
             except OSError as err:
                 self._fail(f"writing {log.path}: {err.strerror or err}", t_ns)
                 log = None
-            except (TypeError, ValueError, struct.error) as err:  # a record that cannot be encoded
-                self.bad_records += 1
-                if self.bad_records == 1:
+            except UNENCODABLE as err:  # a record that cannot be encoded
+                first = not self.bad_records
+                self.bad_records += getattr(err, "records", 1)
+                if first:
                     LOG.warning("a %s record could not be written to %s (%s); it is skipped",
                                 action.__name__, log.path, err)
 

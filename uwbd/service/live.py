@@ -116,10 +116,6 @@ class FoxgloveLive:
         if channel.has_sinks():
             channel.log(frame_to_json(frame), log_time=frame.t_ns)
 
-    def read(self, source: str, t_ns: int, data: bytes, frame: Frame) -> None:
-        self.raw(source, t_ns, data)
-        self.frame(frame)
-
     def pose(self, pose: Pose) -> None:
         t_ns, view = pose.t_ns, self.view
         if self._pose.has_sinks():

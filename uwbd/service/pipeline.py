@@ -12,9 +12,9 @@ parser, the aligner and the filter do with it, to the bit; anything else goes th
 Poses leave after every UWB update and, between updates, at most every
 ``pose_period_ns`` of data time; status every ``status_period_ns``. Sinks receive
 everything (raw bytes, frames, poses, status); a read the C read took whole comes to them
-in one call, ``read`` (its bytes, then its frame). Each call to a sink is guarded: a sink
-that raises is counted and reported (a warning line, ``sink_errors`` in the status) and
-the others, the log among them, still get every record.
+in one call, ``read`` (its bytes, then its frame), where a sink has one. Each call to a sink
+is guarded: a sink that raises is counted and reported (a warning line, ``sink_errors`` in
+the status) and the others, the log among them, still get every record.
 """
 
 from __future__ import annotations
@@ -34,12 +34,13 @@ from uwbd.service.imu_read import imu_read_path
 
 
 class Sink(Protocol):
+    """What the pipeline hands on. A sink may also have ``read(source, t_ns, data, frame)``:
+    ``raw`` and then ``frame`` of a read that brought one frame, in one call; a sink without
+    one gets the two calls (:meth:`Pipeline._read_of`)."""
+
     def raw(self, source: str, t_ns: int, data: bytes) -> None: ...
 
     def frame(self, frame: Frame) -> None: ...
-
-    def read(self, source: str, t_ns: int, data: bytes, frame: Frame) -> None:
-        """``raw(source, t_ns, data)`` and then ``frame(frame)``, in one call."""
 
     def pose(self, pose: Pose) -> None: ...
 
@@ -70,7 +71,7 @@ class Pipeline:
         self.sink_trouble: dict[int, SinkTrouble] = {}  # by id(sink)
         self._raw = [s.raw for s in self.sinks]
         self._frame = [s.frame for s in self.sinks]
-        self._read = [s.read for s in self.sinks]
+        self._read = [self._read_of(s) for s in self.sinks]
         self._pose = [s.pose for s in self.sinks]
         self._status = [s.status for s in self.sinks]
         self.parsers: dict[str, Parser] = {s.name: PARSERS[s.driver]() for s in config.sources}
@@ -104,13 +105,13 @@ class Pipeline:
             self.unknown_sources += 1
             return
         fast = self._imu_read.get(source)
-        sample = None if fast is None else fast(data, t_ns)
+        try:
+            sample = None if fast is None else fast(data, t_ns)
+        except BaseException:
+            self._raw_to_sinks(source, t_ns, data)  # the log keeps the read that broke it
+            raise
         if sample is None:
-            for call in self._raw:
-                try:
-                    call(source, t_ns, data)
-                except Exception as err:
-                    self._sink_failed(call, err)
+            self._raw_to_sinks(source, t_ns, data)
             self._frames(self._spread(source, parser.feed(data, t_ns)))
         else:  # the common IMU read, parsed and integrated in one call of the C core
             body = None
@@ -126,6 +127,33 @@ class Pipeline:
             if sample.t_ns - self._last_pose_ns >= self._pose_period_ns:
                 self._emit_pose()
         self._tick(t_ns)
+
+    def _raw_to_sinks(self, source: str, t_ns: int, data: bytes) -> None:
+        for call in self._raw:
+            try:
+                call(source, t_ns, data)
+            except Exception as err:
+                self._sink_failed(call, err)
+
+    def _read_of(self, sink: Sink) -> Any:
+        """``sink.read``, or for a sink without one its ``raw`` and then its ``frame``, each
+        guarded on its own (a failing ``raw`` keeps the frame from no one)."""
+        read = getattr(sink, "read", None)
+        if read is not None:
+            return read
+        raw, frame = sink.raw, sink.frame
+
+        def raw_then_frame(source: str, t_ns: int, data: bytes, sample: Frame) -> None:
+            try:
+                raw(source, t_ns, data)
+            except Exception as err:
+                self._sink_failed(raw, err)
+            try:
+                frame(sample)
+            except Exception as err:
+                self._sink_failed(frame, err)
+
+        return raw_then_frame
 
     def _spread(self, source: str, frames: Sequence[Frame]) -> Sequence[Frame]:
         """Give the samples of one read their own times.
@@ -188,7 +216,7 @@ class Pipeline:
         self.sinks.append(sink)
         self._raw.append(sink.raw)
         self._frame.append(sink.frame)
-        self._read.append(sink.read)
+        self._read.append(self._read_of(sink))
         self._pose.append(sink.pose)
         self._status.append(sink.status)
 
@@ -310,9 +338,6 @@ class PoseList:
 
     def frame(self, frame: Frame) -> None:
         """Frames are not kept."""
-
-    def read(self, source: str, t_ns: int, data: bytes, frame: Frame) -> None:
-        """Neither are kept."""
 
     def pose(self, pose: Pose) -> None:
         self.poses.append(pose)
