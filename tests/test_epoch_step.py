@@ -19,6 +19,7 @@ import pytest
 from drivers.frames import AnchorRange, Frame, ImuSample, UwbRanges
 from uwbd.config import parse
 from uwbd.fusion import native
+from uwbd.fusion.eskf import Eskf
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.settings import FilterConfig
 from uwbd.fusion.types import Pose
@@ -352,3 +353,29 @@ def test_the_epochs_transition_is_kept_for_the_smoother_only() -> None:
     assert not plain.ekf.keep_transition and recording.ekf.keep_transition
     with pytest.raises(RuntimeError, match="keep_transition"):
         plain.ekf.take_epoch(with_phi=True)
+
+
+def test_the_c_steps_propagate_the_covariance_themselves(monkeypatch: pytest.MonkeyPatch
+                                                         ) -> None:
+    """Without Gauss–Markov states the C steps (IMU and UWB) propagate the covariance
+    themselves, never through the method; with them, every propagation is the method's."""
+    calls = [0]
+    method = Eskf.propagate
+
+    def counted(ekf: Eskf) -> None:
+        calls[0] += 1
+        method(ekf)
+
+    monkeypatch.setattr(Eskf, "propagate", counted)
+    sim = simulate(handheld_async(2))
+    cfg = parse(simulation_toml(sim)).filter_config()
+    frames = [f for f in merge(sim.imu, sim.uwb) if f.t_ns < sim.imu[0].t_ns + 20 * 10**9]
+    made = []
+    for multipath in (False, True):
+        calls[0] = 0
+        flt = Filter(dataclasses.replace(cfg, multipath_states=multipath))
+        for frame in frames:
+            flt.predict(frame) if isinstance(frame, ImuSample) else flt.update(frame)
+        assert flt.ekf is not None and flt.ekf.interval_s < 0.05
+        made.append(calls[0])
+    assert made[0] == 0 and made[1] > 500

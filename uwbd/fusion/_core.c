@@ -210,10 +210,18 @@ void uwbd_predict_step(double p[3], double v[3], const double q[4], const double
 static const char *const nominal_text[9] = {"p", "v", "q", "b_g", "b_a", "_sum_fn", "_sum_w",
                                             "gravity_mps2", "_T"};
 static PyObject *keys[9];
+/* and those Eskf.propagate reads and writes (uwbd_propagate) */
+enum { G_CORE, G_MARKOV, G_T, G_DV, G_SUM_FN, G_SUM_W, G_P, G_PHI, G_KEEP, G_Q, G_Q_RATE,
+       G_PROPAGATED, G_COUNT };
+static const char *const propagate_text[G_COUNT] = {
+    "_core", "_markov", "_T", "_dv_epoch", "_sum_fn", "_sum_w", "P", "_Phi_epoch",
+    "keep_transition", "q", "_q_rate", "_epoch_propagated"};
+static PyObject *propagate_keys[G_COUNT];
 
 int uwbd_nominal_init(void)
 {
-    return uwbd_intern(nominal_text, keys, 9);
+    return uwbd_intern(nominal_text, keys, 9) < 0 ? -1
+           : uwbd_intern(propagate_text, propagate_keys, G_COUNT);
 }
 
 int uwbd_nominal_read(PyObject *ns, UwbdNominal *s)
@@ -459,6 +467,56 @@ static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_
         PyBuffer_Release(&Eb);
     PyBuffer_Release(&Qb);
     Py_RETURN_NONE;
+}
+
+/* Eskf.propagate without its Python call, on vars(ekf) (propagate_keys) */
+int uwbd_propagate(PyObject *ns)
+{
+    PyObject *v[G_COUNT];
+    for (int i = 0; i < G_COUNT; i++)
+        if ((v[i] = PyDict_GetItemWithError(ns, propagate_keys[i])) == NULL)
+            return PyErr_Occurred() ? -1 : 0;
+    if (v[G_CORE] == Py_None || !PyFloat_CheckExact(v[G_T]))
+        return 0;
+    Py_ssize_t markov = PyObject_Length(v[G_MARKOV]);
+    if (markov != 0) /* a Gauss–Markov step follows, and the symmetrising after it */
+        return markov < 0 ? -1 : 0;
+    double T = PyFloat_AS_DOUBLE(v[G_T]), dv[3], sum_fn[3];
+    if (!(T > 0.0)) /* (as the method: nothing to propagate) */
+        return 1;
+    if (!uwbd_floats_of(v[G_DV], dv, 3, 1) || !uwbd_floats_of(v[G_SUM_FN], sum_fn, 3, 1))
+        return 0;
+    int keep = PyObject_IsTrue(v[G_KEEP]);
+    if (keep < 0)
+        return -1;
+    /* the method's `P = ascontiguousarray(P)` keeps a contiguous P as it is; core_propagate
+     * checks its arguments before it changes anything: a P or other argument not as it
+     * expects is declined, and the method (which raises what it raises) takes it */
+    PyObject *args[8] = {v[G_P], keep ? v[G_PHI] : Py_None, v[G_Q], v[G_SUM_FN], v[G_SUM_W],
+                         v[G_T], v[G_Q_RATE], Py_True};
+    PyObject *rc = core_propagate(NULL, args, 8);
+    if (rc == NULL) {
+        if (PyErr_ExceptionMatches(PyExc_MemoryError))
+            return -1;
+        PyErr_Clear();
+        return 0;
+    }
+    Py_DECREF(rc);
+    for (int i = 0; i < 3; i++)
+        dv[i] += sum_fn[i];
+    double zero[3] = {0.0, 0.0, 0.0};
+    PyObject *T0 = PyFloat_FromDouble(0.0), *fn0 = uwbd_floats(zero, 3, 1),
+             *w0 = uwbd_floats(zero, 3, 1);
+    int failed = T0 == NULL || fn0 == NULL || w0 == NULL ||
+                 uwbd_set_list(v[G_DV], dv, 3) < 0 ||
+                 PyDict_SetItem(ns, propagate_keys[G_PROPAGATED], Py_True) < 0 ||
+                 PyDict_SetItem(ns, propagate_keys[G_T], T0) < 0 || /* _reset_interval */
+                 PyDict_SetItem(ns, propagate_keys[G_SUM_FN], fn0) < 0 ||
+                 PyDict_SetItem(ns, propagate_keys[G_SUM_W], w0) < 0;
+    Py_XDECREF(T0);
+    Py_XDECREF(fn0);
+    Py_XDECREF(w0);
+    return failed ? -1 : 1;
 }
 
 /* -- sequential scalar update: every UWB epoch ------------------------------------------ */

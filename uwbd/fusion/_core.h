@@ -57,6 +57,10 @@ int uwbd_nominal_read(PyObject *ns, UwbdNominal *s);
 int uwbd_nominal_predict(UwbdNominal *s, PyObject *ns, const double acc[3],
                          const double gyro[3], double dt, double *interval);
 void uwbd_nominal_release(UwbdNominal *s);
+/* Eskf.propagate on vars(ekf), without its Python call, where the C core runs it whole
+ * (no Gauss–Markov state): 1 done, 0 not so (nothing changed: call the method), -1 an
+ * error. */
+int uwbd_propagate(PyObject *ns);
 
 /* _imu_read.c */
 /* An int within ±2^62 (1), None (1 and *none set, if none is given), else 0; -1 an error. */

@@ -18,8 +18,9 @@
  * Filter.step_parts and uwbd.service.imu_read.imu_read_path make them.
  *   imu_step(step_parts, t_ns, acc, gyro) -> True | body | None
  *   imu_read(read_parts, data, t_ns) -> ImuSample | (ImuSample, body) | None
- * body (the sample in body axes): integrated, and the covariance is due: the caller
- * propagates (Filter.finish_prediction), as Filter._predict would have next.
+ * A covariance due is propagated here (uwbd_propagate) where the C core can take the
+ * propagation whole; else body (the sample in body axes): integrated, and the covariance is
+ * due: the caller propagates (Filter.finish_prediction), as Filter._predict would have next.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -499,6 +500,8 @@ static int step_writes(PyObject *const *fp, PyObject *t_obj, const double *c, Re
         double dt = (double)(r->t - r->state_t) / 1e9;
         if (dt > 0) {
             int due = predict(r, r->ab, r->gb, dt, c[C_PROPAGATE]);
+            if (due > 0) /* Filter.finish_prediction: the propagation, here where it can */
+                due = uwbd_propagate(r->ekf) > 0 ? 0 : PyErr_Occurred() ? -1 : 1;
             if (due != 0)
                 return due; /* (due: t_ns and _last_imu are set after the propagation) */
         }
