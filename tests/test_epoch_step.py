@@ -36,6 +36,7 @@ def state(flt: Filter) -> str:
     """Everything an update writes, as text (NaN compares equal so)."""
     ekf = flt.ekf
     nominal = None if ekf is None else (ekf.p, ekf.v, ekf.q, ekf.b_g, ekf.b_a, ekf._T,
+                                        type(ekf._T), ekf._epoch_propagated,
                                         ekf._sum_fn, ekf._sum_w, ekf._dv_epoch,
                                         ekf.P.tolist(), ekf.b_r.tolist(), ekf._Phi_epoch.tolist())
     monitor = {k: list(v) if k == "_outcomes" else v for k, v in vars(flt.monitor).items()}
@@ -379,3 +380,21 @@ def test_the_c_steps_propagate_the_covariance_themselves(monkeypatch: pytest.Mon
         assert flt.ekf is not None and flt.ekf.interval_s < 0.05
         made.append(calls[0])
     assert made[0] == 0 and made[1] > 500
+
+
+def test_while_recording_the_imu_steps_propagation_keeps_the_epochs_transition() -> None:
+    """Recording for the smoother, the epoch step declines but the IMU step still propagates,
+    multiplying up the epoch's Φ: the same as the reference's, to the bit."""
+    sim = simulate(ceiling_room(2))
+    cfg = parse(simulation_toml(sim)).filter_config()
+    fast, slow = Filter(cfg, record=True), Filter(cfg, record=True)
+    slow.epoch_step = slow.pose_step = slow.imu_step = None
+    assert fast.imu_step is not None
+    frames = [f for f in merge(sim.imu, sim.uwb) if f.t_ns < sim.imu[0].t_ns + 20 * 10**9]
+    for k, frame in enumerate(frames):
+        for flt in (fast, slow):
+            flt.predict(frame) if isinstance(frame, ImuSample) else flt.update(frame)
+        if k % 50 == 0:
+            assert state(fast) == state(slow), f"frame {k}"
+    assert fast.ekf is not None and fast.ekf.keep_transition
+    assert state(fast) == state(slow)

@@ -409,6 +409,15 @@ static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_
             Phi[i][j] = (i == j ? 1.0 : 0.0) + A[i][j] + 0.5 * s;
         }
     nonzeros(Phi, nz, count);
+    /* (the work space first: a failure leaves every argument as it was) */
+    double *rows = PyMem_Malloc(sizeof(double) * N_CORE * n);
+    if (rows == NULL) {
+        PyBuffer_Release(&Pb);
+        if (keep)
+            PyBuffer_Release(&Eb);
+        PyBuffer_Release(&Qb);
+        return PyErr_NoMemory();
+    }
     /* Φ_epoch ← Φ Φ_epoch */
     double tmp[N_CORE * N_CORE];
     for (int i = 0; keep && i < N_CORE; i++)
@@ -421,14 +430,6 @@ static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_
     if (keep)
         memcpy(E, tmp, sizeof tmp);
     /* P[:15, :] ← Φ P[:15, :] (15×n), then P[:, :15] ← P[:, :15] Φᵀ (n×15) */
-    double *rows = PyMem_Malloc(sizeof(double) * N_CORE * n);
-    if (rows == NULL) {
-        PyBuffer_Release(&Pb);
-        if (keep)
-            PyBuffer_Release(&Eb);
-        PyBuffer_Release(&Qb);
-        return PyErr_NoMemory();
-    }
     for (int i = 0; i < N_CORE; i++) { /* each sum in the order above, along a row at once */
         double *restrict out = rows + i * n;
         for (Py_ssize_t j = 0; j < n; j++)
@@ -472,51 +473,74 @@ static PyObject *core_propagate(PyObject *self, PyObject *const *args, Py_ssize_
 /* Eskf.propagate without its Python call, on vars(ekf) (propagate_keys) */
 int uwbd_propagate(PyObject *ns)
 {
-    PyObject *v[G_COUNT];
-    for (int i = 0; i < G_COUNT; i++)
-        if ((v[i] = PyDict_GetItemWithError(ns, propagate_keys[i])) == NULL)
+    PyObject *v[G_COUNT]; /* held: a __bool__ or a collection below may run Python code */
+    for (int i = 0; i < G_COUNT; i++) {
+        if ((v[i] = PyDict_GetItemWithError(ns, propagate_keys[i])) == NULL) {
+            for (int j = 0; j < i; j++)
+                Py_DECREF(v[j]);
             return PyErr_Occurred() ? -1 : 0;
-    if (v[G_CORE] == Py_None || !PyFloat_CheckExact(v[G_T]))
-        return 0;
+        }
+        Py_INCREF(v[i]);
+    }
+    int done = 0;
+    PyObject *T0 = NULL, *fn0 = NULL, *w0 = NULL;
+    double T = 0.0, dv[3], sum_fn[3], zero[3] = {0.0, 0.0, 0.0};
+    /* the method's `P = ascontiguousarray(P)` keeps a contiguous ndarray as it is (a subclass
+     * it would make a plain one: declined) */
+    if (v[G_CORE] == Py_None || !PyFloat_CheckExact(v[G_T]) ||
+        strcmp(Py_TYPE(v[G_P])->tp_name, "numpy.ndarray") != 0)
+        goto out;
+    T = PyFloat_AS_DOUBLE(v[G_T]);
+    if (T <= 0.0) { /* (as the method: nothing to propagate) */
+        done = 1;
+        goto out;
+    }
+    /* a Gauss–Markov step follows, and the symmetrising after it: the method's; so is
+     * anything whose truth or length raises (the method raises it where it raises it) */
     Py_ssize_t markov = PyObject_Length(v[G_MARKOV]);
-    if (markov != 0) /* a Gauss–Markov step follows, and the symmetrising after it */
-        return markov < 0 ? -1 : 0;
-    double T = PyFloat_AS_DOUBLE(v[G_T]), dv[3], sum_fn[3];
-    if (!(T > 0.0)) /* (as the method: nothing to propagate) */
-        return 1;
-    if (!uwbd_floats_of(v[G_DV], dv, 3, 1) || !uwbd_floats_of(v[G_SUM_FN], sum_fn, 3, 1))
-        return 0;
-    int keep = PyObject_IsTrue(v[G_KEEP]);
-    if (keep < 0)
-        return -1;
-    /* the method's `P = ascontiguousarray(P)` keeps a contiguous P as it is; core_propagate
-     * checks its arguments before it changes anything: a P or other argument not as it
-     * expects is declined, and the method (which raises what it raises) takes it */
+    int keep = markov == 0 ? PyObject_IsTrue(v[G_KEEP]) : -1;
+    if (markov != 0 || keep < 0 || !uwbd_floats_of(v[G_DV], dv, 3, 1) ||
+        !uwbd_floats_of(v[G_SUM_FN], sum_fn, 3, 1)) {
+        PyErr_Clear();
+        goto out;
+    }
+    /* what the writes after the propagation need, made first: nothing can fail after it */
+    T0 = PyFloat_FromDouble(0.0);
+    fn0 = uwbd_floats(zero, 3, 1);
+    w0 = uwbd_floats(zero, 3, 1);
+    if (T0 == NULL || fn0 == NULL || w0 == NULL) {
+        done = -1;
+        goto out;
+    }
+    /* core_propagate checks its arguments before it changes anything: one not as it expects
+     * is declined, and the method (which raises what it raises) takes it */
     PyObject *args[8] = {v[G_P], keep ? v[G_PHI] : Py_None, v[G_Q], v[G_SUM_FN], v[G_SUM_W],
                          v[G_T], v[G_Q_RATE], Py_True};
     PyObject *rc = core_propagate(NULL, args, 8);
     if (rc == NULL) {
-        if (PyErr_ExceptionMatches(PyExc_MemoryError))
-            return -1;
+        if (PyErr_ExceptionMatches(PyExc_MemoryError)) {
+            done = -1;
+            goto out;
+        }
         PyErr_Clear();
-        return 0;
+        goto out;
     }
     Py_DECREF(rc);
     for (int i = 0; i < 3; i++)
         dv[i] += sum_fn[i];
-    double zero[3] = {0.0, 0.0, 0.0};
-    PyObject *T0 = PyFloat_FromDouble(0.0), *fn0 = uwbd_floats(zero, 3, 1),
-             *w0 = uwbd_floats(zero, 3, 1);
-    int failed = T0 == NULL || fn0 == NULL || w0 == NULL ||
-                 uwbd_set_list(v[G_DV], dv, 3) < 0 ||
-                 PyDict_SetItem(ns, propagate_keys[G_PROPAGATED], Py_True) < 0 ||
-                 PyDict_SetItem(ns, propagate_keys[G_T], T0) < 0 || /* _reset_interval */
-                 PyDict_SetItem(ns, propagate_keys[G_SUM_FN], fn0) < 0 ||
-                 PyDict_SetItem(ns, propagate_keys[G_SUM_W], w0) < 0;
+    done = uwbd_set_list(v[G_DV], dv, 3) < 0 ||
+                   PyDict_SetItem(ns, propagate_keys[G_PROPAGATED], Py_True) < 0 ||
+                   PyDict_SetItem(ns, propagate_keys[G_T], T0) < 0 || /* _reset_interval */
+                   PyDict_SetItem(ns, propagate_keys[G_SUM_FN], fn0) < 0 ||
+                   PyDict_SetItem(ns, propagate_keys[G_SUM_W], w0) < 0
+               ? -1 : 1;
+out:
     Py_XDECREF(T0);
     Py_XDECREF(fn0);
     Py_XDECREF(w0);
-    return failed ? -1 : 1;
+    for (int i = 0; i < G_COUNT; i++)
+        Py_DECREF(v[i]);
+    return done;
 }
 
 /* -- sequential scalar update: every UWB epoch ------------------------------------------ */

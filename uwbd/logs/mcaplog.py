@@ -232,6 +232,9 @@ class LogWriter:
                 self.frame(frame)  # a read its record cannot hold keeps its frame's
             except UNENCODABLE as also:
                 raise UnencodableError(2, f"{err}; and its frame: {also}") from also
+            except OSError:
+                self.unflushed += 1  # the raw record too: counted among those the cut loses
+                raise
             raise
         self.frame(frame)
 
