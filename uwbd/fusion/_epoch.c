@@ -342,10 +342,14 @@ static int predict_to(PyObject *const *parts, PyObject *t_obj, const double *c, 
     }
     if (interval >= c[K_MIN_PROPAGATE] || !m->aligned) {
         int done = uwbd_propagate(e);
-        PyObject *rc = done != 0 ? NULL : PyObject_CallMethodNoArgs(m->ekf, names[N_PROPAGATE]);
-        if (done < 0 || (done == 0 && rc == NULL))
+        if (done == 0) { /* not the C core's case: the method */
+            PyObject *rc = PyObject_CallMethodNoArgs(m->ekf, names[N_PROPAGATE]);
+            if (rc == NULL)
+                return -1;
+            Py_DECREF(rc);
+        } else if (done < 0) {
             return -1;
-        Py_XDECREF(rc);
+        }
     }
     /* take_epoch(False): Σ R f Δt restarted (what it was kept for the held heading); Φ and
      * the decays too, once propagated */

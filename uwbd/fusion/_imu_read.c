@@ -500,8 +500,10 @@ static int step_writes(PyObject *const *fp, PyObject *t_obj, const double *c, Re
         double dt = (double)(r->t - r->state_t) / 1e9;
         if (dt > 0) {
             int due = predict(r, r->ab, r->gb, dt, c[C_PROPAGATE]);
-            if (due > 0) /* Filter.finish_prediction: the propagation, here where it can */
-                due = uwbd_propagate(r->ekf) > 0 ? 0 : PyErr_Occurred() ? -1 : 1;
+            if (due > 0) { /* Filter.finish_prediction: the propagation, here where it can */
+                int done = uwbd_propagate(r->ekf);
+                due = done < 0 ? -1 : done == 0; /* (not done: the caller's) */
+            }
             if (due != 0)
                 return due; /* (due: t_ns and _last_imu are set after the propagation) */
         }
