@@ -9,10 +9,10 @@ from setuptools import Extension, setup
 
 setup(ext_modules=[
     Extension(
-        "uwbd.fusion._core", ["uwbd/fusion/_core.c", "uwbd/fusion/_imu_read.c",
-                                "uwbd/fusion/_outcomes.c", "uwbd/fusion/_epoch.c",
-                                "uwbd/fusion/_pose.c"],
-        depends=["uwbd/fusion/_core.h", "uwbd/_tuple.h"],
+        "uwbd.fusion._core", ["uwbd/fusion/_core.c", "uwbd/fusion/_state.c",
+                              "uwbd/fusion/_update.c", "uwbd/fusion/mm_range.c",
+                              "uwbd/fusion/_lsq.c", "uwbd/fusion/_rest.c"],
+        depends=["uwbd/fusion/_core.h"],
         # a * b + c rounded as Python rounds it (no fused multiply-add): the same bits; -O3
         # vectorises the element-wise loops (sums are never reassociated: the same bits)
         extra_compile_args=["-O3", "-ffp-contract=off", "-fno-fast-math"],

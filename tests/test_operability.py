@@ -430,39 +430,13 @@ def test_a_sink_without_read_gets_raw_and_frame_each_guarded(sim_log: Path) -> N
     assert trouble.failures == len(raws) and "raw broke" in trouble.last_error
 
 
-def test_a_sink_gets_a_read_the_same_whichever_way_it_went_in(sim_log: Path) -> None:
-    """raw, then frame: the calls a sink without ``read`` gets are the same whether the C
-    core took the reads whole or the Python steps did."""
-    contents = read_log(sim_log)
-    calls = []
-    for whole in (True, False):
-        sink = Frames()
-        pipeline = Pipeline(parse(contents.metadata["config_toml"]), [sink])
-        if not whole:
-            pipeline._imu_read.clear()
-        for m in contents.messages:
-            if m.topic.startswith("/raw/"):
-                pipeline.on_bytes(m.topic[5:], m.log_time_ns, m.data)
-        calls.append(sink.calls)
-    assert calls[0] == calls[1] and len(calls[0]) > 1000
-
-
 def test_a_read_that_breaks_the_pipeline_is_still_logged(sim_log: Path) -> None:
-    """Whichever way a read goes in (the C core's whole read among them), its bytes reach
-    the sinks before a bug on it stops the pipeline: the log shows the read that broke it."""
+    """A read's bytes reach the sinks before a bug on it stops the pipeline: the log shows
+    the read that broke it."""
     contents = read_log(sim_log)
     sink = Frames()
     pipeline = Pipeline(parse(contents.metadata["config_toml"]), [sink])
     pipeline.parsers["imu"] = BuggyParser()
-    fast = pipeline._imu_read.get("imu")
-    if fast is not None:  # the C core's read: a bug in it, as in the parser
-
-        def buggy(data: bytes, t_ns: int) -> Any:
-            if b"BUG" in data:
-                raise ZeroDivisionError("a bug")
-            return fast(data, t_ns)
-
-        pipeline._imu_read["imu"] = buggy
     for m in contents.messages[:300]:
         if m.topic.startswith("/raw/"):
             pipeline.on_bytes(m.topic[5:], m.log_time_ns, m.data)

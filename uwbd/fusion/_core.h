@@ -1,84 +1,65 @@
-/* What the C core's files share (_core.c: the filter's algebra; _imu_read.c: the common IMU
- * read in one call; _epoch.c: the common UWB message; _outcomes.c: its rows' outcomes). */
+/* What the C core's files share. _core.c: the module and its helpers; _state.c: the State
+ * type, which owns the filter's numbers (docs/ekf.md §2, §3, §5); _update.c: the scalar
+ * updates and the robust weights (§5); mm_range.c: the range rows (§4); _lsq.c: the UWB-only
+ * multilateration; _rest.c: the rest test's moments. No function here reads a Python
+ * object's attributes: numbers come in as arguments, buffers or tuples of floats. */
 #ifndef UWBD_CORE_H
 #define UWBD_CORE_H
 
 #include <Python.h>
 #include <stdint.h>
 
-#define N_CORE 15
+#define N_CORE 15 /* p, v, θ, b_g, b_a: the error state's core (docs/ekf.md §1) */
+#define TH0 6     /* the attitude error's first column */
 
-/* Three (or four) floats out of a list or tuple of floats. */
+/* -- helpers (_core.c) ------------------------------------------------------------------- */
+/* A C-contiguous float64 buffer of `count` doubles (count < 0: any size): 0, or -1. */
+int uwbd_get_doubles(PyObject *obj, Py_buffer *view, Py_ssize_t count, int writable,
+                     const char *what);
+/* n floats out of a sequence of numbers: 0, or -1 with an error set. */
 int uwbd_get_vec(PyObject *seq, double *out, Py_ssize_t n, const char *what);
 /* A new list (as_list) or tuple of n floats; NULL with an error set. */
 PyObject *uwbd_floats(const double *v, Py_ssize_t n, int as_list);
-/* n floats out of a list (or, unless list_only, a tuple) of exactly n Python floats: 1, else
- * 0 (the callers decline). */
-int uwbd_floats_of(PyObject *seq, double *out, Py_ssize_t n, int list_only);
-/* The first n numbers of a tuple as doubles: 0, or -1 with an error set. */
-int uwbd_doubles_of(PyObject *tuple, double *out, Py_ssize_t n);
-/* Each of the n names interned: 0, or -1 with an error set. */
-int uwbd_intern(const char *const *text, PyObject **out, int n);
-/* Store doubles back into an existing list of that length, in place. */
-int uwbd_set_list(PyObject *list, const double *v, Py_ssize_t n);
-/* Eskf.predict's arithmetic: p, v, sum_fn, sum_w in place, the new q in qn. */
-void uwbd_predict_step(double p[3], double v[3], const double q[4], const double bg[3],
-                       const double ba[3], double sfn[3], double sw[3], const double acc[3],
-                       const double gyro[3], double dt, double g, double qn[4]);
+/* q ⊗ Exp(θ), normalised (eskf._turned). */
+void uwbd_turned(const double q[4], double tx, double ty, double tz, double out[4]);
+/* R(q): body to navigation. */
+void uwbd_quat_to_matrix(const double q[4], double R[3][3]);
+/* P ← T P Tᵀ with T = I but its attitude block G (n×n, in place). */
+void uwbd_transform_attitude(double *P, Py_ssize_t n, const double G[3][3]);
+/* P ← (P + Pᵀ)/2, as numpy's 0.5 * (P + P.T) (n×n, in place). */
+void uwbd_symmetrise(double *P, Py_ssize_t n);
 
-/* fuse_ranges on the epoch's own numbers (anchors k×3, ranges, var), nominal = p, v, q,
- * b_g, b_a: (rows, q), None (the reference's case), or NULL with an error set. */
-PyObject *uwbd_fuse_ranges_on(PyObject *P_obj, PyObject *dx_obj, PyObject *b_r_obj,
-                              PyObject *const *nominal, const double lever[3],
-                              const double *anchors, const double *ranges, const double *var,
-                              Py_ssize_t k, PyObject *columns, PyObject *H_obj,
-                              PyObject *y_obj, PyObject *R_obj, PyObject *decide,
-                              Py_ssize_t c0, Py_ssize_t c1);
-/* A variance of P above its limit or below zero: 1, 0, -1 (an error). */
-int uwbd_diagonal_out_of_bounds(PyObject *P_obj, PyObject *limit);
-/* Every entry of P finite and below `bound` in magnitude: 1, 0, -1 (an error). */
-int uwbd_all_finite_below(PyObject *P_obj, double bound);
-
-/* pose_numbers(P, q, p, v, aligned, max_yaw_sigma): Filter.pose's numbers, or None. */
-PyObject *uwbd_pose_numbers(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
-
-/* The running Eskf's nominal state as Eskf.predict reads and writes it (its namespace's
- * p, v, q, b_g, b_a, _sum_fn, _sum_w: new references; their numbers; gravity; _T). */
+/* -- the scalar updates (_update.c) ------------------------------------------------------ */
+/* How each row of one update is weighed (robust.RowPolicy: a tuple, read once). */
 typedef struct {
-    PyObject *lists[7];
-    double st[7][4], gravity, interval;
-} UwbdNominal;
-int uwbd_nominal_init(void);
-/* Read from the Eskf's namespace: 1 as expected (lists of floats, q a list or tuple;
- * floats), 0 not (decline), -1 an error. */
-int uwbd_nominal_read(PyObject *ns, UwbdNominal *s);
-/* Eskf.predict on it (p, v and the sums in place, q and _T stored anew): 0, or -1 with an
- * error set; *interval: _T now. */
-int uwbd_nominal_predict(UwbdNominal *s, PyObject *ns, const double acc[3],
-                         const double gyro[3], double dt, double *interval);
-void uwbd_nominal_release(UwbdNominal *s);
-/* Eskf.propagate on vars(ekf), without its Python call, where the C core runs it whole
- * (no Gauss–Markov state): 1 done, 0 not so (nothing changed: call the method), -1 an
- * error. */
-int uwbd_propagate(PyObject *ns);
+    const char *kinds;
+    Py_ssize_t count;
+    double gate_1, c_long, c_short;
+    int robust, fix_ok;
+} UwbdRowPolicy;
+/* A RowPolicy tuple read into pol (1), a callable to call back per row (0), or -1. */
+int uwbd_get_decide(PyObject *decide, UwbdRowPolicy *pol);
+/* The rows of Eskf.sequential_update on P (n×n) and dx (n) in place; work: 3n doubles.
+ * Returns the list of (ν, S, w, numerical) rows and in *fused whether any was fused. */
+PyObject *uwbd_scalar_rows(double *P, double *dx, Py_ssize_t n, const double *H,
+                           const double *y, const double *Rv, Py_ssize_t m, PyObject *decide,
+                           const UwbdRowPolicy *pol, Py_ssize_t c0, Py_ssize_t c1,
+                           double *work, int *fused);
 
-/* _imu_read.c */
-/* An int within ±2^62 (1), None (1 and *none set, if none is given), else 0; -1 an error. */
-int uwbd_as_i64(PyObject *v, int64_t *out, int *none);
-int uwbd_imu_read_init(void);
-PyObject *uwbd_imu_read(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
-PyObject *uwbd_imu_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
+/* -- the range model's rows (mm_range.c) ------------------------------------------------ */
+/* The rows of the ranges (measurements.range_rows) into H (k×n, zeroed) and y: 0, or -1. */
+int uwbd_range_rows(const double p[3], const double q[4], const double lever[3],
+                    const double *anchors, const double *ranges, Py_ssize_t k,
+                    const double *b_r, Py_ssize_t n, PyObject *columns, double *H, double *y,
+                    double *closest);
 
-/* _epoch.c */
-int uwbd_epoch_init(void);
-PyObject *uwbd_epoch_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
+/* -- stateless functions of the module -------------------------------------------------- */
+PyObject *uwbd_gauss_newton(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
+PyObject *uwbd_leverages(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
+PyObject *uwbd_multilaterate(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
+PyObject *uwbd_window_moments(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 
-/* _pose.c */
-int uwbd_pose_init(void);
-PyObject *uwbd_pose_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
-
-/* _outcomes.c */
-int uwbd_outcomes_init(void);
-PyObject *uwbd_outcomes(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
+/* -- the State type (_state.c) ---------------------------------------------------------- */
+extern PyTypeObject UwbdStateType;
 
 #endif

@@ -4,9 +4,9 @@ Symbols follow the derivation: ``p v q b_g b_a b_r`` nominal, ``δx`` error, ``F
 S K y``. The per-IMU-sample path (:meth:`Eskf.predict`) is plain float arithmetic; the
 covariance is propagated once per update interval (:meth:`Eskf.propagate`).
 
-This file is the reference: :meth:`Eskf.predict`, :meth:`Eskf.propagate` and
-:meth:`Eskf.sequential_update` run a line-by-line C translation (``_core.c``) when it is
-built (:mod:`.native`), and the code here otherwise.
+This class is the reference, written as docs/ekf.md reads: where the C core is built the
+filter runs :class:`uwbd.fusion.state.CoreEskf` instead, the same operations on a state the
+C type owns (``_core.State``), and tests/test_core.py holds the two to each other.
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ from typing import NamedTuple
 
 import numpy as np
 
-from uwbd.fusion import native
 from uwbd.fusion.robust import RowPolicy
 from uwbd.fusion.rotation import Array, quat_to_matrix, skew
 
@@ -58,27 +57,61 @@ class Row(NamedTuple):
 
 
 RawRow = tuple[float, float, float, bool]  # a Row's fields as the C core returns them
+# a pose's covariance (6×6 row-major over p and the nav-frame attitude), σ_xy, heading
+# observable, position, velocity, orientation (x, y, z, w)
+PoseNumbers = tuple[tuple[float, ...], float, bool, tuple[float, float, float],
+                    tuple[float, float, float], tuple[float, float, float, float]]
+
+
+def process_noise(noise: ImuNoise, n_range_bias: int, aux_tau_s: Array | None,
+                  aux_sigma: Array | None) -> tuple[Array, Array, Array]:
+    """What §3 takes for ``Q_d``: its diagonal per second (n), and per range-model state the
+    Gauss–Markov time constant ``τ`` (inf: a random walk, whose rate the diagonal holds)
+    and stationary variance."""
+    q_rate = np.zeros(N_CORE + n_range_bias)
+    q_rate[V_] = noise.acc**2
+    q_rate[TH_] = noise.gyro**2
+    q_rate[BG_] = noise.gyro_bias**2
+    q_rate[BA_] = noise.acc_bias**2
+    q_rate[N_CORE:] = noise.range_bias**2
+    tau = (np.full(n_range_bias, np.inf) if aux_tau_s is None
+           else np.asarray(aux_tau_s, dtype=float).reshape(n_range_bias))
+    markov = np.isfinite(tau)
+    q_rate[N_CORE:][markov] = 0.0
+    var = (np.zeros(n_range_bias) if aux_sigma is None
+           else np.where(markov, np.asarray(aux_sigma, dtype=float) ** 2, 0.0))
+    return q_rate, tau, var
 
 
 class Eskf:
     """The filter's state and the algebra on it; policy (gating, modes) lives in ``Filter``."""
 
+    # lists of floats here, numpy views of the C core's memory in CoreEskf
+    p: list[float] | Array
+    v: list[float] | Array
+    q: list[float] | Array
+    b_g: list[float] | Array
+    b_a: list[float] | Array
+
     def __init__(self, p: Vector, v: Vector, q: Vector,
                  P0: Array, noise: ImuNoise, n_range_bias: int = 0,
                  b_g: Vector = (0.0, 0.0, 0.0),
                  b_a: Vector = (0.0, 0.0, 0.0), aux_tau_s: Array | None = None,
-                 aux_sigma: Array | None = None, gravity_mps2: float = GRAVITY_MPS2) -> None:
-        """``n_range_bias`` range-model states follow ``P0``: by default random walks
-        (``noise.range_bias``); where ``aux_tau_s`` is finite, first-order Gauss–Markov
-        processes with time constant ``τ`` and stationary σ ``aux_sigma`` (§3).
-        ``gravity_mps2``: the local gravity the INS subtracts."""
+                 aux_sigma: Array | None = None, gravity_mps2: float = GRAVITY_MPS2,
+                 b_r: Vector | None = None) -> None:
+        """``n_range_bias`` range-model states follow ``P0`` (their values ``b_r``, zeros
+        by default): by default random walks (``noise.range_bias``); where ``aux_tau_s`` is
+        finite, first-order Gauss–Markov processes with time constant ``τ`` and stationary σ
+        ``aux_sigma`` (§3). ``gravity_mps2``: the local gravity the INS subtracts."""
         self.gravity_mps2 = float(gravity_mps2)
         self.n = N_CORE + n_range_bias
         if P0.shape != (self.n, self.n):
             raise ValueError(f"P0 must be {self.n}x{self.n}, got {P0.shape}")
         self.p, self.v, self.q = list(map(float, p)), list(map(float, v)), list(map(float, q))
         self.b_g, self.b_a = list(map(float, b_g)), list(map(float, b_a))
-        self.b_r = np.zeros(n_range_bias)
+        self.b_r = np.zeros(n_range_bias) if b_r is None else np.array(b_r, dtype=float)
+        if self.b_r.shape != (n_range_bias,):
+            raise ValueError(f"b_r must hold {n_range_bias} numbers, got {self.b_r.shape}")
         self.P = P0.astype(float).copy()
         self.noise = noise
         self._reset_interval()
@@ -96,33 +129,17 @@ class Eskf:
         self._F_template = np.zeros((N_CORE, N_CORE))
         self._F_template[P_, V_] = np.eye(3)
         self._F_template[TH_, BG_] = -np.eye(3)
-        self._q_rate = np.zeros(self.n)  # diagonal of Q per second
-        self._q_rate[V_] = noise.acc**2
-        self._q_rate[TH_] = noise.gyro**2
-        self._q_rate[BG_] = noise.gyro_bias**2
-        self._q_rate[BA_] = noise.acc_bias**2
-        self._q_rate[N_CORE:] = noise.range_bias**2
-        self._tau = np.full(n_range_bias, np.inf) if aux_tau_s is None else np.asarray(aux_tau_s)
+        self._q_rate, self._tau, var = process_noise(noise, n_range_bias, aux_tau_s, aux_sigma)
         self._markov = np.flatnonzero(np.isfinite(self._tau))
-        self._markov_columns = tuple(N_CORE + int(i) for i in self._markov)  # (for C)
-        self._q_rate[N_CORE + self._markov] = 0.0
-        self._markov_var = (np.zeros(0) if aux_sigma is None
-                            else np.asarray(aux_sigma)[self._markov] ** 2)
+        self._markov_var = var[self._markov]
         self._no_decay = np.ones(n_range_bias)
         self._decay_epoch = self._no_decay.copy()
-        self._core = native.core  # None: the pure-Python code below
         self._clamp_key: tuple[Array, float] | None = None
         self._clamp_limit = np.zeros(0)
 
     # -- nominal propagation: every IMU sample -------------------------------------------
     def predict(self, acc_b: Vector, gyro_b: Vector, dt: float) -> None:
         """Integrate one IMU sample over ``dt`` seconds (docs/ekf.md §2)."""
-        if self._core is not None:
-            self.q = self._core.predict(self.p, self.v, self.q, self.b_g, self.b_a,
-                                        self._sum_fn, self._sum_w, acc_b, gyro_b, dt,
-                                        self.gravity_mps2)
-            self._T += dt
-            return
         wx, wy, wz = (gyro_b[0] - self.b_g[0]) * dt, (gyro_b[1] - self.b_g[1]) * dt, \
             (gyro_b[2] - self.b_g[2]) * dt
         fx, fy, fz = acc_b[0] - self.b_a[0], acc_b[1] - self.b_a[1], acc_b[2] - self.b_a[2]
@@ -189,30 +206,14 @@ class Eskf:
         alignment) and restart the heading's variance at ``yaw_sigma_rad``, uncorrelated with
         the rest; roll and pitch statistics are kept. The velocity is left alone: position
         fixes kept it right while the heading was wrong."""
-        # quat_mul((cos, 0, 0, sin), q) term by term in floats: numpy's float64 arithmetic,
-        # the same bits at a tenth of the cost (it runs at every update while aligning)
         c, s = math.cos(dpsi / 2), math.sin(dpsi / 2)
-        w, x, y, z = self.q
-        q = np.array((c * w - 0.0 * x - 0.0 * y - s * z, c * x + 0.0 * w + 0.0 * z - s * y,
-                      c * y - 0.0 * z + 0.0 * w + s * x, c * z + 0.0 * y - 0.0 * x + s * w))
+        w, x, y, z = self.q  # (c, 0, 0, s) ⊗ q
+        q = np.array((c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w))
         self.q = (q / np.linalg.norm(q)).tolist()
-        k = TH_.start + 2  # nav-frame yaw error
-        if self._core is not None:  # the same, on the attitude rows and columns only
-            w, x, y, z = self.q  # R (quat_to_matrix) row by row, and its transpose
-            G = (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
-            P = self.P = np.ascontiguousarray(self.P)
-            self._core.turn_attitude_covariance(P, G)
-            P[k, :] = 0.0
-            P[:, k] = 0.0
-            P[k, k] = yaw_sigma_rad**2
-            self._core.turn_attitude_covariance(P, G[0::3] + G[1::3] + G[2::3])
-            return
-        R = self.R
         T = self._I.copy()  # body-frame attitude error -> nav-frame attitude error
-        T[TH_, TH_] = R
+        T[TH_, TH_] = self.R
         P = T @ self.P @ T.T
+        k = TH_.start + 2  # nav-frame yaw error
         P[k, :] = 0.0
         P[:, k] = 0.0
         P[k, k] = yaw_sigma_rad**2
@@ -225,64 +226,44 @@ class Eskf:
         Φ = I, or Gauss–Markov, Φ = e^(−T/τ) on the diagonal), so Φ is built and applied on
         the core rows and columns, and the decays on their own."""
         T = self._T
-        if T <= 0.0:
+        if not T > 0.0:
             return
         for i in range(3):
             self._dv_epoch[i] += self._sum_fn[i]
         self._epoch_propagated = True
-        symmetrised = False
-        if self._core is not None:
-            P = self.P = np.ascontiguousarray(self.P)
-            # with no Gauss–Markov step between, symmetrised in the same call (same numbers)
-            symmetrised = not len(self._markov)
-            self._core.propagate_core(P, self._Phi_epoch if self.keep_transition else None,
-                                      self.q, self._sum_fn, self._sum_w, T, self._q_rate,
-                                      symmetrised)
-        else:
-            R = self.R
-            f_n = np.array(self._sum_fn) / T
-            w = np.array(self._sum_w) / T
-            F = self._F_template.copy()
-            F[V_, TH_] = -skew(f_n) @ R  # −R [f]× = −[R f]× R
-            F[V_, BA_] = -R
-            F[TH_, TH_] = -skew(w)
-            A = F * T
-            Phi = self._I_core + A + 0.5 * (A @ A)
-            if self.keep_transition:
-                self._Phi_epoch = Phi @ self._Phi_epoch
-            P = self.P
-            P[:N_CORE, :] = Phi @ P[:N_CORE, :]
-            P[:, :N_CORE] = P[:, :N_CORE] @ Phi.T
-            P[self._diag] += self._q_rate * T
-        if not symmetrised and not self._markov_step(P, T, symmetrise=True):
-            self.P = 0.5 * (P + P.T)
+        R = self.R
+        f_n = np.array(self._sum_fn) / T
+        w = np.array(self._sum_w) / T
+        F = self._F_template.copy()
+        F[V_, TH_] = -skew(f_n) @ R  # −R [f]× = −[R f]× R
+        F[V_, BA_] = -R
+        F[TH_, TH_] = -skew(w)
+        A = F * T
+        Phi = self._I_core + A + 0.5 * (A @ A)
+        if self.keep_transition:
+            self._Phi_epoch = Phi @ self._Phi_epoch
+        P = self.P
+        P[:N_CORE, :] = Phi @ P[:N_CORE, :]
+        P[:, :N_CORE] = P[:, :N_CORE] @ Phi.T
+        P[self._diag] += self._q_rate * T
+        self._markov_step(P, T)
+        self.P = 0.5 * (P + P.T)
         self._reset_interval()
 
-    def _markov_step(self, P: Array, T: float, symmetrise: bool = False) -> bool:
-        """Gauss–Markov states decay towards 0 over ``T``; Q keeps their σ stationary. On
-        the C core (in place), with ``symmetrise`` P is made symmetric in the same call, as
-        ``0.5 * (P + P.T)`` makes it: True then."""
+    def _markov_step(self, P: Array, T: float) -> None:
+        """Gauss–Markov states decay towards 0 over ``T``; Q keeps their σ stationary."""
         m = self._markov
         if not len(m):
-            return False
+            return
         self._epoch_propagated = True  # the decays are no longer ones
         phi = np.exp(-T / self._tau[m])
-        core = self._core
-        b_r = self.b_r
-        decay = self._decay_epoch if self.keep_transition else None  # (Φ's diagonal part)
-        if core is not None and P.flags.c_contiguous and b_r.flags.c_contiguous \
-                and (decay is None or decay.flags.c_contiguous):
-            core.markov_step(P, self._markov_columns, phi, self._markov_var, b_r, decay,
-                             symmetrise)
-            return symmetrise
         k = N_CORE + m
         P[k, :] *= phi[:, None]
         P[:, k] *= phi[None, :]
         P[k, k] += self._markov_var * (1.0 - phi * phi)
-        b_r[m] *= phi
-        if decay is not None:
-            decay[m] *= phi
-        return False
+        self.b_r[m] *= phi
+        if self.keep_transition:
+            self._decay_epoch[m] *= phi
 
     def coast(self, dt: float, accel_sigma_mps2: float, yaw_rate_sigma_rps: float,
               tilt_rate_sigma_rps: float) -> None:
@@ -349,67 +330,6 @@ class Eskf:
         A row whose ``S`` is not finite or falls below ``R_i`` (``P`` lost its positive
         semi-definiteness along ``h``) is skipped and marked ``numerical``.
         """
-        if self._core is not None:  # the rows, the injection and the reset in one call
-            dx = np.zeros(self.n)
-            c0, c1 = self._considered_columns(considered)
-            P = self.P = np.ascontiguousarray(self.P, dtype=float)
-            return self._corrected(dx, self._core.update_and_inject(
-                P, np.ascontiguousarray(H, dtype=float), np.ascontiguousarray(y, dtype=float),
-                np.ascontiguousarray(R, dtype=float), decide, c0, c1, dx, self.p, self.v,
-                self.q, self.b_g, self.b_a, self.b_r))
-        P, dx, rows, fused = self._sequential_rows(H, y, R, decide, considered)
-        if fused:
-            self.P = 0.5 * (P + P.T)
-            self.inject(dx)
-        return rows
-
-    def fuse_ranges(self, lever_m: Array, anchors: Array, ranges: Array, var: Array,
-                    columns: tuple[tuple[int, ...], ...], extra: tuple[Array, Array, Array],
-                    decide: RowPolicy, considered: slice | None) -> list[RawRow] | None:
-        """A tight epoch on the C core in one call: the rows of
-        :func:`uwbd.fusion.measurements.range_rows` (``columns``: each range's range-model
-        state columns), then ``extra`` rows ``(H, y, R)``, through :meth:`sequential_update`.
-        ``None``, with nothing changed, where the core is not built or a range needs the
-        reference (an antenna within 1 mm of its anchor): the caller runs those two then."""
-        if self._core is None:
-            return None
-        dx = np.zeros(self.n)
-        c0, c1 = self._considered_columns(considered)
-        P = self.P = np.ascontiguousarray(self.P, dtype=float)
-        H, y, R = extra
-        out = self._core.fuse_ranges(
-            P, dx, self.p, self.v, self.q, self.b_g, self.b_a, self.b_r, lever_m,
-            np.ascontiguousarray(anchors, dtype=float), np.ascontiguousarray(ranges, dtype=float),
-            np.ascontiguousarray(var, dtype=float), columns,
-            np.ascontiguousarray(H, dtype=float), np.ascontiguousarray(y, dtype=float),
-            np.ascontiguousarray(R, dtype=float), decide, c0, c1)
-        return None if out is None else self._taken(dx, out)  # Row's fields, as tuples
-
-    def _considered_columns(self, considered: slice | None) -> tuple[int, int]:
-        c0, c1, step = (0, 0, 1) if considered is None else considered.indices(self.n)
-        if step != 1:
-            raise ValueError("considered states: a slice of step 1")
-        return c0, c1
-
-    def _corrected(self, dx: Array, out: tuple[list[tuple[float, float, float, bool]],
-                                              list[float] | None]) -> list[Row]:
-        """The C core's (rows, new q): when a row was fused, P and the state are corrected
-        already; the new attitude and ``δx`` are kept here."""
-        return [Row(*r) for r in self._taken(dx, out)]
-
-    def _taken(self, dx: Array, out: tuple[list[RawRow], list[float] | None]) -> list[RawRow]:
-        """:meth:`_corrected`, the rows left as the C core's tuples."""
-        raw, q = out
-        if q is not None:
-            self.q = q
-            self.last_dx = dx
-        return raw
-
-    def _sequential_rows(self, H: Array, y: Array, R: Array,
-                         decide: Callable[[int, float, float], float] | RowPolicy,
-                         considered: slice | None) -> tuple[Array, Array, list[Row], bool]:
-        """The rows of :meth:`sequential_update` in Python: the posterior ``P`` and ``δx``
-        (not yet injected), the rows, and whether any was fused."""
         P = self.P
         dx = np.zeros(self.n)
         rows = []
@@ -428,13 +348,26 @@ class Eskf:
             if not w > 0.0:  # 0, negative or NaN: not fused
                 continue
             fused = True
-            k = u / (s + r * (1.0 / w - 1.0))  # s − r + r/w
+            k = u / (s - r + r / w)
             if considered is not None:
                 k[considered] = 0.0
             dx += k * nu
-            M = np.outer(k, u - 0.5 * s * k)  # k uᵀ + u kᵀ − S k kᵀ = M + Mᵀ
-            P = P - M - M.T
-        return P, dx, rows, fused
+            P = P - np.outer(k, u) - np.outer(u, k) + s * np.outer(k, k)
+        if fused:
+            self.P = 0.5 * (P + P.T)
+            self.inject(dx)
+        return rows
+
+    def fuse_ranges(self, lever_m: Array, anchors: Array, ranges: Array, var: Array,
+                    columns: tuple[tuple[int, ...], ...], extra: tuple[Array, Array, Array],
+                    decide: RowPolicy, considered: slice | None) -> list[RawRow] | None:
+        """A tight epoch in one call where the C core runs it (:class:`CoreEskf`): the rows
+        of :func:`uwbd.fusion.measurements.range_rows` (``columns``: each range's
+        range-model state columns), then ``extra`` rows ``(H, y, R)``, through
+        :meth:`sequential_update`. Here, and where a range needs the reference (an antenna
+        within 1 mm of its anchor), ``None`` with nothing changed: the caller builds the
+        rows and calls :meth:`sequential_update`."""
+        return None
 
     def update(self, H: Array, y: Array, R: Array) -> Array:
         """Every row fused with full weight: returns the injected ``δx``."""
@@ -444,14 +377,6 @@ class Eskf:
 
     def inject(self, dx: Array) -> None:
         """Closed-loop correction of the nominal state, then the error reset ``P ← G P Gᵀ``."""
-        self._inject_nominal(dx)
-        # G = I except its attitude block I − ½[δθ]×: only those rows and columns change
-        G_th = np.eye(3) - 0.5 * skew(dx[TH_])
-        P = self.P
-        P[TH_, :] = G_th @ P[TH_, :]
-        P[:, TH_] = P[:, TH_] @ G_th.T
-
-    def _inject_nominal(self, dx: Array) -> None:
         self.last_dx = dx
         d = dx.tolist()  # plain floats: numpy scalars would slow every later predict() ~3×
         p, v, b_g, b_a = self.p, self.v, self.b_g, self.b_a
@@ -462,23 +387,19 @@ class Eskf:
             b_a[i] += d[12 + i]
         self.b_r += dx[N_CORE:]
         self.q = _turned(self.q, d[6], d[7], d[8])
+        # G = I except its attitude block I − ½[δθ]×: only those rows and columns change
+        G_th = np.eye(3) - 0.5 * skew(dx[TH_])
+        P = self.P
+        P[TH_, :] = G_th @ P[TH_, :]
+        P[:, TH_] = P[:, TH_] @ G_th.T
 
-    # -- keeping P sane ----------------------------------------------------------------------
+    # -- keeping P sane, repairs ----------------------------------------------------------
     def clamp_covariance(self, max_core_sigma: Array, max_aux_sigma: float) -> bool:
         """Variances within bounds and none negative; True if anything was clamped. Scaling
         a row and its column keeps ``P`` positive semi-definite."""
-        key = self._clamp_key
-        if key is None or key[0] is not max_core_sigma or key[1] != max_aux_sigma:
-            self._clamp_key = (max_core_sigma, max_aux_sigma)  # the same every epoch: made once
-            self._clamp_limit = np.concatenate(
-                [max_core_sigma, np.full(self.n - N_CORE, max_aux_sigma)])**2
-        limit = self._clamp_limit
-        if self._core is not None:
-            self.P = np.ascontiguousarray(self.P)
-            if not self._core.diagonal_out_of_bounds(self.P, limit):
-                return False
+        limit = self._clamp_limit_of(max_core_sigma, max_aux_sigma)
         d = np.diag(self.P)
-        if self._core is None and not ((d > limit).any() or (d < 0).any()):
+        if not ((d > limit).any() or (d < 0).any()):
             return False
         scale = np.sqrt(np.minimum(1.0, limit / np.maximum(d, 1e-300)))
         self.P = self.P * scale[:, None] * scale[None, :]
@@ -487,11 +408,56 @@ class Eskf:
             self.P[self._diag] = np.where(negative, 1e-9, np.diag(self.P))
         return True
 
+    def _clamp_limit_of(self, max_core_sigma: Array, max_aux_sigma: float) -> Array:
+        """The variances' limits (the same every epoch: made once)."""
+        key = self._clamp_key
+        if key is None or key[0] is not max_core_sigma or key[1] != max_aux_sigma:
+            self._clamp_key = (max_core_sigma, max_aux_sigma)
+            self._clamp_limit = np.concatenate(
+                [max_core_sigma, np.full(self.n - N_CORE, max_aux_sigma)])**2
+        return self._clamp_limit
+
     def widen(self, states: slice, sigma_factor: float) -> None:
         """Multiply the σ of ``states`` (and their correlations' share) by ``sigma_factor``."""
         d = np.ones(self.n)
         d[states] = sigma_factor
         self.P = self.P * d[:, None] * d[None, :]
+
+    def add_variances(self, d: Array) -> None:
+        """``P_ii += d_i``: what a step did not see (an unseen interval, a held heading)."""
+        self.P[self._diag] += d
+
+    def set_covariance(self, P: Array) -> None:
+        """``P`` restored (the last finite one, widened)."""
+        self.P = np.array(P, dtype=float).reshape(self.n, self.n)
+
+    def move_to(self, p: Vector, v: Vector) -> None:
+        """Position and velocity set (a position reset to a UWB fix)."""
+        self.p, self.v = [float(c) for c in p], [float(c) for c in v]
+
+    def pose_numbers(self, aligned: bool, max_yaw_sigma_rad: float) -> PoseNumbers | None:
+        """The pose's covariance, horizontal σ, whether the heading is observable, position,
+        velocity and orientation (x, y, z, w); ``None`` when a number is not finite.
+
+        The covariance is over position and the attitude error turned into the navigation
+        frame, ``T P Tᵀ`` with ``T = [[I, 0, 0], [0, 0, R]]`` over (p, v, θ), made
+        symmetric; while the heading is not ``aligned`` its σ is a placeholder, so yaw is
+        given the variance π², uncorrelated: to a subscriber it is unknown."""
+        T = np.zeros((6, TH_.stop))
+        T[:3, P_] = np.eye(3)
+        T[3:, TH_] = self.R
+        M = T @ self.P[:TH_.stop, :TH_.stop] @ T.T
+        cov = 0.5 * (M + M.T)
+        if not aligned:
+            cov[5, :] = 0.0
+            cov[:, 5] = 0.0
+            cov[5, 5] = math.pi**2
+        p, v, (w, x, y, z) = self.p, self.v, self.q
+        if not math.isfinite(sum(p) + sum(v) + w + x + y + z + float(cov.sum())):
+            return None
+        observable = aligned and math.sqrt(max(cov[5, 5], 0.0)) < max_yaw_sigma_rad
+        return (tuple(cov.ravel().tolist()), math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0)),
+                observable, (p[0], p[1], p[2]), (v[0], v[1], v[2]), (x, y, z, w))
 
     # -- views ----------------------------------------------------------------------------
     @property
@@ -510,7 +476,7 @@ def _full_weight(i: int, nu: float, s: float) -> float:
     return 1.0
 
 
-def _turned(q: list[float], tx: float, ty: float, tz: float) -> list[float]:
+def _turned(q: Vector, tx: float, ty: float, tz: float) -> list[float]:
     """``q ⊗ Exp(θ)`` normalised, in plain floats (the per-IMU-sample attitude step)."""
     angle = math.sqrt(tx * tx + ty * ty + tz * tz)
     if angle < 1e-9:

@@ -21,9 +21,9 @@ the sequence it runs; each step's policy has a module of its own:
 * :mod:`.outputs` — the pose, the health record, the diagnostics (a mixin of this class);
 * :mod:`.eskf` — the algebra (docs/ekf.md).
 
-Where the C core is built, the common UWB message and the common pose run whole in it
-(``epoch_step``, ``_epoch.c``; ``pose_step``, ``_pose.c``), calling the steps here for the
-rarer branches; the Python below is their reference, to the bit (tests/test_epoch_step.py).
+The numbers (state, covariance, the algebra on them) are :class:`~uwbd.fusion.eskf.Eskf`'s,
+on the C core where it is built (:class:`~uwbd.fusion.state.CoreEskf`); every decision is
+made here and in the modules above.
 
 Life cycle: **waiting** (collect IMU and fixes), start at rest or while moving, **aligning**
 (heading held until the vehicle has moved enough), **tracking**. A rejected IMU burst or an
@@ -41,22 +41,15 @@ Without ranges the state coasts and its covariance grows.
 from __future__ import annotations
 
 import collections
-import functools
 import math
-from typing import Any
 
 import numpy as np
 
 from drivers.frames import AnchorRanges, UwbRanges
-from uwbd.fusion import native
 from uwbd.fusion.alignment import HeadingAligner
-from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, Eskf
+from uwbd.fusion.eskf import BA_, BG_, N_CORE, TH_, Eskf
 from uwbd.fusion.fixes import RangeWindow
 from uwbd.fusion.fusing import (
-    ATTITUDE_AND_GYRO_BIAS,
-    ATTITUDE_AND_IMU_BIASES,
-    MAX_RANGE_BIAS_SIGMA_M,
-    MAX_SIGMA,
     EpochFusion,
 )
 from uwbd.fusion.gating import GatingCounters, chi2_quantile, gate
@@ -66,11 +59,9 @@ from uwbd.fusion.initialise import Start
 from uwbd.fusion.intrinsics import to_body
 from uwbd.fusion.lsq import LsqFix, coplanar
 from uwbd.fusion.measurements import (
-    RANGE_KEYS,
     Rows,
     height_rows,
     nhc_rows,
-    range_keys,
     zupt_rows,
 )
 from uwbd.fusion.mirror import WALL_NORMAL_Z, MirrorSide
@@ -79,7 +70,7 @@ from uwbd.fusion.propagation import NUMERICAL_ERRORS, ImuPropagation
 from uwbd.fusion.recovery import (
     NS,
 )
-from uwbd.fusion.rest import STILL_EVERY_NS, STILL_S, ImuWindow, UwbStillness
+from uwbd.fusion.rest import ImuWindow, UwbStillness
 from uwbd.fusion.robust import AnchorStats, RowPolicy, quality_scale
 from uwbd.fusion.rotation import Array
 from uwbd.fusion.settings import FilterConfig, Mode
@@ -165,19 +156,6 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         self._empty_rows: dict[int, Rows] = {}
         self._gate_1 = chi2_quantile(config.gate_probability, 1)
         self._gate_3 = chi2_quantile(config.gate_probability, 3)
-        self._pose_map = np.zeros((6, TH_.stop))  # pose(): (p, v, θ) -> (p, R θ)
-        self._pose_map[:3, P_] = np.eye(3)
-        # the common IMU sample whole on the C core (None: the pure-Python reference);
-        # step_parts: what it works on, for the pipeline's common read too
-        core = native.core
-        self.step_parts = self._step_parts()
-        self.imu_step = (None if core is None
-                         else functools.partial(core.imu_step, self.step_parts))
-        self.pose_step = (None if core is None
-                          else functools.partial(core.pose_step, self._pose_parts()))
-        # the common UWB message whole on the C core (None: the reference, _update)
-        self.epoch_step = (None if core is None or config.mode is not Mode.TIGHT
-                           else functools.partial(core.epoch_step, self._epoch_parts()))
 
     def _layout(self) -> None:
         """What follows from the anchors: the mirror side of a plane of them, the height
@@ -220,11 +198,6 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
             return []
 
     def _update(self, uwb: UwbRanges) -> list[FusionReport]:
-        step = self.epoch_step
-        if step is not None:  # the common message, whole, on the C core
-            reports: list[FusionReport] | None = step(uwb)
-            if reports is not None:
-                return reports
         if self._first_t_ns is None:
             self._first_t_ns = uwb.t_ns
         result = gate(uwb, self.cfg.gating, self.gating)
@@ -254,7 +227,7 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
                       r_scale: Array, fix: LsqFix | None, reports: list[FusionReport]
                       ) -> list[FusionReport]:
         """The rest of :meth:`_update` once the message's ranges are kept and its fix is
-        made (the C core's epoch step hands a message here when the fix flipped the side)."""
+        made."""
         if self.mirror.take_flip():
             self._restart(t_ns, "mirror side flipped by the ranges")
         self.monitor.mirror_unresolved = self.mirror.unresolved
@@ -298,28 +271,6 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         return reports
 
     # -- internals ------------------------------------------------------------------------
-    def _epoch_parts(self) -> tuple[Any, ...]:
-        """What the C core's common UWB step (``_core.epoch_step``, ``_epoch.c``) reads,
-        writes and calls, in that file's order: the namespaces of this filter, its gating
-        counters and health monitor; the stillness fixes, the range window, the anchors'
-        dicts, the made row policies and empty rows, the range rows' keys, the outcomes'
-        parts, the known anchors, the covariance limits; the numbers; and the Python steps
-        it calls for the rarer branches (each the reference of its step)."""
-        cfg = self.cfg
-        numbers = (cfg.gating.min_anchors, cfg.gating.min_range_m, cfg.gating.max_range_m,
-                   cfg.max_imu_gap_s, MIN_PROPAGATE_S, CONSTRAINT_EVERY_NS, STILL_EVERY_NS,
-                   STILL_S * 1e9, cfg.range_sigma_m**2, *self._lever, MAX_RANGE_BIAS_SIGMA_M,
-                   ATTITUDE_AND_GYRO_BIAS.start, ATTITUDE_AND_GYRO_BIAS.stop,
-                   ATTITUDE_AND_IMU_BIASES.stop)
-        calls = (self._track_fixes, self._constraints, self._fuse_epoch, self._fade,
-                 self._check_divergence, self._keep_covariance_sane, self._row_policy,
-                 self._no_rows, Rows.stack, range_keys, self._row_outcomes, np.zeros, np.array,
-                 self._epoch_fix, self._fuse_message, self._hold_heading)
-        return (vars(self), vars(self.gating), vars(self.monitor), self.stillness.fixes,
-                self.ranges.latest, self._configured, self._resolved, self._policies,
-                self._empty_rows, RANGE_KEYS, self._outcome_parts(), cfg.gating.known_anchors,
-                MAX_SIGMA, tuple(map(float, numbers)), calls)
-
     def _snapshot(self) -> tuple[Nominal, Array]:
         ekf = self.ekf
         assert ekf is not None
@@ -397,9 +348,9 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         # the heading is unknown: the INS's horizontal Δv may point anywhere; for a heading
         # error uniform over ±180° the RMS error of a turned Δv is √2 |Δv|, so the fixes
         # must be free to say where it went
-        extra = 2.0 * (dv[0] ** 2 + dv[1] ** 2)
-        ekf.P[3, 3] += extra
-        ekf.P[4, 4] += extra
+        extra = np.zeros(ekf.n)
+        extra[3:5] = 2.0 * (dv[0] ** 2 + dv[1] ** 2)
+        ekf.add_variances(extra)
         ekf.rotate_heading(0.0, HELD_YAW_SIGMA_RAD)
         if fix is None or not self._aligner.wants_fix(t_ns):
             return

@@ -15,11 +15,10 @@ from __future__ import annotations
 import collections
 import math
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from uwbd.fusion import native
 from uwbd.fusion.eskf import BA_, BG_, TH_, Eskf, RawRow
 from uwbd.fusion.health import HealthMonitor
 from uwbd.fusion.lsq import LsqFix
@@ -76,10 +75,11 @@ class EpochFusion:
                     r_scale: Array, fix: LsqFix | None,
                     constraints: list[Rows]) -> list[FusionReport]:
         """The epoch's rows fused: tight, on the C core, in one call (:meth:`Eskf.fuse_ranges`);
-        else (or where that call declines) built here and fused by :meth:`_fuse`."""
+        else (the reference, or where that call declines) built here and fused by
+        :meth:`_fuse`."""
         ekf = self.ekf
         assert ekf is not None
-        if ids and self.cfg.mode is Mode.TIGHT and ekf._core is not None:
+        if ids and self.cfg.mode is Mode.TIGHT:
             extra = Rows.stack(constraints) if constraints else self._no_rows(ekf.n)
             keys = range_keys(ids) + extra.keys
             outcome = ekf.fuse_ranges(
@@ -142,25 +142,11 @@ class EpochFusion:
 
     def _outcomes(self, t_ns: int, keys: list[tuple[str, str]],
                   outcome: Sequence[RawRow]) -> list[FusionReport]:
-        """Each row's report, counters, health evidence and anchor statistics (on the C
-        core in one call, :meth:`_row_outcomes` the reference); then the covariance kept
-        within bounds."""
-        core = native.core
-        reports = NotImplemented if core is None else core.outcomes(
-            self._outcome_parts(), t_ns, keys, outcome)
-        if reports is NotImplemented:
-            reports = self._row_outcomes(t_ns, keys, outcome)
+        """Each row's report, counters, health evidence and anchor statistics; then the
+        covariance kept within bounds."""
+        reports = self._row_outcomes(t_ns, keys, outcome)
         self._keep_covariance_sane()
         return reports
-
-    def _outcome_parts(self) -> tuple[Any, ...]:
-        """What ``outcomes`` of the C core works on (``uwbd/fusion/_outcomes.c``): the
-        objects of :meth:`_row_outcomes`, the monitor as its namespace."""
-        monitor = self.monitor
-        lim = monitor.limits
-        return (FusionReport, self.counters, _OUTCOME_COUNTERS, vars(monitor),
-                (lim.range_timeout_s, lim.window_count, lim.max_rejected_fraction,
-                 lim.max_mean_nis), self.anchor_stats, AnchorStats, self._gate_1)
 
     def _row_outcomes(self, t_ns: int, keys: list[tuple[str, str]],
                       outcome: Sequence[RawRow]) -> list[FusionReport]:

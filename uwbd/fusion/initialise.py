@@ -27,6 +27,7 @@ from uwbd.fusion.eskf import N_CORE, Eskf
 from uwbd.fusion.lsq import LsqFix
 from uwbd.fusion.rest import ImuWindow
 from uwbd.fusion.rotation import Array, quat_from_euler, quat_to_matrix
+from uwbd.fusion.state import new_eskf
 
 if TYPE_CHECKING:
     from uwbd.fusion.settings import FilterConfig
@@ -114,8 +115,7 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
     P0[delays, delays] += cfg.tag_delay_sigma_m**2
     tau = np.concatenate([np.full(n_bias, np.inf), np.full(n_multipath, cfg.multipath_tau_s)])
     sigma = np.concatenate([np.zeros(n_bias), np.full(n_multipath, cfg.multipath_sigma_m)])
-    ekf = Eskf(p, v, q, P0, cfg.imu_noise, n_aux, b_g=bg, b_a=ba, aux_tau_s=tau,
-               aux_sigma=sigma, gravity_mps2=cfg.gravity_mps2)
-    if carry is not None and len(carry.b_r_m) == n_aux:
-        ekf.b_r = carry.b_r_m.copy()
+    b_r = carry.b_r_m if carry is not None and len(carry.b_r_m) == n_aux else None
+    ekf = new_eskf(p, v, q, P0, cfg.imu_noise, n_aux, b_g=bg, b_a=ba, aux_tau_s=tau,
+                   aux_sigma=sigma, gravity_mps2=cfg.gravity_mps2, b_r=b_r)
     return ekf, how

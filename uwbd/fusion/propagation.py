@@ -1,7 +1,7 @@
 """The IMU side of :class:`~uwbd.fusion.filter.Filter` (a mixin of it, as :mod:`.recovery` and
 :mod:`.fusing` are): each sample judged, turned into body axes, kept in the rest window and
-integrated (``predict``), on the C core's step where it takes the sample whole; the state
-brought to a measurement's time (``_predict_to``), through IMU gaps by coasting."""
+integrated (``predict``); the state brought to a measurement's time (``_predict_to``),
+through IMU gaps by coasting."""
 
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ import numpy as np
 
 from drivers.frames import ImuSample
 from uwbd.fusion.imu_check import ImuCheck
-from uwbd.fusion.intrinsics import body_maps
 from uwbd.fusion.recovery import COAST_ACCEL_SIGMA_MPS2, NS, UNSEEN_RATE_SIGMA_RPS, Recovery
 
 Vec3 = tuple[float, float, float]
@@ -25,8 +24,6 @@ class ImuPropagation(Recovery):
     """IMU samples in, the nominal state and its covariance propagated (see module doc)."""
 
     imu_check: ImuCheck
-    imu_step: Any  # the C core's step (functools.partial), or None: the reference
-    step_parts: tuple[Any, ...]
     counters: collections.Counter[str]
     _C: tuple[tuple[float, ...], ...]
     _acc_to_body: Any
@@ -38,45 +35,10 @@ class ImuPropagation(Recovery):
 
     def predict(self, imu: ImuSample) -> None:
         """Integrate one IMU sample (sensor axes); bad samples are counted, never used."""
-        step = self.imu_step
-        if step is not None:  # the common sample, whole, on the C core
-            done = step(imu.t_ns, imu.acc_mps2, imu.gyro_rps)
-            if done is not None:
-                if done is not True:
-                    self.finish_prediction(imu.t_ns, done)
-                return
         try:
             self._predict(imu)
         except NUMERICAL_ERRORS as err:
             self._internal_error(imu.t_ns, err)
-
-    def _step_parts(self) -> tuple[Any, ...]:
-        """What the C core's common IMU step (``_core.imu_step``, ``_imu_read.c``) reads and
-        writes, in that file's order: this filter, its IMU check and rest window (their
-        namespaces), the window's rows, the numbers (body maps, the check's limits, the
-        largest IMU gap, how often the covariance follows), the window's length in ns."""
-        cfg, check = self.cfg, self.imu_check
-        (a, b, c), (d, e, f), (g, h, i) = self._C
-        maps = body_maps(((a, b, c), (d, e, f), (g, h, i)), cfg.imu_intrinsics)
-        numbers = (*(x for row in maps.acc_M for x in row), *maps.acc_b,
-                   *(x for row in maps.gyro_M for x in row), *maps.gyro_b, *maps.gyro_offset,
-                   maps.gyro_band, check.acc_clip, check.gyro_clip,
-                   check.limits.max_acc_jump_mps2, check.limits.max_gyro_jump_rps,
-                   check.limits.max_jump_run, cfg.max_imu_gap_s, PROPAGATE_EVERY_S)
-        return (vars(self), vars(check), vars(self.window), self.window.samples,
-                tuple(map(float, numbers)), self.window.length_ns)
-
-    def finish_prediction(self, t_ns: int, body: tuple[Vec3, Vec3]) -> None:
-        """The C core's step integrated the sample of ``t_ns`` (``body``: in body axes) and
-        the covariance is due: what :meth:`_predict` does next."""
-        try:
-            assert self.ekf is not None
-            self.ekf.propagate()
-        except NUMERICAL_ERRORS as err:
-            self._internal_error(t_ns, err)
-            return
-        self.t_ns = t_ns
-        self._last_imu = body
 
     def _internal_error(self, t_ns: int, err: Exception) -> None:
         """A numerical failure no check foresaw: counted, said, and the filter restarts

@@ -174,7 +174,7 @@ class Recovery:
         good = self._last_good_P
         if math.isfinite(sum(ekf.p) + sum(ekf.v) + sum(ekf.q)) and good is not None \
                 and good.shape == ekf.P.shape:
-            ekf.P = 4.0 * good
+            ekf.set_covariance(4.0 * good)
             self.counters["covariance_restored"] += 1
             self.monitor.reset(t_ns, "covariance not finite: the last finite one, widened",
                                0.0)
@@ -254,8 +254,7 @@ class Recovery:
             return True
         self._position_reset_ns = t_ns
         self.counters["position_resets"] += 1
-        ekf.p = (np.array(ekf.p) + fix.position_m - p_ant).tolist()
-        ekf.v = [0.0, 0.0, 0.0]
+        ekf.move_to(np.array(ekf.p) + fix.position_m - p_ant, (0.0, 0.0, 0.0))
         self._inflate(velocity_mps=1.0, attitude_rad=0.0,
                       position_m=math.sqrt(max(np.trace(fix.covariance) / 3, 0.05**2)))
         self.monitor.reset(t_ns, "innovations inconsistent: position from a UWB fix", jump)
@@ -273,4 +272,4 @@ class Recovery:
         d[P_] = position_m**2
         d[V_] = velocity_mps**2
         d[TH_] = attitude_rad**2
-        ekf.P[np.diag_indices(ekf.n)] += d
+        ekf.add_variances(d)

@@ -5,14 +5,9 @@ replay`` for every ``/raw/<source>`` message of a log, in log order with its log
 the same code in the same order, so a replay reproduces the live poses bit for bit. Logs
 that carry only decoded frames go in through :meth:`Pipeline.on_frame`.
 
-With the C core built, the common read of a WitMotion IMU (one accel and one gyro packet)
-is taken whole by one call (:mod:`uwbd.service.imu_read`), which does what this module, the
-parser, the aligner and the filter do with it, to the bit; anything else goes the way below.
-
 Poses leave after every UWB update and, between updates, at most every
 ``pose_period_ns`` of data time; status every ``status_period_ns``. Sinks receive
-everything (raw bytes, frames, poses, status); a read the C read took whole comes to them
-in one call, ``read`` (its bytes, then its frame), where a sink has one. Each call to a sink
+everything (raw bytes, frames, poses, status). Each call to a sink
 is guarded: a sink that raises is counted and reported (a warning line, ``sink_errors`` in
 the status) and the others, the log among them, still get every record.
 """
@@ -30,13 +25,10 @@ from uwbd.config import Config
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.types import Pose
 from uwbd.service.aligner import Aligner
-from uwbd.service.imu_read import imu_read_path
 
 
 class Sink(Protocol):
-    """What the pipeline hands on. A sink may also have ``read(source, t_ns, data, frame)``:
-    ``raw`` and then ``frame`` of a read that brought one frame, in one call; a sink without
-    one gets the two calls (:meth:`Pipeline._read_of`)."""
+    """What the pipeline hands on."""
 
     def raw(self, source: str, t_ns: int, data: bytes) -> None: ...
 
@@ -71,7 +63,6 @@ class Pipeline:
         self.sink_trouble: dict[int, SinkTrouble] = {}  # by id(sink)
         self._raw = [s.raw for s in self.sinks]
         self._frame = [s.frame for s in self.sinks]
-        self._read = [self._read_of(s) for s in self.sinks]
         self._pose = [s.pose for s in self.sinks]
         self._status = [s.status for s in self.sinks]
         self.parsers: dict[str, Parser] = {s.name: PARSERS[s.driver]() for s in config.sources}
@@ -88,10 +79,6 @@ class Pipeline:
         self._last_frame_ns: dict[str, int] = {}
         self._last_status_ns: int | None = None
         self._latest_ns = -(2**63)  # the latest data (or wall-clock tick) time seen
-        # per source, the C core's common read (parse, spread, align, check, predict in one
-        # call) where there is one: WitMotion IMUs, with the C core built
-        self._imu_read = {name: path for name, parser in self.parsers.items()
-                          if (path := imu_read_path(parser, self, name)) is not None}
 
     @property
     def next_pose_due_ns(self) -> int:
@@ -104,28 +91,8 @@ class Pipeline:
         if parser is None:
             self.unknown_sources += 1
             return
-        fast = self._imu_read.get(source)
-        try:
-            sample = None if fast is None else fast(data, t_ns)
-        except BaseException:
-            self._raw_to_sinks(source, t_ns, data)  # the log keeps the read that broke it
-            raise
-        if sample is None:
-            self._raw_to_sinks(source, t_ns, data)
-            self._frames(self._spread(source, parser.feed(data, t_ns)))
-        else:  # the common IMU read, parsed and integrated in one call of the C core
-            body = None
-            if sample.__class__ is tuple:  # and the covariance is due
-                sample, body = sample
-            for read in self._read:  # its bytes and its sample (no sink reads the filter)
-                try:
-                    read(source, t_ns, data, sample)
-                except Exception as err:
-                    self._sink_failed(read, err)
-            if body is not None:
-                self.filter.finish_prediction(sample.t_ns, body)
-            if sample.t_ns - self._last_pose_ns >= self._pose_period_ns:
-                self._emit_pose()
+        self._raw_to_sinks(source, t_ns, data)
+        self._frames(self._spread(source, parser.feed(data, t_ns)))
         self._tick(t_ns)
 
     def _raw_to_sinks(self, source: str, t_ns: int, data: bytes) -> None:
@@ -134,26 +101,6 @@ class Pipeline:
                 call(source, t_ns, data)
             except Exception as err:
                 self._sink_failed(call, err)
-
-    def _read_of(self, sink: Sink) -> Any:
-        """``sink.read``, or for a sink without one its ``raw`` and then its ``frame``, each
-        guarded on its own (a failing ``raw`` keeps the frame from no one)."""
-        read = getattr(sink, "read", None)
-        if read is not None:
-            return read
-        raw, frame = sink.raw, sink.frame
-
-        def raw_then_frame(source: str, t_ns: int, data: bytes, sample: Frame) -> None:
-            try:
-                raw(source, t_ns, data)
-            except Exception as err:
-                self._sink_failed(raw, err)
-            try:
-                frame(sample)
-            except Exception as err:
-                self._sink_failed(frame, err)
-
-        return raw_then_frame
 
     def _spread(self, source: str, frames: Sequence[Frame]) -> Sequence[Frame]:
         """Give the samples of one read their own times.
@@ -216,7 +163,6 @@ class Pipeline:
         self.sinks.append(sink)
         self._raw.append(sink.raw)
         self._frame.append(sink.frame)
-        self._read.append(self._read_of(sink))
         self._pose.append(sink.pose)
         self._status.append(sink.status)
 

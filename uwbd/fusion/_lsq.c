@@ -1,0 +1,410 @@
+/* The Gauss–Newton multilateration of the UWB-only fixes (uwbd/fusion/lsq.py is the
+ * reference, tests/test_core.py compares the two): stateless functions of the C core. */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <string.h>
+
+#include "_core.h"
+
+#define get_doubles uwbd_get_doubles
+
+/* -- Gauss–Newton multilateration: every UWB fix ----------------------------------------- */
+
+/* Solve the dims×dims system A z = b (dims 2 or 3) by Gaussian elimination with partial
+ * pivoting, as LAPACK's LU does; -1 when a pivot is exactly zero (numpy: LinAlgError). */
+static int solve_small(int dims, double A[3][3], double b[3], double z[3])
+{
+    double M[3][4];
+    for (int i = 0; i < dims; i++) {
+        for (int j = 0; j < dims; j++)
+            M[i][j] = A[i][j];
+        M[i][dims] = b[i];
+    }
+    for (int c = 0; c < dims; c++) {
+        int piv = c;
+        for (int r = c + 1; r < dims; r++)
+            if (fabs(M[r][c]) > fabs(M[piv][c]))
+                piv = r;
+        if (M[piv][c] == 0.0)
+            return -1;
+        if (piv != c)
+            for (int j = 0; j <= dims; j++) {
+                double t = M[c][j];
+                M[c][j] = M[piv][j];
+                M[piv][j] = t;
+            }
+        for (int r = c + 1; r < dims; r++) {
+            double f = M[r][c] / M[c][c];
+            for (int j = c; j <= dims; j++)
+                M[r][j] -= f * M[c][j];
+        }
+    }
+    for (int i = dims - 1; i >= 0; i--) {
+        double s = M[i][dims];
+        for (int j = i + 1; j < dims; j++)
+            s -= M[i][j] * z[j];
+        z[i] = s / M[i][i];
+    }
+    return 0;
+}
+
+static int normal_matrix(const double *anchors, Py_ssize_t k, const double x[3], int dims,
+                         const double *ranges, double JtJ[3][3], double Jtr[3])
+{
+    for (int i = 0; i < 3; i++) {
+        Jtr[i] = 0.0;
+        for (int j = 0; j < 3; j++)
+            JtJ[i][j] = 0.0;
+    }
+    for (Py_ssize_t a = 0; a < k; a++) {
+        double d[3], dist;
+        for (int i = 0; i < 3; i++)
+            d[i] = x[i] - anchors[3 * a + i];
+        dist = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+        if (dist < 1e-6)
+            return -1;
+        double r = ranges == NULL ? 0.0 : dist - ranges[a];
+        for (int i = 0; i < dims; i++) {
+            double ji = d[i] / dist;
+            Jtr[i] += ji * r;
+            for (int j = 0; j < dims; j++)
+                JtJ[i][j] += ji * (d[j] / dist);
+        }
+    }
+    return 0;
+}
+
+/* out (3×3, row-major) = A⁻¹ in its top-left dims×dims, zero elsewhere */
+static int inverse(int dims, double A[3][3], double *out)
+{
+    for (int i = 0; i < 9; i++)
+        out[i] = 0.0;
+    for (int c = 0; c < dims; c++) {
+        double e[3] = {0.0, 0.0, 0.0}, col[3];
+        e[c] = 1.0;
+        if (solve_small(dims, A, e, col) < 0)
+            return -1;
+        for (int r = 0; r < dims; r++)
+            out[3 * r + c] = col[r];
+    }
+    return 0;
+}
+
+/* lsq._solve's iteration (see gauss_newton below) on k anchors and ranges, x in place;
+ * the iterations, or 0 for no fix; out (3×3) the last step's (JᵀJ)⁻¹ when there is one. */
+static long iterate(const double *anchors, const double *ranges, Py_ssize_t k, double x[3],
+                    int dims, long max_iter, double converged, double accept_last,
+                    double *out)
+{
+    long iteration = 0, result = 0;
+    double JtJ[3][3];
+    for (;;) {
+        iteration++;
+        double Jtr[3], step[3];
+        if (normal_matrix(anchors, k, x, dims, ranges, JtJ, Jtr) < 0)
+            break;
+        for (int i = 0; i < dims; i++)
+            Jtr[i] = -Jtr[i];
+        if (solve_small(dims, JtJ, Jtr, step) < 0)
+            break;
+        double norm = 0.0;
+        for (int i = 0; i < dims; i++) {
+            x[i] += step[i];
+            norm += step[i] * step[i];
+        }
+        norm = sqrt(norm);
+        if (norm < converged) {
+            result = iteration;
+            break;
+        }
+        if (iteration == max_iter) {
+            result = norm <= accept_last ? iteration : 0; /* NaN: no fix */
+            break;
+        }
+    }
+    if (result && inverse(dims, JtJ, out) < 0)
+        result = 0;
+    return result;
+}
+
+/* gauss_newton(anchors (k×3), ranges (k), x (3, in place), dims, max_iterations,
+ *              converged_m, accept_last_m, out (3×3)) -> iterations, or 0 for no fix
+ * lsq._solve's iteration: steps (JᵀJ) δ = −Jᵀ r on the first `dims` coordinates until a
+ * step is below converged_m; after max_iterations a last step above accept_last_m is no
+ * fix; a range from an anchor closer than 1 µm or a singular JᵀJ is no fix either. `out`
+ * gets (JᵀJ)⁻¹ of the last step in its top-left dims×dims, the rest zero: the fix's
+ * covariance over σ². */
+PyObject *uwbd_gauss_newton(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 8) {
+        PyErr_SetString(PyExc_TypeError, "gauss_newton takes 8 arguments");
+        return NULL;
+    }
+    long dims = PyLong_AsLong(args[3]);
+    if (dims == -1 && PyErr_Occurred())
+        return NULL;
+    long max_iter = PyLong_AsLong(args[4]);
+    if (max_iter == -1 && PyErr_Occurred())
+        return NULL;
+    double converged = PyFloat_AsDouble(args[5]);
+    if (converged == -1.0 && PyErr_Occurred())
+        return NULL;
+    double accept_last = PyFloat_AsDouble(args[6]);
+    if (accept_last == -1.0 && PyErr_Occurred())
+        return NULL;
+    if (dims != 2 && dims != 3) {
+        PyErr_SetString(PyExc_ValueError, "dims must be 2 or 3");
+        return NULL;
+    }
+    if (max_iter < 1) {
+        PyErr_SetString(PyExc_ValueError, "max_iterations must be at least 1");
+        return NULL;
+    }
+    Py_buffer Ab, rb, xb, ob;
+    if (get_doubles(args[7], &ob, 9, 1, "out") < 0)
+        return NULL;
+    if (get_doubles(args[1], &rb, -1, 0, "ranges") < 0) {
+        PyBuffer_Release(&ob);
+        return NULL;
+    }
+    Py_ssize_t k = rb.len / 8;
+    if (get_doubles(args[0], &Ab, 3 * k, 0, "anchors") < 0) {
+        PyBuffer_Release(&rb);
+        PyBuffer_Release(&ob);
+        return NULL;
+    }
+    if (get_doubles(args[2], &xb, 3, 1, "x") < 0) {
+        PyBuffer_Release(&rb);
+        PyBuffer_Release(&Ab);
+        PyBuffer_Release(&ob);
+        return NULL;
+    }
+    long result = iterate((const double *)Ab.buf, (const double *)rb.buf, k,
+                          (double *)xb.buf, (int)dims, max_iter, converged, accept_last,
+                          (double *)ob.buf);
+    PyBuffer_Release(&rb);
+    PyBuffer_Release(&Ab);
+    PyBuffer_Release(&xb);
+    PyBuffer_Release(&ob);
+    return PyLong_FromLong(result);
+}
+
+/* The leverage of each of k ranges at x, h_ii = J_i (JᵀJ)⁻¹ J_iᵀ with J the unit vectors
+ * from the anchors (their first dims coordinates), into h; -1 if JᵀJ is singular. */
+static int leverage_values(const double *anchors, Py_ssize_t k, const double x[3], int dims,
+                           double *h)
+{
+    double JtJ[3][3], unused[3], inv[9];
+    if (normal_matrix(anchors, k, x, dims, NULL, JtJ, unused) < 0 ||
+        inverse(dims, JtJ, inv) < 0)
+        return -1;
+    for (Py_ssize_t a = 0; a < k; a++) {
+        double d[3], dist, u[3];
+        for (int i = 0; i < 3; i++)
+            d[i] = x[i] - anchors[3 * a + i];
+        dist = sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+        for (int i = 0; i < dims; i++)
+            u[i] = d[i] / dist;
+        h[a] = 0.0;
+        for (int i = 0; i < dims; i++)
+            for (int j = 0; j < dims; j++)
+                h[a] += u[i] * inv[3 * i + j] * u[j];
+    }
+    return 0;
+}
+
+/* leverages(anchors (k×3), x (3), dims) -> [h_ii] or None if JᵀJ is singular
+ * multilaterate's studentised residuals (leverage_values). */
+PyObject *uwbd_leverages(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "leverages takes 3 arguments");
+        return NULL;
+    }
+    long dims = PyLong_AsLong(args[2]);
+    if (dims == -1 && PyErr_Occurred())
+        return NULL;
+    if (dims != 2 && dims != 3) {
+        PyErr_SetString(PyExc_ValueError, "dims must be 2 or 3");
+        return NULL;
+    }
+    Py_buffer Ab, xb;
+    if (get_doubles(args[0], &Ab, -1, 0, "anchors") < 0)
+        return NULL;
+    if (get_doubles(args[1], &xb, 3, 0, "x") < 0) {
+        PyBuffer_Release(&Ab);
+        return NULL;
+    }
+    PyObject *out = NULL;
+    Py_ssize_t k = Ab.len / 24;
+    double *h = NULL;
+    if (Ab.len % 24 != 0) {
+        PyErr_SetString(PyExc_ValueError, "anchors: k x 3 numbers expected");
+        goto done;
+    }
+    h = PyMem_Malloc(sizeof(double) * (k > 0 ? k : 1));
+    if (h == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    if (leverage_values((const double *)Ab.buf, k, (const double *)xb.buf, (int)dims, h) < 0) {
+        out = Py_NewRef(Py_None);
+        goto done;
+    }
+    out = uwbd_floats(h, k, 1);
+done:
+    PyMem_Free(h);
+    PyBuffer_Release(&Ab);
+    PyBuffer_Release(&xb);
+    return out;
+}
+
+/* A fix of the ranges in `keep` (k flags) from x (in place): iterate on them gathered into
+ * work (4 k doubles); its residuals into res (NaN for ranges not kept). */
+static long fix_of(const double *anchors, const double *ranges, Py_ssize_t k,
+                   const char *keep, double x[3], int dims, long max_iter, double converged,
+                   double accept_last, double *inv, double *work, double *res)
+{
+    double *sub_a = work, *sub_r = work + 3 * k;
+    Py_ssize_t m = 0;
+    for (Py_ssize_t a = 0; a < k; a++)
+        if (keep[a]) {
+            memcpy(sub_a + 3 * m, anchors + 3 * a, 3 * sizeof(double));
+            sub_r[m++] = ranges[a];
+        }
+    long it = iterate(sub_a, sub_r, m, x, dims, max_iter, converged, accept_last, inv);
+    for (Py_ssize_t a = 0; a < k; a++) {
+        double d[3];
+        for (int i = 0; i < 3; i++)
+            d[i] = x[i] - anchors[3 * a + i];
+        res[a] = keep[a] ? sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) - ranges[a] : NAN;
+    }
+    return it;
+}
+
+static PyObject *fix_tuple(const double x[3], const double *inv, const double *res,
+                           const char *keep, Py_ssize_t k, long iterations)
+{
+    PyObject *r = PyList_New(k), *u = PyList_New(k);
+    if (r == NULL || u == NULL) {
+        Py_XDECREF(r);
+        Py_XDECREF(u);
+        return NULL;
+    }
+    for (Py_ssize_t a = 0; a < k; a++) {
+        PyObject *f = PyFloat_FromDouble(res[a]);
+        if (f == NULL) {
+            Py_DECREF(r);
+            Py_DECREF(u);
+            return NULL;
+        }
+        PyList_SET_ITEM(r, a, f);
+        PyList_SET_ITEM(u, a, Py_NewRef(keep[a] ? Py_True : Py_False));
+    }
+    return Py_BuildValue("([ddd][ddddddddd]NNl)", x[0], x[1], x[2], inv[0], inv[1], inv[2],
+                         inv[3], inv[4], inv[5], inv[6], inv[7], inv[8], r, u, iterations);
+}
+
+/* multilaterate(anchors (k×3), ranges (k), x0 (3), dims, sigma, outlier_sigma,
+ *               max_iterations, converged_m, accept_last_m)
+ * -> (x, (JᵀJ)⁻¹ (9), residuals (k), used (k), iterations), None for no fix, or
+ *    NotImplemented where the reference must decide (a singular JᵀJ for the leverages, a
+ *    NaN studentised residual)
+ * lsq.multilaterate from a start point x0 (with dims 2, its z the height held): the fix of
+ * all ranges; with more than dims + 1 of them, the range of the largest studentised
+ * residual r_i / (σ √max(1 − h_ii, 1e-6)) dropped when that exceeds outlier_sigma, and the
+ * fix solved again from the first (the first kept where the second fails). */
+PyObject *uwbd_multilaterate(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)self;
+    if (nargs != 9) {
+        PyErr_SetString(PyExc_TypeError, "multilaterate takes 9 arguments");
+        return NULL;
+    }
+    double x[3];
+    if (uwbd_get_vec(args[2], x, 3, "x0"))
+        return NULL;
+    long dims = PyLong_AsLong(args[3]), max_iter = PyLong_AsLong(args[6]);
+    double sigma = PyFloat_AsDouble(args[4]), outlier = PyFloat_AsDouble(args[5]);
+    double converged = PyFloat_AsDouble(args[7]), accept_last = PyFloat_AsDouble(args[8]);
+    if (PyErr_Occurred())
+        return NULL;
+    if ((dims != 2 && dims != 3) || max_iter < 1) {
+        PyErr_SetString(PyExc_ValueError, "dims 2 or 3, max_iterations at least 1");
+        return NULL;
+    }
+    Py_buffer Ab, rb;
+    if (get_doubles(args[1], &rb, -1, 0, "ranges") < 0)
+        return NULL;
+    Py_ssize_t k = rb.len / 8;
+    if (get_doubles(args[0], &Ab, 3 * k, 0, "anchors") < 0) {
+        PyBuffer_Release(&rb);
+        return NULL;
+    }
+    const double *anchors = (const double *)Ab.buf, *ranges = (const double *)rb.buf;
+    PyObject *out = NULL;
+    /* work: 4k gathered, k residuals, k leverages, k second residuals; keep: k flags */
+    double *work = PyMem_Malloc(sizeof(double) * (7 * k + 1));
+    char *keep = PyMem_Malloc((size_t)k + 1);
+    if (work == NULL || keep == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    double *res = work + 4 * k, *lev = res + k, *res2 = lev + k, inv[9], inv2[9];
+    memset(keep, 1, (size_t)k);
+    if (k < dims) {
+        out = Py_NewRef(Py_None);
+        goto done;
+    }
+    long it = fix_of(anchors, ranges, k, keep, x, (int)dims, max_iter, converged,
+                     accept_last, inv, work, res);
+    if (it == 0) {
+        out = Py_NewRef(Py_None);
+        goto done;
+    }
+    if (k <= dims + 1) {
+        out = fix_tuple(x, inv, res, keep, k, it);
+        goto done;
+    }
+    if (leverage_values(anchors, k, x, (int)dims, lev) < 0) {
+        out = Py_NewRef(Py_NotImplemented);
+        goto done;
+    }
+    Py_ssize_t worst = 0;
+    double worst_student = -1.0;
+    for (Py_ssize_t a = 0; a < k; a++) {
+        double spare = 1.0 - lev[a];
+        double student = fabs(res[a]) / (sigma * sqrt(spare > 1e-6 ? spare : 1e-6));
+        if (isnan(student)) {
+            out = Py_NewRef(Py_NotImplemented);
+            goto done;
+        }
+        if (student > worst_student) {
+            worst_student = student;
+            worst = a;
+        }
+    }
+    if (worst_student <= outlier) {
+        out = fix_tuple(x, inv, res, keep, k, it);
+        goto done;
+    }
+    keep[worst] = 0;
+    double x2[3] = {x[0], x[1], x[2]};
+    long it2 = fix_of(anchors, ranges, k, keep, x2, (int)dims, max_iter, converged,
+                      accept_last, inv2, work, res2);
+    if (it2 == 0) {
+        keep[worst] = 1;
+        out = fix_tuple(x, inv, res, keep, k, it);
+    } else {
+        out = fix_tuple(x2, inv2, res2, keep, k, it2);
+    }
+done:
+    PyMem_Free(work);
+    PyMem_Free(keep);
+    PyBuffer_Release(&Ab);
+    PyBuffer_Release(&rb);
+    return out;
+}

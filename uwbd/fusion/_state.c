@@ -1,0 +1,825 @@
+/* The State type: the error-state EKF's numbers in memory of its own (docs/ekf.md), and the
+ * operations on them, each a step of that page:
+ *
+ *   predict        §2   one IMU sample (body axes) into the nominal state and the interval sums
+ *   propagate      §3   P ← Φ P Φᵀ + Q_d over the interval, the Gauss–Markov decays
+ *   coast          §3   constant velocity without the IMU
+ *   update         §5   rows fused one scalar at a time, then injected and reset
+ *   fuse_ranges    §4+5 an epoch's range rows (mm_range.c) and extra rows, fused
+ *   rotate_heading §6   the coarse heading alignment's turn
+ *   clamp, widen, add_variances, set_covariance, move_to: §6's covariance and state repairs
+ *   pose_numbers        the pose's numbers
+ *
+ * The state is one block of doubles, exported read-only through the buffer protocol:
+ * p (3), v (3), q (4: w x y z), b_g (3), b_a (3), b_r (m), P (n×n, row-major), last_dx (n),
+ * with n = 15 + m. Python reads it as numpy views (eskf.CoreEskf) and changes it only
+ * through the operations. The reference is eskf.Eskf, in pure Python. */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <string.h>
+
+#include "_core.h"
+
+typedef struct {
+    PyObject_HEAD
+    Py_ssize_t n, m, len;
+    double *x; /* the exported block */
+    double *p, *v, *q, *bg, *ba, *br, *P, *last_dx;
+    double gravity, T, sum_fn[3], sum_w[3], dv_epoch[3];
+    double Phi_epoch[N_CORE * N_CORE], *decay_epoch; /* since take_epoch, for smoothing */
+    int keep_transition, epoch_propagated;
+    double *q_rate;          /* n: the diagonal of Q per second */
+    Py_ssize_t n_markov;     /* the Gauss–Markov states: */
+    Py_ssize_t *markov_cols; /* their columns, ascending */
+    double *markov_tau, *markov_var; /* τ and stationary variance each */
+    double *work;            /* n×n + 15 n + 4 n doubles */
+    double *rows;            /* range rows: H (k×n), y, R; grown as needed */
+    Py_ssize_t rows_cap;
+} State;
+
+static void set_identity(double *A, Py_ssize_t n)
+{
+    memset(A, 0, sizeof(double) * n * n);
+    for (Py_ssize_t i = 0; i < n; i++)
+        A[i * n + i] = 1.0;
+}
+
+/* State(p, v, q, b_g, b_a, b_r, P0, q_rate, tau, markov_var, gravity): n from P0 (n×n),
+ * m = n − 15 range-model states: b_r, tau (inf: a random walk, else Gauss–Markov with τ)
+ * and markov_var (their stationary variances) m each, q_rate n. */
+static int state_init(State *self, PyObject *args, PyObject *kwds)
+{
+    PyObject *po, *vo, *qo, *bgo, *bao, *bro, *P0, *qro, *tauo, *varo;
+    double gravity;
+    if (kwds != NULL && PyDict_GET_SIZE(kwds)) {
+        PyErr_SetString(PyExc_TypeError, "State takes no keyword arguments");
+        return -1;
+    }
+    if (self->x != NULL) {
+        PyErr_SetString(PyExc_TypeError, "a State is made once");
+        return -1;
+    }
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOd", &po, &vo, &qo, &bgo, &bao, &bro, &P0, &qro,
+                          &tauo, &varo, &gravity))
+        return -1;
+    Py_buffer Pb;
+    if (uwbd_get_doubles(P0, &Pb, -1, 0, "P0") < 0)
+        return -1;
+    Py_ssize_t n = (Py_ssize_t)sqrt((double)(Pb.len / 8));
+    if (n * n * 8 != Pb.len || n < N_CORE) {
+        PyBuffer_Release(&Pb);
+        PyErr_SetString(PyExc_ValueError, "P0 must be square, at least 15x15");
+        return -1;
+    }
+    Py_ssize_t m = n - N_CORE;
+    self->n = n;
+    self->m = m;
+    self->len = 16 + m + n * n + n;
+    self->x = PyMem_Calloc((size_t)self->len, sizeof(double));
+    self->decay_epoch = PyMem_Calloc((size_t)(m + 1), sizeof(double));
+    self->q_rate = PyMem_Calloc((size_t)n, sizeof(double));
+    self->markov_cols = PyMem_Calloc((size_t)(m + 1), sizeof(Py_ssize_t));
+    self->markov_tau = PyMem_Calloc((size_t)(2 * m + 2), sizeof(double));
+    self->work = PyMem_Calloc((size_t)(n * n + (N_CORE + 4) * n), sizeof(double));
+    if (!self->x || !self->decay_epoch || !self->q_rate || !self->markov_cols ||
+        !self->markov_tau || !self->work) {
+        PyBuffer_Release(&Pb);
+        PyErr_NoMemory();
+        return -1;
+    }
+    self->markov_var = self->markov_tau + m + 1;
+    double *x = self->x;
+    self->p = x, self->v = x + 3, self->q = x + 6, self->bg = x + 10, self->ba = x + 13;
+    self->br = x + 16, self->P = x + 16 + m, self->last_dx = self->P + n * n;
+    memcpy(self->P, Pb.buf, sizeof(double) * n * n);
+    PyBuffer_Release(&Pb);
+    double *tau = PyMem_Calloc((size_t)(2 * m + 1), sizeof(double)), *var = tau + m;
+    if (tau == NULL) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    int bad = uwbd_get_vec(po, self->p, 3, "p") || uwbd_get_vec(vo, self->v, 3, "v") ||
+              uwbd_get_vec(qo, self->q, 4, "q") || uwbd_get_vec(bgo, self->bg, 3, "b_g") ||
+              uwbd_get_vec(bao, self->ba, 3, "b_a") || uwbd_get_vec(bro, self->br, m, "b_r") ||
+              uwbd_get_vec(qro, self->q_rate, n, "q_rate") ||
+              uwbd_get_vec(tauo, tau, m, "tau") || uwbd_get_vec(varo, var, m, "markov_var");
+    if (!bad)
+        for (Py_ssize_t a = 0; a < m; a++)
+            if (isfinite(tau[a])) {
+                Py_ssize_t i = self->n_markov++;
+                self->markov_cols[i] = N_CORE + a;
+                self->markov_tau[i] = tau[a];
+                self->markov_var[i] = var[a];
+            }
+    PyMem_Free(tau);
+    if (bad)
+        return -1;
+    self->gravity = gravity;
+    self->keep_transition = 1;
+    set_identity(self->Phi_epoch, N_CORE);
+    for (Py_ssize_t a = 0; a < m; a++)
+        self->decay_epoch[a] = 1.0;
+    return 0;
+}
+
+static void state_dealloc(State *self)
+{
+    PyMem_Free(self->x);
+    PyMem_Free(self->decay_epoch);
+    PyMem_Free(self->q_rate);
+    PyMem_Free(self->markov_cols);
+    PyMem_Free(self->markov_tau);
+    PyMem_Free(self->work);
+    PyMem_Free(self->rows);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int state_getbuffer(State *self, Py_buffer *view, int flags)
+{
+    if (self->x == NULL) {
+        PyErr_SetString(PyExc_BufferError, "the State was not made");
+        view->obj = NULL;
+        return -1;
+    }
+    /* read only: the state changes through the operations alone */
+    return PyBuffer_FillInfo(view, (PyObject *)self, self->x, self->len * 8, 1, flags);
+}
+
+static PyBufferProcs state_as_buffer = {(getbufferproc)state_getbuffer, NULL};
+
+static int check_args(Py_ssize_t nargs, Py_ssize_t want, const char *name)
+{
+    if (nargs == want)
+        return 0;
+    PyErr_Format(PyExc_TypeError, "State.%s takes %zd arguments, got %zd", name, want, nargs);
+    return -1;
+}
+
+/* -- §2: the nominal state, every IMU sample -------------------------------------------- */
+
+/* predict(acc_b, gyro_b, dt): with ω = ω_m − b_g, f = f_m − b_a (body), a = R f + g:
+ * p += (v + a dt / 2) dt, v += a dt, q ← q ⊗ Exp(ω dt); the interval's Σ R f dt and Σ ω dt. */
+static PyObject *state_predict(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double acc[3], gyro[3];
+    if (check_args(nargs, 3, "predict") || uwbd_get_vec(args[0], acc, 3, "acc_b") ||
+        uwbd_get_vec(args[1], gyro, 3, "gyro_b"))
+        return NULL;
+    double dt = PyFloat_AsDouble(args[2]);
+    if (dt == -1.0 && PyErr_Occurred())
+        return NULL;
+    double *p = self->p, *v = self->v, *q = self->q, *bg = self->bg, *ba = self->ba;
+    double wx = (gyro[0] - bg[0]) * dt, wy = (gyro[1] - bg[1]) * dt, wz = (gyro[2] - bg[2]) * dt;
+    double fx = acc[0] - ba[0], fy = acc[1] - ba[1], fz = acc[2] - ba[2];
+    double R[3][3];
+    uwbd_quat_to_matrix(q, R); /* before the attitude step: f was measured over dt */
+    double ax = R[0][0] * fx + R[0][1] * fy + R[0][2] * fz;
+    double ay = R[1][0] * fx + R[1][1] * fy + R[1][2] * fz;
+    double az = R[2][0] * fx + R[2][1] * fy + R[2][2] * fz;
+    self->sum_fn[0] += ax * dt;
+    self->sum_fn[1] += ay * dt;
+    self->sum_fn[2] += az * dt;
+    self->sum_w[0] += wx;
+    self->sum_w[1] += wy;
+    self->sum_w[2] += wz;
+    self->T += dt;
+    az -= self->gravity;
+    p[0] += (v[0] + 0.5 * ax * dt) * dt;
+    p[1] += (v[1] + 0.5 * ay * dt) * dt;
+    p[2] += (v[2] + 0.5 * az * dt) * dt;
+    v[0] += ax * dt;
+    v[1] += ay * dt;
+    v[2] += az * dt;
+    double qn[4];
+    uwbd_turned(q, wx, wy, wz, qn);
+    memcpy(q, qn, sizeof qn);
+    Py_RETURN_NONE;
+}
+
+/* -- §3: the covariance, once per update interval --------------------------------------- */
+
+/* The columns of each row of M (15×15) that are not zero, in order, and how many. */
+static void nonzeros(const double M[N_CORE][N_CORE], int nz[N_CORE][N_CORE], int count[N_CORE])
+{
+    for (int i = 0; i < N_CORE; i++) {
+        count[i] = 0;
+        for (int k = 0; k < N_CORE; k++)
+            if (M[i][k] != 0.0)
+                nz[i][count[i]++] = k;
+    }
+}
+
+/* The Gauss–Markov states over T: m ← φ m, P ← φ P φ on their rows and columns, plus
+ * σ² (1 − φ²) on the diagonal; φ = e^(−T/τ). The epoch's decays follow when kept. */
+static void markov_step(State *self, double T)
+{
+    Py_ssize_t n = self->n;
+    double *P = self->P;
+    if (self->n_markov == 0)
+        return;
+    self->epoch_propagated = 1;
+    for (Py_ssize_t a = 0; a < self->n_markov; a++) {
+        Py_ssize_t c = self->markov_cols[a];
+        double phi = exp(-T / self->markov_tau[a]);
+        for (Py_ssize_t j = 0; j < n; j++)
+            P[c * n + j] *= phi;
+        for (Py_ssize_t i = 0; i < n; i++)
+            P[i * n + c] *= phi;
+        P[c * n + c] += self->markov_var[a] * (1.0 - phi * phi);
+        self->br[c - N_CORE] *= phi;
+        if (self->keep_transition)
+            self->decay_epoch[c - N_CORE] *= phi;
+    }
+}
+
+/* propagate(): F from the interval's mean specific force and rate, Φ = I + A + A²/2 with
+ * A = F T on the core 15 states, P ← Φ P Φᵀ + diag(q_rate) T, the Gauss–Markov step,
+ * P symmetrised; Φ_epoch ← Φ Φ_epoch when kept; the interval starts anew. */
+static PyObject *state_propagate(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)args;
+    if (check_args(nargs, 0, "propagate"))
+        return NULL;
+    double T = self->T;
+    if (!(T > 0.0))
+        Py_RETURN_NONE;
+    Py_ssize_t n = self->n;
+    double *P = self->P;
+    for (int i = 0; i < 3; i++)
+        self->dv_epoch[i] += self->sum_fn[i];
+    self->epoch_propagated = 1;
+    double R[3][3];
+    uwbd_quat_to_matrix(self->q, R);
+    double f[3], w[3];
+    for (int i = 0; i < 3; i++) {
+        f[i] = self->sum_fn[i] / T;
+        w[i] = self->sum_w[i] / T;
+    }
+    /* A = F T: P_V = I, V_TH = −[f]× R, V_BA = −R, TH_TH = −[ω]×, TH_BG = −I */
+    double A[N_CORE][N_CORE];
+    memset(A, 0, sizeof A);
+    double sk[3][3] = {{0, -f[2], f[1]}, {f[2], 0, -f[0]}, {-f[1], f[0], 0}};
+    double skw[3][3] = {{0, -w[2], w[1]}, {w[2], 0, -w[0]}, {-w[1], w[0], 0}};
+    for (int i = 0; i < 3; i++) {
+        A[i][3 + i] = T;
+        A[TH0 + i][9 + i] = -T;
+        for (int j = 0; j < 3; j++) {
+            double s = 0.0;
+            for (int k = 0; k < 3; k++)
+                s += sk[i][k] * R[k][j];
+            A[3 + i][TH0 + j] = -s * T;
+            A[3 + i][12 + j] = -R[i][j] * T;
+            A[TH0 + i][TH0 + j] = -skw[i][j] * T;
+        }
+    }
+    /* A and Φ are about half zeros: each product runs over the nonzero terms of a row */
+    int nz[N_CORE][N_CORE], count[N_CORE];
+    nonzeros(A, nz, count);
+    double Phi[N_CORE][N_CORE];
+    for (int i = 0; i < N_CORE; i++)
+        for (int j = 0; j < N_CORE; j++) {
+            double s = 0.0;
+            for (int c = 0; c < count[i]; c++)
+                s += A[i][nz[i][c]] * A[nz[i][c]][j];
+            Phi[i][j] = (i == j ? 1.0 : 0.0) + A[i][j] + 0.5 * s;
+        }
+    nonzeros(Phi, nz, count);
+    if (self->keep_transition) {
+        double tmp[N_CORE * N_CORE];
+        const double *E = self->Phi_epoch;
+        for (int i = 0; i < N_CORE; i++)
+            for (int j = 0; j < N_CORE; j++) {
+                double s = 0.0;
+                for (int c = 0; c < count[i]; c++)
+                    s += Phi[i][nz[i][c]] * E[nz[i][c] * N_CORE + j];
+                tmp[i * N_CORE + j] = s;
+            }
+        memcpy(self->Phi_epoch, tmp, sizeof tmp);
+    }
+    /* P[:15, :] ← Φ P[:15, :], then P[:, :15] ← P[:, :15] Φᵀ, along rows */
+    double *rows = self->work;
+    for (int i = 0; i < N_CORE; i++) {
+        double *restrict out = rows + i * n;
+        for (Py_ssize_t j = 0; j < n; j++)
+            out[j] = 0.0;
+        for (int c = 0; c < count[i]; c++) {
+            const double g = Phi[i][nz[i][c]], *restrict in = P + nz[i][c] * n;
+            for (Py_ssize_t j = 0; j < n; j++)
+                out[j] += g * in[j];
+        }
+    }
+    memcpy(P, rows, sizeof(double) * N_CORE * n);
+    for (int j = 0; j < N_CORE; j++) {
+        double *restrict out = rows + j * n;
+        for (Py_ssize_t i = 0; i < n; i++)
+            out[i] = 0.0;
+        for (int c = 0; c < count[j]; c++) {
+            const int k = nz[j][c];
+            const double g = Phi[j][k];
+            for (Py_ssize_t i = 0; i < n; i++)
+                out[i] += P[i * n + k] * g;
+        }
+    }
+    for (Py_ssize_t i = 0; i < n; i++)
+        for (int j = 0; j < N_CORE; j++)
+            P[i * n + j] = rows[j * n + i];
+    for (Py_ssize_t i = 0; i < n; i++)
+        P[i * n + i] += self->q_rate[i] * T;
+    markov_step(self, T);
+    uwbd_symmetrise(P, n);
+    self->T = 0.0;
+    memset(self->sum_fn, 0, sizeof self->sum_fn);
+    memset(self->sum_w, 0, sizeof self->sum_w);
+    Py_RETURN_NONE;
+}
+
+/* take_epoch(with_phi) -> (Φ_core (225 floats) or None, decays (m) or None, Σ R f Δt):
+ * since the last call, the product of every propagation's Φ and the INS's own velocity
+ * change; both start anew. */
+static PyObject *state_take_epoch(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (check_args(nargs, 1, "take_epoch"))
+        return NULL;
+    int with_phi = PyObject_IsTrue(args[0]);
+    if (with_phi < 0)
+        return NULL;
+    if (with_phi && !self->keep_transition) {
+        PyErr_SetString(PyExc_RuntimeError, "take_epoch(with_phi=True) with keep_transition off");
+        return NULL;
+    }
+    PyObject *phi = with_phi ? uwbd_floats(self->Phi_epoch, N_CORE * N_CORE, 0) : Py_NewRef(Py_None);
+    PyObject *decay = with_phi ? uwbd_floats(self->decay_epoch, self->m, 0) : Py_NewRef(Py_None);
+    PyObject *dv = uwbd_floats(self->dv_epoch, 3, 0);
+    if (phi == NULL || decay == NULL || dv == NULL) {
+        Py_XDECREF(phi);
+        Py_XDECREF(decay);
+        Py_XDECREF(dv);
+        return NULL;
+    }
+    memset(self->dv_epoch, 0, sizeof self->dv_epoch);
+    if (self->epoch_propagated) {
+        self->epoch_propagated = 0;
+        if (self->keep_transition) {
+            set_identity(self->Phi_epoch, N_CORE);
+            for (Py_ssize_t a = 0; a < self->m; a++)
+                self->decay_epoch[a] = 1.0;
+        }
+    }
+    return Py_BuildValue("(NNN)", phi, decay, dv);
+}
+
+/* coast(dt, accel_sigma, yaw_rate_sigma, tilt_rate_sigma): no IMU, constant velocity:
+ * p += v dt; Φ = [[I, dt I], [0, I]] on (δp, δv); white acceleration on (δp, δv); the
+ * range-model random walks and Gauss–Markov decays; the attitude's σ grows about the
+ * vertical at the yaw rate, about the horizontal at the tilt rate. */
+static PyObject *state_coast(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double a[4];
+    if (check_args(nargs, 4, "coast"))
+        return NULL;
+    for (int i = 0; i < 4; i++)
+        if ((a[i] = PyFloat_AsDouble(args[i])) == -1.0 && PyErr_Occurred())
+            return NULL;
+    double dt = a[0], qa = a[1] * a[1], yaw2 = a[2] * a[2], tilt2 = a[3] * a[3];
+    Py_ssize_t n = self->n;
+    double *P = self->P;
+    for (int i = 0; i < 3; i++)
+        self->p[i] += self->v[i] * dt;
+    for (int i = 0; i < 3; i++)
+        for (Py_ssize_t j = 0; j < n; j++)
+            P[i * n + j] += dt * P[(3 + i) * n + j];
+    for (Py_ssize_t i = 0; i < n; i++)
+        for (int j = 0; j < 3; j++)
+            P[i * n + j] += dt * P[i * n + 3 + j];
+    for (int i = 0; i < 3; i++) {
+        P[i * n + i] += qa * (dt * dt * dt) / 3;
+        P[i * n + 3 + i] += qa * (dt * dt) / 2;
+        P[(3 + i) * n + i] += qa * (dt * dt) / 2;
+        P[(3 + i) * n + 3 + i] += qa * dt;
+    }
+    for (Py_ssize_t i = N_CORE; i < n; i++)
+        P[i * n + i] += self->q_rate[i] * dt;
+    markov_step(self, dt);
+    double R[3][3];
+    uwbd_quat_to_matrix(self->q, R);
+    const double *up = R[2]; /* the navigation z axis in body axes (Rᵀ e_z) */
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            P[(TH0 + i) * n + TH0 + j] +=
+                (yaw2 - tilt2) * dt * (up[i] * up[j]) + (i == j ? tilt2 * dt : 0.0);
+    uwbd_symmetrise(P, n);
+    Py_RETURN_NONE;
+}
+
+/* -- §5: measurement updates ------------------------------------------------------------ */
+
+/* After rows fused on the copy in work (with dx): the nominal state corrected by dx, P
+ * symmetrised and reset by G = I but I − ½[δθ]× on the attitude, then taken. */
+static void inject(State *self, const double *Pw, const double *dx)
+{
+    Py_ssize_t n = self->n;
+    for (int i = 0; i < 3; i++) {
+        self->p[i] += dx[i];
+        self->v[i] += dx[3 + i];
+        self->bg[i] += dx[9 + i];
+        self->ba[i] += dx[12 + i];
+    }
+    for (Py_ssize_t a = N_CORE; a < n; a++)
+        self->br[a - N_CORE] += dx[a];
+    double qn[4];
+    uwbd_turned(self->q, dx[TH0], dx[TH0 + 1], dx[TH0 + 2], qn);
+    memcpy(self->q, qn, sizeof qn);
+    memcpy(self->P, Pw, sizeof(double) * n * n);
+    uwbd_symmetrise(self->P, n);
+    double G[3][3] = {{1.0, 0.5 * dx[TH0 + 2], -0.5 * dx[TH0 + 1]},
+                      {-0.5 * dx[TH0 + 2], 1.0, 0.5 * dx[TH0]},
+                      {0.5 * dx[TH0 + 1], -0.5 * dx[TH0], 1.0}};
+    uwbd_transform_attitude(self->P, n, G);
+    memcpy(self->last_dx, dx, sizeof(double) * n);
+}
+
+/* The rows (H m×n, y, R) fused on a copy of P; injected when any row was fused. */
+static PyObject *fuse_rows(State *self, const double *H, const double *y, const double *Rv,
+                           Py_ssize_t m, PyObject *decide, Py_ssize_t c0, Py_ssize_t c1)
+{
+    UwbdRowPolicy policy;
+    int got = uwbd_get_decide(decide, &policy);
+    if (got < 0)
+        return NULL;
+    Py_ssize_t n = self->n;
+    double *Pw = self->work, *dx = Pw + n * n, *scratch = dx + n;
+    memcpy(Pw, self->P, sizeof(double) * n * n);
+    memset(dx, 0, sizeof(double) * n);
+    int fused;
+    PyObject *rows = uwbd_scalar_rows(Pw, dx, n, H, y, Rv, m, decide, got ? &policy : NULL,
+                                      c0, c1, scratch, &fused);
+    if (rows != NULL && fused)
+        inject(self, Pw, dx);
+    return rows;
+}
+
+static int considered(PyObject *const *args, Py_ssize_t n, Py_ssize_t *c0, Py_ssize_t *c1)
+{
+    *c0 = PyLong_AsSsize_t(args[0]);
+    *c1 = PyLong_AsSsize_t(args[1]);
+    if (PyErr_Occurred())
+        return -1;
+    if (*c0 < 0 || *c1 > n || *c0 > *c1) {
+        PyErr_SetString(PyExc_ValueError, "considered states: 0 <= c0 <= c1 <= n");
+        return -1;
+    }
+    return 0;
+}
+
+/* update(H, y, R, decide, c0, c1) -> [(ν, S, w, numerical)]: the rows H (m×n) with
+ * residuals y at the prior and variances R fused one scalar at a time (§5), the weights
+ * by `decide` (a RowPolicy tuple, or a callable called back per row), states [c0, c1)
+ * considered (not corrected); then injected and reset. */
+static PyObject *state_update(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_ssize_t c0, c1, n = self->n;
+    if (check_args(nargs, 6, "update") || considered(args + 4, n, &c0, &c1) < 0)
+        return NULL;
+    Py_buffer view[3]; /* y, H, R */
+    int got = 0;
+    PyObject *out = NULL;
+    if (uwbd_get_doubles(args[1], &view[0], -1, 0, "y") < 0)
+        return NULL;
+    got = 1;
+    Py_ssize_t m = view[0].len / 8;
+    if (uwbd_get_doubles(args[0], &view[1], m * n, 0, "H") < 0)
+        goto done;
+    got = 2;
+    if (uwbd_get_doubles(args[2], &view[2], m, 0, "R") < 0)
+        goto done;
+    got = 3;
+    out = fuse_rows(self, view[1].buf, view[0].buf, view[2].buf, m, args[3], c0, c1);
+done:
+    for (int i = 0; i < got; i++)
+        PyBuffer_Release(&view[i]);
+    return out;
+}
+
+/* fuse_ranges(lever, anchors (k×3), ranges (k), var (k), columns, H_extra, y_extra,
+ *             R_extra, decide, c0, c1) -> rows, or None
+ * A tight epoch: the range rows (mm_range.c), then the extra rows (ZUPT, NHC, height), as
+ * update fuses them. None, with nothing changed, when an antenna is within 1 mm of an
+ * anchor or a distance is not a number (the caller's reference drops such a range). */
+static PyObject *state_fuse_ranges(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_ssize_t c0, c1, n = self->n;
+    double lever[3];
+    if (check_args(nargs, 11, "fuse_ranges") || considered(args + 9, n, &c0, &c1) < 0 ||
+        uwbd_get_vec(args[0], lever, 3, "lever"))
+        return NULL;
+    Py_buffer view[6]; /* ranges, anchors, var, y_extra, H_extra, R_extra */
+    int got = 0;
+    PyObject *out = NULL;
+    if (uwbd_get_doubles(args[2], &view[0], -1, 0, "ranges") < 0)
+        return NULL;
+    got = 1;
+    Py_ssize_t k = view[0].len / 8;
+    if (uwbd_get_doubles(args[1], &view[1], 3 * k, 0, "anchors") < 0)
+        goto done;
+    got = 2;
+    if (uwbd_get_doubles(args[3], &view[2], k, 0, "var") < 0)
+        goto done;
+    got = 3;
+    if (uwbd_get_doubles(args[6], &view[3], -1, 0, "y_extra") < 0)
+        goto done;
+    got = 4;
+    Py_ssize_t e = view[3].len / 8, m = k + e;
+    if (uwbd_get_doubles(args[5], &view[4], e * n, 0, "H_extra") < 0)
+        goto done;
+    got = 5;
+    if (uwbd_get_doubles(args[7], &view[5], e, 0, "R_extra") < 0)
+        goto done;
+    got = 6;
+    Py_ssize_t need = m * n + 2 * m;
+    if (need > self->rows_cap) {
+        double *grown = PyMem_Realloc(self->rows, sizeof(double) * (size_t)need);
+        if (grown == NULL) {
+            PyErr_NoMemory();
+            goto done;
+        }
+        self->rows = grown;
+        self->rows_cap = need;
+    }
+    double *H = self->rows, *y = H + m * n, *R = y + m, closest;
+    memset(H, 0, sizeof(double) * (size_t)(k * n));
+    if (uwbd_range_rows(self->p, self->q, lever, view[1].buf, view[0].buf, k, self->br, n,
+                        args[4], H, y, &closest) < 0)
+        goto done;
+    if (!(closest >= 1e-3)) {
+        out = Py_NewRef(Py_None);
+        goto done;
+    }
+    memcpy(R, view[2].buf, sizeof(double) * k);
+    memcpy(H + k * n, view[4].buf, sizeof(double) * e * n);
+    memcpy(y + k, view[3].buf, sizeof(double) * e);
+    memcpy(R + k, view[5].buf, sizeof(double) * e);
+    out = fuse_rows(self, H, y, R, m, args[8], c0, c1);
+done:
+    for (int i = 0; i < got; i++)
+        PyBuffer_Release(&view[i]);
+    return out;
+}
+
+/* -- §6: the heading's turn, the covariance's repairs ----------------------------------- */
+
+/* rotate_heading(dpsi, yaw_sigma): q turned by dpsi about the navigation z axis; the
+ * heading's variance restarted at yaw_sigma², uncorrelated; roll and pitch kept (the
+ * attitude error turned into the navigation frame for it, and back). */
+static PyObject *state_rotate_heading(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (check_args(nargs, 2, "rotate_heading"))
+        return NULL;
+    double dpsi = PyFloat_AsDouble(args[0]), sigma = PyFloat_AsDouble(args[1]);
+    if (PyErr_Occurred())
+        return NULL;
+    double c = cos(dpsi / 2), s = sin(dpsi / 2), *q = self->q;
+    double w = q[0], x = q[1], y = q[2], z = q[3];
+    double t[4] = {c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w};
+    double norm = sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2] + t[3] * t[3]);
+    for (int i = 0; i < 4; i++)
+        q[i] = t[i] / norm;
+    double R[3][3], Rt[3][3];
+    uwbd_quat_to_matrix(q, R);
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            Rt[i][j] = R[j][i];
+    Py_ssize_t n = self->n, k = TH0 + 2; /* the navigation-frame yaw error */
+    double *P = self->P;
+    uwbd_transform_attitude(P, n, R);
+    for (Py_ssize_t j = 0; j < n; j++)
+        P[k * n + j] = P[j * n + k] = 0.0;
+    P[k * n + k] = sigma * sigma;
+    uwbd_transform_attitude(P, n, Rt);
+    Py_RETURN_NONE;
+}
+
+/* clamp(limit) -> bool: every variance within its limit (n variances) and none negative;
+ * a row and its column scaled by √(limit/P_ii), which keeps P positive semi-definite;
+ * True when anything was clamped. */
+static PyObject *state_clamp(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_ssize_t n = self->n;
+    Py_buffer Lb;
+    if (check_args(nargs, 1, "clamp") || uwbd_get_doubles(args[0], &Lb, n, 0, "limit") < 0)
+        return NULL;
+    const double *L = Lb.buf;
+    double *P = self->P, *scale = self->work;
+    int out = 0;
+    for (Py_ssize_t i = 0; i < n && !out; i++)
+        out = P[i * n + i] > L[i] || P[i * n + i] < 0.0; /* (NaN is neither) */
+    if (out) {
+        for (Py_ssize_t i = 0; i < n; i++) {
+            double d = P[i * n + i];
+            double r = L[i] / (d > 1e-300 ? d : 1e-300);
+            scale[i] = sqrt(r < 1.0 ? r : 1.0);
+        }
+        for (Py_ssize_t i = 0; i < n; i++)
+            for (Py_ssize_t j = 0; j < n; j++)
+                P[i * n + j] = P[i * n + j] * scale[i] * scale[j];
+        for (Py_ssize_t i = 0; i < n; i++)
+            if (P[i * n + i] < 0.0)
+                P[i * n + i] = 1e-9;
+    }
+    PyBuffer_Release(&Lb);
+    return PyBool_FromLong(out);
+}
+
+/* widen(start, stop, factor): the σ of the states [start, stop) (and their correlations'
+ * share) times factor. */
+static PyObject *state_widen(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_ssize_t c0, c1, n = self->n;
+    if (check_args(nargs, 3, "widen") || considered(args, n, &c0, &c1) < 0)
+        return NULL;
+    double f = PyFloat_AsDouble(args[2]);
+    if (f == -1.0 && PyErr_Occurred())
+        return NULL;
+    double *P = self->P;
+    for (Py_ssize_t i = 0; i < n; i++)
+        for (Py_ssize_t j = 0; j < n; j++)
+            P[i * n + j] = P[i * n + j] * (i >= c0 && i < c1 ? f : 1.0) *
+                           (j >= c0 && j < c1 ? f : 1.0);
+    Py_RETURN_NONE;
+}
+
+/* add_variances(d): P_ii += d_i (n numbers). */
+static PyObject *state_add_variances(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_ssize_t n = self->n;
+    double *d = self->work;
+    if (check_args(nargs, 1, "add_variances") || uwbd_get_vec(args[0], d, n, "variances"))
+        return NULL;
+    for (Py_ssize_t i = 0; i < n; i++)
+        self->P[i * n + i] += d[i];
+    Py_RETURN_NONE;
+}
+
+/* set_covariance(P): P taken as given (n×n; a restore). */
+static PyObject *state_set_covariance(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_ssize_t n = self->n;
+    Py_buffer Pb;
+    if (check_args(nargs, 1, "set_covariance") ||
+        uwbd_get_doubles(args[0], &Pb, n * n, 0, "P") < 0)
+        return NULL;
+    memcpy(self->P, Pb.buf, sizeof(double) * n * n);
+    PyBuffer_Release(&Pb);
+    Py_RETURN_NONE;
+}
+
+/* move_to(p, v): the position and velocity set (a position reset to a UWB fix). */
+static PyObject *state_move_to(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double p[3], v[3];
+    if (check_args(nargs, 2, "move_to") || uwbd_get_vec(args[0], p, 3, "p") ||
+        uwbd_get_vec(args[1], v, 3, "v"))
+        return NULL;
+    memcpy(self->p, p, sizeof p);
+    memcpy(self->v, v, sizeof v);
+    Py_RETURN_NONE;
+}
+
+/* -- outputs ---------------------------------------------------------------------------- */
+
+/* pose_numbers(aligned, max_yaw_sigma)
+ * -> (covariance (36), σ_xy, heading observable, position (3), velocity (3), xyzw (4)),
+ *    or None when a number is not finite
+ * The covariance over position and the attitude error turned into the navigation frame,
+ * [[Ppp, Ppθ Rᵀ], [R Pθp, R Pθθ Rᵀ]], row-major, made symmetric; while the heading is not
+ * aligned its yaw row and column are 0 and its variance π². */
+static PyObject *state_pose_numbers(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (check_args(nargs, 2, "pose_numbers"))
+        return NULL;
+    int aligned = PyObject_IsTrue(args[0]);
+    double max_yaw_sigma = PyFloat_AsDouble(args[1]);
+    if (aligned < 0 || PyErr_Occurred())
+        return NULL;
+    Py_ssize_t n = self->n;
+    const double *P = self->P, *q = self->q, *p = self->p, *v = self->v;
+    for (int i = 0; i < 9; i++) /* any NaN or inf over (p, v, θ) */
+        for (int j = 0; j < 9; j++)
+            if (!isfinite(P[i * n + j]))
+                Py_RETURN_NONE;
+    double R[3][3];
+    uwbd_quat_to_matrix(q, R);
+    double TP[6][9];
+    for (int j = 0; j < 9; j++) {
+        for (int i = 0; i < 3; i++)
+            TP[i][j] = P[i * n + j];
+        for (int i = 0; i < 3; i++)
+            TP[3 + i][j] = R[i][0] * P[6 * n + j] + R[i][1] * P[7 * n + j]
+                + R[i][2] * P[8 * n + j];
+    }
+    double M[6][6], cov[36];
+    for (int i = 0; i < 6; i++) {
+        for (int j = 0; j < 3; j++)
+            M[i][j] = TP[i][j];
+        for (int j = 0; j < 3; j++)
+            M[i][3 + j] = TP[i][6] * R[j][0] + TP[i][7] * R[j][1] + TP[i][8] * R[j][2];
+    }
+    for (int i = 0; i < 6; i++)
+        for (int j = 0; j < 6; j++)
+            cov[6 * i + j] = 0.5 * (M[i][j] + M[j][i]);
+    if (!aligned) {
+        for (int i = 0; i < 6; i++)
+            cov[6 * i + 5] = cov[30 + i] = 0.0;
+        cov[35] = M_PI * M_PI;
+    }
+    double s = p[0] + p[1] + p[2] + v[0] + v[1] + v[2] + q[0] + q[1] + q[2] + q[3];
+    for (int i = 0; i < 36; i++)
+        s += cov[i];
+    if (!isfinite(s))
+        Py_RETURN_NONE;
+    double xy = cov[0] + cov[7], yaw = cov[35];
+    double sigma_xy = sqrt(xy > 0.0 ? xy : 0.0);
+    int observable = aligned && sqrt(yaw > 0.0 ? yaw : 0.0) < max_yaw_sigma;
+    const double xyzw[4] = {q[1], q[2], q[3], q[0]};
+    return Py_BuildValue("(NdNNNN)", uwbd_floats(cov, 36, 0), sigma_xy,
+                         PyBool_FromLong(observable), uwbd_floats(p, 3, 0),
+                         uwbd_floats(v, 3, 0), uwbd_floats(xyzw, 4, 0));
+}
+
+/* -- attributes ------------------------------------------------------------------------- */
+
+static PyObject *get_interval(State *self, void *c)
+{
+    (void)c;
+    return PyFloat_FromDouble(self->T);
+}
+
+static PyObject *get_n(State *self, void *c)
+{
+    (void)c;
+    return PyLong_FromSsize_t(self->n);
+}
+
+static PyObject *get_keep(State *self, void *c)
+{
+    (void)c;
+    return PyBool_FromLong(self->keep_transition);
+}
+
+static int set_keep(State *self, PyObject *value, void *c)
+{
+    (void)c;
+    int keep = value == NULL ? -1 : PyObject_IsTrue(value);
+    if (keep < 0) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_TypeError, "keep_transition cannot be deleted");
+        return -1;
+    }
+    self->keep_transition = keep;
+    return 0;
+}
+
+static PyGetSetDef state_getset[] = {
+    {"interval_s", (getter)get_interval, NULL, "Time integrated since the last propagate.",
+     NULL},
+    {"n", (getter)get_n, NULL, "The error state's size.", NULL},
+    {"keep_transition", (getter)get_keep, (setter)set_keep,
+     "Φ kept over the epoch for take_epoch(with_phi) (smoothing); off, not multiplied.", NULL},
+    {NULL, NULL, NULL, NULL, NULL},
+};
+
+#define METHOD(name, doc) \
+    {#name, (PyCFunction)(void (*)(void))state_##name, METH_FASTCALL, doc}
+
+static PyMethodDef state_methods[] = {
+    METHOD(predict, "predict(acc_b, gyro_b, dt): one IMU sample (body axes), §2."),
+    METHOD(propagate, "propagate(): P over the interval integrated, §3."),
+    METHOD(take_epoch, "take_epoch(with_phi) -> (Φ_core or None, decays or None, Σ R f Δt)."),
+    METHOD(coast, "coast(dt, accel_sigma, yaw_rate_sigma, tilt_rate_sigma): no IMU, §3."),
+    METHOD(update, "update(H, y, R, decide, c0, c1) -> rows: fused, injected, reset, §5."),
+    METHOD(fuse_ranges, "fuse_ranges(lever, anchors, ranges, var, columns, H, y, R, decide, "
+                        "c0, c1) -> rows or None: a tight epoch, §4-5."),
+    METHOD(rotate_heading, "rotate_heading(dpsi, yaw_sigma): the coarse heading's turn."),
+    METHOD(clamp, "clamp(limit) -> bool: every variance within its limit."),
+    METHOD(widen, "widen(start, stop, factor): those states' sigma times factor."),
+    METHOD(add_variances, "add_variances(d): P_ii += d_i."),
+    METHOD(set_covariance, "set_covariance(P): P restored."),
+    METHOD(move_to, "move_to(p, v): position and velocity set."),
+    METHOD(pose_numbers, "pose_numbers(aligned, max_yaw_sigma) -> the pose's numbers or None."),
+    {NULL, NULL, 0, NULL},
+};
+
+PyTypeObject UwbdStateType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "uwbd.fusion._core.State",
+    .tp_doc = "The error-state EKF's numbers and the operations on them (docs/ekf.md); "
+              "read-only through the buffer protocol: p v q b_g b_a b_r P last_dx.",
+    .tp_basicsize = sizeof(State),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)state_init,
+    .tp_dealloc = (destructor)state_dealloc,
+    .tp_as_buffer = &state_as_buffer,
+    .tp_methods = state_methods,
+    .tp_getset = state_getset,
+};
