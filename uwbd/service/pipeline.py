@@ -5,8 +5,11 @@ replay`` for every ``/raw/<source>`` message of a log, in log order with its log
 the same code in the same order, so a replay reproduces the live poses bit for bit. Logs
 that carry only decoded frames go in through :meth:`Pipeline.on_frame`.
 
-Poses leave after every UWB update and, between updates, at most every
-``pose_period_ns`` of data time; status every ``status_period_ns``. Sinks receive
+Poses leave at the configured rate (``pose_period_ns`` of data time apart at most, from
+the IMU samples between updates) and after every UWB epoch of several ranges, whose
+correction should not wait; a single range (a DW1000-class tag ranges one anchor at a
+time, ~170 a second) updates the state at once but brings a pose out only when one is due;
+status every ``status_period_ns``. Sinks receive
 everything (raw bytes, frames, poses, status). Each call to a sink
 is guarded: a sink that raises is counted and reported (a warning line, ``sink_errors`` in
 the status) and the others, the log among them, still get every record.
@@ -199,6 +202,8 @@ class Pipeline:
                 return
         elif isinstance(frame, UwbRanges):
             flt.update(frame)
+            if len(frame.ranges) < 2 and frame.t_ns - self._last_pose_ns < self._pose_period_ns:
+                return  # a single range: the next pose is due later
         else:
             return  # anchor-to-anchor ranges: logged for surveying, never fused
         self._emit_pose()
