@@ -86,6 +86,7 @@ def process_noise(noise: ImuNoise, n_range_bias: int, aux_tau_s: Array | None,
 class Eskf:
     """The filter's state and the algebra on it; policy (gating, modes) lives in ``Filter``."""
 
+    fuses_ranges = False  # fuse_ranges takes a tight epoch in one call (CoreEskf)
     # lists of floats here, numpy views of the C core's memory in CoreEskf
     p: list[float] | Array
     v: list[float] | Array

@@ -79,7 +79,7 @@ class EpochFusion:
         :meth:`_fuse`."""
         ekf = self.ekf
         assert ekf is not None
-        if ids and self.cfg.mode is Mode.TIGHT:
+        if ids and self.cfg.mode is Mode.TIGHT and ekf.fuses_ranges:
             extra = Rows.stack(constraints) if constraints else self._no_rows(ekf.n)
             keys = range_keys(ids) + extra.keys
             outcome = ekf.fuse_ranges(

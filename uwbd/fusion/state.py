@@ -42,6 +42,8 @@ class CoreEskf(Eskf):
     """:class:`Eskf`'s operations on the C core's state (see module doc). Its read-only
     helpers (``R``, the yaw and tilt σ) are Eskf's, reading the views."""
 
+    fuses_ranges = True
+
     def __init__(self, p: Vector, v: Vector, q: Vector, P0: Array, noise: ImuNoise,
                  n_range_bias: int = 0, b_g: Vector = (0.0, 0.0, 0.0),
                  b_a: Vector = (0.0, 0.0, 0.0), aux_tau_s: Array | None = None,
