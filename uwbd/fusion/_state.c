@@ -472,6 +472,32 @@ static int considered(PyObject *const *args, Py_ssize_t n, Py_ssize_t *c0, Py_ss
     return 0;
 }
 
+/* Rows (H m×n, y m, R m) as buffers in view[0..2] (y, H, R), m from y: 0, or -1 with
+ * every buffer released. */
+static int get_rows(PyObject *H, PyObject *y, PyObject *R, Py_ssize_t n, Py_buffer view[3],
+                    Py_ssize_t *m, const char *const names[3])
+{
+    if (uwbd_get_doubles(y, &view[0], -1, 0, names[0]) < 0)
+        return -1;
+    *m = view[0].len / 8;
+    if (uwbd_get_doubles(H, &view[1], *m * n, 0, names[1]) < 0) {
+        PyBuffer_Release(&view[0]);
+        return -1;
+    }
+    if (uwbd_get_doubles(R, &view[2], *m, 0, names[2]) < 0) {
+        PyBuffer_Release(&view[0]);
+        PyBuffer_Release(&view[1]);
+        return -1;
+    }
+    return 0;
+}
+
+static void release_rows(Py_buffer view[3])
+{
+    for (int i = 0; i < 3; i++)
+        PyBuffer_Release(&view[i]);
+}
+
 /* update(H, y, R, decide, c0, c1) -> [(ν, S, w, numerical)]: the rows H (m×n) with
  * residuals y at the prior and variances R fused one scalar at a time (§5), the weights
  * by `decide` (a RowPolicy tuple, or a callable called back per row), states [c0, c1)
@@ -481,23 +507,13 @@ static PyObject *state_update(State *self, PyObject *const *args, Py_ssize_t nar
     Py_ssize_t c0, c1, n = self->n;
     if (check_args(nargs, 6, "update") || considered(args + 4, n, &c0, &c1) < 0)
         return NULL;
-    Py_buffer view[3]; /* y, H, R */
-    int got = 0;
-    PyObject *out = NULL;
-    if (uwbd_get_doubles(args[1], &view[0], -1, 0, "y") < 0)
+    Py_buffer view[3];
+    Py_ssize_t m;
+    static const char *const names[3] = {"y", "H", "R"};
+    if (get_rows(args[0], args[1], args[2], n, view, &m, names) < 0)
         return NULL;
-    got = 1;
-    Py_ssize_t m = view[0].len / 8;
-    if (uwbd_get_doubles(args[0], &view[1], m * n, 0, "H") < 0)
-        goto done;
-    got = 2;
-    if (uwbd_get_doubles(args[2], &view[2], m, 0, "R") < 0)
-        goto done;
-    got = 3;
-    out = fuse_rows(self, view[1].buf, view[0].buf, view[2].buf, m, args[3], c0, c1);
-done:
-    for (int i = 0; i < got; i++)
-        PyBuffer_Release(&view[i]);
+    PyObject *out = fuse_rows(self, view[1].buf, view[0].buf, view[2].buf, m, args[3], c0, c1);
+    release_rows(view);
     return out;
 }
 
@@ -513,29 +529,24 @@ static PyObject *state_fuse_ranges(State *self, PyObject *const *args, Py_ssize_
     if (check_args(nargs, 11, "fuse_ranges") || considered(args + 9, n, &c0, &c1) < 0 ||
         uwbd_get_vec(args[0], lever, 3, "lever"))
         return NULL;
-    Py_buffer view[6]; /* ranges, anchors, var, y_extra, H_extra, R_extra */
-    int got = 0;
+    Py_buffer view[3], extra[3]; /* ranges, anchors, var; y, H, R of the extra rows */
+    int got = 0, rows = 0;
     PyObject *out = NULL;
     if (uwbd_get_doubles(args[2], &view[0], -1, 0, "ranges") < 0)
         return NULL;
     got = 1;
-    Py_ssize_t k = view[0].len / 8;
+    Py_ssize_t k = view[0].len / 8, e;
     if (uwbd_get_doubles(args[1], &view[1], 3 * k, 0, "anchors") < 0)
         goto done;
     got = 2;
     if (uwbd_get_doubles(args[3], &view[2], k, 0, "var") < 0)
         goto done;
     got = 3;
-    if (uwbd_get_doubles(args[6], &view[3], -1, 0, "y_extra") < 0)
+    static const char *const names[3] = {"y_extra", "H_extra", "R_extra"};
+    if (get_rows(args[5], args[6], args[7], n, extra, &e, names) < 0)
         goto done;
-    got = 4;
-    Py_ssize_t e = view[3].len / 8, m = k + e;
-    if (uwbd_get_doubles(args[5], &view[4], e * n, 0, "H_extra") < 0)
-        goto done;
-    got = 5;
-    if (uwbd_get_doubles(args[7], &view[5], e, 0, "R_extra") < 0)
-        goto done;
-    got = 6;
+    rows = 1;
+    Py_ssize_t m = k + e;
     Py_ssize_t need = m * n + 2 * m;
     if (need > self->rows_cap) {
         double *grown = PyMem_Realloc(self->rows, sizeof(double) * (size_t)need);
@@ -556,13 +567,15 @@ static PyObject *state_fuse_ranges(State *self, PyObject *const *args, Py_ssize_
         goto done;
     }
     memcpy(R, view[2].buf, sizeof(double) * k);
-    memcpy(H + k * n, view[4].buf, sizeof(double) * e * n);
-    memcpy(y + k, view[3].buf, sizeof(double) * e);
-    memcpy(R + k, view[5].buf, sizeof(double) * e);
+    memcpy(H + k * n, extra[1].buf, sizeof(double) * e * n);
+    memcpy(y + k, extra[0].buf, sizeof(double) * e);
+    memcpy(R + k, extra[2].buf, sizeof(double) * e);
     out = fuse_rows(self, H, y, R, m, args[8], c0, c1);
 done:
     for (int i = 0; i < got; i++)
         PyBuffer_Release(&view[i]);
+    if (rows)
+        release_rows(extra);
     return out;
 }
 
