@@ -1,4 +1,4 @@
-"""The C extensions (the filter's core, uwbd/fusion/_core.c, and the daemon's serial reader,
+"""The C extensions (the filter's core, uwbd/fusion/core/_core.c, and the daemon's serial reader,
 uwbd/service/_reader.c) are built here; everything else is in pyproject.toml.
 
 ``optional=True``: where no C compiler is found the install goes on without it and uwbd
@@ -9,10 +9,10 @@ from setuptools import Extension, setup
 
 setup(ext_modules=[
     Extension(
-        "uwbd.fusion._core", ["uwbd/fusion/_core.c", "uwbd/fusion/_state.c",
-                              "uwbd/fusion/_update.c", "uwbd/fusion/mm_range.c",
-                              "uwbd/fusion/_lsq.c", "uwbd/fusion/_rest.c"],
-        depends=["uwbd/fusion/_core.h"],
+        "uwbd.fusion.core._core", ["uwbd/fusion/core/_core.c", "uwbd/fusion/core/_state.c",
+                              "uwbd/fusion/core/_update.c", "uwbd/fusion/core/mm_range.c",
+                              "uwbd/fusion/core/_lsq.c", "uwbd/fusion/core/_rest.c"],
+        depends=["uwbd/fusion/core/_core.h"],
         # a * b + c rounded as Python rounds it (no fused multiply-add): the same bits; -O3
         # vectorises the element-wise loops (sums are never reassociated: the same bits)
         extra_compile_args=["-O3", "-ffp-contract=off", "-fno-fast-math"],

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from uwbd.fusion import native
+from uwbd.fusion.core import native
 from uwbd.logs.reading import read_log
 from uwbd.logs.replay import replay
 from uwbd.tools.logtools import write_simulation

@@ -9,7 +9,7 @@ real time, on the C core and on the pure-Python reference.
 Accuracy: position RMSE against ground truth for the baselines (pure INS, UWB least
 squares, the same with static-point filtering at rest, the thesis's 4-state KF with its
 dual-gain complementary attitude filter and static points, and that KF with the two gains
-swapped; ``uwbd.fusion.baselines.comparison_methods``) and the loose and
+swapped; ``uwbd.tools.baselines.comparison_methods``) and the loose and
 tight error-state filters (generic defaults; on the simulator also tight with the config
 ``uwbd simulate`` writes, which holds the simulated sensors' specs), on simulator runs
 (mean over seeds; the first 8 s, the still start, left out) and on the real flight, scored
@@ -29,10 +29,10 @@ import numpy as np
 
 from drivers.frames import Frame, ImuSample, UwbRanges
 from uwbd.config import parse
-from uwbd.fusion import native
-from uwbd.fusion.baselines import comparison_methods
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.core import native
+from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.settings import FilterConfig, Mode
+from uwbd.tools.baselines import comparison_methods
 from uwbd.tools.evaluate import (
     HEADER,
     Accuracy,

@@ -33,9 +33,9 @@ from pathlib import Path
 import numpy as np
 
 from uwbd.config import parse
-from uwbd.fusion.baselines import UwbLeastSquares
 from uwbd.fusion.settings import FilterConfig
 from uwbd.fusion.types import Pose
+from uwbd.tools.baselines import UwbLeastSquares
 from uwbd.tools.evaluate import merge, run_filter, run_method, score, truth_spikes
 from uwbd.tools.importer import INROL_LEVER_ARM_M, INROL_MOUNTING, Dataset, load_iasl, load_inrol
 from uwbd.tools.logtools import simulation_toml

@@ -1,4 +1,4 @@
-"""The baselines uwbd is measured against (uwbd.fusion.baselines), on constructed IMU input
+"""The baselines uwbd is measured against (uwbd.tools.baselines), on constructed IMU input
 and on a short simulated run against the simulator's ground truth."""
 
 from __future__ import annotations
@@ -9,7 +9,10 @@ import numpy as np
 import pytest
 
 from drivers.frames import ImuSample
-from uwbd.fusion.baselines import (
+from uwbd.fusion.core.eskf import GRAVITY_MPS2
+from uwbd.fusion.core.rotation import Array, euler_from_quat, quat_from_euler, quat_to_matrix
+from uwbd.fusion.settings import FilterConfig
+from uwbd.tools.baselines import (
     ACCEL_MPS2,
     SWAPPED_GAINS,
     THESIS_GAINS,
@@ -21,9 +24,6 @@ from uwbd.fusion.baselines import (
     StaticPoints,
     UwbLeastSquares,
 )
-from uwbd.fusion.eskf import GRAVITY_MPS2
-from uwbd.fusion.rotation import Array, euler_from_quat, quat_from_euler, quat_to_matrix
-from uwbd.fusion.settings import FilterConfig
 from uwbd.tools.evaluate import merge, run_method, score
 from uwbd.tools.simulator import SimConfig, Simulation, simulate
 

@@ -1,5 +1,5 @@
 """The contract of the C core with its pure-Python reference: :class:`CoreEskf` (the state
-the C type ``_core.State`` owns) against :class:`Eskf` (uwbd/fusion/eskf.py, written as
+the C type ``_core.State`` owns) against :class:`Eskf` (uwbd/fusion/core/eskf.py, written as
 docs/ekf.md reads) operation by operation on random states and inputs, the stateless
 multilateration and rest moments, and whole filter runs (simulator presets, both real
 datasets) pose by pose, within tolerances."""
@@ -19,16 +19,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from uwbd.config import parse
-from uwbd.fusion import native
-from uwbd.fusion.eskf import N_CORE, TH_, V_, Eskf, ImuNoise, Row
-from uwbd.fusion.lsq import multilaterate
-from uwbd.fusion.measurements import range_rows
-from uwbd.fusion.outputs import MAX_OBSERVABLE_YAW_SIGMA
-from uwbd.fusion.rest import ImuWindow, RestLimits
-from uwbd.fusion.robust import RobustPolicy, RowPolicy
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.core import native
+from uwbd.fusion.core.eskf import N_CORE, TH_, V_, Eskf, ImuNoise, Row
+from uwbd.fusion.core.lsq import multilaterate
+from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.core.state import CoreEskf, new_eskf
+from uwbd.fusion.models.measurements import range_rows
+from uwbd.fusion.policy.outputs import MAX_OBSERVABLE_YAW_SIGMA
+from uwbd.fusion.policy.rest import ImuWindow, RestLimits
+from uwbd.fusion.policy.robust import RobustPolicy, RowPolicy
 from uwbd.fusion.settings import FilterConfig
-from uwbd.fusion.state import CoreEskf, new_eskf
 from uwbd.fusion.types import Pose
 from uwbd.tools.evaluate import merge, run_filter
 from uwbd.tools.importer import INROL_LEVER_ARM_M, INROL_MOUNTING, load_iasl, load_inrol
@@ -378,7 +378,7 @@ def test_the_c_core_is_built() -> None:
 
 @needs_core
 def test_the_environment_variable_forces_pure_python() -> None:
-    code = "from uwbd.fusion import native; print(native.core is None, native.implementation)"
+    code = "from uwbd.fusion.core import native; print(native.core is None, native.implementation)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, env={**os.environ, native.PURE_PYTHON_ENV: "1"}).stdout
     assert out.startswith("True pure Python (UWBD_PURE_PYTHON is set)")

@@ -18,7 +18,7 @@ import zenoh
 from drivers.emulator import DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
 from uwbd.config import parse
-from uwbd.fusion import native
+from uwbd.fusion.core import native
 from uwbd.logs.reading import read_log
 from uwbd.logs.replay import replay
 from uwbd.logs.sink import McapSink

@@ -12,14 +12,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from uwbd.fusion.alignment import (
+from uwbd.fusion.policy.alignment import (
     _interpolated,
     _rotation_fit,
     _span_velocities,
     _turns_leaving_out_each_span,
     velocity_fit,
 )
-from uwbd.fusion.rest import _velocity_xy
+from uwbd.fusion.policy.rest import _velocity_xy
 
 T0_NS = 1_700_000_000 * 10**9
 

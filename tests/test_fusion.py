@@ -11,15 +11,21 @@ import pytest
 from scipy.stats import chi2
 
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
-from uwbd.fusion import native
-from uwbd.fusion.eskf import N_CORE, TH_, Eskf, ImuNoise
+from uwbd.fusion.checks.gating import chi2_quantile
+from uwbd.fusion.core import native
+from uwbd.fusion.core.eskf import N_CORE, TH_, Eskf, ImuNoise
+from uwbd.fusion.core.lsq import coplanar, multilaterate
+from uwbd.fusion.core.rotation import (
+    Array,
+    euler_from_quat,
+    quat_from_euler,
+    quat_mul,
+    quat_to_matrix,
+)
+from uwbd.fusion.core.smoother import smooth
 from uwbd.fusion.filter import Filter
-from uwbd.fusion.gating import chi2_quantile
-from uwbd.fusion.health import Phase
-from uwbd.fusion.lsq import coplanar, multilaterate
-from uwbd.fusion.rotation import Array, euler_from_quat, quat_from_euler, quat_mul, quat_to_matrix
+from uwbd.fusion.policy.health import Phase
 from uwbd.fusion.settings import FilterConfig, Mode
-from uwbd.fusion.smoother import smooth
 from uwbd.fusion.types import Pose
 from uwbd.tools.evaluate import (
     merge,

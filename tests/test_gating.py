@@ -7,7 +7,7 @@ import math
 import pytest
 
 from drivers.frames import AnchorRange, UwbRanges
-from uwbd.fusion.gating import GatingCounters, GatingPolicy, Rejection, gate
+from uwbd.fusion.checks.gating import GatingCounters, GatingPolicy, Rejection, gate
 
 
 def epoch(*ranges: AnchorRange) -> UwbRanges:

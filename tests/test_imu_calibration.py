@@ -16,9 +16,9 @@ import pytest
 
 from drivers.frames import ImuSample
 from uwbd.config import ConfigError, apply_overrides, parse
-from uwbd.fusion.eskf import GRAVITY_MPS2, N_CORE, Eskf, ImuNoise
+from uwbd.fusion.checks.intrinsics import ImuIntrinsics, to_body
+from uwbd.fusion.core.eskf import GRAVITY_MPS2, N_CORE, Eskf, ImuNoise
 from uwbd.fusion.filter import Filter
-from uwbd.fusion.intrinsics import ImuIntrinsics, to_body
 from uwbd.fusion.settings import FilterConfig
 from uwbd.logs.mcaplog import LogWriter
 from uwbd.logs.reading import read_log

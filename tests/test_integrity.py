@@ -21,17 +21,17 @@ from drivers import nlink, wit
 from drivers.emulator.scenario import CircleScenario
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
 from uwbd.config import parse
-from uwbd.fusion.baselines import UwbLeastSquares
-from uwbd.fusion.eskf import N_CORE
+from uwbd.fusion.core.eskf import N_CORE
+from uwbd.fusion.core.lsq import multilaterate
+from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.filter import Filter
-from uwbd.fusion.health import Phase
-from uwbd.fusion.lsq import multilaterate
-from uwbd.fusion.mirror import MirrorSide
-from uwbd.fusion.robust import RobustPolicy
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.policy.health import Phase
+from uwbd.fusion.policy.mirror import MirrorSide
+from uwbd.fusion.policy.robust import RobustPolicy
 from uwbd.fusion.settings import FilterConfig
 from uwbd.fusion.types import Pose
 from uwbd.service.pipeline import Pipeline, PoseList
+from uwbd.tools.baselines import UwbLeastSquares
 from uwbd.tools.evaluate import merge, run_filter, run_method, score, score_poses
 from uwbd.tools.logtools import simulation_toml
 from uwbd.tools.simulator import SimConfig, Simulation, ceiling_room, handheld_async, simulate

@@ -19,7 +19,7 @@ from ruamel.yaml import YAML
 
 from drivers.frames import ImuSample
 from uwbd.config import parse
-from uwbd.fusion.rotation import quat_to_matrix
+from uwbd.fusion.core.rotation import quat_to_matrix
 from uwbd.fusion.types import Pose
 from uwbd.logs.reading import read_log
 from uwbd.tools.logtools import write_simulation

@@ -18,7 +18,7 @@ from typing import Any
 from drivers import PARSERS
 from uwbd import __version__, journal
 from uwbd.commands.common import FOXGLOVE_DEFAULT, ROUTER_LISTEN_DEFAULT, RunError, UsageError
-from uwbd.fusion import native
+from uwbd.fusion.core import native
 from uwbd.service.interrupt import quiet_stdout
 
 IMPORT_FORMATS = ("iasl", "inrol")  # uwbd.commands.tools.IMPORTERS' keys

@@ -119,7 +119,7 @@ def cmd_calibrate_imu(args: argparse.Namespace) -> int:
     snippet, ``--write-config`` into a copy of a config."""
     from drivers.frames import ImuSample
     from uwbd.config import parse as parse_config
-    from uwbd.fusion.eskf import GRAVITY_MPS2
+    from uwbd.fusion.core.eskf import GRAVITY_MPS2
     from uwbd.tools.imu_calibration import MIN_STATIC_S, CalibrationError, calibrate
 
     if args.gravity is not None and not 9.7 <= args.gravity <= 9.9:

@@ -36,7 +36,7 @@ from uwbd.config.schema import (
 )
 from uwbd.config.spelling import known, show, toml_key
 from uwbd.fusion.filter import MAX_ANCHOR_COORD_M, Filter
-from uwbd.fusion.fusing import MAX_RANGE_BIAS_SIGMA_M
+from uwbd.fusion.policy.fusing import MAX_RANGE_BIAS_SIGMA_M
 from uwbd.fusion.settings import IDENTITY3
 
 

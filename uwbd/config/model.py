@@ -9,11 +9,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from uwbd.fusion.eskf import GRAVITY_MPS2, ImuNoise
-from uwbd.fusion.gating import GatingPolicy
-from uwbd.fusion.imu_check import ImuLimits
-from uwbd.fusion.intrinsics import ImuIntrinsics
-from uwbd.fusion.robust import RobustPolicy
+from uwbd.fusion.checks.gating import GatingPolicy
+from uwbd.fusion.checks.imu_check import ImuLimits
+from uwbd.fusion.checks.intrinsics import ImuIntrinsics
+from uwbd.fusion.core.eskf import GRAVITY_MPS2, ImuNoise
+from uwbd.fusion.policy.robust import RobustPolicy
 from uwbd.fusion.settings import IDENTITY3, FilterConfig, Mode
 
 Vec3 = tuple[float, float, float]

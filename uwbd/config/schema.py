@@ -13,7 +13,7 @@ from typing import Any
 from drivers.nlink import N_SLOTS
 from uwbd.config.model import IMU_INTRINSIC_VECTORS, IMU_LIMIT_KEYS, IMU_NOISE_KEYS
 from uwbd.config.spelling import maybe, show, type_name
-from uwbd.fusion.eskf import ImuNoise
+from uwbd.fusion.core.eskf import ImuNoise
 from uwbd.fusion.filter import MAX_ANCHOR_COORD_M
 from uwbd.fusion.settings import Mode
 

@@ -5,24 +5,24 @@ frames in, same poses out), no I/O; no exception leaves them (a numerical failur
 foresaw is counted as ``internal_errors`` and restarts the filter). The top level below reads as
 the sequence it runs; each step's policy has a module of its own:
 
-* :mod:`.imu_check` — which IMU samples can be real (non-finite, clipped, impossible jumps),
-  judged raw; then :mod:`.intrinsics` corrects them (scale, offsets) on the way to body axes;
-* :mod:`.rest` — the recent IMU window and the rest test (start, ZUPT);
-* :mod:`.fixes` and :mod:`.mirror` — UWB-only fixes from epochs or a window of single
+* :mod:`.checks.imu_check` — which IMU samples can be real (non-finite, clipped, impossible jumps),
+  judged raw; then :mod:`.checks.intrinsics` corrects them (scale, offsets) on the way to body axes;
+* :mod:`.policy.rest` — the recent IMU window and the rest test (start, ZUPT);
+* :mod:`.policy.fixes` and :mod:`.policy.mirror` — UWB-only fixes from epochs or a window of single
   ranges, on the right side of a plane of anchors;
-* :mod:`.initialise` — the state at start (at rest, or while moving) and after a restart;
-* :mod:`.alignment` — the coarse heading from INS against UWB velocity changes;
-* :mod:`.measurements` — the rows of each measurement model (range, fix, ZUPT, NHC, height);
-* :mod:`.robust` — de-weighting NLOS ranges, per-anchor statistics;
-* :mod:`.health` — the health record, and the evidence for restarts;
-* :mod:`.propagation` — each IMU sample judged, kept and integrated (a mixin of this class);
-* :mod:`.recovery` — the restarts themselves and what triggers them (a mixin of this class);
-* :mod:`.fusing` — one epoch's rows fused and each row's outcome (a mixin of this class);
-* :mod:`.outputs` — the pose, the health record, the diagnostics (a mixin of this class);
-* :mod:`.eskf` — the algebra (docs/ekf.md).
+* :mod:`.policy.initialise` — the state at start (at rest, or while moving) and after a restart;
+* :mod:`.policy.alignment` — the coarse heading from INS against UWB velocity changes;
+* :mod:`.models.measurements` — the rows of each measurement model (range, fix, ZUPT, NHC, height);
+* :mod:`.policy.robust` — de-weighting NLOS ranges, per-anchor statistics;
+* :mod:`.policy.health` — the health record, and the evidence for restarts;
+* :mod:`.policy.propagation` — each IMU sample judged, kept and integrated (a mixin of this class);
+* :mod:`.policy.recovery` — the restarts themselves and what triggers them (a mixin of this class);
+* :mod:`.policy.fusing` — one epoch's rows fused and each row's outcome (a mixin of this class);
+* :mod:`.policy.outputs` — the pose, the health record, the diagnostics (a mixin of this class);
+* :mod:`.core.eskf` — the algebra (docs/ekf.md).
 
-The numbers (state, covariance, the algebra on them) are :class:`~uwbd.fusion.eskf.Eskf`'s,
-on the C core where it is built (:class:`~uwbd.fusion.state.CoreEskf`); every decision is
+The numbers (state, covariance, the algebra on them) are :class:`~uwbd.fusion.core.eskf.Eskf`'s,
+on the C core where it is built (:class:`~uwbd.fusion.core.state.CoreEskf`); every decision is
 made here and in the modules above.
 
 Life cycle: **waiting** (collect IMU and fixes), start at rest or while moving, **aligning**
@@ -46,35 +46,35 @@ import math
 import numpy as np
 
 from drivers.frames import AnchorRanges, UwbRanges
-from uwbd.fusion.alignment import HeadingAligner
-from uwbd.fusion.eskf import BA_, BG_, N_CORE, TH_, Eskf
-from uwbd.fusion.fixes import RangeWindow
-from uwbd.fusion.fusing import (
-    EpochFusion,
-)
-from uwbd.fusion.gating import GatingCounters, chi2_quantile, gate
-from uwbd.fusion.health import HealthMonitor
-from uwbd.fusion.imu_check import ImuCheck
-from uwbd.fusion.initialise import Start
-from uwbd.fusion.intrinsics import to_body
-from uwbd.fusion.lsq import LsqFix, coplanar
-from uwbd.fusion.measurements import (
+from uwbd.fusion.checks.gating import GatingCounters, chi2_quantile, gate
+from uwbd.fusion.checks.imu_check import ImuCheck
+from uwbd.fusion.checks.intrinsics import to_body
+from uwbd.fusion.core.eskf import BA_, BG_, N_CORE, TH_, Eskf
+from uwbd.fusion.core.lsq import LsqFix, coplanar
+from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.core.smoother import EpochRecord, Nominal
+from uwbd.fusion.models.measurements import (
     Rows,
     height_rows,
     nhc_rows,
     zupt_rows,
 )
-from uwbd.fusion.mirror import WALL_NORMAL_Z, MirrorSide
-from uwbd.fusion.outputs import FilterOutputs
-from uwbd.fusion.propagation import NUMERICAL_ERRORS, ImuPropagation
-from uwbd.fusion.recovery import (
+from uwbd.fusion.policy.alignment import HeadingAligner
+from uwbd.fusion.policy.fixes import RangeWindow
+from uwbd.fusion.policy.fusing import (
+    EpochFusion,
+)
+from uwbd.fusion.policy.health import HealthMonitor
+from uwbd.fusion.policy.initialise import Start
+from uwbd.fusion.policy.mirror import WALL_NORMAL_Z, MirrorSide
+from uwbd.fusion.policy.outputs import FilterOutputs
+from uwbd.fusion.policy.propagation import NUMERICAL_ERRORS, ImuPropagation
+from uwbd.fusion.policy.recovery import (
     NS,
 )
-from uwbd.fusion.rest import ImuWindow, UwbStillness
-from uwbd.fusion.robust import AnchorStats, RowPolicy, quality_scale
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.policy.rest import ImuWindow, UwbStillness
+from uwbd.fusion.policy.robust import AnchorStats, RowPolicy, quality_scale
 from uwbd.fusion.settings import FilterConfig, Mode
-from uwbd.fusion.smoother import EpochRecord, Nominal
 from uwbd.fusion.types import FusionReport
 
 Vec3 = tuple[float, float, float]
@@ -89,7 +89,7 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
     """Loosely or tightly coupled UWB/INS error-state EKF (see module doc)."""
 
     def __init__(self, config: FilterConfig, record: bool = False) -> None:
-        """``record``: keep every epoch's prior and posterior for :mod:`.smoother` (offline;
+        """``record``: keep every epoch's prior and posterior for :mod:`.core.smoother` (offline;
         about 13 kB an epoch with 8 anchors)."""
         self.cfg = config
         self.records: list[EpochRecord] | None = [] if record else None

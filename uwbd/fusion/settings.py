@@ -7,13 +7,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import Enum
 
-from uwbd.fusion.eskf import GRAVITY_MPS2, ImuNoise
-from uwbd.fusion.gating import GatingPolicy
-from uwbd.fusion.health import HealthLimits
-from uwbd.fusion.imu_check import ImuLimits
-from uwbd.fusion.intrinsics import ImuIntrinsics
-from uwbd.fusion.rest import RestLimits
-from uwbd.fusion.robust import RobustPolicy
+from uwbd.fusion.checks.gating import GatingPolicy
+from uwbd.fusion.checks.imu_check import ImuLimits
+from uwbd.fusion.checks.intrinsics import ImuIntrinsics
+from uwbd.fusion.core.eskf import GRAVITY_MPS2, ImuNoise
+from uwbd.fusion.policy.health import HealthLimits
+from uwbd.fusion.policy.rest import RestLimits
+from uwbd.fusion.policy.robust import RobustPolicy
 
 Vec3 = tuple[float, float, float]
 IDENTITY3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))

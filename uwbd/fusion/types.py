@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-from uwbd.fusion.health import WAITING, Health
+from uwbd.fusion.policy.health import WAITING, Health
 
 
 class Pose(NamedTuple):

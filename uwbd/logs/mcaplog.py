@@ -39,7 +39,7 @@ from mcap.records import DataEnd, Footer
 from drivers.frames import Frame, ImuSample, UwbRanges
 from uwbd import __version__
 from uwbd.codec import frame_to_json, strict_json
-from uwbd.fusion import native
+from uwbd.fusion.core import native
 from uwbd.fusion.types import Pose
 from uwbd.logs import foxglove as fx
 from uwbd.logs.chunked import MCAP0_MAGIC, ChunkedWriter

@@ -22,7 +22,7 @@ from typing import Any
 
 import zstandard
 
-from uwbd.fusion import native
+from uwbd.fusion.core import native
 
 MAGIC = b"\x89MCAP0\r\n"
 _HEAD = struct.Struct("<BQ")  # opcode, record length

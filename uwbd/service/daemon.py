@@ -22,7 +22,7 @@ import zenoh
 
 from uwbd import __version__, journal
 from uwbd.config import Config
-from uwbd.fusion import native
+from uwbd.fusion.core import native
 from uwbd.logs.sink import McapSink
 from uwbd.service.narrator import Narrator
 from uwbd.service.notify import Notifier

@@ -31,7 +31,7 @@ import serial
 from drivers.dwm1001_tlv import LOC_GET_REQUEST
 from uwbd import journal
 from uwbd.config import SourceConfig
-from uwbd.fusion import native
+from uwbd.fusion.core import native
 from uwbd.service.pipeline import Pipeline
 
 READ_BYTES = 4096  # as _reader.c's

@@ -11,11 +11,11 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.frames import Frame, ImuSample, UwbRanges
-from uwbd.fusion.eskf import P_
+from uwbd.fusion.core.eskf import P_
+from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.core.smoother import smooth
 from uwbd.fusion.filter import Filter
-from uwbd.fusion.rotation import Array
 from uwbd.fusion.settings import FilterConfig
-from uwbd.fusion.smoother import smooth
 from uwbd.fusion.types import FusionReport, Pose
 
 

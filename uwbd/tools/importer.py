@@ -30,7 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
-from uwbd.fusion.rotation import Array, quat_to_matrix
+from uwbd.fusion.core.rotation import Array, quat_to_matrix
 from uwbd.fusion.settings import IDENTITY3
 
 IASL_ANCHORS_M: dict[int, tuple[float, float, float]] = {

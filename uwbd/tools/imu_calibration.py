@@ -9,7 +9,7 @@ down, a few seconds each, in any order.
    its sign (``"+x"``: x up); a mean more than 20° off every axis, or not near ``g`` in size,
    is left out.
 3. **Accelerometer**, model ``a_meas = scale · a_true + offset`` per axis (``a_true =
-   (a_meas − offset) / scale``, what :mod:`uwbd.fusion.intrinsics` applies), the thesis's
+   (a_meas − offset) / scale``, what :mod:`uwbd.fusion.checks.intrinsics` applies), the thesis's
    pair formula ``offset = (a⁺ + a⁻) / 2``, ``scale = (a⁺ − a⁻) / (2 g)``, then refined by the
    constraint that every corrected static mean has the size ``g`` (Gauss–Newton on the six
    or more segments, whole vectors): the pair formula alone reads a hold tipped by θ as a
@@ -38,8 +38,8 @@ from drivers.frames import ImuSample
 from uwbd import config as cfgmod
 from uwbd.config.overrides import write_toml
 from uwbd.config.schema import INTRINSIC_BOUNDS
-from uwbd.fusion.eskf import GRAVITY_MPS2
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.core.eskf import GRAVITY_MPS2
+from uwbd.fusion.core.rotation import Array
 from uwbd.logs.mcaplog import LogWriter, SourceInfo
 from uwbd.tools.simulator import DEFAULT_ANCHORS_M, Z_DOWN, SixPositionCapture
 

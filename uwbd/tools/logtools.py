@@ -22,7 +22,7 @@ from drivers.emulator import ENCODERS
 from drivers.frames import Frame, ImuSample, UwbRanges
 from uwbd import config as cfgmod
 from uwbd.codec import frame_from_dict
-from uwbd.fusion.rotation import Array, quat_from_euler, quat_from_matrix
+from uwbd.fusion.core.rotation import Array, quat_from_euler, quat_from_matrix
 from uwbd.logs.mcaplog import LogWriter, SourceInfo, pose_message
 from uwbd.logs.reading import LogContents
 from uwbd.tools.evaluate import merge

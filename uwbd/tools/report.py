@@ -4,7 +4,7 @@ Methods: pure INS, UWB least squares, the same with the thesis's static-point fi
 (fixes averaged while at rest), the thesis's 4-state KF (dual-gain complementary attitude,
 static points at rest) and its variant with the two gains swapped, the loose and tight
 error-state filters with the log's own config, and the tight filter RTS-smoothed (what a
-log allows offline); see :mod:`uwbd.fusion.baselines`. Printed: position RMSE (XY, Z, 3D)
+log allows offline); see :mod:`uwbd.tools.baselines`. Printed: position RMSE (XY, Z, 3D)
 and position NEES/3 per method, the tight filter's mean NIS per accepted range, how often
 the baselines' motion tests fired (the share of time at the attitude's turning or
 accelerating gain, the share of fixes averaged at rest), and, where the truth has
@@ -25,9 +25,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 from tqdm import tqdm
 
-from uwbd.fusion.baselines import Baseline, Kf4, StaticPoints, comparison_methods
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.settings import Mode
+from uwbd.tools.baselines import Baseline, Kf4, StaticPoints, comparison_methods
 from uwbd.tools.evaluate import (
     HEADER,
     Times,

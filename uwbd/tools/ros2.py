@@ -62,7 +62,7 @@ from tqdm import tqdm
 from drivers.frames import ImuSample
 from uwbd.codec import frame_from_dict
 from uwbd.config import Config, parse
-from uwbd.fusion.rotation import quat_from_matrix, quat_to_matrix
+from uwbd.fusion.core.rotation import quat_from_matrix, quat_to_matrix
 from uwbd.fusion.types import Pose
 from uwbd.logs.reading import LogContents
 from uwbd.logs.replay import replay

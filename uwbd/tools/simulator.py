@@ -44,7 +44,7 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
-from uwbd.fusion.rotation import Array, quat_from_matrix, quat_from_rotvec, quat_to_matrix
+from uwbd.fusion.core.rotation import Array, quat_from_matrix, quat_from_rotvec, quat_to_matrix
 
 GRAVITY_MPS2 = 9.80665
 DEFAULT_ANCHORS_M: tuple[tuple[float, float, float], ...] = (

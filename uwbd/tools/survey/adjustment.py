@@ -16,9 +16,9 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from drivers.frames import UwbRanges
-from uwbd.fusion.lsq import coplanar, multilaterate
-from uwbd.fusion.mirror import MirrorSide
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.core.lsq import coplanar, multilaterate
+from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.policy.mirror import MirrorSide
 from uwbd.tools.survey.model import MAX_EVALUATIONS, MIN_EPOCH_RANGES, ROBUST_SCALE, TRUST, Settings
 
 

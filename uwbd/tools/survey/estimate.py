@@ -14,8 +14,8 @@ import numpy as np
 from drivers import PARSERS
 from drivers.frames import AnchorRanges, Frame, UwbRanges
 from uwbd.codec import frame_from_dict
-from uwbd.fusion.lsq import coplanar
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.core.lsq import coplanar
+from uwbd.fusion.core.rotation import Array
 from uwbd.logs.reading import LogContents
 from uwbd.tools.survey.adjustment import (
     Confined,

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.core.rotation import Array
 
 Vec3 = tuple[float, float, float]
 

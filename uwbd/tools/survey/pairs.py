@@ -10,8 +10,8 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.frames import AnchorRanges
-from uwbd.fusion.lsq import multilaterate
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.core.lsq import multilaterate
+from uwbd.fusion.core.rotation import Array
 from uwbd.tools.survey.model import (
     MAD_TO_SIGMA,
     MEDIAN_EFFICIENCY,

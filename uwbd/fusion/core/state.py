@@ -1,6 +1,6 @@
 """The filter's state on the C core: :class:`CoreEskf`, the operations of
-:class:`~uwbd.fusion.eskf.Eskf` on numbers that the C type ``_core.State`` owns
-(``uwbd/fusion/_state.c``), and :func:`new_eskf`, which makes one or the other.
+:class:`~uwbd.fusion.core.eskf.Eskf` on numbers that the C type ``_core.State`` owns
+(``uwbd/fusion/core/_state.c``), and :func:`new_eskf`, which makes one or the other.
 
 The state is read as numpy views of the C type's memory (``p v q b_g b_a b_r P last_dx``, no
 copies, read-only); it changes through the operations alone. Eskf, in pure Python, is the
@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from uwbd.fusion import native
-from uwbd.fusion.eskf import (
+from uwbd.fusion.core import native
+from uwbd.fusion.core.eskf import (
     GRAVITY_MPS2,
     N_CORE,
     Eskf,
@@ -26,8 +26,8 @@ from uwbd.fusion.eskf import (
     Vector,
     process_noise,
 )
-from uwbd.fusion.robust import RowPolicy
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.policy.robust import RowPolicy
 
 
 def new_eskf(p: Vector, v: Vector, q: Vector, P0: Array, noise: ImuNoise,

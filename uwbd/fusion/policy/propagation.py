@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 
 from drivers.frames import ImuSample
-from uwbd.fusion.imu_check import ImuCheck
-from uwbd.fusion.recovery import COAST_ACCEL_SIGMA_MPS2, NS, UNSEEN_RATE_SIGMA_RPS, Recovery
+from uwbd.fusion.checks.imu_check import ImuCheck
+from uwbd.fusion.policy.recovery import COAST_ACCEL_SIGMA_MPS2, NS, UNSEEN_RATE_SIGMA_RPS, Recovery
 
 Vec3 = tuple[float, float, float]
 PROPAGATE_EVERY_S = 0.1  # the covariance follows the state at least this often (coasting)

@@ -5,7 +5,7 @@ S K y``. The per-IMU-sample path (:meth:`Eskf.predict`) is plain float arithmeti
 covariance is propagated once per update interval (:meth:`Eskf.propagate`).
 
 This class is the reference, written as docs/ekf.md reads: where the C core is built the
-filter runs :class:`uwbd.fusion.state.CoreEskf` instead, the same operations on a state the
+filter runs :class:`uwbd.fusion.core.state.CoreEskf` instead, the same operations on a state the
 C type owns (``_core.State``), and tests/test_core.py holds the two to each other.
 """
 
@@ -18,8 +18,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from uwbd.fusion.robust import RowPolicy
-from uwbd.fusion.rotation import Array, quat_to_matrix, skew
+from uwbd.fusion.core.rotation import Array, quat_to_matrix, skew
+from uwbd.fusion.policy.robust import RowPolicy
 
 GRAVITY_MPS2 = 9.80665
 Vector = Sequence[float] | Array
@@ -319,7 +319,7 @@ class Eskf:
         For row ``i``, at the state the rows before it left: innovation ``ν = y_i − H_i δx``
         with variance ``S = H_i P H_iᵀ + R_i``; ``decide(i, ν, S)`` returns the weight ``w``
         (0 skips the row, 1 is the plain Kalman update, ``0 < w < 1`` de-weights it: the gain
-        is computed with ``R_i / w``; a :class:`~uwbd.fusion.robust.RowPolicy` is such a
+        is computed with ``R_i / w``; a :class:`~uwbd.fusion.policy.robust.RowPolicy` is such a
         function that the C core reads without calling back). The covariance always follows
         the Joseph form with the nominal ``R_i``, which is right for any gain::
 
@@ -363,7 +363,7 @@ class Eskf:
                     columns: tuple[tuple[int, ...], ...], extra: tuple[Array, Array, Array],
                     decide: RowPolicy, considered: slice | None) -> list[RawRow] | None:
         """A tight epoch in one call where the C core runs it (:class:`CoreEskf`): the rows
-        of :func:`uwbd.fusion.measurements.range_rows` (``columns``: each range's
+        of :func:`uwbd.fusion.models.measurements.range_rows` (``columns``: each range's
         range-model state columns), then ``extra`` rows ``(H, y, R)``, through
         :meth:`sequential_update`. Here, and where a range needs the reference (an antenna
         within 1 mm of its anchor), ``None`` with nothing changed: the caller builds the

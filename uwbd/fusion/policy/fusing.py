@@ -3,8 +3,9 @@
 The step of :class:`~uwbd.fusion.filter.Filter` after the policy has chosen the rows (the
 ranges of an epoch, or a loose fix, with the ZUPT, NHC and height rows due): tight, on the
 C core, the whole epoch in one call (:meth:`Eskf.fuse_ranges`); else the rows built
-(:mod:`.measurements`) and fused one scalar at a time (:meth:`Eskf.sequential_update`),
-each range gated (χ²) and weighted (:class:`~uwbd.fusion.robust.RowPolicy`), a loose fix
+(:mod:`uwbd.fusion.models.measurements`) and fused one scalar at a time
+(:meth:`Eskf.sequential_update`),
+each range gated (χ²) and weighted (:class:`~uwbd.fusion.policy.robust.RowPolicy`), a loose fix
 gated as one 3-D measurement; then every row's report, counters, health evidence and
 anchor statistics, and the covariance kept within bounds. A mixin of the filter: these
 methods act on its state.
@@ -19,12 +20,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from uwbd.fusion.eskf import BA_, BG_, TH_, Eskf, RawRow
-from uwbd.fusion.health import HealthMonitor
-from uwbd.fusion.lsq import LsqFix
-from uwbd.fusion.measurements import Rows, position_rows, range_keys, range_rows
-from uwbd.fusion.robust import AnchorStats, RowPolicy
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.core.eskf import BA_, BG_, TH_, Eskf, RawRow
+from uwbd.fusion.core.lsq import LsqFix
+from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.models.measurements import Rows, position_rows, range_keys, range_rows
+from uwbd.fusion.policy.health import HealthMonitor
+from uwbd.fusion.policy.robust import AnchorStats, RowPolicy
 from uwbd.fusion.settings import Mode
 from uwbd.fusion.types import FusionReport
 

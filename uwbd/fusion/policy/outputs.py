@@ -1,6 +1,6 @@
 """What :class:`~uwbd.fusion.filter.Filter` says of itself (a mixin of it, as
 :mod:`.propagation`, :mod:`.recovery` and :mod:`.fusing` are): the pose (its numbers are
-the state's, :meth:`~uwbd.fusion.eskf.Eskf.pose_numbers`), the health record and the
+the state's, :meth:`~uwbd.fusion.core.eskf.Eskf.pose_numbers`), the health record and the
 status's diagnostics."""
 
 from __future__ import annotations
@@ -9,10 +9,10 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from uwbd.fusion.eskf import Eskf
-from uwbd.fusion.health import WAITING, Health, HealthMonitor
-from uwbd.fusion.mirror import MirrorSide
-from uwbd.fusion.robust import AnchorStats
+from uwbd.fusion.core.eskf import Eskf
+from uwbd.fusion.policy.health import WAITING, Health, HealthMonitor
+from uwbd.fusion.policy.mirror import MirrorSide
+from uwbd.fusion.policy.robust import AnchorStats
 from uwbd.fusion.types import Pose
 
 Vec3 = tuple[float, float, float]

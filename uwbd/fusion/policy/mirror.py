@@ -27,8 +27,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from uwbd.fusion.lsq import LsqFix, coplanar, multilaterate
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.core.lsq import LsqFix, coplanar, multilaterate
+from uwbd.fusion.core.rotation import Array
 
 CEILING_MIN_M = 1.0  # anchors this high or higher: the tag is below them by default
 STEP_CLIP = 3.0

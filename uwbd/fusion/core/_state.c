@@ -824,7 +824,7 @@ static PyMethodDef state_methods[] = {
 
 PyTypeObject UwbdStateType = {
     PyVarObject_HEAD_INIT(NULL, 0)
-    .tp_name = "uwbd.fusion._core.State",
+    .tp_name = "uwbd.fusion.core._core.State",
     .tp_doc = "The error-state EKF's numbers and the operations on them (docs/ekf.md); "
               "read-only through the buffer protocol: p v q b_g b_a b_r P last_dx.",
     .tp_basicsize = sizeof(State),

@@ -1,4 +1,4 @@
-/* The Gauss–Newton multilateration of the UWB-only fixes (uwbd/fusion/lsq.py is the
+/* The Gauss–Newton multilateration of the UWB-only fixes (uwbd/fusion/core/lsq.py is the
  * reference, tests/test_core.py compares the two): stateless functions of the C core. */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>

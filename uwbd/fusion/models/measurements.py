@@ -12,9 +12,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from uwbd.fusion.eskf import N_CORE, P_, TH_, V_, Eskf
-from uwbd.fusion.lsq import LsqFix
-from uwbd.fusion.rotation import Array, skew
+from uwbd.fusion.core.eskf import N_CORE, P_, TH_, V_, Eskf
+from uwbd.fusion.core.lsq import LsqFix
+from uwbd.fusion.core.rotation import Array, skew
 
 
 class Rows(NamedTuple):

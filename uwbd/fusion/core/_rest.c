@@ -1,4 +1,4 @@
-/* The rest test's moments over the IMU window (uwbd/fusion/rest.py is the reference): a
+/* The rest test's moments over the IMU window (uwbd/fusion/policy/rest.py is the reference): a
  * stateless function of the C core. */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>

@@ -21,8 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from uwbd.fusion.eskf import BA_, BG_, N_CORE, P_, TH_, V_
-from uwbd.fusion.rotation import Array, quat_from_rotvec, quat_mul
+from uwbd.fusion.core.eskf import BA_, BG_, N_CORE, P_, TH_, V_
+from uwbd.fusion.core.rotation import Array, quat_from_rotvec, quat_mul
 
 
 @dataclass(frozen=True)

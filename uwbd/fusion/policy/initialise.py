@@ -22,12 +22,12 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from uwbd.fusion.alignment import velocity_fit
-from uwbd.fusion.eskf import N_CORE, Eskf
-from uwbd.fusion.lsq import LsqFix
-from uwbd.fusion.rest import ImuWindow
-from uwbd.fusion.rotation import Array, quat_from_euler, quat_to_matrix
-from uwbd.fusion.state import new_eskf
+from uwbd.fusion.core.eskf import N_CORE, Eskf
+from uwbd.fusion.core.lsq import LsqFix
+from uwbd.fusion.core.rotation import Array, quat_from_euler, quat_to_matrix
+from uwbd.fusion.core.state import new_eskf
+from uwbd.fusion.policy.alignment import velocity_fit
+from uwbd.fusion.policy.rest import ImuWindow
 
 if TYPE_CHECKING:
     from uwbd.fusion.settings import FilterConfig

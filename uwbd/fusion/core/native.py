@@ -20,7 +20,7 @@ def _load() -> tuple[ModuleType | None, str]:
     if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0"):
         return None, f"pure Python ({PURE_PYTHON_ENV} is set)"
     try:
-        from uwbd.fusion import _core  # noqa: PLC0415
+        from uwbd.fusion.core import _core  # noqa: PLC0415
     except ImportError as err:
         return None, f"pure Python (the C core is not built: {err})"
     return _core, "C core"

@@ -16,10 +16,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from uwbd.fusion import native
-from uwbd.fusion.eskf import GRAVITY_MPS2
-from uwbd.fusion.lsq import LsqFix
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.core import native
+from uwbd.fusion.core.eskf import GRAVITY_MPS2
+from uwbd.fusion.core.lsq import LsqFix
+from uwbd.fusion.core.rotation import Array
 
 Vec3 = tuple[float, float, float]
 JUDGE_EVERY_NS = 20_000_000
@@ -193,7 +193,7 @@ class UwbStillness:
 
 
 def _velocity_xy(fixes: collections.deque[tuple[int, Array]]) -> tuple[float, float]:
-    """:func:`uwbd.fusion.alignment.velocity_fit`'s horizontal velocity in floats, on times
+    """:func:`uwbd.fusion.policy.alignment.velocity_fit`'s horizontal velocity in floats, on times
     from the first fix (exact, where Unix-epoch ns as float64 lose 256 ns): it runs at every
     update, on a handful of fixes."""
     t0 = fixes[0][0]

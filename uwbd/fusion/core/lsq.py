@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from uwbd.fusion import native
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.core import native
+from uwbd.fusion.core.rotation import Array
 
 MAX_ITERATIONS = 20
 CONVERGED_M = 1e-3  # a step this small ends the iteration: far below any range noise
@@ -61,7 +61,7 @@ def multilaterate(anchors_m: Array, ranges_m: Array, sigma_m: float = 0.1,
                   outlier_sigma: float = 5.0, side: int = 1) -> LsqFix | None:
     """Solve for the tag position; ``None`` when there are too few ranges or no convergence.
     ``side`` (+1 above, −1 below) is where to start when the anchors are coplanar and no
-    ``x0`` is given (:mod:`uwbd.fusion.mirror` decides it)."""
+    ``x0`` is given (:mod:`uwbd.fusion.policy.mirror` decides it)."""
     dims = 2 if fixed_z is not None else 3
     core = native.core
     if core is not None and len(ranges_m) >= dims:  # the whole of it in one call

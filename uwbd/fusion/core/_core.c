@@ -1,10 +1,10 @@
-/* uwbd.fusion._core: the filter's numbers in C. The State type (_state.c) owns the error-state
+/* uwbd.fusion.core._core: the filter's numbers in C. The State type (_state.c) owns the error-state
  * EKF's nominal state, covariance and interval sums in its own memory, behind a few typed
  * operations, each a step of docs/ekf.md; beside it, the stateless multilateration (_lsq.c)
  * and the rest test's moments (_rest.c). Policy (phases, gates, health, recovery) is
  * Python's: nothing here reads a Python object's attributes.
  *
- * The reference is the pure-Python code (uwbd/fusion/eskf.py, lsq.py, rest.py), which
+ * The reference is the pure-Python code (uwbd/fusion/core/eskf.py, lsq.py, rest.py), which
  * UWBD_PURE_PYTHON=1 runs instead; tests/test_core.py compares the two. Built by the
  * package's own build (setup.py) with -ffp-contract=off, so that `a * b + c` rounds as
  * Python rounds it. Matrices arrive through the buffer protocol (C-contiguous float64): no
@@ -152,7 +152,7 @@ static PyMethodDef core_methods[] = {
 static struct PyModuleDef core_module = {
     PyModuleDef_HEAD_INIT, "_core",
     "The filter's numbers in C: the State type and the UWB-only multilateration "
-    "(uwbd/fusion/eskf.py and lsq.py are the reference).", -1,
+    "(uwbd/fusion/core/eskf.py and lsq.py are the reference).", -1,
     core_methods, NULL, NULL, NULL, NULL,
 };
 

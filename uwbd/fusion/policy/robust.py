@@ -1,7 +1,7 @@
 """Robust range updates: NLOS and multipath de-weighted, never locked out for good.
 
 Each range's standardised innovation ``e = ν/√S`` decides its weight ``w`` (the update uses
-``R/w``; :meth:`uwbd.fusion.eskf.Eskf.sequential_update`):
+``R/w``; :meth:`uwbd.fusion.core.eskf.Eskf.sequential_update`):
 
 * ``|e|² > gate``: rejected (the χ² gate, ``gate_probability``);
 * otherwise the Geman–McClure weight ``w = (c² / (c² + e²))²``, with ``c`` the scale in σ
@@ -32,7 +32,7 @@ class RobustPolicy:
 
 
 class RowPolicy(NamedTuple):
-    """How :meth:`uwbd.fusion.eskf.Eskf.sequential_update` weighs each row of one update:
+    """How :meth:`uwbd.fusion.core.eskf.Eskf.sequential_update` weighs each row of one update:
     ``kinds`` one byte a row — ``r`` a range (the χ² gate ``gate_1``, then the robust
     weight), ``p`` a position-fix axis (the fix as a whole passed its 3-D gate: ``fix_ok``),
     any other a pseudo-measurement (gated, weight 1). A tuple, so that the C core reads it

@@ -15,9 +15,9 @@ import math
 
 import numpy as np
 
-from uwbd.fusion.lsq import LsqFix, common_offset, multilaterate
-from uwbd.fusion.mirror import MirrorSide
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.core.lsq import LsqFix, common_offset, multilaterate
+from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.policy.mirror import MirrorSide
 
 NS = 1_000_000_000
 

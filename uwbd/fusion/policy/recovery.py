@@ -17,14 +17,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from uwbd.fusion.alignment import HeadingAligner
-from uwbd.fusion.eskf import P_, TH_, V_, Eskf
-from uwbd.fusion.fixes import RangeWindow, consistent
-from uwbd.fusion.health import HealthMonitor
-from uwbd.fusion.initialise import Start, start_state
-from uwbd.fusion.lsq import LsqFix
-from uwbd.fusion.rest import ImuWindow, UwbStillness
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.core.eskf import P_, TH_, V_, Eskf
+from uwbd.fusion.core.lsq import LsqFix
+from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.policy.alignment import HeadingAligner
+from uwbd.fusion.policy.fixes import RangeWindow, consistent
+from uwbd.fusion.policy.health import HealthMonitor
+from uwbd.fusion.policy.initialise import Start, start_state
+from uwbd.fusion.policy.rest import ImuWindow, UwbStillness
 
 if TYPE_CHECKING:
     from uwbd.fusion.settings import FilterConfig

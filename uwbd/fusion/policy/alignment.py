@@ -35,9 +35,9 @@ import statistics
 
 import numpy as np
 
-from uwbd.fusion.eskf import GRAVITY_MPS2
-from uwbd.fusion.lsq import LsqFix
-from uwbd.fusion.rotation import Array
+from uwbd.fusion.core.eskf import GRAVITY_MPS2
+from uwbd.fusion.core.lsq import LsqFix
+from uwbd.fusion.core.rotation import Array
 
 SAMPLE_NS = 95_000_000  # fixes for the alignment: about 10 Hz
 FIT_NS = 1_000_000_000  # each end's velocity: a line fit over one second of fixes

@@ -26,19 +26,19 @@ from filterpy.kalman import KalmanFilter
 from scipy.signal import butter, sosfilt_zi
 
 from drivers.frames import ImuSample, UwbRanges
-from uwbd.fusion.eskf import GRAVITY_MPS2
-from uwbd.fusion.filter import Filter
-from uwbd.fusion.fixes import RangeWindow
-from uwbd.fusion.lsq import LsqFix
-from uwbd.fusion.mirror import MirrorSide
-from uwbd.fusion.rest import ImuWindow, UwbStillness
-from uwbd.fusion.rotation import (
+from uwbd.fusion.core.eskf import GRAVITY_MPS2
+from uwbd.fusion.core.lsq import LsqFix
+from uwbd.fusion.core.rotation import (
     Array,
     quat_from_euler,
     quat_from_rotvec,
     quat_mul,
     quat_to_matrix,
 )
+from uwbd.fusion.filter import Filter
+from uwbd.fusion.policy.fixes import RangeWindow
+from uwbd.fusion.policy.mirror import MirrorSide
+from uwbd.fusion.policy.rest import ImuWindow, UwbStillness
 from uwbd.fusion.settings import FilterConfig
 
 # -- motion state of the dual-gain attitude filter ------------------------------------------
