@@ -21,13 +21,14 @@ from drivers import nlink, wit
 from drivers.emulator.scenario import CircleScenario
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
 from uwbd.config import parse
+from uwbd.fusion.checks.gating import chi2_quantile
 from uwbd.fusion.core.eskf import N_CORE
 from uwbd.fusion.core.lsq import multilaterate
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.policy.health import Phase
 from uwbd.fusion.policy.mirror import MirrorSide
-from uwbd.fusion.policy.robust import RobustPolicy
+from uwbd.fusion.policy.robust import RobustPolicy, RowPolicy
 from uwbd.fusion.settings import FilterConfig
 from uwbd.fusion.types import Pose
 from uwbd.service.pipeline import Pipeline, PoseList
@@ -257,6 +258,21 @@ def test_nlos_on_one_anchor_is_deweighted_and_shows_in_its_statistics() -> None:
     nlos, others = stats["2"], [v for k, v in stats.items() if k != "2"]
     assert nlos["rejected"] + nlos["deweighted"] > 3 * max(o["rejected"] + o["deweighted"]
                                                            for o in others)
+
+
+def test_the_robust_weight_itself_de_weights_the_nlos_side_more() -> None:
+    """The row policy's own weights (the run above counts rejected and de-weighted together):
+    inside the gate a range 2σ long is de-weighted, more than one 2σ short (NLOS only adds
+    delay); robust off, both weigh 1; beyond the gate, 0 either way."""
+    gate = chi2_quantile(0.9973, 1)
+    robust = RowPolicy.of(b"r", gate, RobustPolicy(), True)
+    plain = RowPolicy.of(b"r", gate, RobustPolicy(enabled=False), True)
+    s = 0.04  # S, m²: σ = 0.2 m
+    long, short = robust(0, 2 * 0.2, s), robust(0, -2 * 0.2, s)
+    assert 0.0 < long < short < 1.0 and long < 0.5
+    assert robust(0, 0.0, s) == 1.0
+    assert plain(0, 2 * 0.2, s) == plain(0, -2 * 0.2, s) == 1.0
+    assert robust(0, 4 * 0.2, s) == plain(0, -4 * 0.2, s) == 0.0
 
 
 @pytest.mark.parametrize("sigma", [0.0, 0.07])

@@ -1,10 +1,13 @@
-"""The pipeline's pose stream: the configured rate for every kind of tag."""
+"""The pipeline: its pose stream at the configured rate for every kind of tag, and the time
+aligner that orders the sources' frames before the filter."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from drivers.frames import ImuSample
 from uwbd.config import apply_overrides, parse
+from uwbd.service.aligner import Aligner
 from uwbd.service.pipeline import Pipeline, PoseList
 from uwbd.tools.evaluate import merge
 from uwbd.tools.logtools import simulation_toml
@@ -39,3 +42,36 @@ def test_an_epoch_of_several_ranges_brings_its_pose_out_at_once() -> None:
     times, epochs = poses_of(SimConfig(seed=3, segments=((6.0, 0.0, 0.0, 0.0),)), 2.0)
     since_start = [t for t in epochs if t >= times[0]]  # (poses once the filter started)
     assert set(since_start) <= set(times) and len(times) < 1.5 * len(since_start)
+
+
+def imu(t_ns: int) -> ImuSample:
+    return ImuSample(t_ns=t_ns, acc_mps2=(0.0, 0.0, 9.8), gyro_rps=(0.0, 0.0, 0.0))
+
+
+def test_the_aligner_releases_in_time_order_once_the_wait_has_passed() -> None:
+    """Frames reaching it out of order are held until the latest arrival is ``wait_ns`` past
+    them, then released oldest first; one older than a released frame is late: dropped and
+    counted."""
+    aligner = Aligner(wait_ns=10)
+    out: list[int] = []
+    for t in (100, 95, 103, 108, 111):
+        out += [f.t_ns for f in aligner.push(imu(t))]
+        assert out == sorted(out)
+        assert all(t_out <= t - 10 for t_out in out)  # none before its wait is over
+    assert out == [95, 100]
+    assert aligner.push(imu(99)) == [] and aligner.late == 1  # older than 100, released
+    assert [f.t_ns for f in aligner.flush()] == [103, 108, 111]
+    assert aligner.stats() == {"late": 1, "overflow": 0, "pending": 0}
+
+
+def test_the_aligner_without_a_wait_passes_frames_through_and_drops_the_late() -> None:
+    aligner = Aligner()
+    assert [f.t_ns for f in aligner.push(imu(5))] == [5]
+    assert aligner.push(imu(4)) == [] and aligner.late == 1
+    assert [f.t_ns for f in aligner.push(imu(5))] == [5]  # the same time is not late
+
+
+def test_a_full_aligner_releases_early_and_counts_it() -> None:
+    aligner = Aligner(wait_ns=1000, max_pending=2)
+    released = [f.t_ns for t in (1, 2, 3, 4) for f in aligner.push(imu(t))]
+    assert released == [1, 2] and aligner.overflow == 2
