@@ -130,12 +130,13 @@ def test_a_read_whose_time_the_log_cannot_hold_keeps_its_frame(tmp_path: Path) -
     assert [m.topic for m in read_log(path).messages] == ["/raw/imu", "/imu", "/imu"]
 
 
-def test_a_read_neither_of_whose_records_the_log_can_hold_counts_two(tmp_path: Path) -> None:
+def test_a_read_whose_records_the_log_cannot_hold_counts_each(tmp_path: Path) -> None:
     sample = ImuSample(EPOCH_NS, (0.0, 0.0, 9.8), (0.0, 0.0, 0.0), 25.0)
     log = McapSink(parse(""), path=tmp_path / "x.mcap")
-    log.read("imu", EPOCH_NS, b"\x55" * 11, sample)
-    log.read("imu", -1, b"\x55" * 11, dataclasses.replace(sample, t_ns=-2))  # neither
-    log.read("imu", -1, b"\x55" * 11, sample)  # its frame only
+    for t_ns, frame in ((EPOCH_NS, sample), (-1, dataclasses.replace(sample, t_ns=-2)),
+                        (-1, sample)):  # both, neither, its frame only
+        log.raw("imu", t_ns, b"\x55" * 11)
+        log.frame(frame)
     log.close()
     assert log.bad_records == 3
     assert [m.topic for m in read_log(tmp_path / "x.mcap").messages
@@ -164,7 +165,8 @@ def test_a_full_disk_counts_both_records_of_a_read(small_disk: Path, writer: str
         noise = os.urandom(6) if k < 4000 else bytes(6)  # incompressible until then
         sample = ImuSample(t_ns, tuple(b / 7.0 for b in noise[:3]),  # type: ignore[arg-type]
                            tuple(b / 9.0 for b in noise[3:]), 25.0)
-        log.read("imu", t_ns + 1000, os.urandom(22) if k < 4000 else bytes(22), sample)
+        log.raw("imu", t_ns + 1000, os.urandom(22) if k < 4000 else bytes(22))
+        log.frame(sample)
         written += 2
         t_ns += 5_000_000
     log.close()

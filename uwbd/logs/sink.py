@@ -222,10 +222,6 @@ class McapSink:
     def frame(self, frame: Frame) -> None:
         self._write(frame.t_ns, LogWriter.frame, frame)
 
-    def read(self, source: str, t_ns: int, data: bytes, frame: Frame) -> None:
-        """:meth:`raw` and then :meth:`frame`, kept as one (:meth:`LogWriter.read`)."""
-        self._write(t_ns, LogWriter.read, source, t_ns, data, frame)
-
     def pose(self, pose: Pose) -> None:
         # encoded now, once with the other sinks (pose_json), written behind
         self._write(pose.t_ns, LogWriter.pose, pose, pose_json(pose, self.view.nav_frame_id))

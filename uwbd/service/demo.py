@@ -65,9 +65,6 @@ class LiveView:
     def frame(self, frame: Frame) -> None:
         """Not shown."""
 
-    def read(self, source: str, t_ns: int, data: bytes, frame: Frame) -> None:
-        """Not shown."""
-
     def pose(self, pose: Pose) -> None:
         self.last = pose
         t_s = (pose.t_ns - self.start_ns) / 1e9

@@ -38,9 +38,6 @@ class Narrator:
     def frame(self, frame: Frame) -> None:
         """Frames are not narrated."""
 
-    def read(self, source: str, t_ns: int, data: bytes, frame: Frame) -> None:
-        """Not narrated."""
-
     def pose(self, pose: Pose) -> None:
         if self._first_pose:
             self._first_pose = False

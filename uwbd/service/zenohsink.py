@@ -64,9 +64,6 @@ class ZenohSink:
     def frame(self, frame: Frame) -> None:
         """Frames stay in the log."""
 
-    def read(self, source: str, t_ns: int, data: bytes, frame: Frame) -> None:
-        """Neither leaves through Zenoh."""
-
     def pose(self, pose: Pose) -> None:
         self._pose.put(pose_json(pose, self.frame_id))
 

@@ -76,8 +76,8 @@ def _affine(M: Rows3, b: Vec3) -> Callable[[Vec3], Vec3]:
 class BodyMaps(NamedTuple):
     """The per-sample maps raw sensor axes → corrected body axes, as numbers: the
     accelerometer's ``acc_M a − acc_b``; the gyro's ``gyro_M ω − gyro_b``, or with a
-    dead-band (``gyro_band > 0``) ``gyro_M band(ω − gyro_offset)``. The C core's read path
-    applies these; :func:`to_body` makes the Python functions of the same arithmetic."""
+    dead-band (``gyro_band > 0``) ``gyro_M band(ω − gyro_offset)``; :func:`to_body` makes
+    the Python functions of that arithmetic."""
 
     acc_M: Rows3  # noqa: N815 - a matrix
     acc_b: Vec3

@@ -35,12 +35,6 @@ class RangeWindow:
         self.last_inputs: tuple[Array, Array] = (np.zeros((0, 3)), np.zeros(0))  # of the last fix
 
     @property
-    def latest(self) -> dict[int, tuple[int, list[float], float]]:
-        """Each anchor's latest range ``(t_ns, anchor position, range)`` (kept in place by
-        the C core's epoch step, as :meth:`add` does)."""
-        return self._latest
-
-    @property
     def needed(self) -> int:
         """Anchors a fix takes: 3 with the height held, else 4."""
         return 3 if self.fixed_z is not None else 4

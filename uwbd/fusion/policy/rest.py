@@ -48,8 +48,7 @@ class ImuWindow:
 
     @property
     def samples(self) -> collections.deque[tuple[float, ...]]:
-        """The window's rows ``(t_ns, *acc, *gyro)``, oldest first (the C core's read path
-        appends to it as :meth:`add` does)."""
+        """The window's rows ``(t_ns, *acc, *gyro)``, oldest first."""
         return self._samples
 
     def add(self, t_ns: int, acc: Vec3, gyro: Vec3) -> None:
@@ -153,12 +152,6 @@ class UwbStillness:
     def __init__(self) -> None:
         self._fixes: collections.deque[tuple[int, Array]] = collections.deque()
         self._sigma_m = 0.0  # horizontal σ of the latest fix
-
-    @property
-    def fixes(self) -> collections.deque[tuple[int, Array]]:
-        """The fixes kept, oldest first (read and trimmed in place by the C core's
-        epoch step, as :meth:`forget_before` does)."""
-        return self._fixes
 
     def wants_fix(self, t_ns: int) -> bool:
         return not self._fixes or t_ns - self._fixes[-1][0] >= STILL_EVERY_NS
