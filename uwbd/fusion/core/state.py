@@ -51,7 +51,8 @@ class CoreEskf(Eskf):
                  b_r: Vector | None = None) -> None:
         core = native.core
         if core is None:
-            raise RuntimeError("the C core is not built or is switched off (uwbd version)")
+            raise RuntimeError("CoreEskf: the C core is not built or is switched off "
+                               "(uwbd --version says which)")
         n = N_CORE + n_range_bias
         P0 = np.ascontiguousarray(P0, dtype=float)
         if P0.shape != (n, n):
