@@ -30,7 +30,7 @@ from uwbd.fusion.policy.rest import ImuWindow, RestLimits
 from uwbd.fusion.policy.robust import RobustPolicy, RowPolicy
 from uwbd.fusion.settings import FilterConfig
 from uwbd.fusion.types import Pose
-from uwbd.tools.evaluate import merge, run_filter
+from uwbd.tools.evaluate import merge, run_filter, run_smoother
 from uwbd.tools.importer import INROL_LEVER_ARM_M, INROL_MOUNTING, load_iasl, load_inrol
 from uwbd.tools.logtools import simulation_toml
 from uwbd.tools.simulator import Z_DOWN, SimConfig, ceiling_room, handheld_async, simulate
@@ -498,3 +498,18 @@ def test_new_eskf_runs_the_c_core_unless_it_is_switched_off() -> None:
     assert type(new_eskf(*args)) is (Eskf if native.core is None else CoreEskf)
     with native.pure_python():
         assert type(new_eskf(*args)) is Eskf
+
+
+@needs_core
+def test_the_smoother_on_the_c_cores_records_matches_the_reference() -> None:
+    """With ``record`` the epoch's Φ is kept (keep_transition) and the smoothed run is the
+    reference's."""
+    sim = simulate(SimConfig(seed=4, segments=((4.0, 0.0, 0.0, 0.0), (10.0, 1.0, 0.3, 0.0))))
+    cfg = parse(simulation_toml(sim)).filter_config()
+    frames = list(merge(sim.imu, sim.uwb))
+    t_fast, p_fast, P_fast = run_smoother(cfg, frames)
+    with native.pure_python():
+        t_slow, p_slow, P_slow = run_smoother(cfg, frames)
+    assert len(t_fast) > 100 and np.array_equal(t_fast, t_slow)
+    np.testing.assert_allclose(p_fast, p_slow, rtol=0, atol=POSITION_TOLERANCE_M)
+    np.testing.assert_allclose(P_fast, P_slow, rtol=1e-6, atol=1e-12)
