@@ -1,0 +1,102 @@
+"""The filter's decisions on their own (uwbd/fusion/policy/): the health monitor's verdicts
+from the evidence it is fed, and what the UWB fixes say about rest."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from uwbd.fusion.core.lsq import LsqFix
+from uwbd.fusion.policy.health import HealthLimits, HealthMonitor, Phase
+from uwbd.fusion.policy.rest import STILL_EVERY_NS, UwbStillness
+
+NS = 1_000_000_000
+T0 = 1_700_000_000 * NS
+
+
+def tracking(monitor: HealthMonitor, t_ns: int) -> Phase:
+    return monitor.assess(t_ns, True, True, 0.05, True).phase
+
+
+def test_consistent_innovations_track_and_a_run_of_rejections_is_inconsistent() -> None:
+    monitor = HealthMonitor(HealthLimits())
+    for k in range(12):
+        monitor.uwb_outcome(T0 + k * NS // 10, True, 1.0)
+    assert tracking(monitor, T0 + NS) is Phase.TRACKING and not monitor.inconsistent
+    for k in range(4):  # four in a row fail the gate: at once, without the window's wait
+        monitor.uwb_outcome(T0 + NS + k * NS // 10, False, 30.0)
+    assert monitor.inconsistent
+    health = monitor.assess(T0 + 14 * NS // 10, True, True, 0.05, True)
+    assert health.phase is Phase.DEGRADED and "innovations_inconsistent" in health.faults
+    assert not monitor.diverged(T0 + 15 * NS // 10) and monitor.diverged(T0 + 33 * NS // 10)
+
+
+def test_a_high_mean_nis_over_the_window_is_inconsistent_though_all_pass() -> None:
+    monitor = HealthMonitor(HealthLimits())
+    for k in range(11):
+        monitor.uwb_outcome(T0 + k * NS // 10, True, 8.0)
+        assert not monitor.inconsistent  # the window is not full yet
+    monitor.uwb_outcome(T0 + NS + NS // 10, True, 8.0)
+    assert monitor.inconsistent
+
+
+def test_without_ranges_it_coasts_then_times_out_and_is_judged_again_when_they_return() -> None:
+    monitor = HealthMonitor(HealthLimits())
+    monitor.uwb_outcome(T0, True, 1.0)
+    assert tracking(monitor, T0 + NS // 2) is Phase.TRACKING
+    assert tracking(monitor, T0 + 2 * NS) is Phase.COASTING
+    assert "range_timeout" in monitor.assess(T0 + 6 * NS, True, True, 0.05, True).faults
+    monitor.uwb_outcome(T0 + 7 * NS, True, 1.0)  # back after the timeout: not yet trusted
+    assert "range_timeout" in monitor.assess(T0 + 7 * NS, True, True, 0.05, True).faults
+    for k in range(1, 12):
+        monitor.uwb_outcome(T0 + 7 * NS + k * NS // 10, True, 1.0)
+    assert tracking(monitor, T0 + 8 * NS + NS // 10) is Phase.TRACKING
+
+
+def test_faults_a_reset_and_the_heading_each_show_in_the_phase() -> None:
+    monitor = HealthMonitor(HealthLimits())
+    monitor.uwb_outcome(T0, True, 1.0)
+    assert monitor.assess(T0, True, False, 0.05, True).phase is Phase.ALIGNING
+    assert "position_uncertain" in monitor.assess(T0, True, True, 0.5, True).faults
+    assert monitor.assess(T0, True, True, math.nan, True).phase is Phase.DEGRADED
+    assert "state_not_finite" in monitor.assess(T0, True, True, 0.05, False).faults
+    monitor.imu_rejected(T0)
+    assert "imu_rejected" in monitor.assess(T0 + NS // 2, True, True, 0.05, True).faults
+    assert tracking(monitor, T0 + NS // 2 + NS) is Phase.COASTING  # the fault held 1 s only
+    monitor.reset(T0 + 2 * NS, "test", 1.5)
+    monitor.uwb_outcome(T0 + 2 * NS, True, 1.0)
+    health = monitor.assess(T0 + 2 * NS, True, True, 0.5, True)
+    assert health.phase is Phase.RECOVERING and health.resets == 1
+    assert monitor.assess(T0, False, False, None, True).phase is Phase.RECOVERING
+    assert HealthMonitor(HealthLimits()).assess(T0, False, False, None, True).phase \
+        is Phase.WAITING
+
+
+def fix(x_m: float, sigma_m: float = 0.02) -> LsqFix:
+    return LsqFix(np.array([x_m, 0.0, 1.0]), np.eye(3) * sigma_m**2, np.zeros(0),
+                  np.zeros(0, bool), 0.0, 0)
+
+
+def test_fixes_that_do_not_move_are_still_and_moving_ones_are_not() -> None:
+    for speed_mps, still in ((0.0, True), (0.05, True), (0.5, False)):
+        stillness = UwbStillness()
+        t = T0
+        for _ in range(8):
+            assert stillness.wants_fix(t)
+            stillness.add(t, fix(speed_mps * (t - T0) / NS))
+            assert not stillness.wants_fix(t + STILL_EVERY_NS - 1)
+            t += STILL_EVERY_NS
+        stillness.forget_before(t)
+        assert stillness.still() is still
+
+
+def test_too_few_fixes_leave_rest_to_the_imu_and_noise_may_be_allowed() -> None:
+    stillness = UwbStillness()
+    stillness.add(T0, fix(0.0))
+    stillness.add(T0 + STILL_EVERY_NS, fix(1.0))
+    assert stillness.still()  # two fixes cannot tell: still, the IMU decides
+    noisy = UwbStillness()
+    for k, x in enumerate((0.0, 0.3, -0.3, 0.3, -0.3, 0.0)):
+        noisy.add(T0 + k * STILL_EVERY_NS, fix(x, sigma_m=0.5))
+    assert noisy.still(allow_noise=True)
