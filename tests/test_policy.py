@@ -1,5 +1,5 @@
 """The filter's decisions on their own (uwbd/fusion/policy/): the health monitor's verdicts
-from the evidence it is fed, and what the UWB fixes say about rest."""
+from the evidence it is fed, what the UWB fixes say about rest, and the coarse heading.
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from uwbd.fusion.core.lsq import LsqFix
+from uwbd.fusion.policy.alignment import HeadingAligner
 from uwbd.fusion.policy.health import HealthLimits, HealthMonitor, Phase
 from uwbd.fusion.policy.rest import STILL_EVERY_NS, UwbStillness
 
@@ -100,3 +101,41 @@ def test_too_few_fixes_leave_rest_to_the_imu_and_noise_may_be_allowed() -> None:
     for k, x in enumerate((0.0, 0.3, -0.3, 0.3, -0.3, 0.0)):
         noisy.add(T0 + k * STILL_EVERY_NS, fix(x, sigma_m=0.5))
     assert noisy.still(allow_noise=True)
+
+
+def aligned_heading(psi_rad: float, accelerating: bool, seed: int = 0
+                    ) -> tuple[float, float] | None:
+    """The aligner fed an INS whose heading is ``psi_rad`` off (its Δv turned by −ψ) and
+    the UWB fixes of the true track (2 cm noise) for 8 s; its answer, if any."""
+    rng = np.random.default_rng(seed)
+    aligner = HeadingAligner(1.0, 0.5, 0.05)
+    c, s = math.cos(-psi_rad), math.sin(-psi_rad)
+    p, v, dt = np.zeros(2), np.zeros(2), 0.01
+    for k in range(800):
+        t_s = k * dt
+        a = np.array(((1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0))[int(t_s) % 4]) \
+            if accelerating else np.zeros(2)
+        p, v = p + v * dt + 0.5 * a * dt * dt, v + a * dt
+        dv = a * dt
+        aligner.add_ins_dv((c * dv[0] - s * dv[1], s * dv[0] + c * dv[1], 0.0))
+        t_ns = T0 + round(t_s * NS)
+        if aligner.wants_fix(t_ns):
+            position = np.array((*(p + rng.normal(0.0, 0.02, 2)), 1.0))
+            answer = aligner.add_fix(t_ns, LsqFix(position, np.eye(3) * 0.02**2, np.zeros(0),
+                                                  np.zeros(0, bool), 0.0, 0),
+                                     yaw_rad=0.0, tilt_sigma_rad=0.01)
+            if answer is not None:
+                return answer
+    return None
+
+
+def test_the_aligner_tells_the_heading_error_from_the_ins_against_the_fixes() -> None:
+    for psi in (0.0, 1.0, -2.5, 3.0):
+        answer = aligned_heading(psi, accelerating=True, seed=1)
+        assert answer is not None
+        error, sigma = answer
+        assert 0.0 < sigma < 0.2 and abs(math.remainder(error - psi, math.tau)) < 3 * sigma
+
+
+def test_without_a_change_of_velocity_the_heading_stays_untold() -> None:
+    assert aligned_heading(1.0, accelerating=False) is None
