@@ -1,5 +1,5 @@
 """The filter's decisions on their own (uwbd/fusion/policy/): the health monitor's verdicts
-from the evidence it is fed, what the UWB fixes say about rest, and the coarse heading.
+from the evidence it is fed, what the UWB fixes say about rest, and the coarse heading."""
 
 from __future__ import annotations
 
