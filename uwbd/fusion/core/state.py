@@ -74,8 +74,6 @@ class CoreEskf(Eskf):
         self.b_g, self.b_a, self.b_r = x[10:13], x[13:16], x[16:16 + m]
         self.P = x[16 + m:16 + m + n * n].reshape(n, n)
         self.last_dx = x[16 + m + n * n:]
-        self._diag = np.diag_indices(n)
-        self._I = np.eye(n)
         self._clamp_key: tuple[Array, float] | None = None
         self._clamp_limit = np.zeros(0)
         # the hot operations, bound once
