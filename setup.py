@@ -24,9 +24,9 @@ setup(ext_modules=[
     # the output log's common IMU read, its two records in one call (uwbd/logs/mcaplog.py)
     Extension("uwbd.logs._records", ["uwbd/logs/_records.c"], extra_compile_args=["-O2"],
               optional=True),
-    # the common Nooploop read in one call (drivers/nlink.py, drivers/accel.py)
-    Extension("drivers._frames", ["drivers/_frames.c"], extra_compile_args=["-O2"],
-              optional=True),
+    # the WitMotion parser and the common Nooploop read (drivers/wit.py, nlink.py, accel.py)
+    Extension("drivers._frames", ["drivers/_frames.c", "drivers/_wit.c"],
+              depends=["drivers/_wit.h"], extra_compile_args=["-O2"], optional=True),
     # the daemon's serial reads on a thread of their own (uwbd/service/ports.py)
     Extension("uwbd.service._reader", ["uwbd/service/_reader.c"], extra_compile_args=["-O2"],
               extra_link_args=["-pthread"], optional=True),

@@ -14,7 +14,7 @@ from drivers.base import FrameError, Parser, ParserStats
 from drivers.frames import AnchorPair, AnchorRange, AnchorRanges, Frame, ImuSample, UwbRanges
 
 PARSERS: dict[str, Callable[[], Parser]] = {
-    "wit": wit.WitParser,
+    "wit": wit.new_parser,
     "dwm1001": dwm1001.Dwm1001ShellParser,
     "dwm1001-tlv": dwm1001_tlv.Dwm1001TlvParser,
     "nlink": nlink.NlinkParser,

@@ -1,4 +1,5 @@
-/* drivers._frames: the common Nooploop read (one whole TagFrame0) as one call.
+/* drivers._frames: the common Nooploop read (one whole TagFrame0) as one call; the
+ * WitMotion stream parser is _wit.c's WitStream.
  *
  * A Nooploop tag sends a 128-byte TagFrame0 ten times a second and a read almost always
  * holds exactly one. In Python, NlinkParser.feed scans it, decodes every field through the
@@ -15,6 +16,8 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <stdint.h>
+
+#include "_wit.h"
 
 #define FRAME_LEN 128
 #define N_SLOTS 8
@@ -132,8 +135,16 @@ static PyMethodDef frames_methods[] = {
 };
 
 static struct PyModuleDef frames_module = {
-    PyModuleDef_HEAD_INIT, "_frames", "The common Nooploop read in one call.", -1,
+    PyModuleDef_HEAD_INIT, "_frames", "The drivers' C parsers: WitMotion's stream, the common Nooploop read.", -1,
     frames_methods, NULL, NULL, NULL, NULL,
 };
 
-PyMODINIT_FUNC PyInit__frames(void) { return PyModule_Create(&frames_module); }
+PyMODINIT_FUNC PyInit__frames(void)
+{
+    if (PyType_Ready(&WitStreamType) < 0)
+        return NULL;
+    PyObject *m = PyModule_Create(&frames_module);
+    if (m != NULL && PyModule_AddObjectRef(m, "WitStream", (PyObject *)&WitStreamType) < 0)
+        Py_CLEAR(m);
+    return m;
+}

@@ -23,13 +23,14 @@ Units out: m/s² (the protocol's g is taken as standard gravity 9.80665 m/s²), 
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import math
-import struct
 from collections.abc import Mapping
 from typing import Any
 
-from drivers.base import BufferedParser, Scan, note_scan, scan_fixed
+from drivers import accel
+from drivers.base import BufferedParser, FrameError, ParserStats, Scan, note_scan, scan_fixed
 from drivers.frames import ImuSample
 from drivers.layout import Field, Layout, sum8
 
@@ -61,8 +62,6 @@ PAYLOADS: dict[int, Layout] = {
     QUAT: Layout((Field("quaternion_wire", "i16", 4, QUAT_DIV),)),
 }
 _PAYLOAD_OFFSET = 2
-# the common read: an accel and a gyro packet (header, type, four int16, sum8 each)
-_CYCLE = struct.Struct("<BB4hBBB4hB")
 
 
 
@@ -125,11 +124,6 @@ class WitParser(BufferedParser):
 
     def feed(self, data: bytes, t_ns: int = 0) -> list[ImuSample]:
         self.stats.bytes_in += len(data)
-        if (len(data) == _CYCLE.size and not self._buf and self._closing_type == GYRO
-                and self._last_type == GYRO and self._cycle_max < 0 and not self._cycle):
-            sample = self._common_cycle(data, t_ns)
-            if sample is not None:
-                return [sample]
         buf = self._buf + data if self._buf else data
         scan: Scan = scan_fixed(buf, PACKET_LEN, HEADER, KNOWN_TYPES)
         note_scan(self.stats, scan, self._base, "wit packet")
@@ -138,23 +132,6 @@ class WitParser(BufferedParser):
             self._packet(buf[p + 1], buf, p + _PAYLOAD_OFFSET, t_ns, out)
         self._keep_tail(buf, scan.keep_from)
         return out
-
-    def _common_cycle(self, data: bytes, t_ns: int) -> ImuSample | None:
-        """The common read, whole and alone: an accel and a gyro packet, the cycle the
-        parser expects next (the closing type learned is gyro, the last cycle closed). The
-        same sample, counters and state as the general path below, at a quarter of the cost
-        (one unpack); ``None`` for anything else, which the general path then takes."""
-        h0, t0, ax, ay, az, _temp_a, s0, h1, t1, gx, gy, gz, temp_g, s1 = _CYCLE.unpack(data)
-        if not (h0 == h1 == HEADER and t0 == ACC and t1 == GYRO
-                and sum(data[:10]) & 0xFF == s0 and sum(data[11:21]) & 0xFF == s1):
-            return None
-        self._base += len(data)
-        self._cycle_t_ns = t_ns
-        self.stats.frames += 1
-        # the gyro packet's temperature is the cycle's, as in _close
-        return ImuSample(t_ns=t_ns, acc_mps2=(ax / ACC_DIV, ay / ACC_DIV, az / ACC_DIV),
-                         gyro_rps=(gx / GYRO_DIV, gy / GYRO_DIV, gz / GYRO_DIV),
-                         temperature_c=temp_g / TEMP_DIV)
 
     def flush(self) -> list[ImuSample]:
         """End of input: emit the pending cycle, if complete, and count leftover bytes."""
@@ -208,3 +185,53 @@ class WitParser(BufferedParser):
         self._cycle = {}
         self._last_type = -1
         self._cycle_max = -1
+
+
+def _divisor(ptype: int, name: str) -> float:
+    (div,) = {f.div for f in PAYLOADS[ptype].fields if f.name == name}
+    assert div is not None
+    return div
+
+
+# what the C parser scales each field by: the table above's
+_DIVISORS = (_divisor(ACC, "acc_mps2"), _divisor(GYRO, "gyro_rps"),
+             _divisor(ACC, "temperature_c"), _divisor(ANGLE, "angle_deg"),
+             _divisor(QUAT, "quaternion_wire"))
+assert {_divisor(p, "temperature_c") for p in (ACC, GYRO, MAG)} == {_DIVISORS[2]}
+# what it makes its samples of: ImuSample's slots, in field order
+_SLOTS = tuple(getattr(ImuSample, f.name) for f in dataclasses.fields(ImuSample))
+
+
+class CWitParser:
+    """:class:`WitParser` on the C stream parser (``drivers/_wit.c``): the same samples and
+    counters from the same bytes (tested against it), in one call per read."""
+
+    def __init__(self) -> None:
+        assert accel.frames is not None
+        self._stream = accel.frames.WitStream(ImuSample, _SLOTS, _DIVISORS)
+        self._stats = ParserStats()
+
+    def feed(self, data: bytes, t_ns: int = 0) -> list[ImuSample]:
+        return self._stream.feed(data, t_ns)
+
+    def flush(self) -> list[ImuSample]:
+        return self._stream.flush()
+
+    @property
+    def _buf(self) -> bytes:
+        """The bytes held for the next read (BufferedParser's name)."""
+        return self._stream.pending
+
+    @property
+    def stats(self) -> ParserStats:
+        stats = self._stats
+        (stats.frames, stats.bytes_in, stats.bytes_skipped, stats.checksum_errors,
+         stats.unknown_types, stats.dropped) = self._stream.counts
+        stats.recent_errors.extend(FrameError(offset, "wit packet: checksum mismatch")
+                                   for offset in self._stream.errors())
+        return stats
+
+
+def new_parser() -> WitParser | CWitParser:
+    """The C parser where it is built (and ``UWBD_PURE_PYTHON`` unset), else the reference."""
+    return WitParser() if accel.frames is None else CWitParser()

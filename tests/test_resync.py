@@ -35,6 +35,7 @@ from drivers import (
     trek1000,
     wit,
 )
+from drivers import accel
 from drivers.base import _mask, _scan_loop, _scan_numpy
 from drivers.layout import sum8
 
@@ -304,45 +305,62 @@ def test_small_and_large_scanners_agree(stream: bytes) -> None:
         stream, wit.PACKET_LEN, 0x55, _mask(known))
 
 
-class _GeneralWit(wit.WitParser):
-    """The WitMotion parser without its fast path for the common read."""
+_WIT_PACKETS = {
+    "time": wit.encode_packet(wit.TIME, {"YY": 26, "MM": 12, "DD": 3, "hh": 17, "mm": 5,
+                                         "ss": 9, "ms": 250}),
+    "no_date": wit.encode_packet(wit.TIME, {}),  # an unset clock sends zeros
+    "angle": wit.encode_packet(wit.ANGLE, {"angle_deg": (1.0, -2.0, 179.0), "version": 7}),
+    "mag": wit.encode_packet(wit.MAG, {"mag_raw": (210, -5, -390), "temperature_c": 31.5}),
+    "port": bytes((0x55, wit.PORT, *bytes(8), (0x55 + wit.PORT) & 0xFF)),  # no layout
+    "quat": wit.encode_packet(wit.QUAT, {"quaternion_wire": (0.5, -0.5, 0.5, 0.5)}),
+    "readback": bytes((0x55, wit.READBACK, *bytes(8), (0x55 + wit.READBACK) & 0xFF)),
+    "unknown": bytes((0x55, 0x70, *bytes(8), (0x55 + 0x70) & 0xFF)),
+}
 
-    def _common_cycle(self, data: bytes, t_ns: int) -> ImuSample | None:
-        return None
 
-
-@settings(max_examples=200, deadline=None)
-@given(st.lists(st.tuples(st.sampled_from(["common", "angle", "garbage", "bad_sum", "gyro_only"]),
-                          st.integers(-32768, 32767), st.booleans()), min_size=1, max_size=40),
+@pytest.mark.skipif(accel.frames is None, reason="the C parser is not built")
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from(["cycle", "garbage", "bad_sum", "gyro_only",
+                                           "acc_only", *_WIT_PACKETS]),
+                          st.integers(-32768, 32767), st.integers(0, 3)), min_size=1,
+                max_size=60),
        st.integers(0, 2**32))
-def test_wit_fast_path_is_the_general_path(pieces: list[tuple[str, int, bool]],
-                                           seed: int) -> None:
-    """Reads of every kind (the common accel+gyro cycle whole, cycles with more packets,
-    garbage, a bad checksum, a cycle without accel, split reads): the fast path gives the
-    same samples, counters and state as the general one."""
+def test_the_c_wit_parser_is_the_python_one(pieces: list[tuple[str, int, int]],
+                                            seed: int) -> None:
+    """Any packet mix a WitMotion sends (time, accel, gyro, angle, mag, port, quaternion,
+    read-backs; the set changing), unknown types, garbage, bad checksums, cycles without
+    accel or gyro, reads split anywhere or joined: the C parser gives the same samples,
+    counters and errors as the Python reference."""
     rng = random.Random(seed)
-    reads: list[bytes] = []
-    for kind, raw, split in pieces:
+    stream = bytearray()
+    for kind, raw, extra in pieces:
+        if kind in _WIT_PACKETS:
+            stream += _WIT_PACKETS[kind]
+            continue
         sample = ImuSample(0, (raw / wit.ACC_DIV, 0.5, -1.0), (0.1, raw / wit.GYRO_DIV, 0.0),
-                           25.0, (1.0, 2.0, 3.0) if kind == "angle" else None)
+                           raw / 100 if extra else 25.0)
         data = bytearray(wit.encode(sample))
         if kind == "garbage":
             data = bytearray(rng.randbytes(rng.randint(1, 30)))
         elif kind == "bad_sum":
-            data[10] ^= 0x01
+            data[10 + 11 * (extra % 2)] ^= 0x01 << extra
         elif kind == "gyro_only":
             data = data[11:22]
-        if split and len(data) > 1:
-            cut = rng.randint(1, len(data) - 1)
-            reads += [bytes(data[:cut]), bytes(data[cut:])]
-        else:
-            reads.append(bytes(data))
-    fast, general = wit.WitParser(), _GeneralWit()
+        elif kind == "acc_only":
+            data = data[:11]
+        stream += data
+    reads, at = [], 0
+    while at < len(stream):
+        n = rng.choice([1, 5, 11, 22, 33, 44, 60, 700])
+        reads.append(bytes(stream[at:at + n]))
+        at += n
+    c, python = wit.CWitParser(), wit.WitParser()
     for k, read in enumerate(reads):
-        assert fast.feed(read, 1000 * k) == general.feed(read, 1000 * k)
-        assert vars(fast).keys() == vars(general).keys()
-        assert {n: v for n, v in vars(fast).items() if n != "stats"} \
-            == {n: v for n, v in vars(general).items() if n != "stats"}
-        assert fast.stats.as_dict() == general.stats.as_dict()
-    assert fast.flush() == general.flush()
-    assert fast.stats.as_dict() == general.stats.as_dict()
+        assert c.feed(read, 1000 * k) == python.feed(read, 1000 * k)
+        assert c.stats.as_dict() == python.stats.as_dict()
+    assert c._buf == bytes(python._buf)
+    assert c.flush() == python.flush()
+    assert c.stats.as_dict() == python.stats.as_dict()
+    c, python = wit.CWitParser(), wit.WitParser()  # all at once (a capture: numpy's scan)
+    assert c.feed(bytes(stream * 3), 7) == python.feed(bytes(stream * 3), 7)
+    assert c.stats.as_dict() == python.stats.as_dict()

@@ -8,7 +8,9 @@ decoded ``/imu`` and ``/uwb`` channels. Ground truth goes to ``/truth``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,20 +48,65 @@ def simulation_toml(sim: Simulation, uwb_driver: str = "nlink") -> str:
                           c.mounting, c.lever_arm_m, fusion, imu)
 
 
+SPLIT_READ_FRACTION = 0.3  # of reads a serial port ends inside a packet (WIRE_FORMATS.md §0)
+BYTE_NS = 10_850  # one byte at 921600 baud, 8N1
+MAG_FIELD_RAW = (210.0, 0.0, -390.0)  # the magnetometer's reading of the Earth's field, LSB
+
+
+def device_sample(frame: ImuSample, yaw_rad: float) -> ImuSample:
+    """``frame`` as a WitMotion set to its default output sends it: with its own attitude
+    (0x53: level, the heading) and the magnetometer (0x54) beside accel and gyro."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    mx, my, mz = MAG_FIELD_RAW
+    return dataclasses.replace(
+        frame, angle_deg=(0.0, 0.0, math.degrees(math.atan2(s, c))),
+        mag_raw=(round(c * mx + s * my), round(-s * mx + c * my), round(mz)))
+
+
+class SerialReads:
+    """A device's byte stream cut into reads as a serial port returns them: mostly one
+    report per read, and ``SPLIT_READ_FRACTION`` of the reads ending at a random byte inside
+    a report (its rest comes with the next read, a byte time per byte later)."""
+
+    def __init__(self, seed: int) -> None:
+        self._rng = np.random.default_rng(seed)
+        self._pending = b""
+
+    def cut(self, t_ns: int, report: bytes) -> list[tuple[int, bytes]]:
+        """The reads that the report arriving (its last byte) at ``t_ns`` completes."""
+        data, self._pending = self._pending + report, b""
+        if len(report) > 1 and self._rng.random() < SPLIT_READ_FRACTION:
+            keep = int(self._rng.integers(1, len(report)))
+            data, self._pending = data[:-keep], data[-keep:]
+            return [(t_ns - keep * BYTE_NS, data)]
+        return [(t_ns, data)]
+
+    def rest(self, t_ns: int) -> list[tuple[int, bytes]]:
+        return [(t_ns, self._pending)] if self._pending else []
+
+
 def write_simulation(sim: Simulation, path: Path, uwb_driver: str = "nlink") -> None:
+    """The simulated run as its devices would send it (every packet type a WitMotion sends
+    by default, reads split where a serial port splits them) and its truth."""
     sources = simulation_sources(uwb_driver)
     toml = simulation_toml(sim, uwb_driver)
     infos = tuple(SourceInfo(s.name, s.driver, s.port) for s in sources)
-    encode_uwb = ENCODERS[uwb_driver]
-    encode_imu = ENCODERS["wit"]
+    encode = {"imu": ENCODERS["wit"], "uwb": ENCODERS[uwb_driver]}
+    reads = {name: SerialReads(sim.config.seed * 2 + k) for k, name in enumerate(encode)}
     with LogWriter(path, toml, infos) as log:
         next_flush = sim.truth_t_ns[0] + FLUSH_EVERY_NS
         truth_k = 0
+        last_ns = -(2**63)
         for frame in merge(sim.imu, sim.uwb):
             if isinstance(frame, ImuSample):
-                log.raw("imu", frame.t_ns, encode_imu(frame))
+                k = max(int(np.searchsorted(sim.truth_t_ns, frame.t_ns, side="right")) - 1, 0)
+                report = encode["imu"](device_sample(frame, float(sim.truth_yaw_rad[k])))
+                source = "imu"
             else:
-                log.raw("uwb", frame.t_ns, encode_uwb(frame))
+                source, report = "uwb", encode["uwb"](frame)
+            for t_ns, data in reads[source].cut(frame.t_ns, report):
+                last_ns = max(last_ns, t_ns)  # a log's reads in arrival order
+                log.raw(source, last_ns, data)
             while truth_k < len(sim.truth_t_ns) and sim.truth_t_ns[truth_k] <= frame.t_ns:
                 t = int(sim.truth_t_ns[truth_k])
                 w, x, y, z = quat_from_euler(0.0, 0.0, float(sim.truth_yaw_rad[truth_k]))
@@ -69,6 +116,9 @@ def write_simulation(sim: Simulation, path: Path, uwb_driver: str = "nlink") -> 
             if frame.t_ns >= next_flush:
                 log.flush()
                 next_flush += FLUSH_EVERY_NS
+        for source, shaper in reads.items():
+            for _, data in shaper.rest(last_ns):
+                log.raw(source, last_ns, data)
 
 
 def write_dataset(ds: Dataset, path: Path, mounting: Sequence[Sequence[float]],
