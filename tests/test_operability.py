@@ -21,7 +21,7 @@ import pytest
 from mcap.writer import Writer
 from procs import UNBUFFERED, UWBD, one_line, read_until, uwbd
 
-from drivers import PARSERS, Frame
+from drivers import Frame, wit
 from drivers.emulator import DeviceSpec, Emulator, Faults
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
 from uwbd.config import parse
@@ -347,7 +347,7 @@ def test_kill_9_of_a_uwb_only_run_keeps_all_but_the_last_second(tmp_path: Path) 
     assert (killed_ns - max(ranges)) / 1e9 < 1.6
 
 
-class BuggyParser(PARSERS["wit"]):  # type: ignore[misc,valid-type]
+class BuggyParser(wit.WitParser):
     """A WitMotion parser with a bug: it raises on a read holding ``BUG``."""
 
     def feed(self, data: bytes, t_ns: int) -> list[Frame]:

@@ -64,25 +64,19 @@ def device_sample(frame: ImuSample, yaw_rad: float) -> ImuSample:
 
 
 class SerialReads:
-    """A device's byte stream cut into reads as a serial port returns them: mostly one
-    report per read, and ``SPLIT_READ_FRACTION`` of the reads ending at a random byte inside
-    a report (its rest comes with the next read, a byte time per byte later)."""
+    """A device's reports cut into reads as a serial port returns them: one report a read,
+    but ``SPLIT_READ_FRACTION`` of them split at a random byte (the read returned while the
+    report was arriving; its rest comes with the next read, ``BYTE_NS`` a byte later)."""
 
     def __init__(self, seed: int) -> None:
         self._rng = np.random.default_rng(seed)
-        self._pending = b""
 
     def cut(self, t_ns: int, report: bytes) -> list[tuple[int, bytes]]:
-        """The reads that the report arriving (its last byte) at ``t_ns`` completes."""
-        data, self._pending = self._pending + report, b""
+        """The reads of the report whose last byte arrived at ``t_ns``."""
         if len(report) > 1 and self._rng.random() < SPLIT_READ_FRACTION:
-            keep = int(self._rng.integers(1, len(report)))
-            data, self._pending = data[:-keep], data[-keep:]
-            return [(t_ns - keep * BYTE_NS, data)]
-        return [(t_ns, data)]
-
-    def rest(self, t_ns: int) -> list[tuple[int, bytes]]:
-        return [(t_ns, self._pending)] if self._pending else []
+            rest = int(self._rng.integers(1, len(report)))
+            return [(t_ns - rest * BYTE_NS, report[:-rest]), (t_ns, report[-rest:])]
+        return [(t_ns, report)]
 
 
 def write_simulation(sim: Simulation, path: Path, uwb_driver: str = "nlink") -> None:
@@ -116,9 +110,6 @@ def write_simulation(sim: Simulation, path: Path, uwb_driver: str = "nlink") -> 
             if frame.t_ns >= next_flush:
                 log.flush()
                 next_flush += FLUSH_EVERY_NS
-        for source, shaper in reads.items():
-            for _, data in shaper.rest(last_ns):
-                log.raw(source, last_ns, data)
 
 
 def write_dataset(ds: Dataset, path: Path, mounting: Sequence[Sequence[float]],
