@@ -19,6 +19,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from uwbd.config import parse
+from uwbd.fusion.checks.imu_check import ImuCheck, ImuLimits, new_imu_check
+from uwbd.fusion.checks.intrinsics import ImuIntrinsics, body_maps, to_body
 from uwbd.fusion.core import native
 from uwbd.fusion.core.eskf import N_CORE, TH_, V_, Eskf, ImuNoise, Row
 from uwbd.fusion.core.lsq import multilaterate
@@ -100,6 +102,48 @@ def test_predict_and_propagate_match_the_reference(seed: int, n_aux: int) -> Non
         (Phi_fast, dv_fast), (Phi_slow, dv_slow) = fast.take_epoch(), slow.take_epoch()
         np.testing.assert_allclose(Phi_fast, Phi_slow, rtol=1e-12, atol=1e-15)
         np.testing.assert_allclose(dv_fast, dv_slow, rtol=1e-12, atol=1e-15)
+
+
+@needs_core
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31), st.integers(0, 4), st.sampled_from(["none", "scale", "band"]))
+def test_the_imu_front_step_is_judge_map_predict_propagate(seed: int, n_aux: int,
+                                                          intrinsics: str) -> None:
+    """ImuFront.step on the C State: ImuCheck's verdict, to_body's maps (a mounting, scale
+    and offsets, a gyro dead-band), Eskf.predict, and Eskf.propagate once the interval
+    reaches 0.1 s; a rejected sample integrates nothing."""
+    rng = np.random.default_rng(seed)
+    C = tuple(tuple(r) for r in Z_DOWN)
+    intr = {"none": ImuIntrinsics(),
+            "scale": ImuIntrinsics(acc_scale=(1.01, 0.99, 1.02), acc_offset_mps2=(0.1, -0.2, 0.05),
+                                   gyro_offset_rps=(0.01, 0.0, -0.02)),
+            "band": ImuIntrinsics(gyro_offset_rps=(0.01, 0.0, -0.02),
+                                  gyro_deadband_rps=0.3)}[intrinsics]
+    def rotate(v: tuple[float, ...]) -> tuple[float, ...]:  # as Filter._to_body
+        return tuple(r[0] * v[0] + r[1] * v[1] + r[2] * v[2] for r in C)
+
+    acc_map, gyro_map = to_body(C, intr, rotate)
+    front, check = new_imu_check(ImuLimits(), body_maps(C, intr)), ImuCheck(ImuLimits())
+    fast, slow = twin(n_aux, seed)
+    stream = imu_stream(seed, 80)
+    stream[30] = ((math.nan, 0.0, 9.8), stream[30][1])
+    stream[50] = ((0.0, 0.0, 9.8 + 150.0), stream[50][1])
+    for k, (acc, gyro) in enumerate(stream):
+        t_ns = (k + 1) * 5_000_000
+        dt = float(rng.uniform(0.004, 0.006))
+        judged = front.step(fast.core_state, t_ns, acc, gyro, dt, 0.1)
+        reason = check.judge(t_ns, acc, gyro)
+        if reason:
+            assert judged == reason
+        else:
+            body = (acc_map(acc), gyro_map(gyro))
+            assert judged == body
+            slow.predict(*body, dt)
+            if slow.interval_s >= 0.1:
+                slow.propagate()
+        assert nominal(fast).tolist() == nominal(slow).tolist()
+        assert fast.interval_s == slow.interval_s
+    np.testing.assert_allclose(fast.P, slow.P, rtol=1e-12, atol=1e-15)
 
 
 @needs_core

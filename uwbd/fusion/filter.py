@@ -47,8 +47,8 @@ import numpy as np
 
 from drivers.frames import AnchorRanges, UwbRanges
 from uwbd.fusion.checks.gating import GatingCounters, chi2_quantile, gate
-from uwbd.fusion.checks.imu_check import ImuCheck
-from uwbd.fusion.checks.intrinsics import to_body
+from uwbd.fusion.checks.imu_check import ImuCheck, new_imu_check
+from uwbd.fusion.checks.intrinsics import body_maps, to_body
 from uwbd.fusion.core.eskf import BA_, BG_, N_CORE, TH_, Eskf
 from uwbd.fusion.core.lsq import LsqFix, coplanar
 from uwbd.fusion.core.rotation import Array
@@ -110,7 +110,10 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         self.gating = GatingCounters()
         self.anchor_stats: dict[int, AnchorStats] = {}
         self.monitor = HealthMonitor(config.health)
-        self.imu_check = ImuCheck(config.imu_limits)
+        self.imu_check = new_imu_check(config.imu_limits, body_maps(self._C, config.imu_intrinsics))
+        # on the C core, a good sample while tracking is judged, mapped and integrated in one
+        # call (policy.propagation)
+        self._front_steps = not isinstance(self.imu_check, ImuCheck)
         self.window = ImuWindow(max(config.static_window_s, config.init_static_s), config.rest,
                                 config.gravity_mps2)
         # the anchors known: configured, and those the device reports (learnt before the

@@ -20,6 +20,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
+
+from uwbd.fusion.checks.intrinsics import BodyMaps
+from uwbd.fusion.core import native
 
 Vec3 = tuple[float, float, float]
 
@@ -83,3 +87,18 @@ class ImuCheck:
                 return "imu_jump"
         self._jump_run = 0
         return ""
+
+
+def new_imu_check(limits: ImuLimits, maps: BodyMaps) -> Any:
+    """An :class:`ImuCheck`, or on the C core its twin, the IMU front (``core/_imu.c``: the
+    same screen with the same methods, which also maps a good sample with ``maps`` and
+    integrates it in the same call, ``step``: :mod:`~uwbd.fusion.policy.propagation`)."""
+    check = ImuCheck(limits)
+    core = native.core
+    if core is None:
+        return check
+    numbers = (*(x for row in maps.acc_M for x in row), *maps.acc_b,
+               *(x for row in maps.gyro_M for x in row), *maps.gyro_b, *maps.gyro_offset,
+               maps.gyro_band)
+    return core.ImuFront((check.acc_clip, check.gyro_clip, limits.max_acc_jump_mps2,
+                          limits.max_gyro_jump_rps, limits.max_jump_run), numbers)

@@ -151,19 +151,20 @@ static PyMethodDef core_methods[] = {
 
 static struct PyModuleDef core_module = {
     PyModuleDef_HEAD_INIT, "_core",
-    "The filter's numbers in C: the State type and the UWB-only multilateration "
-    "(uwbd/fusion/core/eskf.py and lsq.py are the reference).", -1,
+    "The filter's numbers in C: the State type, the IMU front and the UWB-only "
+    "multilateration (uwbd/fusion/core/eskf.py, checks/imu_check.py, lsq.py: the reference).", -1,
     core_methods, NULL, NULL, NULL, NULL,
 };
 
 PyMODINIT_FUNC PyInit__core(void)
 {
-    if (PyType_Ready(&UwbdStateType) < 0)
+    if (PyType_Ready(&UwbdStateType) < 0 || uwbd_imu_front_ready() < 0)
         return NULL;
     PyObject *module = PyModule_Create(&core_module);
     if (module == NULL)
         return NULL;
-    if (PyModule_AddObjectRef(module, "State", (PyObject *)&UwbdStateType) < 0) {
+    if (PyModule_AddObjectRef(module, "State", (PyObject *)&UwbdStateType) < 0 ||
+        PyModule_AddObjectRef(module, "ImuFront", (PyObject *)&UwbdImuFrontType) < 0) {
         Py_DECREF(module);
         return NULL;
     }

@@ -1,7 +1,8 @@
 /* What the C core's files share. _core.c: the module and its helpers; _state.c: the State
  * type, which owns the filter's numbers (docs/ekf.md §2, §3, §5); _update.c: the scalar
  * updates and the robust weights (§5); mm_range.c: the range rows (§4); _lsq.c: the UWB-only
- * multilateration; _rest.c: the rest test's moments. No function here reads a Python
+ * multilateration; _rest.c: the rest test's moments; _imu.c: the IMU front (screen, body
+ * maps, the common sample integrated). No function here reads a Python
  * object's attributes: numbers come in as arguments, buffers or tuples of floats. */
 #ifndef UWBD_CORE_H
 #define UWBD_CORE_H
@@ -61,5 +62,14 @@ PyObject *uwbd_window_moments(PyObject *self, PyObject *const *args, Py_ssize_t 
 
 /* -- the State type (_state.c) ---------------------------------------------------------- */
 extern PyTypeObject UwbdStateType;
+/* The operations the IMU front (_imu.c) runs on a State without a Python call: predict
+ * (§2, one sample in body axes), propagate (§3), and the time integrated since it. */
+void uwbd_state_predict(PyObject *state, const double acc[3], const double gyro[3], double dt);
+void uwbd_state_propagate(PyObject *state);
+double uwbd_state_interval(PyObject *state);
+
+/* -- the IMU front (_imu.c): each sample judged, mapped to body axes, integrated --------- */
+extern PyTypeObject UwbdImuFrontType;
+int uwbd_imu_front_ready(void); /* its constants made and the type readied: 0, or -1 */
 
 #endif

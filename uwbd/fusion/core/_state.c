@@ -160,15 +160,9 @@ static int check_args(Py_ssize_t nargs, Py_ssize_t want, const char *name)
 
 /* predict(acc_b, gyro_b, dt): with ω = ω_m − b_g, f = f_m − b_a (body), a = R f + g:
  * p += (v + a dt / 2) dt, v += a dt, q ← q ⊗ Exp(ω dt); the interval's Σ R f dt and Σ ω dt. */
-static PyObject *state_predict(State *self, PyObject *const *args, Py_ssize_t nargs)
+void uwbd_state_predict(PyObject *state, const double acc[3], const double gyro[3], double dt)
 {
-    double acc[3], gyro[3];
-    if (check_args(nargs, 3, "predict") || uwbd_get_vec(args[0], acc, 3, "acc_b") ||
-        uwbd_get_vec(args[1], gyro, 3, "gyro_b"))
-        return NULL;
-    double dt = PyFloat_AsDouble(args[2]);
-    if (dt == -1.0 && PyErr_Occurred())
-        return NULL;
+    State *self = (State *)state;
     double *p = self->p, *v = self->v, *q = self->q, *bg = self->bg, *ba = self->ba;
     double wx = (gyro[0] - bg[0]) * dt, wy = (gyro[1] - bg[1]) * dt, wz = (gyro[2] - bg[2]) * dt;
     double fx = acc[0] - ba[0], fy = acc[1] - ba[1], fz = acc[2] - ba[2];
@@ -194,6 +188,18 @@ static PyObject *state_predict(State *self, PyObject *const *args, Py_ssize_t na
     double qn[4];
     uwbd_turned(q, wx, wy, wz, qn);
     memcpy(q, qn, sizeof qn);
+}
+
+static PyObject *state_predict(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double acc[3], gyro[3];
+    if (check_args(nargs, 3, "predict") || uwbd_get_vec(args[0], acc, 3, "acc_b") ||
+        uwbd_get_vec(args[1], gyro, 3, "gyro_b"))
+        return NULL;
+    double dt = PyFloat_AsDouble(args[2]);
+    if (dt == -1.0 && PyErr_Occurred())
+        return NULL;
+    uwbd_state_predict((PyObject *)self, acc, gyro, dt);
     Py_RETURN_NONE;
 }
 
@@ -236,14 +242,12 @@ static void markov_step(State *self, double T)
 /* propagate(): F from the interval's mean specific force and rate, Φ = I + A + A²/2 with
  * A = F T on the core 15 states, P ← Φ P Φᵀ + diag(q_rate) T, the Gauss–Markov step,
  * P symmetrised; Φ_epoch ← Φ Φ_epoch when kept; the interval starts anew. */
-static PyObject *state_propagate(State *self, PyObject *const *args, Py_ssize_t nargs)
+void uwbd_state_propagate(PyObject *state)
 {
-    (void)args;
-    if (check_args(nargs, 0, "propagate"))
-        return NULL;
+    State *self = (State *)state;
     double T = self->T;
     if (!(T > 0.0))
-        Py_RETURN_NONE;
+        return;
     Py_ssize_t n = self->n;
     double *P = self->P;
     for (int i = 0; i < 3; i++)
@@ -331,6 +335,16 @@ static PyObject *state_propagate(State *self, PyObject *const *args, Py_ssize_t 
     self->T = 0.0;
     memset(self->sum_fn, 0, sizeof self->sum_fn);
     memset(self->sum_w, 0, sizeof self->sum_w);
+}
+
+double uwbd_state_interval(PyObject *state) { return ((State *)state)->T; }
+
+static PyObject *state_propagate(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)args;
+    if (check_args(nargs, 0, "propagate"))
+        return NULL;
+    uwbd_state_propagate((PyObject *)self);
     Py_RETURN_NONE;
 }
 

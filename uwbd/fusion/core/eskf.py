@@ -87,6 +87,7 @@ class Eskf:
     """The filter's state and the algebra on it; policy (gating, modes) lives in ``Filter``."""
 
     fuses_ranges = False  # fuse_ranges takes a tight epoch in one call (CoreEskf)
+    core_state: object = None  # CoreEskf's C State, which the C IMU front integrates into
     # lists of floats here, numpy views of the C core's memory in CoreEskf
     p: list[float] | Array
     v: list[float] | Array

@@ -64,7 +64,7 @@ class CoreEskf(Eskf):
         self.n = n
         self.noise = noise
         self.gravity_mps2 = float(gravity_mps2)
-        self._state = state = core.State(
+        self._state = self.core_state = state = core.State(
             [float(c) for c in p], [float(c) for c in v], [float(c) for c in q],
             [float(c) for c in b_g], [float(c) for c in b_a], b_r.tolist(), P0,
             q_rate.tolist(), tau.tolist(), var.tolist(), self.gravity_mps2)

@@ -32,6 +32,7 @@ class ImuPropagation(Recovery):
     _good_imu_ns: int | None
     _last_imu: tuple[Vec3, Vec3] | None
     _coasted: bool
+    _front_steps: bool
 
     def predict(self, imu: ImuSample) -> None:
         """Integrate one IMU sample (sensor axes); bad samples are counted, never used."""
@@ -55,7 +56,22 @@ class ImuPropagation(Recovery):
             finite = math.isfinite(a[0] + a[1] + a[2] + g[0] + g[1] + g[2])
             self.counters["imu_out_of_order" if finite else "imu_not_finite"] += 1
             return
-        reason = self.imu_check.judge(t_ns, imu.acc_mps2, imu.gyro_rps)
+        ekf = self.ekf
+        if (self._front_steps and ekf is not None and ekf.core_state is not None
+                and self._relevel is None and prev is not None and self.t_ns is not None
+                and (t_ns - prev) / NS <= self.cfg.max_imu_gap_s and t_ns > self.t_ns):
+            # the common sample (good, no gap, tracking): all of the steps below in one call
+            # of the C IMU front, or only the judging when it is rejected
+            judged = self.imu_check.step(ekf.core_state, t_ns, imu.acc_mps2, imu.gyro_rps,
+                                         (t_ns - self.t_ns) / NS, PROPAGATE_EVERY_S)
+            if judged.__class__ is tuple:
+                self._imu_t_ns = self._good_imu_ns = self.t_ns = t_ns
+                self.window.add(t_ns, *judged)
+                self._last_imu = judged
+                return
+            reason = judged
+        else:
+            reason = self.imu_check.judge(t_ns, imu.acc_mps2, imu.gyro_rps)
         if reason:
             self.counters[reason] += 1
             self.monitor.imu_rejected(t_ns)
@@ -67,7 +83,6 @@ class ImuPropagation(Recovery):
             sample = (self._acc_to_body(imu.acc_mps2), self._gyro_to_body(imu.gyro_rps))
             self.window.add(t_ns, *sample)
             self._good_imu_ns = t_ns
-        ekf = self.ekf
         if ekf is None:
             if not reason:
                 self._last_imu = sample

@@ -1,0 +1,247 @@
+/* The IMU front: each sample judged raw, mapped to corrected body axes and, in the common
+ * case, integrated into a State, in one call (uwbd/fusion/policy/propagation.py decides when).
+ *
+ * The references are Python: the screen is checks/imu_check.ImuCheck (judge, burst_s,
+ * last_good: this type has the same methods and replaces it on the C core), the maps are
+ * checks/intrinsics.to_body's (BodyMaps' numbers, the same arithmetic in the same order),
+ * and step() is the branch of ImuPropagation._predict for a good sample while tracking.
+ *
+ *   ImuFront(limits, maps)
+ *     limits: (acc_clip, gyro_clip, max_acc_jump, max_gyro_jump, max_jump_run)
+ *     maps:   acc_M (9, row-major), acc_b (3), gyro_M (9), gyro_b (3), gyro_offset (3),
+ *             gyro_band: 28 floats
+ *   .judge(t_ns, acc, gyro) -> "" or the reason     .burst_s(t_ns)     .last_good
+ *   .step(state, t_ns, acc, gyro, dt, propagate_every_s) -> (acc_b, gyro_b) or the reason:
+ *     judged; when good, mapped, State.predict over dt and State.propagate when the interval
+ *     reaches propagate_every_s; a rejected sample changes nothing but the screen.
+ *
+ * The jump test's distance is sqrt of the sum of squares where ImuCheck has math.dist (more
+ * careful rounding): the two can differ at one rounding exactly at the limit, never else. */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <string.h>
+
+#include "_core.h"
+
+enum { N_MAPS = 28 };
+
+typedef struct {
+    PyObject_HEAD
+    double acc_clip, gyro_clip, max_acc_jump, max_gyro_jump;
+    long max_jump_run, jump_run;
+    double acc_M[9], acc_b[3], gyro_M[9], gyro_b[3], gyro_offset[3], gyro_band;
+    double good_acc[3], good_gyro[3];
+    int has_good, has_burst, has_last;
+    long long burst_start_ns, last_ns;
+} ImuFront;
+
+static PyObject *reasons[3]; /* interned: not finite, saturated, jump */
+static PyObject *no_reason;
+
+static double dist3(const double a[3], const double b[3])
+{
+    double x = a[0] - b[0], y = a[1] - b[1], z = a[2] - b[2];
+    return sqrt(x * x + y * y + z * z);
+}
+
+/* ImuCheck._reason: -1 when the sample may be used, else the index of its reason */
+static int reason_of(ImuFront *s, const double a[3], const double g[3])
+{
+    if (!isfinite(a[0] + a[1] + a[2] + g[0] + g[1] + g[2]))
+        return 0; /* NaN and inf propagate through the sum */
+    if (fabs(a[0]) >= s->acc_clip || fabs(a[1]) >= s->acc_clip || fabs(a[2]) >= s->acc_clip ||
+        fabs(g[0]) >= s->gyro_clip || fabs(g[1]) >= s->gyro_clip || fabs(g[2]) >= s->gyro_clip)
+        return 1;
+    if (s->has_good && s->jump_run < s->max_jump_run &&
+        (dist3(a, s->good_acc) > s->max_acc_jump || dist3(g, s->good_gyro) > s->max_gyro_jump)) {
+        s->jump_run++;
+        return 2;
+    }
+    s->jump_run = 0;
+    return -1;
+}
+
+/* ImuCheck.judge */
+static int judge(ImuFront *s, long long t_ns, const double a[3], const double g[3])
+{
+    int r = reason_of(s, a, g);
+    if (r >= 0) {
+        if (!s->has_burst) {
+            s->burst_start_ns = s->has_last ? s->last_ns : t_ns;
+            s->has_burst = 1;
+        }
+    } else {
+        memcpy(s->good_acc, a, sizeof s->good_acc);
+        memcpy(s->good_gyro, g, sizeof s->good_gyro);
+        s->has_good = 1;
+        s->has_burst = 0;
+    }
+    s->last_ns = t_ns;
+    s->has_last = 1;
+    return r;
+}
+
+/* M v − b, as intrinsics._affine (to_body's plain rotation is the same with b = 0) */
+static void affine(const double M[9], const double b[3], const double v[3], double out[3])
+{
+    for (int i = 0; i < 3; i++)
+        out[i] = M[3 * i] * v[0] + M[3 * i + 1] * v[1] + M[3 * i + 2] * v[2] - b[i];
+}
+
+static void to_body(ImuFront *s, const double a[3], const double g[3], double ab[3],
+                    double gb[3])
+{
+    affine(s->acc_M, s->acc_b, a, ab);
+    if (s->gyro_band > 0.0) { /* the dead-band is per sensor axis: before the rotation */
+        double d = s->gyro_band, w[3];
+        for (int i = 0; i < 3; i++) {
+            w[i] = g[i] - s->gyro_offset[i];
+            if (-d < w[i] && w[i] < d)
+                w[i] = 0.0;
+        }
+        for (int i = 0; i < 3; i++)
+            gb[i] = s->gyro_M[3 * i] * w[0] + s->gyro_M[3 * i + 1] * w[1] +
+                    s->gyro_M[3 * i + 2] * w[2];
+    } else {
+        affine(s->gyro_M, s->gyro_b, g, gb);
+    }
+}
+
+static int sample_args(PyObject *const *args, long long *t_ns, double a[3], double g[3])
+{
+    *t_ns = PyLong_AsLongLong(args[0]);
+    if (*t_ns == -1 && PyErr_Occurred())
+        return -1;
+    return uwbd_get_vec(args[1], a, 3, "acc") || uwbd_get_vec(args[2], g, 3, "gyro") ? -1 : 0;
+}
+
+static PyObject *front_judge(ImuFront *s, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long t_ns;
+    double a[3], g[3];
+    if (nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "judge(t_ns, acc, gyro)");
+        return NULL;
+    }
+    if (sample_args(args, &t_ns, a, g) < 0)
+        return NULL;
+    int r = judge(s, t_ns, a, g);
+    return Py_NewRef(r < 0 ? no_reason : reasons[r]);
+}
+
+static PyObject *front_step(ImuFront *s, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long t_ns;
+    double a[3], g[3];
+    if (nargs != 6 || !PyObject_TypeCheck(args[0], &UwbdStateType)) {
+        PyErr_SetString(PyExc_TypeError,
+                        "step(state, t_ns, acc, gyro, dt, propagate_every_s): a State first");
+        return NULL;
+    }
+    if (sample_args(args + 1, &t_ns, a, g) < 0)
+        return NULL;
+    double dt = PyFloat_AsDouble(args[4]), every = PyFloat_AsDouble(args[5]);
+    if ((dt == -1.0 || every == -1.0) && PyErr_Occurred())
+        return NULL;
+    int r = judge(s, t_ns, a, g);
+    if (r >= 0)
+        return Py_NewRef(reasons[r]);
+    double ab[3], gb[3];
+    to_body(s, a, g, ab, gb);
+    uwbd_state_predict(args[0], ab, gb, dt);
+    if (uwbd_state_interval(args[0]) >= every)
+        uwbd_state_propagate(args[0]);
+    PyObject *acc_b = uwbd_floats(ab, 3, 0), *gyro_b = acc_b ? uwbd_floats(gb, 3, 0) : NULL;
+    PyObject *out = gyro_b ? PyTuple_Pack(2, acc_b, gyro_b) : NULL;
+    Py_XDECREF(acc_b);
+    Py_XDECREF(gyro_b);
+    return out;
+}
+
+static PyObject *front_burst_s(ImuFront *s, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 1) {
+        PyErr_SetString(PyExc_TypeError, "burst_s(t_ns)");
+        return NULL;
+    }
+    long long t_ns = PyLong_AsLongLong(args[0]);
+    if (t_ns == -1 && PyErr_Occurred())
+        return NULL;
+    return PyFloat_FromDouble(s->has_burst ? (double)(t_ns - s->burst_start_ns) / 1e9 : 0.0);
+}
+
+static PyObject *get_last_good(ImuFront *s, void *c)
+{
+    (void)c;
+    if (!s->has_good)
+        Py_RETURN_NONE;
+    PyObject *a = uwbd_floats(s->good_acc, 3, 0), *g = a ? uwbd_floats(s->good_gyro, 3, 0) : NULL;
+    PyObject *out = g ? PyTuple_Pack(2, a, g) : NULL;
+    Py_XDECREF(a);
+    Py_XDECREF(g);
+    return out;
+}
+
+static int front_init(ImuFront *s, PyObject *args, PyObject *kwds)
+{
+    static char *names[] = {"limits", "maps", NULL};
+    double lim[5], maps[N_MAPS];
+    PyObject *limits, *map_numbers;
+    if (!PyArg_ParseTupleAndKeywords(args, kwds, "OO", names, &limits, &map_numbers) ||
+        uwbd_get_vec(limits, lim, 5, "limits") || uwbd_get_vec(map_numbers, maps, N_MAPS, "maps"))
+        return -1;
+    s->acc_clip = lim[0];
+    s->gyro_clip = lim[1];
+    s->max_acc_jump = lim[2];
+    s->max_gyro_jump = lim[3];
+    s->max_jump_run = (long)lim[4];
+    memcpy(s->acc_M, maps, 9 * sizeof(double));
+    memcpy(s->acc_b, maps + 9, 3 * sizeof(double));
+    memcpy(s->gyro_M, maps + 12, 9 * sizeof(double));
+    memcpy(s->gyro_b, maps + 21, 3 * sizeof(double));
+    memcpy(s->gyro_offset, maps + 24, 3 * sizeof(double));
+    s->gyro_band = maps[27];
+    s->jump_run = 0;
+    s->has_good = s->has_burst = s->has_last = 0;
+    return 0;
+}
+
+int uwbd_imu_front_ready(void)
+{
+    static const char *names[3] = {"imu_not_finite", "imu_saturated", "imu_jump"};
+    for (int i = 0; i < 3; i++)
+        if (reasons[i] == NULL && (reasons[i] = PyUnicode_InternFromString(names[i])) == NULL)
+            return -1;
+    if (no_reason == NULL && (no_reason = PyUnicode_InternFromString("")) == NULL)
+        return -1;
+    return PyType_Ready(&UwbdImuFrontType);
+}
+
+#define METHOD(name, doc) {#name, (PyCFunction)(void (*)(void))front_##name, METH_FASTCALL, doc}
+
+static PyMethodDef front_methods[] = {
+    METHOD(judge, "judge(t_ns, acc, gyro) -> '' when the sample may be used, else the reason."),
+    METHOD(burst_s, "burst_s(t_ns): how long samples have been rejected without a break."),
+    METHOD(step, "step(state, t_ns, acc, gyro, dt, propagate_every_s) -> (acc_b, gyro_b) "
+                 "when judged good and integrated, else the reason."),
+    {NULL, NULL, 0, NULL},
+};
+
+static PyGetSetDef front_getset[] = {
+    {"last_good", (getter)get_last_good, NULL, "The last accepted (acc, gyro), sensor axes.",
+     NULL},
+    {NULL, NULL, NULL, NULL, NULL},
+};
+
+PyTypeObject UwbdImuFrontType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "uwbd.fusion.core._core.ImuFront",
+    .tp_doc = "The IMU front: ImuCheck's screen, to_body's maps, the common sample integrated.",
+    .tp_basicsize = sizeof(ImuFront),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)front_init,
+    .tp_methods = front_methods,
+    .tp_getset = front_getset,
+};
