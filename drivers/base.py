@@ -61,7 +61,9 @@ class ParserStats:
 class Parser(Protocol):
     """The driver contract."""
 
-    stats: ParserStats
+    @property
+    def stats(self) -> ParserStats:
+        """The parser's counters (an attribute or a property)."""
 
     def feed(self, data: bytes, t_ns: int = 0) -> Sequence[Frame]:
         """Frames completed by ``data``, which arrived (last byte) at ``t_ns``."""

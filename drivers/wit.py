@@ -212,15 +212,18 @@ class CWitParser:
         self._stats = ParserStats()
 
     def feed(self, data: bytes, t_ns: int = 0) -> list[ImuSample]:
-        return self._stream.feed(data, t_ns)
+        samples: list[ImuSample] = self._stream.feed(data, t_ns)
+        return samples
 
     def flush(self) -> list[ImuSample]:
-        return self._stream.flush()
+        samples: list[ImuSample] = self._stream.flush()
+        return samples
 
     @property
     def _buf(self) -> bytes:
         """The bytes held for the next read (BufferedParser's name)."""
-        return self._stream.pending
+        pending: bytes = self._stream.pending
+        return pending
 
     @property
     def stats(self) -> ParserStats:

@@ -35,7 +35,6 @@ from drivers import (
     trek1000,
     wit,
 )
-from drivers import accel
 from drivers.base import _mask, _scan_loop, _scan_numpy
 from drivers.layout import sum8
 

@@ -98,10 +98,11 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
             raise ValueError("mounting_rotation must be a proper rotation matrix")
         self._C = tuple(tuple(float(x) for x in row) for row in C_bs)
         (a, b, c), (d, e, f), (g, h, i) = self._C
+        rows = ((a, b, c), (d, e, f), (g, h, i))
         # raw sensor axes -> corrected body axes, one affine map per sample (.intrinsics);
         # with the intrinsics at their defaults both are the plain rotation _to_body
-        self._acc_to_body, self._gyro_to_body = to_body(
-            ((a, b, c), (d, e, f), (g, h, i)), config.imu_intrinsics, self._to_body)
+        self._acc_to_body, self._gyro_to_body = to_body(rows, config.imu_intrinsics,
+                                                        self._to_body)
         self.intrinsics_applied = not config.imu_intrinsics.is_identity
         self.lever = np.array(config.lever_arm_m, dtype=float)
         self._lever = tuple(float(c) for c in config.lever_arm_m)
@@ -110,7 +111,7 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         self.gating = GatingCounters()
         self.anchor_stats: dict[int, AnchorStats] = {}
         self.monitor = HealthMonitor(config.health)
-        self.imu_check = new_imu_check(config.imu_limits, body_maps(self._C, config.imu_intrinsics))
+        self.imu_check = new_imu_check(config.imu_limits, body_maps(rows, config.imu_intrinsics))
         # on the C core, a good sample while tracking is judged, mapped and integrated in one
         # call (policy.propagation)
         self._front_steps = not isinstance(self.imu_check, ImuCheck)

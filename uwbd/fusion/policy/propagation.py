@@ -12,7 +12,6 @@ from typing import Any
 import numpy as np
 
 from drivers.frames import ImuSample
-from uwbd.fusion.checks.imu_check import ImuCheck
 from uwbd.fusion.policy.recovery import COAST_ACCEL_SIGMA_MPS2, NS, UNSEEN_RATE_SIGMA_RPS, Recovery
 
 Vec3 = tuple[float, float, float]
@@ -23,7 +22,7 @@ NUMERICAL_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError)
 class ImuPropagation(Recovery):
     """IMU samples in, the nominal state and its covariance propagated (see module doc)."""
 
-    imu_check: ImuCheck
+    imu_check: Any  # an ImuCheck, or on the C core its twin the IMU front (with step)
     counters: collections.Counter[str]
     _C: tuple[tuple[float, ...], ...]
     _acc_to_body: Any
