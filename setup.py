@@ -22,8 +22,8 @@ setup(ext_modules=[
     # the per-message loops of reading a whole log (uwbd/logs/scan.py, mcaplog.py)
     Extension("uwbd.logs._scan", ["uwbd/logs/_scan.c"], depends=["uwbd/_tuple.h"],
               extra_compile_args=["-O2"], optional=True),
-    # the output log's common IMU read, its two records in one call (uwbd/logs/mcaplog.py)
-    Extension("uwbd.logs._records", ["uwbd/logs/_records.c"], extra_compile_args=["-O2"],
+    # the output log's open chunk and its message indexes (uwbd/logs/chunked.py)
+    Extension("uwbd.logs._chunk", ["uwbd/logs/_chunk.c"], extra_compile_args=["-O2"],
               optional=True),
     # the WitMotion parser and the common Nooploop read (drivers/wit.py, nlink.py, accel.py)
     Extension("drivers._frames", ["drivers/_frames.c", "drivers/_wit.c"],

@@ -1,12 +1,13 @@
-"""The output log's common IMU read in C (``uwbd/logs/_records.c``) against its reference,
-``LogWriter.read`` through ``raw`` and ``frame``: real MCAP files, byte for byte."""
+"""The output log's records: the open chunk in C (``uwbd/logs/_chunk.c``) against its
+reference ``chunked.PyChunk`` (real MCAP files, byte for byte), and what a record the log
+cannot hold, or a full disk, costs."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
-import struct
 from pathlib import Path
 from typing import Any
 
@@ -16,26 +17,15 @@ from mcap.reader import make_reader
 from drivers.frames import AnchorRange, Frame, ImuSample, UwbRanges
 from drivers.wit import encode as encode_wit
 from uwbd.config import parse
-from uwbd.logs import mcaplog
-from uwbd.logs.mcaplog import LogWriter
+from uwbd.fusion.core import native
+from uwbd.logs.chunked import PyChunk, new_chunk
+from uwbd.logs.mcaplog import UNENCODABLE, LogWriter
 from uwbd.logs.reading import read_log
 from uwbd.logs.sink import McapSink
 from uwbd.tools.simulator import EPOCH_NS, SimConfig, simulate
 
-needs_c = pytest.mark.skipif(mcaplog.C_RECORDS is None, reason="the log's C writer is not built")
-
-
-class Counted:
-    """The C writer, its answers kept."""
-
-    def __init__(self) -> None:
-        self.answers: list[int] = []
-
-    def imu_read(self, *args: Any) -> int:
-        assert mcaplog.C_RECORDS is not None
-        answer = mcaplog.C_RECORDS.imu_read(*args)
-        self.answers.append(answer)
-        return answer
+needs_c = pytest.mark.skipif(isinstance(new_chunk(), PyChunk),
+                             reason="the log's C chunk is not built")
 
 
 def odd_reads() -> list[tuple[str, int, bytes, Frame]]:
@@ -71,63 +61,46 @@ def odd_reads() -> list[tuple[str, int, bytes, Frame]]:
     return out
 
 
-def write(path: Path, reads: list[tuple[str, int, bytes, Frame]], c_records: Any,
-          chunk_bytes: int) -> None:
+def write(path: Path, reads: list[tuple[str, int, bytes, Frame]], chunk_bytes: int) -> None:
     with LogWriter(path, chunk_bytes=chunk_bytes) as log:
-        log._c_records = c_records
         for source, t_ns, data, frame in reads:
-            log.read(source, t_ns, data, frame)
+            log.raw(source, t_ns, data)
+            log.frame(frame)
 
 
 @needs_c
 @pytest.mark.parametrize("chunk_bytes", [700, 64 * 1024])
-def test_the_c_writer_writes_the_references_bytes(tmp_path: Path, chunk_bytes: int) -> None:
-    """The same reads through the C writer and through the reference make the same file,
-    byte for byte; the C writer took the common reads, declined the others, and ended its
-    chunk after either record (small chunks: every branch)."""
-    reads = odd_reads()
-    counted = Counted()
-    write(tmp_path / "c.mcap", reads, counted, chunk_bytes)
-    write(tmp_path / "py.mcap", reads, None, chunk_bytes)
+def test_the_c_chunk_writes_the_references_bytes(tmp_path: Path, chunk_bytes: int) -> None:
+    """The same records (every kind of frame, reads of no bytes and of 176, anchors' scenes,
+    schemas and channels mid-chunk) through the C chunk and through the reference make the
+    same file, byte for byte, which the library's reader reads (small chunks: one ends after
+    nearly every record)."""
+    reads = [r for r in odd_reads() if r[1] < 2**63]
+    write(tmp_path / "c.mcap", reads, chunk_bytes)
+    with native.pure_python():
+        write(tmp_path / "py.mcap", reads, chunk_bytes)
     assert (tmp_path / "c.mcap").read_bytes() == (tmp_path / "py.mcap").read_bytes()
-    answers = counted.answers
-    imu_reads = sum(source == "imu" for source, *_ in reads)
-    assert answers.count(0) >= 12 * imu_reads // 60  # the odd ones, declined
-    assert len(answers) - answers.count(0) > imu_reads // 3  # the common ones, written
-    if chunk_bytes < 1000:
-        assert 1 in answers and 3 in answers
     with (tmp_path / "c.mcap").open("rb") as f:  # the library's reader agrees
         topics = [c.topic for _, c, _ in make_reader(f).iter_messages(log_time_order=False)]
+    imu_reads = sum(source == "imu" for source, *_ in reads)
     assert topics.count("/raw/imu") == imu_reads and topics.count("/imu") == imu_reads
     assert topics.count("/anchors") == sum(source == "uwb" for source, *_ in reads)
 
 
-@needs_c
-def test_the_c_writers_json_is_orjsons_for_awkward_numbers(tmp_path: Path) -> None:
-    """Numbers orjson writes in its own way (1e-05 as 0.00001, 1e-06 as 1e-6, 1e16 as
-    1e+16, whole floats with .0) come out as the reference writes them, and read back."""
-    samples = [ImuSample(EPOCH_NS + k, (1e-5, -1.5e-6, 1e16), (25.0, -0.0, 5e-324), 1e-7)
-               for k in range(3)]
-    reads = [("imu", s.t_ns, b"\x55\x51" + bytes(9), s) for s in samples]
-    counted = Counted()
-    write(tmp_path / "c.mcap", reads, counted, 64 * 1024)
-    write(tmp_path / "py.mcap", reads, None, 64 * 1024)
-    assert counted.answers == [2, 2]  # (the first read registers the channels)
-    assert (tmp_path / "c.mcap").read_bytes() == (tmp_path / "py.mcap").read_bytes()
-    imu = [m for m in read_log(tmp_path / "c.mcap").messages if m.topic == "/imu"]
-    assert b'"acc_mps2":[0.00001,-1.5e-6,1e+16],"gyro_rps":[25.0,-0.0,5e-324]' in imu[1].data
-
-
-def test_a_read_whose_time_the_log_cannot_hold_keeps_its_frame(tmp_path: Path) -> None:
-    """A /raw record refused (a negative receive time) still lets its frame's record in,
-    as two separate calls did; the refusal reaches the caller (the sink counts it)."""
+@pytest.mark.parametrize("pure", [False, True], ids=["C", "reference"])
+def test_a_record_whose_time_the_log_cannot_hold_changes_nothing(tmp_path: Path,
+                                                                 pure: bool) -> None:
+    """A /raw record refused (a negative receive time, one past 2**64) raises what the sink
+    counts and leaves the chunk as it was: the records after it are whole."""
     path = tmp_path / "x.mcap"
     sample = ImuSample(EPOCH_NS, (0.0, 0.0, 9.8), (0.0, 0.0, 0.0), 25.0)
-    with LogWriter(path) as log:
-        log.read("imu", EPOCH_NS, b"\x55" * 11, sample)
-        with pytest.raises(struct.error):
-            log.read("imu", -1, b"\x55" * 11, sample)
-    assert [m.topic for m in read_log(path).messages] == ["/raw/imu", "/imu", "/imu"]
+    with native.pure_python() if pure else contextlib.nullcontext(), LogWriter(path) as log:
+        log.raw("imu", EPOCH_NS, b"\x55" * 11)
+        for bad in (-1, 2**64):
+            with pytest.raises(UNENCODABLE):
+                log.raw("imu", bad, b"\x55" * 11)
+        log.frame(sample)
+    assert [m.topic for m in read_log(path).messages] == ["/raw/imu", "/imu"]
 
 
 def test_a_read_whose_records_the_log_cannot_hold_counts_each(tmp_path: Path) -> None:
@@ -143,19 +116,15 @@ def test_a_read_whose_records_the_log_cannot_hold_counts_each(tmp_path: Path) ->
             if m.topic.startswith(("/raw", "/imu"))] == ["/raw/imu", "/imu", "/imu"]
 
 
-def _writer(name: str, monkeypatch: pytest.MonkeyPatch) -> None:
-    if name == "reference":
-        monkeypatch.setattr(mcaplog, "C_RECORDS", None)
-    elif mcaplog.C_RECORDS is None:
-        pytest.skip("the log's C writer is not built")
-
-
-@pytest.mark.parametrize("writer", ["C", "reference"])
-def test_a_full_disk_counts_both_records_of_a_read(small_disk: Path, writer: str,
-                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("pure", [False, True], ids=["C", "reference"])
+def test_a_full_disk_counts_both_records_of_a_read(small_disk: Path, pure: bool) -> None:
     """On a disk that fills, every record of the IMU reads (two a read) is in a finished
-    file or counted lost, with either writer."""
-    _writer(writer, monkeypatch)
+    file or counted lost, with either chunk."""
+    with native.pure_python() if pure else contextlib.nullcontext():
+        _fill_the_disk(small_disk)
+
+
+def _fill_the_disk(small_disk: Path) -> None:
     (small_disk / "filler").write_bytes(b"\0" * 150_000)
     log = McapSink(parse(""), directory=small_disk)
     t_ns, written = EPOCH_NS, 0
@@ -176,21 +145,3 @@ def test_a_full_disk_counts_both_records_of_a_read(small_disk: Path, writer: str
         assert not contents.truncated, contents.error
         kept += sum(m.topic in ("/raw/imu", "/imu") for m in contents.messages)
     assert log.records_lost > 0 and kept + log.records_lost == written
-
-
-@pytest.mark.parametrize("writer", ["C", "reference"])
-def test_a_raw_record_that_fails_to_reach_the_disk_counts_its_frame(
-        small_disk: Path, writer: str, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Every /raw record fills its chunk (bigger than the chunk size): when the disk is full,
-    ending that chunk fails before the frame's record is written, and the frame is counted
-    among the records the cut loses (``unflushed``: two for every read since the flush)."""
-    _writer(writer, monkeypatch)
-    sample = ImuSample(EPOCH_NS, (0.0, 0.0, 9.8), (0.0, 0.0, 0.0), 25.0)
-    log = LogWriter(small_disk / "x.mcap", chunk_bytes=700)
-    reads = 0
-    with pytest.raises(OSError):  # the disk fills somewhere in the loop
-        for k in range(1000):
-            reads += 1
-            log.read("imu", EPOCH_NS + k, os.urandom(1000), sample)
-    assert log.unflushed == 2 * reads
-    log.abandon()

@@ -1,9 +1,10 @@
 """A lean chunked MCAP writer for uwbd's logs: the ``mcap`` library's records, with the
-per-message path in one ``struct.pack``.
+per-message path in one call.
 
 ``mcap.writer.Writer`` builds a dataclass and makes a dozen calls for every message (about
 10 µs a message measured; a log takes ~600 a second). Here a message is one packed header
-and its bytes appended to the open chunk; everything else — schemas, channels, metadata,
+and its bytes appended to the open chunk (:class:`PyChunk`, or its C twin ``_chunk.c``
+where built); everything else — schemas, channels, metadata,
 chunks, message and chunk indexes, statistics, the summary and its offsets, the footer —
 is written with the library's own record classes, in the same layout as its writer (the
 reader tests and ``uwbd.logs.reading.read_log`` check the files with the library's reader).
@@ -14,7 +15,7 @@ from __future__ import annotations
 import struct
 import zlib
 from collections import defaultdict
-from typing import IO
+from typing import IO, Any
 
 import zstandard
 from mcap.data_stream import RecordBuilder
@@ -34,6 +35,8 @@ from mcap.records import (
     SummaryOffset,
 )
 
+from uwbd.fusion.core import native
+
 # the file's first and last bytes (mcap.writer's MCAP0_MAGIC: that module is not imported,
 # it reads its package's version from the installed metadata at import, ~15 ms)
 MCAP0_MAGIC = b"\x89MCAP0\r\n"
@@ -44,6 +47,65 @@ _MESSAGE_INDEX = struct.Struct("<BQHI")  # opcode, record length, channel id, ar
 # zstd level 1: the same ratio as the default 3 on these logs (JSON and device bytes, ~6x)
 # at three quarters of the time (measured on 64 kB chunks)
 ZSTD_LEVEL = 1
+# what PyChunk.take gives: data, ((channel, messages, Message Index record), ...), start,
+# end, messages
+Taken = tuple[bytes, tuple[tuple[int, int, bytes], ...], int, int, int]
+
+
+class PyChunk:
+    """The open chunk's records (uncompressed) and its messages' (log time, offset) pairs by
+    channel: the reference of ``_chunk.c``'s ChunkBuffer, which has the same methods."""
+
+    def __init__(self) -> None:
+        self._data = bytearray()
+        self._index: dict[int, list[int]] = {}  # channel -> log time, offset, log time, …
+
+    @property
+    def size(self) -> int:
+        return len(self._data)
+
+    def add(self, channel_id: int, log_time: int, data: bytes, sequence: int) -> int:
+        """A Message record (``publish_time = log_time``); the chunk's length after it."""
+        chunk = self._data
+        # packed first: a value out of range (struct.error) leaves the chunk as it was
+        head = _MESSAGE.pack(Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id,
+                             sequence, log_time, log_time)
+        index = self._index.get(channel_id)
+        if index is None:
+            index = self._index[channel_id] = []
+        index += (log_time, len(chunk))  # the chunk's times and counts follow from these
+        chunk += head
+        chunk += data
+        return len(chunk)
+
+    def append(self, record: bytes) -> None:
+        self._data += record
+
+    def take(self) -> Taken | None:
+        """The chunk and its indexes (None while it holds no message); it starts anew."""
+        if not self._index:
+            return None  # schemas and channels wait for the chunk of their first message
+        index = self._index
+        taken = (bytes(self._data),
+                 tuple((channel_id, len(entries) // 2, _message_index(channel_id, entries))
+                       for channel_id, entries in index.items()),
+                 min(min(entries[0::2]) for entries in index.values()),
+                 max(max(entries[0::2]) for entries in index.values()),
+                 sum(len(entries) // 2 for entries in index.values()))
+        self._data, self._index = bytearray(), {}
+        return taken
+
+
+def new_chunk() -> Any:
+    """A :class:`PyChunk`, or its C twin where built (and ``UWBD_PURE_PYTHON`` unset)."""
+    if native.core is not None:
+        try:
+            from uwbd.logs import _chunk  # noqa: PLC0415
+        except ImportError:
+            pass
+        else:
+            return _chunk.ChunkBuffer()
+    return PyChunk()
 
 
 class ChunkedWriter:
@@ -52,11 +114,8 @@ class ChunkedWriter:
     def __init__(self, stream: IO[bytes], chunk_size: int) -> None:
         self._out = stream
         self._chunk_size = chunk_size
-        self._chunk = bytearray()  # the open chunk's records, uncompressed
+        self._chunk = new_chunk()  # the open chunk and its message indexes
         self._zstd = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
-        self._index: dict[int, list[int]] = {}  # channel -> log time, offset, log time, …
-        self._chunk_start = self._chunk_end = 0  # its messages' time span
-        self._chunk_messages = 0
         self._schemas: list[Schema] = []
         self._channels: list[Channel] = []
         self._chunk_indexes: list[ChunkIndex] = []
@@ -81,29 +140,20 @@ class ChunkedWriter:
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
         schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
         self._schemas.append(schema)
-        self._chunk += _record(schema)
+        self._chunk.append(_record(schema))
         return schema.id
 
     def register_channel(self, topic: str, message_encoding: str, schema_id: int) -> int:
         channel = Channel(id=len(self._channels) + 1, topic=topic,
                           message_encoding=message_encoding, schema_id=schema_id, metadata={})
         self._channels.append(channel)
-        self._chunk += _record(channel)
+        self._chunk.append(_record(channel))
         return channel.id
 
     def add_message(self, channel_id: int, log_time: int, data: bytes, sequence: int) -> None:
-        """A message with ``publish_time = log_time``."""
-        chunk = self._chunk
-        # packed first: a value out of range (struct.error) leaves the chunk as it was
-        head = _MESSAGE.pack(Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id,
-                             sequence, log_time, log_time)
-        index = self._index.get(channel_id)
-        if index is None:
-            index = self._index[channel_id] = []
-        index += (log_time, len(chunk))  # the chunk's times and counts follow from these
-        chunk += head
-        chunk += data
-        if len(chunk) > self._chunk_size:
+        """A message with ``publish_time = log_time``; a value its field cannot hold raises
+        (``struct.error`` or ``ValueError``) and leaves the chunk as it was."""
+        if self._chunk.add(channel_id, log_time, data, sequence) > self._chunk_size:
             self.end_chunk()
 
     def flush(self) -> None:
@@ -149,18 +199,14 @@ class ChunkedWriter:
     def end_chunk(self) -> None:
         """The open chunk compressed and written with its message indexes (nothing when it
         holds no message)."""
-        if not self._index:
+        taken = self._chunk.take()
+        if taken is None:
             return  # schemas and channels wait for the chunk of their first message
-        # the messages' time span and counts, from the index (log time, offset, …)
-        self._chunk_start = min(min(entries[0::2]) for entries in self._index.values())
-        self._chunk_end = max(max(entries[0::2]) for entries in self._index.values())
-        self._chunk_messages = 0
-        for channel_id, entries in self._index.items():
-            self._counts[channel_id] += len(entries) // 2
-            self._chunk_messages += len(entries) // 2
-        data = bytes(self._chunk)
+        data, message_indexes, start, end, messages = taken
+        for channel_id, count, _ in message_indexes:
+            self._counts[channel_id] += count
         compressed = self._zstd.compress(data)
-        chunk = Chunk(message_start_time=self._chunk_start, message_end_time=self._chunk_end,
+        chunk = Chunk(message_start_time=start, message_end_time=end,
                       uncompressed_size=len(data), uncompressed_crc=zlib.crc32(data),
                       compression="zstd", data=compressed)
         chunk_offset = self._out.tell()
@@ -168,25 +214,22 @@ class ChunkedWriter:
         index_offset = chunk_offset + len(record)
         offsets: dict[int, int] = {}
         indexes = bytearray()
-        for channel_id, entries in self._index.items():
+        for channel_id, _, index_record in message_indexes:
             offsets[channel_id] = index_offset + len(indexes)
-            indexes += _message_index(channel_id, entries)
+            indexes += index_record
         self._out.write(record + indexes)  # made whole first, written in one go
         self._chunk_indexes.append(ChunkIndex(
-            message_start_time=self._chunk_start, message_end_time=self._chunk_end,
+            message_start_time=start, message_end_time=end,
             chunk_start_offset=chunk_offset, chunk_length=len(record),
             message_index_offsets=offsets, message_index_length=len(indexes),
             compression="zstd", compressed_size=len(compressed),
             uncompressed_size=len(data)))
         if self._messages == 0:
-            self._start, self._end = self._chunk_start, self._chunk_end
+            self._start, self._end = start, end
         else:
-            self._start = min(self._start, self._chunk_start)
-            self._end = max(self._end, self._chunk_end)
-        self._messages += self._chunk_messages
-        self._chunk = bytearray()
-        self._index = {}
-        self._chunk_messages = 0
+            self._start = min(self._start, start)
+            self._end = max(self._end, end)
+        self._messages += messages
 
 
 def _message_index(channel_id: int, flat: list[int]) -> bytes:

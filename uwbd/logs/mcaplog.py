@@ -29,17 +29,15 @@ import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from types import ModuleType, TracebackType
+from types import TracebackType
 from typing import IO, Any
 
-import orjson
 from mcap.data_stream import RecordBuilder
 from mcap.records import DataEnd, Footer
 
-from drivers.frames import Frame, ImuSample, UwbRanges
+from drivers.frames import Frame, UwbRanges
 from uwbd import __version__
 from uwbd.codec import frame_to_json, strict_json
-from uwbd.fusion.core import native
 from uwbd.fusion.types import Pose
 from uwbd.logs import foxglove as fx
 from uwbd.logs.chunked import MCAP0_MAGIC, ChunkedWriter
@@ -49,18 +47,6 @@ METADATA_NAME = "uwbd"
 CHUNK_BYTES = 64 * 1024  # ~1 s of a 200 Hz IMU + UWB: a crash loses about that much
 POSE_SCHEMA = fx.POSE_SCHEMA
 NAV_FRAME_ID = "enu"  # the default [robot] nav_frame_id
-
-
-def _c_records() -> ModuleType | None:
-    """The common IMU read's two records in C (``_records.c``), when built."""
-    try:
-        from uwbd.logs import _records  # noqa: PLC0415
-    except ImportError:
-        return None
-    return _records
-
-
-C_RECORDS = _c_records()
 
 
 def pose_message(t_ns: int, position_m: Sequence[float], orientation_xyzw: Sequence[float],
@@ -161,9 +147,6 @@ class LogWriter:
         self._schemas: dict[tuple[str, str, bytes], int] = {}
         self._sequence = 0
         self._scene_version = 0  # the anchors last written to this file
-        # the C writer of the common IMU read, unless UWBD_PURE_PYTHON rules the C core out
-        self._c_records = C_RECORDS if native.core is not None else None
-        self._c_parts = (vars(self), vars(self._w), ImuSample, orjson.dumps)
         self.flushed_bytes = 0  # the file is whole records up to here (see finish_cut)
         self.unflushed = 0  # records since then: what a cut there loses
         self.flush()  # header and metadata reach the disk now: a cut file keeps them
@@ -199,44 +182,6 @@ class LogWriter:
                 f"/raw/{source}", fx.RAW_MESSAGE_ENCODING, fx.RAW_SCHEMA_NAME,
                 schema_encoding="protobuf", schema_data=fx.RAW_DESCRIPTOR)
         self._add(channel, t_ns, fx.encode_raw(data))
-
-    def read(self, source: str, t_ns: int, data: bytes, frame: Frame) -> None:
-        """A read that brought one frame: its ``/raw/<source>`` record, then the frame's —
-        what :meth:`raw` and :meth:`frame` write, byte for byte; for the common IMU read in
-        one call of the C writer (``_records.c``). Should the first record's chunk fail to
-        reach the file (the disk is full), the frame's record is lost with the cut and
-        counted with it (:attr:`unflushed`)."""
-        done = 0
-        c_records = self._c_records
-        if c_records is not None and self._scene_version == self.view.anchors_version:
-            raw_channel = self._by_source.get(source)
-            imu_channel = self._by_frame_type.get(ImuSample)
-            if raw_channel is not None and imu_channel is not None:
-                done = c_records.imu_read(self._c_parts, raw_channel, imu_channel, t_ns, data,
-                                          frame)
-                if done == 2:  # both written
-                    return
-                if done == 3:  # both written, and the chunk is full: ended as add_message does
-                    self._w.end_chunk()
-                    return
-        try:
-            if done == 1:  # the /raw record filled its chunk: ended, as add_message ends it
-                self._w.end_chunk()
-            else:
-                self.raw(source, t_ns, data)
-        except OSError:
-            self.unflushed += 1
-            raise
-        except UNENCODABLE as err:
-            try:
-                self.frame(frame)  # a read its record cannot hold keeps its frame's
-            except UNENCODABLE as also:
-                raise UnencodableError(2, f"{err}; and its frame: {also}") from also
-            except OSError:
-                self.unflushed += 1  # the raw record too: counted among those the cut loses
-                raise
-            raise
-        self.frame(frame)
 
     def frame(self, frame: Frame) -> None:
         kind = type(frame)

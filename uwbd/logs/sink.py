@@ -23,11 +23,6 @@ RETRY_NS = 5_000_000_000  # after a failure, a new log file is tried this often
 LOG = journal.get("log")
 
 
-def _records(action: Callable[..., None]) -> int:
-    """How many log records one call of ``action`` writes."""
-    return 2 if action is LogWriter.read else 1
-
-
 class McapSink:
     """Writes the pipeline to MCAP files: one file, or a rotating series in a directory.
 
@@ -153,7 +148,7 @@ class McapSink:
         """``action`` (a :class:`LogWriter` method) with ``args``, written behind."""
         if self.error and self._paused(t_ns):
             # logging has stopped: keep nothing until the next try
-            self.records_lost += _records(action)
+            self.records_lost += 1
             return
         behind = self._behind
         behind.append((t_ns, action, args))
@@ -174,7 +169,7 @@ class McapSink:
             if log is None or due:
                 log = self._writer(t_ns)
                 if log is None:
-                    self.records_lost += _records(action)
+                    self.records_lost += 1
                     continue
                 due = t_ns - self._flushed_ns >= FLUSH_PERIOD_NS  # a new file: not yet
             try:
