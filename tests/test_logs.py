@@ -21,7 +21,7 @@ from uwbd.codec import frame_to_json, strict_json
 from uwbd.config import parse
 from uwbd.logs import foxglove as fx
 from uwbd.logs import reading, scan
-from uwbd.logs.mcaplog import LogWriter, SourceInfo
+from uwbd.logs.mcaplog import UNENCODABLE, LogWriter, SourceInfo
 from uwbd.logs.reading import read_log
 from uwbd.logs.sink import McapSink
 from uwbd.tools.importer import INROL_EPOCH_NS
@@ -307,7 +307,7 @@ def test_a_record_out_of_range_is_refused_and_the_file_stays_whole(tmp_path: Pat
     path = tmp_path / "x.mcap"
     with LogWriter(path) as w:
         w.json("/a", 1000, {"i": 0})
-        with pytest.raises(struct.error):
+        with pytest.raises(UNENCODABLE):
             w.json("/a", -5, {"i": 1})
         w.json("/b", 2000, {"i": 2})
         w.flush()

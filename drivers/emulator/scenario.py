@@ -75,7 +75,7 @@ class CircleScenario:
         """(time offset ns, sample) pairs; endless when ``duration_s`` is None."""
         rng = np.random.default_rng([self.seed, 1])
         for t_ns in _ticks(self.imu_rate_hz, duration_s):
-            _, v, v_dot = self._motion(t_ns / 1e9)
+            heading, v, v_dot = self._motion(t_ns / 1e9)
             # body frame: forward along the tangent, left towards the centre
             f_b = (v_dot, v * v / self.radius_m, GRAVITY_MPS2)
             noise = rng.normal(size=6)
@@ -84,7 +84,10 @@ class CircleScenario:
             w_b = (0.0, 0.0, v / self.radius_m)
             gyro = tuple(w + b + self.gyro_noise_rps * n
                          for w, b, n in zip(w_b, self.gyro_bias_rps, noise[3:], strict=True))
-            yield t_ns, ImuSample(t_ns, _v3(acc), _v3(gyro), temperature_c=25.0)
+            # with the device's own attitude (0x53), as a WitMotion sends it by default
+            yaw_deg = math.degrees(math.remainder(heading, math.tau))
+            yield t_ns, ImuSample(t_ns, _v3(acc), _v3(gyro), temperature_c=25.0,
+                                  angle_deg=(0.0, 0.0, yaw_deg))
 
     def uwb(self, duration_s: float | None = None) -> Iterator[tuple[int, UwbRanges]]:
         """(time offset ns, ranging epoch) pairs with anchor ids 0..n-1."""
