@@ -26,19 +26,18 @@ def frame_to_dict(frame: Frame) -> dict[str, Any]:
 def frame_to_json(frame: Frame) -> bytes:
     """A frame's log record (``/imu``, ``/uwb``) as JSON bytes: ``type``, ``timestamp``, and
     the fields that have a value (:func:`frame_from_dict` reads a missing one as ``None``).
-    The decoded log channels take one per frame, so the common case (every number finite)
-    skips the walk that replaces NaN with ``null``."""
+    The decoded log channels take one per frame: an IMU sample's record is made without the
+    general walk over the fields."""
     t_ns = frame.t_ns
     kind = type(frame)
-    if (isinstance(frame, ImuSample) and frame.angle_deg is None and frame.mag_raw is None
-            and frame.quaternion_wire is None and frame.device_time_ns is None):
-        # the common IMU record (accelerometer, gyro, perhaps the temperature), its keys in
-        # the same order
+    if kind is ImuSample:  # most records: its fields by name, in the same order
         imu = {"type": "ImuSample",
                "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
                "t_ns": t_ns, "acc_mps2": frame.acc_mps2, "gyro_rps": frame.gyro_rps}
-        if frame.temperature_c is not None:
-            imu["temperature_c"] = frame.temperature_c
+        for name in _IMU_OPTIONAL:
+            value = getattr(frame, name)
+            if value is not None:
+                imu[name] = value
         return strict_json(imu)
     out: dict[str, Any] = {"type": kind.__name__,
                            "timestamp": {"sec": t_ns // 1_000_000_000,
@@ -85,6 +84,8 @@ def _fields(frame: Frame) -> dict[str, Any]:
 
 _FIELDS = {cls: tuple(f.name for f in dataclasses.fields(cls))
            for cls in (ImuSample, UwbRanges, AnchorRanges)}
+_IMU_OPTIONAL = _FIELDS[ImuSample][3:]  # after t_ns, acc_mps2, gyro_rps
+assert _FIELDS[ImuSample][:3] == ("t_ns", "acc_mps2", "gyro_rps")
 _ITEM_FIELDS = {name: tuple(f.name for f in dataclasses.fields(cls))
                 for name, cls in (("ranges", AnchorRange), ("pairs", AnchorPair))}
 
