@@ -1,9 +1,13 @@
-"""Parser throughput: MB/s and frames/s per driver, clean and with 10 % garbage.
+"""Parser throughput: MB/s and frames/s per driver, clean and with 10 % garbage in reads of
+``--chunk`` bytes (a capture), and as a serial port returns a device's reports (one report
+a read, 30 % of the reads split inside a report: ``uwbd.tools.logtools.SerialReads``).
 
     python benchmarks/bench_parsers.py [--mb 2] [--chunk 4096] [--repeat 3]
 
-Streams come from the emulator's scenario through the real encoders; garbage is random
-bytes rich in header bytes, in bursts, making up 10 % of the stream. Each figure is the best
+Streams come from the emulator's scenario through the real encoders (the WitMotion sends
+accel, gyro, angle and magnetometer packets each cycle); garbage is random bytes rich in
+header bytes, in bursts, making up 10 % of the stream. The WitMotion parser is measured on
+its C form and on its pure-Python reference, with their ratio. Each figure is the best
 of ``--repeat`` runs, all measured side by side in this one process. The reference is a
 saturated 921600-baud link: 92.16 kB/s.
 """
@@ -18,25 +22,32 @@ from typing import Any
 
 import numpy as np
 
-from drivers import PARSERS
+from drivers import PARSERS, Parser, wit
 from drivers.emulator import ENCODERS
 from drivers.emulator.scenario import CircleScenario
+from uwbd.tools.logtools import SerialReads
 
 LINK_921600_MBPS = 921600 / 10 / 1e6
 
 
-def clean_stream(driver: str, target_bytes: int) -> tuple[bytes, int]:
-    """Encoded frames of the scenario, repeated to ``target_bytes``; and the frame count."""
+def reports(driver: str) -> list[bytes]:
+    """The scenario's reports as the device sends them, one bytes each."""
     scenario = CircleScenario()
     encode: Callable[[Any], bytes] = ENCODERS[driver]
-    frames: list[Any]
     if driver == "wit":
-        frames = [dataclasses.replace(f, angle_deg=(1.0, 2.0, 3.0)) for _, f in scenario.imu(5)]
-    else:
-        frames = [f for _, f in scenario.uwb(100)]
-    unit = b"".join(encode(f) for f in frames)
-    reps = max(1, target_bytes // len(unit))
-    return unit * reps, len(frames) * reps
+        return [encode(dataclasses.replace(f, mag_raw=(210, -5, -390))) for _, f in scenario.imu(5)]
+    return [encode(f) for _, f in scenario.uwb(100)]
+
+
+def clean_stream(driver: str, target_bytes: int) -> tuple[bytes, int, list[bytes]]:
+    """Encoded frames of the scenario, repeated to ``target_bytes``; the frame count; the
+    stream as a serial port's reads."""
+    unit = reports(driver)
+    reps = max(1, target_bytes // sum(map(len, unit)))
+    shaper = SerialReads(seed=1)
+    reads = [data for k in range(reps) for report in unit
+             for _, data in shaper.cut(k, report)]
+    return b"".join(unit) * reps, len(unit) * reps, reads
 
 
 def with_garbage(stream: bytes, fraction: float, seed: int = 1) -> bytes:
@@ -55,15 +66,15 @@ def with_garbage(stream: bytes, fraction: float, seed: int = 1) -> bytes:
     return b"".join(out)
 
 
-def measure(driver: str, stream: bytes, chunk: int, repeat: int) -> tuple[float, int]:
-    """Best wall time (s) to parse ``stream`` in reads of ``chunk`` bytes, and frames found."""
+def measure(make: Callable[[], Parser], reads: list[bytes], repeat: int) -> tuple[float, int]:
+    """Best wall time (s) to parse the reads, and frames found."""
     best, frames = float("inf"), 0
     for _ in range(repeat):
-        parser = PARSERS[driver]()
+        parser = make()
         t0 = time.perf_counter()
         found = 0
-        for i in range(0, len(stream), chunk):
-            found += len(parser.feed(stream[i : i + chunk], i))
+        for i, read in enumerate(reads):
+            found += len(parser.feed(read, i))
         found += len(parser.flush())
         best = min(best, time.perf_counter() - t0)
         frames = found
@@ -80,15 +91,29 @@ def main() -> None:
           f"best of {args.repeat}; x-link = multiple of a saturated 921600-baud link")
     print(f"{'driver':<12} {'stream':<11} {'MB/s':>7} {'frames/s':>10} {'x-link':>7} "
           f"{'frames':>8}")
-    for driver in PARSERS:
-        clean, n_frames = clean_stream(driver, int(args.mb * 1e6))
-        for label, stream in (("clean", clean), ("10% garbage", with_garbage(clean, 0.10))):
-            seconds, found = measure(driver, stream, args.chunk, args.repeat)
-            mbps = len(stream) / seconds / 1e6
+    makers: list[tuple[str, Callable[[], Parser]]] = [(d, PARSERS[d]) for d in PARSERS]
+    makers.insert(1, ("wit (Python)", wit.WitParser))
+    speed: dict[tuple[str, str], float] = {}
+    for driver, make in makers:
+        clean, n_frames, device_reads = clean_stream(driver.split()[0], int(args.mb * 1e6))
+        garbage = with_garbage(clean, 0.10)
+        for label, reads in (("clean", chunks(clean, args.chunk)),
+                             ("10% garbage", chunks(garbage, args.chunk)),
+                             ("device", device_reads)):
+            seconds, found = measure(make, reads, args.repeat)
+            mbps = sum(map(len, reads)) / seconds / 1e6
+            speed[driver, label] = mbps
             print(f"{driver:<12} {label:<11} {mbps:7.2f} {found / seconds:10.0f} "
                   f"{mbps / LINK_921600_MBPS:7.0f} {found:>8}")
-            if label == "clean" and found != n_frames:
+            if label != "10% garbage" and found != n_frames:
                 raise SystemExit(f"{driver}: parsed {found} of {n_frames} clean frames")
+    for label in ("clean", "10% garbage", "device"):
+        print(f"wit, C / pure Python, {label}: "
+              f"{speed['wit', label] / speed['wit (Python)', label]:.1f}")
+
+
+def chunks(stream: bytes, size: int) -> list[bytes]:
+    return [stream[i:i + size] for i in range(0, len(stream), size)]
 
 
 if __name__ == "__main__":
