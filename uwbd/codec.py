@@ -30,7 +30,7 @@ def frame_to_json(frame: Frame) -> bytes:
     general walk over the fields."""
     t_ns = frame.t_ns
     kind = type(frame)
-    if kind is ImuSample:  # most records: its fields by name, in the same order
+    if isinstance(frame, ImuSample):  # most records: its fields by name, in the same order
         imu = {"type": "ImuSample",
                "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
                "t_ns": t_ns, "acc_mps2": frame.acc_mps2, "gyro_rps": frame.gyro_rps}
