@@ -37,7 +37,7 @@ static long i24(const unsigned char *b)
 }
 
 /* An instance of a slots dataclass, its fields set by their descriptors (values stolen) */
-static PyObject *make(PyObject *type, PyObject *fields, PyObject **values, int n)
+PyObject *drivers_make(PyObject *type, PyObject *fields, PyObject **values, int n)
 {
     PyObject *obj = NULL;
     for (int i = 0; i < n; i++)
@@ -49,7 +49,7 @@ static PyObject *make(PyObject *type, PyObject *fields, PyObject **values, int n
         descrsetfunc set = Py_TYPE(descr)->tp_descr_set;
         if (set == NULL || set(descr, obj, values[i]) < 0) {
             if (!PyErr_Occurred())
-                PyErr_SetString(PyExc_TypeError, "tag_frame0: a field is no slot");
+                PyErr_SetString(PyExc_TypeError, "drivers._frames: a field is no slot");
             Py_CLEAR(obj);
         }
     }
@@ -106,7 +106,7 @@ static PyObject *tag_frame0(PyObject *self, PyObject *const *args, Py_ssize_t na
         PyObject *values[RANGE_FIELDS] = {PyLong_FromLong(k), PyFloat_FromDouble(d),
                                           Py_NewRef(Py_None), Py_NewRef(Py_None),
                                           Py_NewRef(Py_None), Py_NewRef(Py_None)};
-        PyObject *r = make(range_type, range_fields, values, RANGE_FIELDS);
+        PyObject *r = drivers_make(range_type, range_fields, values, RANGE_FIELDS);
         if (r == NULL || PyList_Append(ranges, r) < 0)
             Py_CLEAR(ranges);
         Py_XDECREF(r);
@@ -122,7 +122,7 @@ static PyObject *tag_frame0(PyObject *self, PyObject *const *args, Py_ssize_t na
             Py_NewRef(Py_None), triple(b + OFF_VEL, 3, 10000.0), triple(b + OFF_EOP, 1, 100.0),
             PyLong_FromLong(b[OFF_ID]), PyLong_FromUnsignedLong(ms)};
         Py_DECREF(ranges);
-        out = make(uwb_type, uwb_fields, values, UWB_FIELDS);
+        out = drivers_make(uwb_type, uwb_fields, values, UWB_FIELDS);
     }
     PyBuffer_Release(&view);
     return out;

@@ -114,24 +114,7 @@ static PyObject *make_sample(WitStream *s)
                    : Py_NewRef(Py_None),
         c->has_quat ? vec(c->quat, 4) : Py_NewRef(Py_None),
         c->has_time && c->time_valid ? PyLong_FromLongLong(c->time_ns) : Py_NewRef(Py_None)};
-    PyObject *obj = NULL;
-    for (int i = 0; i < N_SLOTS; i++)
-        if (values[i] == NULL)
-            goto done;
-    obj = ((PyTypeObject *)s->sample_type)->tp_alloc((PyTypeObject *)s->sample_type, 0);
-    for (int i = 0; i < N_SLOTS && obj != NULL; i++) {
-        PyObject *descr = PyTuple_GET_ITEM(s->slots, i);
-        descrsetfunc set = Py_TYPE(descr)->tp_descr_set;
-        if (set == NULL || set(descr, obj, values[i]) < 0) {
-            if (!PyErr_Occurred())
-                PyErr_SetString(PyExc_TypeError, "WitStream: a slot is no descriptor");
-            Py_CLEAR(obj);
-        }
-    }
-done:
-    for (int i = 0; i < N_SLOTS; i++)
-        Py_XDECREF(values[i]);
-    return obj;
+    return drivers_make(s->sample_type, s->slots, values, N_SLOTS);
 }
 
 /* WitParser._close: the cycle out as a sample when it holds accel and gyro */

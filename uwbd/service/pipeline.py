@@ -115,19 +115,16 @@ class Pipeline:
         hold one frame each; spread times never fall back to or before the source's previous
         frame. Deterministic: replay spreads the logged reads the same way.
         """
+        if len(frames) < 2:  # most reads: no frame, or one (what the branches below do)
+            if frames and frames[0].__class__ is not AnchorRanges:
+                self._learn_period(source, frames[0].t_ns)
+            return frames
         survey = [f for f in frames if isinstance(f, AnchorRanges)]
         if survey:  # anchor-to-anchor reports are not samples of the source: keep their times
             frames = [f for f in frames if not isinstance(f, AnchorRanges)]
             return [*self._spread(source, frames), *survey] if frames else survey
-        previous = self._last_frame_ns.get(source)
-        if len(frames) == 1:
-            t = frames[0].t_ns
-            if previous is not None and t > previous:
-                old = self._period_ns.get(source)
-                delta = t - previous
-                self._period_ns[source] = delta if old is None else (7 * old + delta) // 8
-        elif frames and source in self._period_ns:
-            period, n, floor = self._period_ns[source], len(frames), previous
+        if source in self._period_ns:  # several frames: spread back from the last
+            period, n, floor = self._period_ns[source], len(frames), self._last_frame_ns.get(source)
             spread = []
             for k, f in enumerate(frames):
                 t = f.t_ns - (n - 1 - k) * period
@@ -136,9 +133,17 @@ class Pipeline:
                 floor = t
                 spread.append(dataclasses.replace(f, t_ns=min(t, f.t_ns)))
             frames = spread
-        if frames:
-            self._last_frame_ns[source] = frames[-1].t_ns
+        self._last_frame_ns[source] = frames[-1].t_ns
         return frames
+
+    def _learn_period(self, source: str, t: int) -> None:
+        """A read that held one frame of ``source``, at ``t``: the period learned from it."""
+        previous = self._last_frame_ns.get(source)
+        if previous is not None and t > previous:
+            old = self._period_ns.get(source)
+            delta = t - previous
+            self._period_ns[source] = delta if old is None else (7 * old + delta) // 8
+        self._last_frame_ns[source] = t
 
     def on_frame(self, frame: Frame) -> None:
         """A decoded frame (logs without raw channels)."""
