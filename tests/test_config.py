@@ -181,7 +181,11 @@ def test_a_uwb_source_without_an_imu_is_only_suspicious() -> None:
     (('port = "/dev/uwbd-uwb"\n', ""), "sources[1].port: required: a string"),
     (('name = "uwb"', 'name = "imu"'), 'sources[1].name: "imu" is sources[0]\'s name too'),
     (('baud = 921600\n\n[[sources]]', 'baud = 0\n\n[[sources]]'),
-     "sources[0].baud: must be positive, got 0"),
+     "sources[0].baud: must be positive and at most 12000000, got 0"),
+    (('baud = 921600\n\n[[sources]]', 'baud = 3000000000\n\n[[sources]]'),
+     "sources[0].baud: must be positive and at most 12000000, got 3000000000"),
+    (('baud = 921600\n\n[[sources]]', 'baud = 9223372036854775807\n\n[[sources]]'),
+     "sources[0].baud: must be positive and at most 12000000, got 9223372036854775807"),
     (('baud = 921600\n\n[[sources]]', 'baud = "fast"\n\n[[sources]]'),
      'sources[0].baud: expected an integer, got "fast" (a string)'),
 ])

@@ -69,10 +69,15 @@ class Range:
         if self.lo == 0:
             parts.append("zero or more" if self.lo_closed else "positive")
         elif self.lo is not None:
-            parts.append(f"{'at least' if self.lo_closed else 'more than'} {self.lo:g}")
+            parts.append(f"{'at least' if self.lo_closed else 'more than'} {_bound(self.lo)}")
         if self.hi is not None:
-            parts.append(f"{'at most' if self.hi_closed else 'less than'} {self.hi:g}")
+            parts.append(f"{'at most' if self.hi_closed else 'less than'} {_bound(self.hi)}")
         return " and ".join(parts)
+
+
+def _bound(x: float) -> str:
+    """A bound as a user typed it: 12000000, not 1.2e+07; 0.5 as 0.5."""
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:g}"
 
 
 @dataclass(frozen=True)
@@ -98,8 +103,9 @@ class Key:
 
 _ZERO_OR_MORE = Range(0.0, lo_closed=True)
 _POSITIVE_RANGE = Range(0.0)
+MAX_BAUD = 12_000_000  # the fastest USB serial adapters (FTDI FT232H); the kernel's limit is near
 SOURCE_SPEC = {"name": Key(STRING, non_empty=True), "driver": Key(STRING),
-               "port": Key(STRING, non_empty=True), "baud": Key(INTEGER, _POSITIVE_RANGE)}
+               "port": Key(STRING, non_empty=True), "baud": Key(INTEGER, Range(0.0, MAX_BAUD))}
 _IMU_SPEC = {"mounting": Key(ROWS), "lever_arm_m": Key(VEC3),
              **{k: Key(POSITIVE) for k in (*IMU_NOISE_KEYS, *IMU_LIMIT_KEYS)},
              # each axis of these within INTRINSIC_BOUNDS (checks.check_imu, per element)
