@@ -169,6 +169,14 @@ def test_replay_with_other_settings_records_the_config_used(tmp_path: Path,
                   "-o", str(tmp_path / "bad.mcap")), 2, "fusion.zupt")
     one_line(uwbd("replay", str(sim_log), "--set", "fusion.nonsense=1"), 2, "nonsense")
     assert not (tmp_path / "bad.mcap").exists()
+    # a config whose sources the log does not have (or none): said, not 0 poses in silence
+    (tmp_path / "empty.toml").write_text("")
+    one_line(uwbd("replay", str(sim_log), "-c", str(tmp_path / "empty.toml")), 2,
+             "its sources (none) name none of the log's (imu, uwb)")
+    renamed = (tmp_path / "other.toml").read_text().replace('name = "imu"', 'name = "a"')
+    (tmp_path / "renamed.toml").write_text(renamed.replace('name = "uwb"', 'name = "b"'))
+    one_line(uwbd("replay", str(sim_log), "-c", str(tmp_path / "renamed.toml")), 2,
+             "its sources (a, b) name none of the log's (imu, uwb)")
 
 
 def test_report_with_other_settings(tmp_path: Path, sim_log: Path) -> None:

@@ -114,6 +114,19 @@ def read_config_text(path: Path) -> str:
         raise UsageError(str(err)) from err
 
 
+def require_matching_sources(path: Path, contents: LogContents, config: Config,
+                             config_name: str) -> None:
+    """A log's raw reads run only through sources of the same name: a config naming none of
+    them would replay nothing, and say nothing of why."""
+    logged = sorted({m.topic[5:] for m in contents.messages if m.topic.startswith("/raw/")})
+    names = [s.name for s in config.sources]
+    if logged and not set(logged) & set(names):
+        raise UsageError(
+            f"{config_name}: its sources ({', '.join(names) or 'none'}) name none of the "
+            f"log's ({', '.join(logged)}): name the [[sources]] as the log does, or leave out "
+            f"-c to run {path} with the config it was recorded with")
+
+
 def require_replayable(path: Path, contents: LogContents) -> None:
     if not any(m.topic.startswith("/raw/") or m.topic in ("/imu", "/uwb")
                for m in contents.messages):

@@ -18,10 +18,11 @@ from uwbd.commands.common import (
     driver_name,
     log_config,
     open_log,
+    require_matching_sources,
     require_replayable,
     writable_folder,
 )
-from uwbd.config import ConfigError
+from uwbd.config import ConfigError, parse
 from uwbd.logs.reading import not_a_log, recover
 from uwbd.logs.replay import replay
 
@@ -56,6 +57,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
     path, contents = open_log(args.log, "replaying")
     config_toml = log_config(args, path, contents)
     require_replayable(path, contents)
+    if args.config and config_toml is not None:
+        try:
+            config = parse(config_toml, args.config)
+        except ConfigError as err:
+            raise UsageError(str(err)) from err
+        require_matching_sources(path, contents, config, args.config)
     out = Path(args.output) if args.output else None
     if out is not None:
         writable_folder(out, "the replayed log")
