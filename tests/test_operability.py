@@ -664,3 +664,32 @@ def test_a_damaged_truth_record_is_counted_and_the_replay_goes_on(tmp_path: Path
     replayed = read_log(out)
     assert sum(m.topic == "/truth" for m in replayed.messages) == truth_in - 1
     assert list(replayed.json("/status"))[-1]["bad_records"] == 1
+
+
+def test_a_foreign_log_with_uwbds_topic_names_is_said_to_be_one(tmp_path: Path) -> None:
+    """Another program's MCAP with /imu and /uwb channels of its own JSON: each command that
+    runs a log says so in one line, exit 2 (was: an internal error, or 0 poses in silence)."""
+    foreign = tmp_path / "foreign.mcap"
+    with foreign.open("wb") as f:
+        w = Writer(f)
+        w.start()
+        schema = w.register_schema("x", "jsonschema", b"{}")
+        channels = [w.register_channel(t, "json", schema) for t in ("/imu", "/uwb")]
+        for k in range(60):
+            for c in channels:
+                t_ns = 10**18 + k * 5_000_000
+                w.add_message(c, t_ns, b'{"foo": %d}' % k, t_ns)
+        w.finish()
+    config = tmp_path / "sim.toml"
+    config.write_text(simulation_toml(simulate(SimConfig(seed=5,
+                                                         segments=((1.0, 0.0, 0.0, 0.0),)))))
+    for command in (("replay", "-c", str(config)), ("report", "-c", str(config), "-o",
+                                                     str(tmp_path / "plots")),
+                    ("export", "-c", str(config), "--ros2", str(tmp_path / "bag"))):
+        one_line(uwbd(command[0], str(foreign), *command[1:]), 2, str(foreign),
+                 "not uwbd's frames", "another program's log")
+    assert not (tmp_path / "plots").exists() and not (tmp_path / "bag").exists()
+    calibration = uwbd("calibrate-imu", str(foreign))
+    assert calibration.returncode == 2
+    assert "120 of 120 /imu, /uwb records are not frames" in calibration.stderr
+    assert "no IMU samples" in calibration.stderr and "internal error" not in calibration.stderr

@@ -5,6 +5,7 @@ logs, extras)."""
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import tempfile
 from collections.abc import Callable
@@ -13,11 +14,13 @@ from typing import Any
 
 from drivers import PARSERS
 from uwbd import journal
+from uwbd.codec import frame_from_dict
 from uwbd.config import Config, ConfigError, apply_overrides
 from uwbd.config import load as load_config
 from uwbd.logs.reading import LogContents, not_a_log, read_log
 
 LOG = journal.get("cli")
+SAMPLED_RECORDS = 50  # decoded records tried before a log is said to hold no frames
 
 
 class UsageError(Exception):
@@ -128,10 +131,25 @@ def require_matching_sources(path: Path, contents: LogContents, config: Config,
 
 
 def require_replayable(path: Path, contents: LogContents) -> None:
-    if not any(m.topic.startswith("/raw/") or m.topic in ("/imu", "/uwb")
-               for m in contents.messages):
+    """Something to run: raw reads, or decoded frames of which some decode (a foreign log
+    with channels of uwbd's names, holding something else, is said to be one)."""
+    if any(m.topic.startswith("/raw/") for m in contents.messages):
+        return
+    decoded = [m for m in contents.messages if m.topic in ("/imu", "/uwb")]
+    if not decoded:
         raise UsageError(f"{path}: nothing to run (no /raw/*, /imu or /uwb messages; topics: "
                          f"{', '.join(sorted(contents.topics())) or 'none'})")
+    problem = ""
+    for m in decoded[:SAMPLED_RECORDS]:
+        try:
+            frame_from_dict(json.loads(m.data))
+        except (ValueError, KeyError, TypeError, IndexError) as err:
+            problem = problem or f"the first, at {m.log_time_ns} ns: {err}"
+        else:
+            return
+    raise UsageError(f"{path}: its /imu and /uwb records are not uwbd's frames (none of the "
+                     f"first {min(len(decoded), SAMPLED_RECORDS)} decodes; {problem}): is it "
+                     "another program's log?")
 
 
 def tools_report(command: str) -> Any:

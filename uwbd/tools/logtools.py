@@ -23,6 +23,7 @@ from drivers import PARSERS
 from drivers.emulator import ENCODERS
 from drivers.frames import Frame, ImuSample, UwbRanges
 from uwbd import config as cfgmod
+from uwbd import journal
 from uwbd.codec import frame_from_dict
 from uwbd.fusion.core.rotation import Array, quat_from_euler, quat_from_matrix
 from uwbd.logs.mcaplog import LogWriter, SourceInfo, pose_message
@@ -31,6 +32,7 @@ from uwbd.tools.evaluate import merge
 from uwbd.tools.importer import Dataset
 from uwbd.tools.simulator import Simulation, sensor_settings
 
+LOG = journal.get("logs")
 FLUSH_EVERY_NS = 1_000_000_000
 TRUTH_EVERY = 4  # of the simulator's IMU-rate truth: 50 Hz
 
@@ -162,15 +164,32 @@ def load_recording(contents: LogContents, where: str,
             _sort(parser.flush(), imu, uwb)
             stats[topic] = parser.stats.as_dict()
     else:
-        for topic in ("/imu", "/uwb"):
-            for d in contents.json(topic):
-                _sort([frame_from_dict(d)], imu, uwb)
+        _sort(decoded_frames(contents, ("/imu", "/uwb"), where), imu, uwb)
     truth = list(contents.json("/truth"))
     t = np.array([d["t_ns"] for d in truth], dtype=np.int64)
     p = np.array([[d["pose"]["position"][k] for k in "xyz"] for d in truth]).reshape(-1, 3)
     imu.sort(key=lambda f: f.t_ns)
     uwb.sort(key=lambda f: f.t_ns)
     return Recording(config, list(merge(imu, uwb)), t, p, stats)
+
+
+def decoded_frames(contents: LogContents, topics: tuple[str, ...], where: str) -> list[Frame]:
+    """The frames of the decoded channels ``topics``, in log order; a record that is not one
+    (a damaged log, or another program's channel of the same name) is skipped, and said
+    once with how many were."""
+    frames: list[Frame] = []
+    bad, first = 0, ""
+    for m in contents.messages:
+        if m.topic in topics:
+            try:
+                frames.append(frame_from_dict(json.loads(m.data)))
+            except (ValueError, KeyError, TypeError, IndexError) as err:
+                bad += 1
+                first = first or f"the first, a {m.topic} record at {m.log_time_ns} ns: {err}"
+    if bad:
+        LOG.warning("%s: %d of %d %s records are not frames and were skipped (%s)", where,
+                    bad, bad + len(frames), ", ".join(topics), first)
+    return frames
 
 
 def _sort(frames: Iterable[Frame], imu: list[ImuSample], uwb: list[UwbRanges]) -> None:

@@ -36,7 +36,6 @@ raw IMU bytes decoded by the drivers.
 from __future__ import annotations
 
 import heapq
-import json
 import math
 import shutil
 from collections.abc import Iterable, Iterator, Sequence
@@ -60,13 +59,12 @@ from rosbags.typesys.stores import ros2_humble as msgs
 from tqdm import tqdm
 
 from drivers.frames import ImuSample
-from uwbd.codec import frame_from_dict
 from uwbd.config import Config, parse
 from uwbd.fusion.core.rotation import quat_from_matrix, quat_to_matrix
 from uwbd.fusion.types import Pose
 from uwbd.logs.reading import LogContents
 from uwbd.logs.replay import replay
-from uwbd.tools.logtools import load_recording
+from uwbd.tools.logtools import decoded_frames, load_recording
 
 # ROS 2 message classes (Humble's definitions)
 Time = msgs.builtin_interfaces__msg__Time
@@ -196,8 +194,8 @@ def log_imu(contents: LogContents, where: str, config_toml: str | None = None) -
     """The log's decoded ``/imu`` frames, or (a log of raw bytes only) its raw channels
     decoded by the drivers its metadata names."""
     if any(m.topic == "/imu" for m in contents.messages):
-        return [f for f in (frame_from_dict(json.loads(m.data)) for m in contents.messages
-                            if m.topic == "/imu") if isinstance(f, ImuSample)]
+        return [f for f in decoded_frames(contents, ("/imu",), where)
+                if isinstance(f, ImuSample)]
     if not any(m.topic.startswith("/raw/") for m in contents.messages):
         return []
     rec = load_recording(contents, where, config_toml)
