@@ -7,6 +7,7 @@ from __future__ import annotations
 import fcntl
 import os
 import pty
+import random
 import selectors
 import signal
 import struct
@@ -115,6 +116,12 @@ def test_recover_refuses_what_is_not_mcap_and_leaves_no_output(tmp_path: Path) -
     garbage.write_bytes(b"\x00" * 50)
     one_line(uwbd("recover", str(garbage), "-o", str(tmp_path / "out.mcap")), 2,
              "not an MCAP file")
+    assert not (tmp_path / "out.mcap").exists()
+    # the magic, then random bytes: no message to recover, said, exit 1, nothing written
+    damaged = tmp_path / "d.mcap"
+    damaged.write_bytes(b"\x89MCAP0\r\n" + random.Random(3).randbytes(20_000))
+    one_line(uwbd("recover", str(damaged), "-o", str(tmp_path / "out.mcap")), 1,
+             str(damaged), "no message could be recovered, nothing written")
     assert not (tmp_path / "out.mcap").exists()
     # any MCAP file is fine, uwbd's or not
     ok = uwbd("recover", str(foreign_mcap(tmp_path / "f.mcap")), "-o", str(tmp_path / "r.mcap"))

@@ -106,6 +106,10 @@ def cmd_recover(args: argparse.Namespace) -> int:
     except OSError as err:
         target.unlink(missing_ok=True)
         raise RunError(f"cannot write {target}: {err.strerror or err}") from err
+    if result.messages == 0:  # an empty log claims a recovery that did not happen
+        target.unlink(missing_ok=True)
+        raise RunError(f"{source}: no message could be recovered, nothing written"
+                       + (f" ({result.error})" if result.error else ""))
     print(f"{target}: {result.messages} messages recovered from {source}"
           + (f" ({result.error})" if result.truncated else
              " (it was complete)"))
