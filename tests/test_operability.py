@@ -5,6 +5,7 @@ sockets, MCAP files, read-only and full file systems."""
 from __future__ import annotations
 
 import fcntl
+import json
 import os
 import pty
 import random
@@ -27,6 +28,7 @@ from drivers.emulator import DeviceSpec, Emulator, Faults
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
 from uwbd.config import parse
 from uwbd.fusion.types import Pose
+from uwbd.logs.mcaplog import LogWriter, SourceInfo
 from uwbd.logs.reading import read_log
 from uwbd.logs.sink import McapSink
 from uwbd.service.pipeline import Pipeline, PoseList
@@ -184,6 +186,24 @@ def test_replay_with_other_settings_records_the_config_used(tmp_path: Path,
     (tmp_path / "renamed.toml").write_text(renamed.replace('name = "uwb"', 'name = "b"'))
     one_line(uwbd("replay", str(sim_log), "-c", str(tmp_path / "renamed.toml")), 2,
              "its sources (a, b) name none of the log's (imu, uwb)")
+
+
+def test_report_without_truth_plots_what_it_can_and_says_nothing_raw(tmp_path: Path,
+                                                                     sim_log: Path) -> None:
+    """A log without /truth (a daemon's): the trajectory plotted, no error plot claimed, no
+    plotting library's warning on stderr."""
+    contents = read_log(sim_log)
+    plain = tmp_path / "plain.mcap"
+    sources = tuple(SourceInfo(**d) for d in json.loads(contents.metadata["sources"]))
+    with LogWriter(plain, contents.metadata["config_toml"], sources) as log:
+        for m in contents.messages:
+            if m.topic.startswith("/raw/"):
+                log.raw(m.topic[5:], m.log_time_ns, m.data)
+    result = uwbd("report", str(plain), "-o", str(tmp_path / "plots"))
+    assert result.returncode == 0, result.stderr
+    assert result.stderr == "" and "no ground truth in this log" in result.stdout
+    assert f"plots: {tmp_path / 'plots' / 'trajectory.png'}\n" in result.stdout
+    assert not (tmp_path / "plots" / "error.png").exists()
 
 
 def test_report_with_other_settings(tmp_path: Path, sim_log: Path) -> None:

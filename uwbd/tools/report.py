@@ -110,12 +110,13 @@ def report(rec: Recording, out_dir: Path, skip_s: float = 0.0, progress: bool = 
             lines.append("")
     lines += [f"{k}: {v:.2f}" for k, v in extra.items()]
     out_dir.mkdir(parents=True, exist_ok=True)
-    _plots(rec, tracks, out_dir)
-    lines.append(f"plots: {out_dir / 'trajectory.png'}, {out_dir / 'error.png'}")
+    written = _plots(rec, tracks, out_dir)
+    lines.append("plots: " + ", ".join(str(path) for path in written))
     return "\n".join(lines)
 
 
-def _plots(rec: Recording, tracks: dict[str, Track], out_dir: Path) -> None:
+def _plots(rec: Recording, tracks: dict[str, Track], out_dir: Path) -> list[Path]:
+    """The trajectory plot, and the error plot where the log has truth: the files written."""
     fig, ax = plt.subplots(figsize=(8, 7))
     if len(rec.truth_t_ns) >= 2:
         good = rec.truth_p_m[~truth_spikes(rec.truth_t_ns, rec.truth_p_m)]
@@ -130,18 +131,22 @@ def _plots(rec: Recording, tracks: dict[str, Track], out_dir: Path) -> None:
     ax.legend(fontsize=8)
     fig.savefig(out_dir / "trajectory.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
+    written = [out_dir / "trajectory.png"]
+    if len(rec.truth_t_ns) < 2:
+        (out_dir / "error.png").unlink(missing_ok=True)  # not an earlier run's, beside this one
+        return written  # no truth, no error to plot
     fig, ax = plt.subplots(figsize=(10, 4))
-    if len(rec.truth_t_ns) >= 2:
-        t0 = rec.truth_t_ns[0]
-        for name, (t, p, _) in tracks.items():
-            if not len(t):
-                continue
-            truth = np.column_stack([np.interp(t, rec.truth_t_ns, rec.truth_p_m[:, i])
-                                     for i in range(2)])
-            ax.plot((t - t0) / 1e9, np.linalg.norm(p[:, :2] - truth, axis=1), lw=0.8,
-                    label=name)
-        ax.set_yscale("log")
+    t0 = rec.truth_t_ns[0]
+    for name, (t, p, _) in tracks.items():
+        if not len(t):
+            continue
+        truth = np.column_stack([np.interp(t, rec.truth_t_ns, rec.truth_p_m[:, i])
+                                 for i in range(2)])
+        ax.plot((t - t0) / 1e9, np.linalg.norm(p[:, :2] - truth, axis=1), lw=0.8,
+                label=name)
+    ax.set_yscale("log")
     ax.set(xlabel="time (s)", ylabel="horizontal error (m)", title="error over time")
     ax.legend(fontsize=8)
     fig.savefig(out_dir / "error.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
+    return [*written, out_dir / "error.png"]
