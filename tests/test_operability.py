@@ -647,6 +647,41 @@ def test_a_full_disk_pauses_the_log_and_every_record_is_accounted_for(small_disk
     assert kept + log.records_lost == written and log.records_lost > 0
 
 
+def test_a_full_disk_counts_every_record_a_pose_writes(small_disk: Path, sim_log: Path,
+                                                        tmp_path: Path) -> None:
+    """A pose is /pose, /tf and now and then /trajectory: on a disk that fills, the records
+    kept and those counted lost add up to what a log with room holds (it counted one)."""
+    contents = read_log(sim_log)
+    poses = PoseList()
+    pipeline = Pipeline(parse(contents.metadata["config_toml"]), [poses])
+    for m in contents.messages:
+        if m.topic.startswith("/raw/"):
+            pipeline.on_bytes(m.topic[5:], m.log_time_ns, m.data)
+    topics = ("/pose", "/tf", "/trajectory")
+
+    def run(folder: Path, fill: bool) -> tuple[int, int, int]:
+        """Records kept in the files, written /a padding, records counted lost."""
+        log, padding = McapSink(parse(""), directory=folder), 0
+        for k, pose in enumerate(poses.poses):
+            if fill and k == 2 * len(poses.poses) // 3:
+                (folder / "filler").unlink()  # room again
+            log.pose(pose)
+            if fill and k < 2 * len(poses.poses) // 3:  # incompressible: the disk fills
+                log.json("/a", pose.t_ns, {"pad": os.urandom(300).hex()})
+                padding += 1
+        log.close()
+        kept = sum(m.topic in (*topics, "/a") for path in log.files
+                   for m in read_log(path).messages)
+        return kept, padding, log.records_lost
+
+    (tmp_path / "roomy").mkdir()
+    whole, _, none_lost = run(tmp_path / "roomy", False)
+    assert none_lost == 0 and whole > 2 * len(poses.poses)  # /trajectory among them
+    (small_disk / "filler").write_bytes(b"\0" * 150_000)
+    kept, padding, lost = run(small_disk, True)
+    assert lost > 0 and kept + lost == whole + padding
+
+
 def test_a_damaged_chunk_is_said_and_what_came_before_is_used(tmp_path: Path,
                                                               sim_log: Path) -> None:
     data = bytearray(sim_log.read_bytes())

@@ -148,12 +148,19 @@ class McapSink:
         """``action`` (a :class:`LogWriter` method) with ``args``, written behind."""
         if self.error and self._paused(t_ns):
             # logging has stopped: keep nothing until the next try
-            self.records_lost += 1
+            self.records_lost += self._records(action, args)
             return
         behind = self._behind
         behind.append((t_ns, action, args))
         if t_ns - behind[0][0] >= self._max_behind_ns:
             self.write_pending(everything=True)
+
+    def _records(self, action: Callable[..., None], args: tuple[Any, ...]) -> int:
+        """How many records ``action`` would have written: a pose writes ``/pose`` and
+        ``/tf``, and ``/trajectory`` when one is due (the trail moves on as if written)."""
+        if action is LogWriter.pose:
+            return 2 + (self.view.trajectory(args[0]) is not None)
+        return 1
 
     def write_pending(self, everything: bool = False) -> None:
         """Write the records kept back once they span ``WRITE_BEHIND_NS`` of data time (or
@@ -169,9 +176,10 @@ class McapSink:
             if log is None or due:
                 log = self._writer(t_ns)
                 if log is None:
-                    self.records_lost += 1
+                    self.records_lost += self._records(action, args)
                     continue
                 due = t_ns - self._flushed_ns >= FLUSH_PERIOD_NS  # a new file: not yet
+            before = log.unflushed
             try:
                 action(log, *args)
                 if due:
@@ -179,7 +187,11 @@ class McapSink:
                     self._flushed_ns = t_ns
                     self._flushed(log)
             except OSError as err:
+                # the cut counts the records tried (unflushed); a pose's later ones were not
+                tried = log.unflushed - before
                 self._fail(f"writing {log.path}: {err.strerror or err}", t_ns)
+                if action is LogWriter.pose and tried < 3:  # its trajectory not yet judged
+                    self.records_lost += max(self._records(action, args) - tried, 0)
                 log = None
             except UNENCODABLE as err:  # a record that cannot be encoded
                 first = not self.bad_records
