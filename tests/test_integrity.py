@@ -21,6 +21,11 @@ from drivers import nlink, wit
 from drivers.emulator.scenario import CircleScenario
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
 from uwbd.config import parse
+from uwbd.fusion.checks.anchor_consistency import (
+    MIN_ENTRIES,
+    AnchorConsistency,
+    ConsistencyLimits,
+)
 from uwbd.fusion.checks.gating import chi2_quantile
 from uwbd.fusion.core.eskf import N_CORE
 from uwbd.fusion.core.lsq import multilaterate
@@ -481,3 +486,73 @@ def test_a_reported_anchor_position_with_any_bad_coordinate_is_refused(
     reports = flt.update(UwbRanges(t_ns, (AnchorRange(42, 5.0, None, position),)))
     assert [r.reason for r in reports] == ["anchor_position_invalid"]
     assert flt.counters["internal_errors"] == 0 and 42 not in flt._anchors
+
+
+# -- a wrong installation --------------------------------------------------------------------
+def test_the_anchor_test_names_the_anchor_whose_ranges_disagree() -> None:
+    """Epochs whose range 2 is 0.5 m long and the others noise: b̂ finds it once the window
+    holds enough epochs (and not before), holds the finding a while after the ranges agree
+    again, then lets it go; noise alone is never a finding; a restart forgets."""
+    rng = np.random.default_rng(1)
+    limits = ConsistencyLimits(window_s=4.0, hold_s=2.0)
+    check, quiet = AnchorConsistency(limits), AnchorConsistency(limits)
+    S = 0.1**2 * np.eye(5) + 0.05**2  # correlated through the state's shared error
+    found_at = None
+    for k in range(200):  # 20 s at 10 Hz: 10 s wrong, then 10 s right
+        t_ns = EPOCH_NS + k * NS // 10
+        nu = rng.multivariate_normal(np.zeros(5), S)
+        quiet.add(t_ns, [0, 1, 2, 3, 4], nu, S)
+        assert not quiet.findings
+        if k < 100:
+            nu[2] += 0.5
+        check.add(t_ns, [0, 1, 2, 3, 4], nu, S)
+        if check.findings and found_at is None:
+            found_at = k
+            (finding,) = check.findings.values()
+            assert finding.anchor == 2 and 0.3 < finding.bias_m < 0.7
+            assert "anchor 2: its ranges are ~0." in finding.text() and "long" in finding.text()
+        if 40 <= k < 100:
+            assert set(check.findings) == {2}
+    assert found_at is not None and found_at >= MIN_ENTRIES - 1
+    assert not check.findings  # agreed again, and the hold is over
+    check.add(EPOCH_NS, [2], np.array([9.0]), np.eye(1))
+    check.clear()
+    assert not check.findings
+
+
+def test_an_anchor_surveyed_off_is_named_and_the_estimate_is_not_healthy() -> None:
+    """Anchor 3 of the seed layout 1 m off sideways in the config: the filter is pulled
+    ~0.8 m off; the anchor test names anchor 3 and no other (health fault, the status's
+    finding) and most of the poses more than 0.5 m off are not healthy; with the true
+    position nothing is found."""
+    sim = simulate(SimConfig(seed=1))
+    right = datasheet(sim)
+    anchors = dict(right.anchors_m)
+    x, y, z = anchors[3]
+    anchors[3] = (x + 1.0, y, z)
+    for cfg, wrong in ((right, False), (dataclasses.replace(right, anchors_m=anchors), True)):
+        flt, poses, named, said = Filter(cfg), [], set(), set()
+        for frame in merge(sim.imu, sim.uwb):
+            if isinstance(frame, ImuSample):
+                flt.predict(frame)
+                continue
+            flt.update(frame)
+            pose = flt.pose()
+            if pose is not None and pose.t_ns > sim.truth_t_ns[0] + 8 * NS:
+                poses.append(pose)
+                named |= set(flt.consistency.findings)
+                said |= {f["finding"] for f in flt.diagnostics()["anchor_findings"]}
+        flagged = [p for p in poses if "anchor_inconsistent" in p.health.faults]
+        if not wrong:
+            assert not flagged and not named
+            continue
+        assert named == {3} and len(flagged) > len(poses) // 2
+        assert any(text.startswith("anchor 3: its ranges are ~") and "uwbd survey" in text
+                   for text in said)
+        t = np.array([p.t_ns for p in poses])
+        truth = np.column_stack([np.interp(t, sim.truth_t_ns, sim.truth_p_m[:, i])
+                                 for i in range(3)])
+        err = np.linalg.norm(np.array([p.position_m for p in poses]) - truth, axis=1)
+        off = err > 0.5
+        healthy_off = sum(p.health.healthy for p, o in zip(poses, off, strict=True) if o)
+        assert off.sum() > 100 and healthy_off < 0.35 * off.sum()

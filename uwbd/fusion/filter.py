@@ -5,6 +5,8 @@ frames in, same poses out), no I/O; no exception leaves them (a numerical failur
 foresaw is counted as ``internal_errors`` and restarts the filter). The top level below reads as
 the sequence it runs; each step's policy has a module of its own:
 
+* :mod:`.checks.anchor_consistency` — which anchor's ranges disagree with the others' (an
+  anchor surveyed off, a biased one), named in the health and the status;
 * :mod:`.checks.imu_check` — which IMU samples can be real (non-finite, clipped, impossible jumps),
   judged raw; then :mod:`.checks.intrinsics` corrects them (scale, offsets) on the way to body axes;
 * :mod:`.policy.rest` — the recent IMU window and the rest test (start, ZUPT);
@@ -46,6 +48,7 @@ import math
 import numpy as np
 
 from drivers.frames import AnchorRanges, UwbRanges
+from uwbd.fusion.checks.anchor_consistency import AnchorConsistency, ConsistencyLimits
 from uwbd.fusion.checks.gating import GatingCounters, chi2_quantile, gate
 from uwbd.fusion.checks.imu_check import ImuCheck, new_imu_check
 from uwbd.fusion.checks.intrinsics import body_maps, to_body
@@ -111,6 +114,7 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         self.gating = GatingCounters()
         self.anchor_stats: dict[int, AnchorStats] = {}
         self.monitor = HealthMonitor(config.health)
+        self.consistency = AnchorConsistency(ConsistencyLimits())
         self.imu_check = new_imu_check(config.imu_limits, body_maps(rows, config.imu_intrinsics))
         # on the C core, a good sample while tracking is judged, mapped and integrated in one
         # call (policy.propagation)
@@ -262,6 +266,7 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
             self._constraints_ns = t_ns
             constraints = self._constraints()
         prior = self._snapshot() if self.records is not None else None
+        self._check_anchors(t_ns, ids, anchors, ranges, r_scale)
         reports += self._fuse_epoch(t_ns, ids, anchors, ranges, r_scale, fix, constraints)
         self._fade(t_ns, ids, anchors, ranges)
         if self._check_divergence(t_ns, ids, anchors, ranges):

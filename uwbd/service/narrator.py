@@ -31,6 +31,7 @@ class Narrator:
         self._first_range_ns: int | None = None
         self._said_all_rejected = False
         self._sink_errors: set[str] = set()
+        self._findings_said: set[Any] = set()  # the anchors of the findings said
 
     def raw(self, source: str, t_ns: int, data: bytes) -> None:
         """Bytes are not narrated."""
@@ -52,6 +53,10 @@ class Narrator:
         phase = str(health.get("phase", ""))
         if phase and phase != self._phase:
             self._phase_changed(phase, str(status.get("filter", phase)))
+        findings = {f.get("anchor"): f for f in status.get("anchor_findings", [])}
+        for anchor in findings.keys() - self._findings_said:  # said again only once it agreed
+            LOG.warning("%s", findings[anchor].get("finding", f"anchor {anchor} disagrees"))
+        self._findings_said = set(findings)
         counters = status.get("fusion_counters", {})
         accepted = int(counters.get("range_accepted", 0))
         rejected = int(counters.get("range_rejected", 0)) + sum(  # ranges, not epochs

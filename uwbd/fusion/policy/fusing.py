@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from uwbd.fusion.checks.anchor_consistency import CHECK_EVERY_NS, AnchorConsistency
 from uwbd.fusion.core.eskf import BA_, BG_, TH_, Eskf, RawRow
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.core.rotation import Array
@@ -48,6 +49,7 @@ class EpochFusion:
     lever: Array
     counters: collections.Counter[str]
     monitor: HealthMonitor
+    consistency: AnchorConsistency
     anchor_stats: dict[int, AnchorStats]
     _range_columns: dict[int, tuple[int, ...]]
     _fixed_z: float | None
@@ -114,6 +116,23 @@ class EpochFusion:
         outcome = ekf.sequential_update(H, y, R, self._row_policy(keys, fix_ok),
                                         self._considered())
         return self._outcomes(t_ns, keys, outcome)
+
+    def _check_anchors(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
+                       r_scale: Array) -> None:
+        """The epoch's ranges, before the update, to the anchor consistency test
+        (:mod:`~uwbd.fusion.checks.anchor_consistency`): tight, with the heading known, and
+        three ranges at least (a single range cannot be told from the others); about ten
+        epochs a second (the test's σ takes them as that correlated)."""
+        ekf = self.ekf
+        if (ekf is None or len(ids) < 3 or self.cfg.mode is not Mode.TIGHT or not self._aligned
+                or t_ns - self.consistency.last_ns < CHECK_EVERY_NS):
+            return
+        H, y, R, _ = range_rows(ekf, self.lever, ids, anchors, ranges,
+                                self.cfg.range_sigma_m**2 * r_scale, self._range_columns)
+        self.consistency.last_ns = t_ns
+        if len(y) == len(ids):  # (no antenna on an anchor: one row per range)
+            self.consistency.add(t_ns, ids, y, H @ ekf.P @ H.T + np.diag(R))
+        self.monitor.anchor_suspects = tuple(sorted(self.consistency.findings))
 
     def _row_policy(self, keys: list[tuple[str, str]], fix_ok: bool) -> RowPolicy:
         # the first letter of each row's kind: "r"ange, "p"osition, any other gated plainly

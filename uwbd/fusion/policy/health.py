@@ -20,7 +20,8 @@ positive definiteness along a measurement), ``innovations_inconsistent`` (most o
 ``window_count`` UWB measurements, or the last four, fail the gate, or their NIS is far
 above 1), ``imu_rejected`` (a sample was rejected within the last second), ``imu_gap``,
 ``range_timeout`` (no accepted range for ``range_timeout_s``), ``position_uncertain``
-(horizontal σ above ``max_sigma_m``).
+(horizontal σ above ``max_sigma_m``), ``anchor_inconsistent`` (an anchor's ranges disagree
+with the others': :mod:`uwbd.fusion.checks.anchor_consistency`; the status names it).
 Notes do not make the estimate unhealthy: ``mirror_unresolved`` (coplanar anchors, side
 not yet told by the data, the configured or default side in use).
 """
@@ -132,6 +133,7 @@ class HealthMonitor:
         self.resets = 0
         self.last_reset: tuple[int, str, float | None] | None = None
         self.mirror_unresolved = False
+        self.anchor_suspects: tuple[int, ...] = ()  # checks.anchor_consistency's
 
     # -- evidence -------------------------------------------------------------------------
     def uwb_outcome(self, t_ns: int, accepted: bool, nis: float) -> None:
@@ -179,6 +181,7 @@ class HealthMonitor:
         self._rejected, self._nis_sum, self._rejected_run = 0, 0.0, 0
         self._inconsistent_since_ns = None
         self._rejudging = False
+        self.anchor_suspects = ()
 
     # -- judgements -----------------------------------------------------------------------
     def _window_inconsistent(self) -> bool:
@@ -220,6 +223,8 @@ class HealthMonitor:
             faults.append("range_timeout")  # or just back, the state not yet judged again
         if running and (position_sigma_m is None or not position_sigma_m <= lim.max_sigma_m):
             faults.append("position_uncertain")
+        if running and self.anchor_suspects:
+            faults.append("anchor_inconsistent")
         notes = ("mirror_unresolved",) if self.mirror_unresolved else ()
         reset_t, reason, jump = self.last_reset or (None, "", None)
         recent_reset = reset_t is not None and t_ns - reset_t < lim.recover_hold_s * NS

@@ -9,6 +9,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+from uwbd.fusion.checks.anchor_consistency import AnchorConsistency
 from uwbd.fusion.core.eskf import Eskf
 from uwbd.fusion.policy.health import WAITING, Health, HealthMonitor
 from uwbd.fusion.policy.mirror import MirrorSide
@@ -28,6 +29,7 @@ class FilterOutputs:
     monitor: HealthMonitor
     mirror: MirrorSide
     anchor_stats: dict[int, AnchorStats]
+    consistency: AnchorConsistency
     _aligned: bool
     _restart_not_finite: Callable[[int], None]  # the filter's (recovery)
 
@@ -74,4 +76,6 @@ class FilterOutputs:
         return {"health": self.health().as_dict(),
                 "mirror": {"ambiguous": m.ambiguous, "side": "above" if m.sign > 0 else "below",
                            "decided_by": m.decided_by, "resolved": m.resolved},
-                "anchors": {str(a): s.as_dict() for a, s in sorted(self.anchor_stats.items())}}
+                "anchors": {str(a): s.as_dict() for a, s in sorted(self.anchor_stats.items())},
+                "anchor_findings": [f.as_dict() for _, f in
+                                    sorted(self.consistency.findings.items())]}

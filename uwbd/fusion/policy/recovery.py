@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from uwbd.fusion.checks.anchor_consistency import AnchorConsistency
 from uwbd.fusion.core.eskf import P_, TH_, V_, Eskf
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.core.rotation import Array
@@ -51,6 +52,7 @@ class Recovery:
     lever: Array
     counters: collections.Counter[str]
     monitor: HealthMonitor
+    consistency: AnchorConsistency
     window: ImuWindow
     ranges: RangeWindow
     _aligner: HeadingAligner
@@ -100,6 +102,7 @@ class Recovery:
         self._relevel = None
         self._start_started_ns = t_ns
         self._fixes.clear()  # from the old estimate's side of a mirror, perhaps
+        self.consistency.clear()  # its evidence was against the old estimate
         self._forget_attitude(t_ns, reason)
 
     def _lose_attitude(self, t_ns: int, reason: str) -> None:

@@ -312,6 +312,14 @@ STATUS_SCHEMA = _obj("uwbd.Status", "once a second: the filter's health, counter
         "accepted": _COUNT, "deweighted": _COUNT, "rejected": _COUNT,
         "mean_innovation_sigma": _num("mean innovation / σ"),
         "rms_innovation_sigma": _num("RMS innovation / σ")}), "per anchor id"),
+    "anchor_findings": {"type": "array", "description": "anchors whose ranges disagree with "
+                        "the others' (uwbd.fusion.checks.anchor_consistency)",
+                        "items": _obj("uwbd.AnchorFinding", "a suspect anchor", {
+                            "anchor": {"type": "integer", "description": "its id"},
+                            "bias_m": _num("its ranges' mean error against the others' (m)"),
+                            "sigma_m": _num("that mean's σ (m)"),
+                            "finding": {"type": "string",
+                                        "description": "what a technician should check"}})},
     "heading_observable": {"type": "boolean", "description": "the heading is known"},
     "poses": {"type": "integer", "description": "poses so far"},
     "fusion_counters": _open_map(_COUNT, "filter events by name"),
