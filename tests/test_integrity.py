@@ -491,19 +491,22 @@ def test_a_reported_anchor_position_with_any_bad_coordinate_is_refused(
 # -- a wrong installation --------------------------------------------------------------------
 def test_the_anchor_test_names_the_anchor_whose_ranges_disagree() -> None:
     """Epochs whose range 2 is 0.5 m long and the others noise: b̂ finds it once the window
-    holds enough epochs (and not before), holds the finding a while after the ranges agree
-    again, then lets it go; noise alone is never a finding; a restart forgets."""
+    holds enough epochs and the suspicion has lasted persist_s (a burst of 5 s is no
+    finding), holds it a while after the ranges agree again, then lets it go; noise alone is
+    never a finding; a restart forgets."""
     rng = np.random.default_rng(1)
-    limits = ConsistencyLimits(window_s=4.0, hold_s=2.0)
-    check, quiet = AnchorConsistency(limits), AnchorConsistency(limits)
+    limits = ConsistencyLimits(window_s=4.0, hold_s=2.0, persist_s=6.0)
+    check, quiet, burst = (AnchorConsistency(limits) for _ in range(3))
     S = 0.1**2 * np.eye(5) + 0.05**2  # correlated through the state's shared error
     found_at = None
-    for k in range(200):  # 20 s at 10 Hz: 10 s wrong, then 10 s right
+    for k in range(300):  # 30 s at 10 Hz: 15 s wrong, then 15 s right
         t_ns = EPOCH_NS + k * NS // 10
         nu = rng.multivariate_normal(np.zeros(5), S)
         quiet.add(t_ns, [0, 1, 2, 3, 4], nu, S)
         assert not quiet.findings
-        if k < 100:
+        burst.add(t_ns, [0, 1, 2, 3, 4], nu + (0.5 * np.eye(5)[2] if k < 50 else 0.0), S)
+        assert not burst.findings
+        if k < 150:
             nu[2] += 0.5
         check.add(t_ns, [0, 1, 2, 3, 4], nu, S)
         if check.findings and found_at is None:
@@ -511,9 +514,9 @@ def test_the_anchor_test_names_the_anchor_whose_ranges_disagree() -> None:
             (finding,) = check.findings.values()
             assert finding.anchor == 2 and 0.3 < finding.bias_m < 0.7
             assert "anchor 2: its ranges are ~0." in finding.text() and "long" in finding.text()
-        if 40 <= k < 100:
+        if 100 <= k < 150:
             assert set(check.findings) == {2}
-    assert found_at is not None and found_at >= MIN_ENTRIES - 1
+    assert found_at is not None and found_at >= MIN_ENTRIES - 1 + 60
     assert not check.findings  # agreed again, and the hold is over
     check.add(EPOCH_NS, [2], np.array([9.0]), np.eye(1))
     check.clear()
@@ -523,8 +526,8 @@ def test_the_anchor_test_names_the_anchor_whose_ranges_disagree() -> None:
 def test_an_anchor_surveyed_off_is_named_and_the_estimate_is_not_healthy() -> None:
     """Anchor 3 of the seed layout 1 m off sideways in the config: the filter is pulled
     ~0.8 m off; the anchor test names anchor 3 and no other (health fault, the status's
-    finding) and most of the poses more than 0.5 m off are not healthy; with the true
-    position nothing is found."""
+    finding) and takes "healthy" from over 40 % of the poses more than 0.5 m off that had it
+    without the test; with the true position nothing is found."""
     sim = simulate(SimConfig(seed=1))
     right = datasheet(sim)
     anchors = dict(right.anchors_m)
@@ -555,4 +558,7 @@ def test_an_anchor_surveyed_off_is_named_and_the_estimate_is_not_healthy() -> No
         err = np.linalg.norm(np.array([p.position_m for p in poses]) - truth, axis=1)
         off = err > 0.5
         healthy_off = sum(p.health.healthy for p, o in zip(poses, off, strict=True) if o)
-        assert off.sum() > 100 and healthy_off < 0.35 * off.sum()
+        # what the health said without the test: healthy but for its fault
+        without = healthy_off + sum(p.health.faults == ("anchor_inconsistent",)
+                                    for p, o in zip(poses, off, strict=True) if o)
+        assert off.sum() > 100 and healthy_off < 0.6 * without, (healthy_off, without)

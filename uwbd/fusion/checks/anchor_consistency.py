@@ -12,7 +12,9 @@ so the average's σ is taken as if only one epoch in ``CORRELATED_EPOCHS`` were 
 
 An anchor is a *suspect* when its average is larger than ``alarm_m`` and than ``z`` times
 its σ, and is the largest such of the epoch's anchors (one fault at a time: the others'
-averages are partly its image); the finding stands until ``hold_s`` without such a test.
+averages are partly its image). A suspect tested so for ``persist_s`` (no gap over
+``gap_s``) is a finding: an NLOS burst makes one anchor's ranges long for seconds, a wrong
+survey for good. It stands until ``hold_s`` without such a test.
 Whether its position or its range offset is wrong is not told: the filter's state has
 moved to meet the anchor part of the way (and its range-model state has taken some of an
 offset), so what is left of the error does not follow the direction to the tag closely
@@ -43,6 +45,8 @@ class ConsistencyLimits:
     window_s: float = 8.0
     alarm_m: float = 0.25  # an average this large is worth a technician's look
     z: float = 4.0
+    persist_s: float = 8.0  # a suspect this long (no gap over gap_s) is a finding: an NLOS
+    gap_s: float = 2.0  # burst makes an anchor's ranges long for seconds, a wrong survey for good
     hold_s: float = 10.0  # a finding stands this long after its anchor last tested so
 
 
@@ -74,6 +78,7 @@ class AnchorConsistency:
         self._windows: dict[int, _Window] = {}
         self.findings: dict[int, Finding] = {}
         self._found_ns: dict[int, int] = {}  # when each finding last tested positive
+        self._suspect: dict[int, tuple[int, int]] = {}  # first and last positive test
         self.last_ns = -(2**63)  # the last epoch taken (the caller's rate)
 
     def add(self, t_ns: int, ids: list[int], nu: Array, S: Array) -> None:
@@ -97,6 +102,7 @@ class AnchorConsistency:
         self._windows.clear()
         self.findings.clear()
         self._found_ns.clear()
+        self._suspect.clear()
 
     def _judge(self, t_ns: int) -> None:
         lim = self.limits
@@ -111,10 +117,16 @@ class AnchorConsistency:
             score = abs(mean) / sigma
             if best is None or score > best[0]:
                 best = (score, anchor, mean, sigma)
+        for anchor, (_, last_ns) in list(self._suspect.items()):
+            if t_ns - last_ns > lim.gap_s * NS:
+                del self._suspect[anchor]  # the run of positive tests broke off
         if best is not None and best[0] > lim.z and abs(best[2]) > lim.alarm_m:
             _, anchor, mean, sigma = best
-            self.findings[anchor] = Finding(anchor, mean, sigma)
-            self._found_ns[anchor] = t_ns
+            since_ns = self._suspect.get(anchor, (t_ns, t_ns))[0]
+            self._suspect[anchor] = (since_ns, t_ns)
+            if t_ns - since_ns >= lim.persist_s * NS or anchor in self.findings:
+                self.findings[anchor] = Finding(anchor, mean, sigma)
+                self._found_ns[anchor] = t_ns
         for anchor, found_ns in list(self._found_ns.items()):  # held, then gone
             if t_ns - found_ns > lim.hold_s * NS:
                 del self._found_ns[anchor], self.findings[anchor]
