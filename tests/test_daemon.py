@@ -22,6 +22,7 @@ from uwbd.fusion.core import native
 from uwbd.logs.reading import read_log
 from uwbd.logs.replay import replay
 from uwbd.logs.sink import McapSink
+from uwbd.service.narrator import Narrator
 from uwbd.service.pipeline import Pipeline, PoseList
 from uwbd.service.ports import ReadQueue
 from uwbd.tools.logtools import write_simulation
@@ -385,3 +386,18 @@ def test_read_queue_holds_imu_reads_until_a_pose_is_due_and_changes_nothing(
     logged = [(m.topic.removeprefix("/raw/"), m.log_time_ns, m.data)
               for m in read_log(tmp_path / "queued.mcap").messages if m.topic.startswith("/raw/")]
     assert logged == reads
+
+
+def test_the_narrator_says_each_anchor_finding_once_until_it_goes(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """One warning line a finding: not again while it stands, again once it went and came
+    back."""
+    narrator = Narrator()
+    finding = {"anchor": 3, "bias_m": -0.3, "sigma_m": 0.04,
+               "finding": "anchor 3: its ranges are ~0.30 m short against the other anchors'"}
+    with caplog.at_level("WARNING", logger="uwbd"):
+        for k, findings in enumerate(([], [finding], [finding], [], [finding])):
+            narrator.status(k * 1_000_000_000, {"health": {"phase": "tracking"},
+                                     "anchor_findings": findings})
+    said = [r.getMessage() for r in caplog.records if "anchor 3" in r.getMessage()]
+    assert said == [finding["finding"]] * 2

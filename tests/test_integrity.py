@@ -526,8 +526,9 @@ def test_the_anchor_test_names_the_anchor_whose_ranges_disagree() -> None:
 def test_an_anchor_surveyed_off_is_named_and_the_estimate_is_not_healthy() -> None:
     """Anchor 3 of the seed layout 1 m off sideways in the config: the filter is pulled
     ~0.8 m off; the anchor test names anchor 3 and no other (health fault, the status's
-    finding) and takes "healthy" from over 40 % of the poses more than 0.5 m off that had it
-    without the test; with the true position nothing is found."""
+    finding), takes "healthy" from over 40 % of the poses more than 0.5 m off that would have
+    it but for the test's fault, and is excluded: the last 20 s are within 0.3 m again
+    (0.8 m without the exclusion); with the true position nothing is found."""
     sim = simulate(SimConfig(seed=1))
     right = datasheet(sim)
     anchors = dict(right.anchors_m)
@@ -562,3 +563,7 @@ def test_an_anchor_surveyed_off_is_named_and_the_estimate_is_not_healthy() -> No
         without = healthy_off + sum(p.health.faults == ("anchor_inconsistent",)
                                     for p, o in zip(poses, off, strict=True) if o)
         assert off.sum() > 100 and healthy_off < 0.6 * without, (healthy_off, without)
+        # excluded, and its pull undone: the last 20 s near the fault-free run's accuracy
+        assert flt.counters["anchors_excluded"] >= 1 and flt.counters["range_excluded"] > 100
+        late = t > sim.truth_t_ns[-1] - 20 * NS
+        assert math.sqrt(np.mean(err[late] ** 2)) < 0.3

@@ -115,6 +115,7 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         self.anchor_stats: dict[int, AnchorStats] = {}
         self.monitor = HealthMonitor(config.health)
         self.consistency = AnchorConsistency(ConsistencyLimits())
+        self._excluded: set[int] = set()
         self.imu_check = new_imu_check(config.imu_limits, body_maps(rows, config.imu_intrinsics))
         # on the C core, a good sample while tracking is judged, mapped and integrated in one
         # call (policy.propagation)
@@ -267,6 +268,8 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
             constraints = self._constraints()
         prior = self._snapshot() if self.records is not None else None
         self._check_anchors(t_ns, ids, anchors, ranges, r_scale)
+        ids, anchors, ranges, r_scale = self._exclude_findings(t_ns, ids, anchors, ranges,
+                                                               r_scale, reports)
         reports += self._fuse_epoch(t_ns, ids, anchors, ranges, r_scale, fix, constraints)
         self._fade(t_ns, ids, anchors, ranges)
         if self._check_divergence(t_ns, ids, anchors, ranges):

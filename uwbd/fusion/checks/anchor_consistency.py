@@ -21,7 +21,8 @@ offset), so what is left of the error does not follow the direction to the tag c
 enough to tell them apart (measured on the simulator). Found by it on the simulator's
 layout: an anchor 1 m off sideways; not found: 1 m off in height (the error goes into the
 tag's height, which the ranges hardly see), mostly not: a +0.5 m offset (the range-model
-state takes most of it).
+state takes most of it). The filter leaves a found anchor's ranges out
+(:mod:`uwbd.fusion.policy.fusing`); this test goes on judging them.
 """
 
 from __future__ import annotations

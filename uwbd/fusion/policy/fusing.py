@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from uwbd.fusion.checks.anchor_consistency import CHECK_EVERY_NS, AnchorConsistency
-from uwbd.fusion.core.eskf import BA_, BG_, TH_, Eskf, RawRow
+from uwbd.fusion.core.eskf import BA_, BG_, P_, TH_, Eskf, RawRow
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.models.measurements import Rows, position_rows, range_keys, range_rows
@@ -38,6 +38,8 @@ ATTITUDE_AND_GYRO_BIAS = slice(TH_.start, BG_.stop)
 # the covariance is kept finite: no error state may be less certain than this (σ per state)
 MAX_SIGMA = np.array([1e3] * 3 + [1e2] * 3 + [math.pi] * 3 + [0.5] * 3 + [5.0] * 3)
 MAX_RANGE_BIAS_SIGMA_M = 5.0
+MIN_KEPT_ANCHORS = 4  # an anchor is excluded only while this many others remain
+EXCLUSION_RANGE_STATE_VAR_M2 = 0.1**2  # the others' range-model states widened by, then
 
 
 class EpochFusion:
@@ -55,6 +57,7 @@ class EpochFusion:
     _fixed_z: float | None
     _gate_1: float
     _gate_3: float
+    _excluded: set[int]  # the anchors left out of the last update
     _policies: dict[tuple[str, bool], RowPolicy]
     _empty_rows: dict[int, Rows]
     _aligned: bool
@@ -133,6 +136,43 @@ class EpochFusion:
         if len(y) == len(ids):  # (no antenna on an anchor: one row per range)
             self.consistency.add(t_ns, ids, y, H @ ekf.P @ H.T + np.diag(R))
         self.monitor.anchor_suspects = tuple(sorted(self.consistency.findings))
+
+    def _exclude_findings(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
+                          r_scale: Array, reports: list[FusionReport]
+                          ) -> tuple[list[int], Array, Array, Array]:
+        """The ranges of the anchors the consistency test has found wrong are left out of
+        the update (each reported, ``anchor_excluded``), as long as four others remain; the
+        test goes on judging them against the state, and they return once they agree."""
+        found = self.consistency.findings
+        if not found or not any(a in found for a in ids):
+            return ids, anchors, ranges, r_scale
+        keep = np.array([a not in found for a in ids])
+        if keep.sum() < MIN_KEPT_ANCHORS:
+            return ids, anchors, ranges, r_scale
+        for a in ids:
+            if a in found:
+                if a not in self._excluded:
+                    self._newly_excluded(a, found[a].bias_m)
+                self.counters["range_excluded"] += 1
+                reports.append(FusionReport(t_ns, "range", str(a), math.nan, math.nan,
+                                            math.nan, False, "anchor_excluded"))
+        self._excluded = {a for a in self._excluded if a in found} | {
+            a for a in ids if a in found}
+        return ([a for a, k in zip(ids, keep, strict=True) if k], anchors[keep], ranges[keep],
+                r_scale[keep])
+
+    def _newly_excluded(self, anchor: int, bias_m: float) -> None:
+        """The state has been pulled by this anchor's ranges: its position and the other
+        anchors' range-model states (which took part of the error) may move again."""
+        ekf = self.ekf
+        assert ekf is not None
+        d = np.zeros(ekf.n)
+        d[P_] = bias_m**2
+        for other, columns in self._range_columns.items():
+            if other != anchor:
+                d[list(columns)] += EXCLUSION_RANGE_STATE_VAR_M2
+        ekf.add_variances(d)
+        self.counters["anchors_excluded"] += 1
 
     def _row_policy(self, keys: list[tuple[str, str]], fix_ok: bool) -> RowPolicy:
         # the first letter of each row's kind: "r"ange, "p"osition, any other gated plainly
