@@ -567,3 +567,26 @@ def test_an_anchor_surveyed_off_is_named_and_the_estimate_is_not_healthy() -> No
         assert flt.counters["anchors_excluded"] >= 1 and flt.counters["range_excluded"] > 100
         late = t > sim.truth_t_ns[-1] - 20 * NS
         assert math.sqrt(np.mean(err[late] ** 2)) < 0.3
+
+
+@pytest.mark.parametrize(("mounting", "says"), [
+    (((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), "the body's -z"),  # as identity
+    (((1.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0)), "the body's +y"),  # 90° about x
+    (None, ""),  # the simulated sensor's own (z down)
+])
+def test_a_mounting_that_puts_gravity_off_the_body_up_axis_is_said(
+        mounting: tuple[tuple[float, ...], ...] | None, says: str) -> None:
+    """At a start at rest: a note on every pose (not unhealthy: a ramp is no fault) and the
+    status's finding naming imu.mounting, the sensor's axis that points up and where the
+    mounting sends it."""
+    sim = short()
+    cfg = datasheet(sim) if mounting is None else datasheet(sim, mounting_rotation=mounting)
+    poses, _, flt = run_filter(cfg, merge(sim.imu, sim.uwb))
+    noted = [p for p in poses if "mounting_suspect" in p.health.notes]
+    finding = flt.diagnostics().get("mounting_finding", "")
+    if not says:
+        assert not noted and not finding
+        return
+    assert len(noted) == len(poses) > 0 and flt.counters["started_rest"] == 1
+    assert says in finding and "imu.mounting" in finding and " deg from the body's up" in finding
+    assert "the sensor's -z axis points up" in finding

@@ -116,6 +116,7 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         self.monitor = HealthMonitor(config.health)
         self.consistency = AnchorConsistency(ConsistencyLimits())
         self._excluded: set[int] = set()
+        self.mounting_finding = ""
         self.imu_check = new_imu_check(config.imu_limits, body_maps(rows, config.imu_intrinsics))
         # on the C core, a good sample while tracking is judged, mapped and integrated in one
         # call (policy.propagation)

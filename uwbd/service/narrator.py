@@ -32,6 +32,7 @@ class Narrator:
         self._said_all_rejected = False
         self._sink_errors: set[str] = set()
         self._findings_said: set[Any] = set()  # the anchors of the findings said
+        self._mounting_said = ""
 
     def raw(self, source: str, t_ns: int, data: bytes) -> None:
         """Bytes are not narrated."""
@@ -57,6 +58,10 @@ class Narrator:
         for anchor in findings.keys() - self._findings_said:  # said again only once it agreed
             LOG.warning("%s", findings[anchor].get("finding", f"anchor {anchor} disagrees"))
         self._findings_said = set(findings)
+        mounting = str(status.get("mounting_finding", ""))
+        if mounting and mounting != self._mounting_said:
+            LOG.warning("%s", mounting)
+        self._mounting_said = mounting
         counters = status.get("fusion_counters", {})
         accepted = int(counters.get("range_accepted", 0))
         rejected = int(counters.get("range_rejected", 0)) + sum(  # ranges, not epochs

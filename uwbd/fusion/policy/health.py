@@ -23,7 +23,9 @@ above 1), ``imu_rejected`` (a sample was rejected within the last second), ``imu
 (horizontal σ above ``max_sigma_m``), ``anchor_inconsistent`` (an anchor's ranges disagree
 with the others': :mod:`uwbd.fusion.checks.anchor_consistency`; the status names it).
 Notes do not make the estimate unhealthy: ``mirror_unresolved`` (coplanar anchors, side
-not yet told by the data, the configured or default side in use).
+not yet told by the data, the configured or default side in use), ``mounting_suspect``
+(at the start at rest gravity was over 30° from the body's up axis: a wrong
+``imu.mounting``, or a vehicle on a slope; the status's ``mounting_finding`` says which way).
 """
 
 from __future__ import annotations
@@ -134,6 +136,7 @@ class HealthMonitor:
         self.last_reset: tuple[int, str, float | None] | None = None
         self.mirror_unresolved = False
         self.anchor_suspects: tuple[int, ...] = ()  # checks.anchor_consistency's
+        self.mounting_suspect = False  # gravity far from body up at the start at rest
 
     # -- evidence -------------------------------------------------------------------------
     def uwb_outcome(self, t_ns: int, accepted: bool, nis: float) -> None:
@@ -225,7 +228,8 @@ class HealthMonitor:
             faults.append("position_uncertain")
         if running and self.anchor_suspects:
             faults.append("anchor_inconsistent")
-        notes = ("mirror_unresolved",) if self.mirror_unresolved else ()
+        notes = (("mirror_unresolved",) if self.mirror_unresolved else ()) + (
+            ("mounting_suspect",) if self.mounting_suspect else ())
         reset_t, reason, jump = self.last_reset or (None, "", None)
         recent_reset = reset_t is not None and t_ns - reset_t < lim.recover_hold_s * NS
         if not running:

@@ -30,6 +30,7 @@ class FilterOutputs:
     mirror: MirrorSide
     anchor_stats: dict[int, AnchorStats]
     consistency: AnchorConsistency
+    mounting_finding: str
     _aligned: bool
     _restart_not_finite: Callable[[int], None]  # the filter's (recovery)
 
@@ -78,4 +79,5 @@ class FilterOutputs:
                            "decided_by": m.decided_by, "resolved": m.resolved},
                 "anchors": {str(a): s.as_dict() for a, s in sorted(self.anchor_stats.items())},
                 "anchor_findings": [f.as_dict() for _, f in
-                                    sorted(self.consistency.findings.items())]}
+                                    sorted(self.consistency.findings.items())],
+                **({"mounting_finding": self.mounting_finding} if self.mounting_finding else {})}

@@ -40,6 +40,7 @@ FADE_PER_S = 1.0  # variance growth rate while the innovations are inconsistent
 SLOW_FADE_PER_S = 0.25
 MAX_FADE_STEP_NS = NS // 5
 REPEATED_RESET_NS = 10 * NS  # a second divergence this soon after a position reset restarts
+MAX_REST_TILT_DEG = 30.0  # gravity this far from body up at a start at rest: said
 
 
 class Recovery:
@@ -70,6 +71,8 @@ class Recovery:
     _position_reset_ns: int
     _fade_ns: int | None
     records: list[Any] | None  # the smoother's epochs (Filter's ``record``)
+    mounting_finding: str  # what the start at rest said of the mounting ("": nothing)
+    _C: tuple[tuple[float, ...], ...]  # imu.mounting, sensor -> body
     def _try_start(self, t_ns: int, fix: LsqFix | None) -> None:
         cfg = self.cfg
         if fix is None or self.window.means() is None:
@@ -151,6 +154,35 @@ class Recovery:
         self._tilt_bad_ns = None
         self.counters["initialisations"] += 1
         self.counters[f"started_{how}"] += 1
+        if how == "rest":
+            self._judge_mounting()
+
+    def _judge_mounting(self) -> None:
+        """At a start at rest the IMU's mean specific force, in body axes (forward-left-up,
+        through ``imu.mounting``), points along +z: gravity more than ``MAX_REST_TILT_DEG``
+        from it is a vehicle standing that tilted, or, far more often, a mounting typed
+        wrong (an upside-down sensor, a 90° turn). Said (a note, the status's
+        ``mounting_finding``), not judged unhealthy: a ramp is not a fault."""
+        means = self.window.means()
+        if means is None:
+            return
+        acc = np.asarray(means[0], dtype=float)
+        norm = float(np.linalg.norm(acc))
+        tilt = math.degrees(math.acos(min(max(acc[2] / norm, -1.0), 1.0))) if norm > 0 else 0.0
+        self.monitor.mounting_suspect = tilt > MAX_REST_TILT_DEG
+        if not self.monitor.mounting_suspect:
+            self.mounting_finding = ""
+            return
+        sensor = np.array(self._C).T @ acc  # the same force in the sensor's own axes
+        k = int(np.argmax(np.abs(sensor)))
+        up = f"{'+' if sensor[k] > 0 else '-'}{'xyz'[k]}"
+        now = np.array(self._C)[:, k] * np.sign(sensor[k])
+        j = int(np.argmax(np.abs(now)))
+        self.mounting_finding = (
+            f"at rest the IMU reads gravity {tilt:.0f} deg from the body's up axis: the "
+            f"vehicle stands that tilted, or imu.mounting is wrong: the sensor's {up} axis "
+            f"points up, and imu.mounting turns it into the body's "
+            f"{'+' if now[j] > 0 else '-'}{'xyz'[j]} (forward-left-up: up is +z)")
 
     def _coast(self, dt: float) -> None:
         ekf = self.ekf
