@@ -14,7 +14,8 @@ simulated sensors' specs; imported runs carry anchors, mounting and lever arm on
   with UWB least squares beside it for reference.
 
 Faults on the seed layout: the IMU pinned at full scale for 0.5 s, one corrupted sample,
-a 30 s IMU gap, a 20 s UWB outage. Printed per fault: exceptions, non-finite poses, the
+a 30 s IMU gap, a 20 s UWB outage, every anchor NLOS (+0.5-2 m each) for 10 s (3 seeds).
+Printed per fault: exceptions, non-finite poses, the
 largest error during and after it, how long after the data returned the error was back
 under 0.3 m for good, whether the filter said "tracking" while more than 1 m off, how
 often σ covered the error (|e_xy| ≤ 3 σ_xy) during the fault, and the largest heading
@@ -170,6 +171,9 @@ def faults() -> None:
     fault_case("one corrupted sample", SimConfig(imu_spikes_s=(20.0,)), 20.0, 20.01)
     fault_case("IMU gap 30 s", SimConfig(imu_gaps_s=((12.0, 30.0),)), 12.0, 42.0)
     fault_case("UWB outage 20 s", SimConfig(uwb_outages_s=((15.0, 20.0),)), 15.0, 35.0)
+    for seed in range(3):
+        fault_case(f"all NLOS 10 s, seed {seed}",
+                   SimConfig(seed=seed, nlos_all_s=((30.0, 10.0),)), 30.0, 40.0)
 
 
 def wrong_installation(seeds: int) -> None:

@@ -102,6 +102,8 @@ class SimConfig:
     # faults, windows (start s, duration s) from the run's start
     anchor_outages_s: tuple[tuple[int, float, float], ...] = ()  # (anchor index, start, dur)
     uwb_outages_s: tuple[tuple[float, float], ...] = ()
+    nlos_all_s: tuple[tuple[float, float], ...] = ()  # every anchor NLOS (epochs), each by
+    nlos_all_extra_m: tuple[float, float] = (0.5, 2.0)  # its own U(lo, hi), a window long
     imu_gaps_s: tuple[tuple[float, float], ...] = ()
     imu_saturations_s: tuple[tuple[float, float], ...] = ()
     imu_spikes_s: tuple[float, ...] = ()  # the sample nearest each time is corrupted
@@ -307,6 +309,11 @@ def _epochs(cfg: SimConfig, rng: np.random.Generator, t: Array, p: Array, yaw: A
     nlos_extra = np.zeros(len(anchors))
     start_prob = (cfg.nlos_rate_hz / cfg.uwb_rate_hz if not cfg.anchor_nlos_rate_hz
                   else _nlos_rates(cfg) / cfg.uwb_rate_hz)
+    # per window of nlos_all_s and anchor, its delay (a generator of its own: the rest of
+    # the run is the same with or without); row 0: outside every window
+    extra_rng = np.random.default_rng([cfg.seed, 7])
+    all_nlos = np.vstack([np.zeros(len(anchors)), extra_rng.uniform(
+        *cfg.nlos_all_extra_m, (len(cfg.nlos_all_s), len(anchors)))])
     out: list[UwbRanges] = []
     for k in range(0, len(t), uwb_step):
         tk = t[k]
@@ -318,6 +325,7 @@ def _epochs(cfg: SimConfig, rng: np.random.Generator, t: Array, p: Array, yaw: A
         d = np.linalg.norm(anchors - p_ant, axis=1) + range_bias_m
         d += rng.normal(0, cfg.range_noise_m, len(anchors))
         d += np.where(nlos_until >= tk, nlos_extra, 0.0)
+        d += all_nlos[_window_index(tk, cfg.nlos_all_s)] if cfg.nlos_all_s else 0.0
         keep = rng.random(len(anchors)) >= cfg.dropout_prob
         if cfg.uwb_outages_s and _in_windows(np.array([tk]), cfg.uwb_outages_s)[0]:
             continue  # after the draws: an outage changes nothing else in the run
@@ -325,6 +333,14 @@ def _epochs(cfg: SimConfig, rng: np.random.Generator, t: Array, p: Array, yaw: A
                        if not _anchor_out(cfg, int(i), tk))
         out.append(UwbRanges(EPOCH_NS + round(tk * 1e9), ranges))
     return out
+
+
+def _window_index(t_s: float, windows: tuple[tuple[float, float], ...]) -> int:
+    """1 + the index of the window (start, duration) holding ``t_s``; 0 for none."""
+    for k, (start, duration) in enumerate(windows):
+        if start <= t_s < start + duration:
+            return k + 1
+    return 0
 
 
 def _round_robin(cfg: SimConfig, rng: np.random.Generator, t: Array, p: Array, yaw: Array,

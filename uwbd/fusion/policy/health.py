@@ -137,6 +137,7 @@ class HealthMonitor:
         self.mirror_unresolved = False
         self.anchor_suspects: tuple[int, ...] = ()  # checks.anchor_consistency's
         self.mounting_suspect = False  # gravity far from body up at the start at rest
+        self._after_reset = False
 
     # -- evidence -------------------------------------------------------------------------
     def uwb_outcome(self, t_ns: int, accepted: bool, nis: float) -> None:
@@ -164,6 +165,9 @@ class HealthMonitor:
             self._nis_sum -= old_nis
         if self._rejudging and len(out) >= self.limits.window_count:
             self._rejudging = False  # a full window since the ranges came back
+        if (self._after_reset and len(out) >= self.limits.window_count
+                and not self._window_inconsistent()):
+            self._after_reset = False  # a full window since the reset, and it agrees
         if self._window_inconsistent():
             if self._inconsistent_since_ns is None:
                 self._inconsistent_since_ns = t_ns
@@ -185,6 +189,7 @@ class HealthMonitor:
         self._inconsistent_since_ns = None
         self._rejudging = False
         self.anchor_suspects = ()
+        self._after_reset = True  # recovering until a window of innovations agrees
 
     # -- judgements -----------------------------------------------------------------------
     def _window_inconsistent(self) -> bool:
@@ -234,7 +239,7 @@ class HealthMonitor:
         recent_reset = reset_t is not None and t_ns - reset_t < lim.recover_hold_s * NS
         if not running:
             phase = Phase.RECOVERING if self.resets else Phase.WAITING
-        elif recent_reset and faults:
+        elif (recent_reset and faults) or self._after_reset:
             phase = Phase.RECOVERING
         elif since is None or since > lim.coast_after_s:
             phase = Phase.COASTING

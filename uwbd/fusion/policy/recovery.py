@@ -40,6 +40,7 @@ FADE_PER_S = 1.0  # variance growth rate while the innovations are inconsistent
 SLOW_FADE_PER_S = 0.25
 MAX_FADE_STEP_NS = NS // 5
 REPEATED_RESET_NS = 10 * NS  # a second divergence this soon after a position reset restarts
+FIX_HEIGHT_MARGIN_M = 3.0  # a reset's fix this far above or below every anchor is refused
 MAX_REST_TILT_DEG = 30.0  # gravity this far from body up at a start at rest: said
 
 
@@ -65,6 +66,7 @@ class Recovery:
     _first_t_ns: int | None
     _fixes: collections.deque[tuple[int, Array]]
     stillness: UwbStillness
+    _anchors: dict[int, tuple[float, float, float]]
     _last_good_P: Array | None  # noqa: N815 - P as in docs/ekf.md
     _relevel: str | None
     _tilt_bad_ns: int | None
@@ -84,6 +86,9 @@ class Recovery:
         else:
             waited_long = (t_ns - (self._first_t_ns or t_ns)) / NS >= cfg.init_max_wait_s
         recent = [(t, p) for t, p in self._fixes if t >= t_ns - cfg.init_static_s * NS]
+        if self._start_started_ns is not None and not self._plausible_height(fix):
+            self.counters["fix_height_implausible"] += 1  # a restart waits for a fix that can be
+            return
         start = start_state(cfg, self.window, fix, recent, list(self._fixes), waited_long,
                             self._carry, len(self._bias_index), self.lever, len(self._mp_index))
         if start is None:
@@ -297,8 +302,23 @@ class Recovery:
 
     def _consistent(self, fix: LsqFix, anchors: Array, ranges: Array) -> bool:
         cfg = self.cfg
+        if not self._plausible_height(fix):
+            self.counters["fix_height_implausible"] += 1
+            return False
         return consistent(fix, anchors, ranges, cfg.range_sigma_m, cfg.tag_delay_sigma_m,
                           self.ranges.needed)
+
+    def _plausible_height(self, fix: LsqFix) -> bool:
+        """The fix's height within ``height_range_m``, or else within the anchors' heights
+        widened by ``FIX_HEIGHT_MARGIN_M``: NLOS on every anchor at once leaves residuals
+        as small as a true fix's, at a place metres above or below any the tag can be."""
+        z = float(fix.position_m[2])
+        if self.cfg.height_range_m is not None:
+            low, high = self.cfg.height_range_m
+            return low <= z <= high
+        heights = [pos[2] for pos in self._anchors.values()]
+        return not heights or (min(heights) - FIX_HEIGHT_MARGIN_M <= z
+                               <= max(heights) + FIX_HEIGHT_MARGIN_M)
 
     def _inflate(self, velocity_mps: float, attitude_rad: float, position_m: float = 0.0) -> None:
         ekf = self.ekf
