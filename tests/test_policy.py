@@ -60,6 +60,8 @@ def test_faults_a_reset_and_the_heading_each_show_in_the_phase() -> None:
     monitor.uwb_outcome(T0, True, 1.0)
     assert monitor.assess(T0, True, False, 0.05, True).phase is Phase.ALIGNING
     assert "position_uncertain" in monitor.assess(T0, True, True, 0.5, True).faults
+    assert "position_uncertain" in monitor.assess(T0, True, True, 0.05, True, 0.8).faults
+    assert "position_uncertain" not in monitor.assess(T0, True, True, 0.05, True, 0.3).faults
     assert monitor.assess(T0, True, True, math.nan, True).phase is Phase.DEGRADED
     assert "state_not_finite" in monitor.assess(T0, True, True, 0.05, False).faults
     monitor.imu_rejected(T0)

@@ -20,8 +20,9 @@ positive definiteness along a measurement), ``innovations_inconsistent`` (most o
 ``window_count`` UWB measurements, or the last four, fail the gate, or their NIS is far
 above 1), ``imu_rejected`` (a sample was rejected within the last second), ``imu_gap``,
 ``range_timeout`` (no accepted range for ``range_timeout_s``), ``position_uncertain``
-(horizontal σ above ``max_sigma_m``), ``anchor_inconsistent`` (an anchor's ranges disagree
-with the others': :mod:`uwbd.fusion.checks.anchor_consistency`; the status names it).
+(horizontal σ above ``max_sigma_m``, or vertical σ above ``max_vertical_sigma_m``),
+``anchor_inconsistent`` (an anchor's ranges disagree with the others':
+:mod:`uwbd.fusion.checks.anchor_consistency`; the status names it).
 Notes do not make the estimate unhealthy: ``mirror_unresolved`` (coplanar anchors, side
 not yet told by the data, the configured or default side in use), ``mounting_suspect``
 (at the start at rest gravity was over 30° from the body's up axis: a wrong
@@ -107,6 +108,7 @@ class HealthLimits:
     coast_after_s: float = 1.0
     range_timeout_s: float = 5.0
     max_sigma_m: float = 0.3  # horizontal σ above this is not a trustworthy fix
+    max_vertical_sigma_m: float = 0.5  # nor a vertical σ above this
     window_count: int = 12  # innovations judged over the last this many UWB measurements
     max_rejected_fraction: float = 0.5
     max_mean_nis: float = 6.0  # of the window's NIS, each clipped at 25
@@ -213,7 +215,10 @@ class HealthMonitor:
         return since is not None and t_ns - since >= self.limits.diverged_after_s * NS
 
     def assess(self, t_ns: int, running: bool, heading_observable: bool,
-               position_sigma_m: float | None, finite: bool) -> Health:
+               position_sigma_m: float | None, finite: bool,
+               vertical_sigma_m: float | None = 0.0) -> Health:
+        """``position_sigma_m``: √(σx² + σy²); ``vertical_sigma_m``: σz (``None``: not
+        known, uncertain)."""
         lim = self.limits
         since = None if self.last_range_ns is None else (t_ns - self.last_range_ns) / NS
         faults = []
@@ -229,7 +234,9 @@ class HealthMonitor:
             faults.append("imu_gap")
         if running and since is not None and (since > lim.range_timeout_s or self._rejudging):
             faults.append("range_timeout")  # or just back, the state not yet judged again
-        if running and (position_sigma_m is None or not position_sigma_m <= lim.max_sigma_m):
+        if running and (position_sigma_m is None or not position_sigma_m <= lim.max_sigma_m
+                        or vertical_sigma_m is None
+                        or not vertical_sigma_m <= lim.max_vertical_sigma_m):
             faults.append("position_uncertain")
         if running and self.anchor_suspects:
             faults.append("anchor_inconsistent")

@@ -44,8 +44,10 @@ class FilterOutputs:
             return self.monitor.assess(t_ns, False, False, None, True)
         P = ekf.P
         sigma_xy = math.sqrt(max(P[0, 0] + P[1, 1], 0.0))
-        finite = math.isfinite(sigma_xy + sum(ekf.p) + sum(ekf.v) + sum(ekf.q))
-        return self.monitor.assess(t_ns, True, self.heading_observable(), sigma_xy, finite)
+        sigma_z = math.sqrt(max(P[2, 2], 0.0))
+        finite = math.isfinite(sigma_xy + sigma_z + sum(ekf.p) + sum(ekf.v) + sum(ekf.q))
+        return self.monitor.assess(t_ns, True, self.heading_observable(), sigma_xy, finite,
+                                   sigma_z)
 
     @property
     def status(self) -> str:
@@ -67,7 +69,8 @@ class FilterOutputs:
             self._restart_not_finite(t_ns)
             return None
         covariance, sigma_xy, observable, position, velocity, orientation = numbers
-        health = self.monitor.assess(t_ns, True, observable, sigma_xy, True)
+        health = self.monitor.assess(t_ns, True, observable, sigma_xy, True,
+                                     math.sqrt(max(covariance[14], 0.0)))  # σz²: [2, 2]
         return Pose(t_ns, position, velocity, orientation, covariance, health.summary(),
                     observable, health)
 
