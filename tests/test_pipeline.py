@@ -75,3 +75,24 @@ def test_a_full_aligner_releases_early_and_counts_it() -> None:
     aligner = Aligner(wait_ns=1000, max_pending=2)
     released = [f.t_ns for t in (1, 2, 3, 4) for f in aligner.push(imu(t))]
     assert released == [1, 2] and aligner.overflow == 2
+
+
+def test_the_status_on_the_wall_clock_notices_silent_ports() -> None:
+    """Both sources stop (unplugged, stalled): the daemon's status ticks on the wall clock
+    keep coming, and the health they carry counts the silence — coasting after a second,
+    the IMU gap and the range timeout after five, never healthy — where it stayed at the
+    last data's verdict, 'tracking', since_range_s frozen."""
+    sim = simulate(SimConfig(segments=((4.0, 0.0, 0.0, 0.0), (5.0, 1.5, 0.0, 0.0),
+                                       (5.2, 1.5, 0.3, 0.0), (5.0, 1.2, 0.0, 0.2)), seed=3))
+    sink = PoseList()
+    pipeline = Pipeline(parse(simulation_toml(sim)), [sink])
+    for frame in merge(sim.imu, sim.uwb):
+        pipeline.on_frame(frame)
+    last_ns = max(sim.imu[-1].t_ns, sim.uwb[-1].t_ns)
+    assert pipeline.status(last_ns)["health"]["healthy"]
+    for after_s, phase, faults in ((0.05, "tracking", set()), (2.0, "coasting", {"imu_gap"}),
+                                   (6.0, "coasting", {"imu_gap", "range_timeout"})):
+        health = pipeline.status(last_ns + int(after_s * 1e9))["health"]
+        assert health["phase"] == phase and faults <= set(health["faults"]), health
+        assert health["since_range_s"] >= after_s - 0.2
+    assert pipeline.filter.pose() is not None  # the estimate itself is the data's, unchanged

@@ -252,7 +252,8 @@ class Pipeline:
         pose = flt.pose()
         out: dict[str, Any] = {
             "timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
-            "t_ns": t_ns, "version": __version__, "filter": flt.status, **flt.diagnostics(),
+            "t_ns": t_ns, "version": __version__, "filter": flt.health(t_ns).summary(),
+            **flt.diagnostics(t_ns),
             "heading_observable": bool(pose and pose.heading_observable),
             "poses": self.poses, "fusion_counters": dict(flt.counters),
             "gating_rejections": dict(flt.gating.rejections),

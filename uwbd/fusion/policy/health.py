@@ -216,9 +216,9 @@ class HealthMonitor:
 
     def assess(self, t_ns: int, running: bool, heading_observable: bool,
                position_sigma_m: float | None, finite: bool,
-               vertical_sigma_m: float | None = 0.0) -> Health:
+               vertical_sigma_m: float | None = 0.0, imu_silent: bool = False) -> Health:
         """``position_sigma_m``: √(σx² + σy²); ``vertical_sigma_m``: σz (``None``: not
-        known, uncertain)."""
+        known, uncertain); ``imu_silent``: no good IMU sample for longer than an IMU gap."""
         lim = self.limits
         since = None if self.last_range_ns is None else (t_ns - self.last_range_ns) / NS
         faults = []
@@ -230,7 +230,7 @@ class HealthMonitor:
             faults.append("innovations_inconsistent")
         if self._imu_fault_ns is not None and t_ns - self._imu_fault_ns < lim.imu_fault_hold_s * NS:
             faults.append("imu_rejected")
-        if self.imu_gap:
+        if self.imu_gap or (running and imu_silent):
             faults.append("imu_gap")
         if running and since is not None and (since > lim.range_timeout_s or self._rejudging):
             faults.append("range_timeout")  # or just back, the state not yet judged again

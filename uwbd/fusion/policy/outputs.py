@@ -14,9 +14,11 @@ from uwbd.fusion.core.eskf import Eskf
 from uwbd.fusion.policy.health import WAITING, Health, HealthMonitor
 from uwbd.fusion.policy.mirror import MirrorSide
 from uwbd.fusion.policy.robust import AnchorStats
+from uwbd.fusion.settings import FilterConfig
 from uwbd.fusion.types import Pose
 
 Vec3 = tuple[float, float, float]
+NS = 1_000_000_000
 MAX_OBSERVABLE_YAW_SIGMA = math.radians(10)  # the heading counts as known below this σ
 
 
@@ -26,6 +28,8 @@ class FilterOutputs:
     ekf: Eskf | None
     t_ns: int | None
     _imu_t_ns: int | None
+    _good_imu_ns: int | None
+    cfg: FilterConfig
     monitor: HealthMonitor
     mirror: MirrorSide
     anchor_stats: dict[int, AnchorStats]
@@ -34,12 +38,18 @@ class FilterOutputs:
     _aligned: bool
     _restart_not_finite: Callable[[int], None]  # the filter's (recovery)
 
-    def health(self) -> Health:
-        """The health record, rebuilt from the evidence now."""
+    def health(self, now_ns: int | None = None) -> Health:
+        """The health record, rebuilt from the evidence, at the state's time or at
+        ``now_ns`` if later (the daemon's status on the wall clock: silent ports make the
+        time since the last range and the last IMU sample grow, and the health says so)."""
         ekf = self.ekf
         t_ns = self.t_ns if self.t_ns is not None else self._imu_t_ns
         if t_ns is None:
             return WAITING
+        if now_ns is not None and now_ns > t_ns:
+            t_ns = now_ns
+        good = self._good_imu_ns
+        imu_silent = good is not None and t_ns - good > self.cfg.max_imu_gap_s * NS
         if ekf is None:
             return self.monitor.assess(t_ns, False, False, None, True)
         P = ekf.P
@@ -47,7 +57,7 @@ class FilterOutputs:
         sigma_z = math.sqrt(max(P[2, 2], 0.0))
         finite = math.isfinite(sigma_xy + sigma_z + sum(ekf.p) + sum(ekf.v) + sum(ekf.q))
         return self.monitor.assess(t_ns, True, self.heading_observable(), sigma_xy, finite,
-                                   sigma_z)
+                                   sigma_z, imu_silent)
 
     @property
     def status(self) -> str:
@@ -74,10 +84,11 @@ class FilterOutputs:
         return Pose(t_ns, position, velocity, orientation, covariance, health.summary(),
                     observable, health)
 
-    def diagnostics(self) -> dict[str, Any]:
-        """For the status: the health record, the mirror side, per-anchor range statistics."""
+    def diagnostics(self, now_ns: int | None = None) -> dict[str, Any]:
+        """For the status: the health record (at ``now_ns``, as :meth:`health`), the mirror
+        side, per-anchor range statistics and findings."""
         m = self.mirror
-        return {"health": self.health().as_dict(),
+        return {"health": self.health(now_ns).as_dict(),
                 "mirror": {"ambiguous": m.ambiguous, "side": "above" if m.sign > 0 else "below",
                            "decided_by": m.decided_by, "resolved": m.resolved},
                 "anchors": {str(a): s.as_dict() for a, s in sorted(self.anchor_stats.items())},
