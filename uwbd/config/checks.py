@@ -36,6 +36,7 @@ from uwbd.config.schema import (
 )
 from uwbd.config.spelling import known, show, toml_key
 from uwbd.fusion.filter import MAX_ANCHOR_COORD_M, Filter
+from uwbd.fusion.models.range_model import n_coefficients
 from uwbd.fusion.policy.fusing import MAX_RANGE_BIAS_SIGMA_M
 from uwbd.fusion.settings import IDENTITY3
 
@@ -69,24 +70,25 @@ class Report:
         return SECTIONS.index(section) + 1 if section in SECTIONS else 0
 
 
-def mounting_rotation(r: Report, rows: list[list[float]] | None) -> tuple[Vec3, Vec3, Vec3]:
-    """``imu.mounting`` as a rotation; rows orthonormal only to a typed-in precision are
-    replaced by the nearest rotation (the filter wants them exact)."""
+def mounting_rotation(r: Report, rows: list[list[float]] | None, key: str = "imu.mounting",
+                      what: str = "sensor -> body") -> tuple[Vec3, Vec3, Vec3]:
+    """``imu.mounting`` (or another ``key``'s rows) as a rotation; rows orthonormal only to a
+    typed-in precision are replaced by the nearest rotation (the filter wants them exact)."""
     if rows is None:
         return IDENTITY3
     C = np.array(rows, dtype=float)
     off = float(np.abs(C @ C.T - np.eye(3)).max())
     det = float(np.linalg.det(C))
     if off > ROTATION_TOLERANCE or det < 0:
-        r.error("imu.mounting", "rows must be orthonormal with determinant +1 (a rotation "
-                f"sensor -> body), got det {det:.3f}"
+        r.error(key, "rows must be orthonormal with determinant +1 (a rotation "
+                f"{what}), got det {det:.3f}"
                 + (f", rows off orthonormal by up to {off:.3g}" if off > ROTATION_TOLERANCE
                    else ""))
         return IDENTITY3
     if not np.allclose(C @ C.T, np.eye(3), atol=1e-9, rtol=0.0):
         U, _, Vt = np.linalg.svd(C)
         C = U @ Vt
-        r.warn("imu.mounting", f"rows are orthonormal to {off:.1g} only: the nearest rotation "
+        r.warn(key, f"rows are orthonormal to {off:.1g} only: the nearest rotation "
                "is used")
     a, b, c = (vec3(row) for row in C.tolist())
     return (a, b, c)
@@ -195,6 +197,35 @@ def check_fusion(r: Report, fusion: Mapping[str, Any], anchors: Mapping[int, Vec
             r.warn("fusion.max_range_m", f"{fusion['max_range_m']:g} m, less than the "
                    f"{spread:.1f} m between the farthest anchors: ranges across the site "
                    "are dropped")
+
+
+MAX_TAG_TERM_M = 0.3  # an antenna's direction term is centimetres; more is not an antenna
+
+
+def check_range_model(r: Report, model: dict[str, Any]) -> None:
+    """``[range_model]``: as many coefficients as the degree takes, each plausible for an
+    antenna; the tag's mounting a rotation (kept orthonormalised in the table)."""
+    degree = model.get("tag_degree", 0)
+    coefficients = model.get("tag_coefficients_m")
+    if "tag_mounting" in model:
+        model["tag_mounting"] = [list(row) for row in mounting_rotation(
+            r, model["tag_mounting"], "range_model.tag_mounting", "tag axes -> body")]
+    if degree == 0:
+        if coefficients:
+            r.error("range_model.tag_coefficients_m", "given without range_model.tag_degree: "
+                    "set the degree they were fitted for (uwbd calibrate-ranges writes both)")
+        return
+    n = n_coefficients(degree)
+    if coefficients is None or len(coefficients) != n:
+        r.error("range_model.tag_coefficients_m", f"degree {degree} takes {n} coefficients "
+                "(degrees 1..{0}, m = -l..l each), got ".format(degree)
+                + ("none" if coefficients is None else str(len(coefficients))))
+        return
+    big = [i for i, c in enumerate(coefficients) if abs(c) > MAX_TAG_TERM_M]
+    if big:
+        r.error("range_model.tag_coefficients_m", f"element {big[0]} is "
+                f"{coefficients[big[0]]:g} m: an antenna's direction term is at most "
+                f"{MAX_TAG_TERM_M:g} m (are they in metres?)")
 
 
 def check_imu(r: Report, imu: Mapping[str, Any], lever: Vec3) -> None:

@@ -16,6 +16,7 @@ from uwbd.config.checks import (
     check_filter,
     check_fusion,
     check_imu,
+    check_range_model,
     check_sources,
     check_zenoh,
     mounting_rotation,
@@ -84,6 +85,7 @@ def parse(text: str, where: str = "<config>") -> Config:
     check_sources(r, sources, sources_complete)
     check_anchors(r, anchors, anchor_keys, anchors_complete, sources, fusion)
     check_fusion(r, fusion, anchors)
+    check_range_model(r, tables["range_model"])
     check_imu(r, imu, lever)
     check_zenoh(r, zenoh)
     if r.errors:
@@ -95,8 +97,8 @@ def parse(text: str, where: str = "<config>") -> Config:
         imu_limits={k: float(imu[k]) for k in IMU_LIMIT_KEYS if k in imu},
         imu_intrinsics={k: vec3(imu[k]) if k in IMU_INTRINSIC_VECTORS else float(imu[k])
                         for k in IMU_INTRINSIC_KEYS if k in imu},
-        fusion=fusion, pipeline=tables["pipeline"], log=tables["log"], zenoh=zenoh,
-        robot=tables["robot"], text=text,
+        fusion=fusion, range_model=tables["range_model"], pipeline=tables["pipeline"],
+        log=tables["log"], zenoh=zenoh, robot=tables["robot"], text=text,
         warnings=tuple(r.warnings))
     check_filter(r, config)  # a last net: what only the filter understands
     if r.errors:

@@ -15,6 +15,7 @@ from uwbd.config.model import IMU_INTRINSIC_VECTORS, IMU_LIMIT_KEYS, IMU_NOISE_K
 from uwbd.config.spelling import maybe, show, type_name
 from uwbd.fusion.core.eskf import ImuNoise
 from uwbd.fusion.filter import MAX_ANCHOR_COORD_M
+from uwbd.fusion.models.range_model import MAX_DEGREE
 from uwbd.fusion.settings import Mode
 
 
@@ -45,6 +46,8 @@ ENDPOINTS = Kind("an array of endpoint strings (\"tcp/192.168.1.10:7447\")",
 VEC3 = Kind("[x, y, z] of finite numbers", lambda v: _is_finite_vec(v, 3))
 ROWS = Kind("3 rows of 3 finite numbers ([[1, 0, 0], [0, 1, 0], [0, 0, 1]])",
             lambda v: isinstance(v, list) and len(v) == 3 and all(_is_finite_vec(r, 3) for r in v))
+NUMBERS = Kind("an array of finite numbers", lambda v: isinstance(v, list) and all(
+    _is_number(x) and math.isfinite(x) for x in v))
 PAIR = Kind("[lowest, highest] of finite numbers, in m", lambda v: _is_finite_vec(v, 2))
 
 
@@ -144,10 +147,16 @@ FRAME_ID = Kind("a frame name of letters, digits, '_', '-', '.' and '/' (\"base_
                 and re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_./-]*", v) is not None)
 _ROBOT_SPEC = {"name": Key(NAME), "nav_frame_id": Key(FRAME_ID),
                "body_frame_id": Key(FRAME_ID)}
+# the tag antenna's direction-dependent delay (uwbd.fusion.models.range_model), as
+# `uwbd calibrate-ranges` writes it
+_RANGE_MODEL_SPEC = {"tag_degree": Key(INTEGER, Range(0.0, MAX_DEGREE, lo_closed=True)),
+                     "tag_coefficients_m": Key(NUMBERS), "tag_mounting": Key(ROWS),
+                     "calibrated_from": Key(STRING)}
 TABLES: dict[str, dict[str, Key]] = {
-    "imu": _IMU_SPEC, "fusion": _FUSION_SPEC, "pipeline": _PIPELINE_SPEC, "log": _LOG_SPEC,
-    "zenoh": _ZENOH_SPEC, "robot": _ROBOT_SPEC}
-SECTIONS = ("sources", "anchors", "imu", "fusion", "pipeline", "log", "zenoh", "robot")
+    "imu": _IMU_SPEC, "fusion": _FUSION_SPEC, "range_model": _RANGE_MODEL_SPEC,
+    "pipeline": _PIPELINE_SPEC, "log": _LOG_SPEC, "zenoh": _ZENOH_SPEC, "robot": _ROBOT_SPEC}
+SECTIONS = ("sources", "anchors", "imu", "fusion", "range_model", "pipeline", "log", "zenoh",
+            "robot")
 
 
 def anchor_id(key: str) -> int | None:

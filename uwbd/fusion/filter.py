@@ -107,13 +107,18 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         self._acc_to_body, self._gyro_to_body = to_body(rows, config.imu_intrinsics,
                                                         self._to_body)
         self.intrinsics_applied = not config.imu_intrinsics.is_identity
-        self.lever = np.array(config.lever_arm_m, dtype=float)
+        # range rows' lever arm: the antenna's, or, with the range model applied, its phase
+        # centre's (EpochFusion._apply_range_model)
+        self._plain_lever = np.array(config.lever_arm_m, dtype=float)
+        self._model_lever = self._plain_lever + config.range_model.phase_centre_m()
+        self.lever = self._plain_lever
         self._lever = tuple(float(c) for c in config.lever_arm_m)
         self.ekf: Eskf | None = None
         self.counters: collections.Counter[str] = collections.Counter()
         self.gating = GatingCounters()
         self.anchor_stats: dict[int, AnchorStats] = {}
         self.monitor = HealthMonitor(config.health)
+        self.monitor.range_model_held = config.range_model.enabled  # until the heading is known
         self.consistency = AnchorConsistency(ConsistencyLimits())
         self._excluded: set[int] = set()
         self.mounting_finding = ""
@@ -268,6 +273,7 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
             self._constraints_ns = t_ns
             constraints = self._constraints()
         prior = self._snapshot() if self.records is not None else None
+        ranges = self._apply_range_model(anchors, ranges)
         self._check_anchors(t_ns, ids, anchors, ranges, r_scale)
         ids, anchors, ranges, r_scale = self._exclude_findings(t_ns, ids, anchors, ranges,
                                                                r_scale, reports)

@@ -49,6 +49,8 @@ class EpochFusion:
     cfg: FilterConfig
     ekf: Eskf | None
     lever: Array
+    _plain_lever: Array
+    _model_lever: Array
     counters: collections.Counter[str]
     monitor: HealthMonitor
     consistency: AnchorConsistency
@@ -63,6 +65,23 @@ class EpochFusion:
     _aligned: bool
     _at_rest: bool
     _imu_fresh: Callable[[], bool]  # the filter's: the last IMU sample is recent
+
+    def _apply_range_model(self, anchors: Array, ranges: Array) -> Array:
+        """The tag antenna's direction term (:mod:`~uwbd.fusion.models.range_model`), once
+        the heading is known: its degree 1 as the antenna's phase centre (the lever arm of
+        the range rows), higher degrees taken off the ranges at the prior attitude. Before,
+        the term would be turned by a heading that may be anything: it is held back (the
+        health note ``range_model_held``)."""
+        model = self.cfg.range_model
+        if not model.enabled:
+            return ranges
+        self.monitor.range_model_held = not self._aligned
+        self.lever = self._model_lever if self._aligned else self._plain_lever
+        ekf = self.ekf
+        if not self._aligned or model.degree < 2 or ekf is None:
+            return ranges
+        R = ekf.R
+        return ranges - model.higher_delay_m(R, np.array(ekf.p) + R @ self.lever, anchors)
 
     def _measurement_rows(self, ids: list[int], anchors: Array, ranges: Array,
                           r_scale: Array, fix: LsqFix | None) -> Rows:

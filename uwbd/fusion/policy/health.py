@@ -26,7 +26,9 @@ above 1), ``imu_rejected`` (a sample was rejected within the last second), ``imu
 Notes do not make the estimate unhealthy: ``mirror_unresolved`` (coplanar anchors, side
 not yet told by the data, the configured or default side in use), ``mounting_suspect``
 (at the start at rest gravity was over 30° from the body's up axis: a wrong
-``imu.mounting``, or a vehicle on a slope; the status's ``mounting_finding`` says which way).
+``imu.mounting``, or a vehicle on a slope; the status's ``mounting_finding`` says which way),
+``range_model_held`` (a ``[range_model]`` is configured but not applied yet: it needs the
+heading, which is not known yet).
 """
 
 from __future__ import annotations
@@ -139,6 +141,7 @@ class HealthMonitor:
         self.mirror_unresolved = False
         self.anchor_suspects: tuple[int, ...] = ()  # checks.anchor_consistency's
         self.mounting_suspect = False  # gravity far from body up at the start at rest
+        self.range_model_held = False  # a range model configured, not applied yet (no heading)
         self._after_reset = False
 
     # -- evidence -------------------------------------------------------------------------
@@ -241,7 +244,8 @@ class HealthMonitor:
         if running and self.anchor_suspects:
             faults.append("anchor_inconsistent")
         notes = (("mirror_unresolved",) if self.mirror_unresolved else ()) + (
-            ("mounting_suspect",) if self.mounting_suspect else ())
+            ("mounting_suspect",) if self.mounting_suspect else ()) + (
+            ("range_model_held",) if self.range_model_held else ())
         reset_t, reason, jump = self.last_reset or (None, "", None)
         recent_reset = reset_t is not None and t_ns - reset_t < lim.recover_hold_s * NS
         if not running:
