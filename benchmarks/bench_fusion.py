@@ -31,7 +31,7 @@ from drivers.frames import Frame, ImuSample, UwbRanges
 from uwbd.config import parse
 from uwbd.fusion.core import native
 from uwbd.fusion.core.rotation import Array
-from uwbd.fusion.settings import FilterConfig, Mode
+from uwbd.fusion.settings import Z_DOWN, FilterConfig, Mode
 from uwbd.tools.baselines import comparison_methods
 from uwbd.tools.evaluate import (
     HEADER,
@@ -47,7 +47,7 @@ from uwbd.tools.evaluate import (
 )
 from uwbd.tools.importer import load_iasl
 from uwbd.tools.logtools import simulation_toml
-from uwbd.tools.simulator import Z_DOWN, SimConfig, Simulation, handheld_async, simulate
+from uwbd.tools.simulator import SimConfig, Simulation, handheld_async, simulate
 
 ANCHORS_8 = ((-5.0, 30.0, 0.0), (-5.0, -30.0, 0.0), (10.0, 10.0, 5.0), (10.0, -10.0, 5.0),
              (20.0, 30.0, 0.0), (20.0, -30.0, 0.0), (0.0, 0.0, 3.0), (15.0, 0.0, 3.0))

@@ -43,13 +43,13 @@ import numpy as np
 
 from drivers.frames import UwbRanges
 from uwbd.config import parse
-from uwbd.fusion.settings import FilterConfig
+from uwbd.fusion.settings import Z_DOWN, FilterConfig
 from uwbd.fusion.types import Pose
 from uwbd.tools.baselines import UwbLeastSquares
 from uwbd.tools.evaluate import merge, run_filter, run_method, score, truth_spikes
 from uwbd.tools.importer import INROL_LEVER_ARM_M, INROL_MOUNTING, Dataset, load_iasl, load_inrol
 from uwbd.tools.logtools import simulation_toml
-from uwbd.tools.simulator import PRESETS, Z_DOWN, SimConfig, Simulation, simulate
+from uwbd.tools.simulator import PRESETS, SimConfig, Simulation, simulate
 
 Vec3 = tuple[float, float, float]
 Rotation = tuple[Vec3, Vec3, Vec3]

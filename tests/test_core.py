@@ -30,12 +30,12 @@ from uwbd.fusion.models.measurements import range_rows
 from uwbd.fusion.policy.outputs import MAX_OBSERVABLE_YAW_SIGMA
 from uwbd.fusion.policy.rest import ImuWindow, RestLimits
 from uwbd.fusion.policy.robust import RobustPolicy, RowPolicy
-from uwbd.fusion.settings import FilterConfig
+from uwbd.fusion.settings import Z_DOWN, FilterConfig
 from uwbd.fusion.types import Pose
 from uwbd.tools.evaluate import merge, run_filter, run_smoother
 from uwbd.tools.importer import INROL_LEVER_ARM_M, INROL_MOUNTING, load_iasl, load_inrol
 from uwbd.tools.logtools import simulation_toml
-from uwbd.tools.simulator import Z_DOWN, SimConfig, ceiling_room, handheld_async, simulate
+from uwbd.tools.simulator import SimConfig, ceiling_room, handheld_async, simulate
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 needs_core = pytest.mark.skipif(native.core is None, reason=f"C core: {native.implementation}")

@@ -19,7 +19,7 @@ from uwbd.config import ConfigError, apply_overrides, parse
 from uwbd.fusion.checks.intrinsics import ImuIntrinsics, to_body
 from uwbd.fusion.core.eskf import GRAVITY_MPS2, N_CORE, Eskf, ImuNoise
 from uwbd.fusion.filter import Filter
-from uwbd.fusion.settings import FilterConfig
+from uwbd.fusion.settings import Z_DOWN, FilterConfig
 from uwbd.logs.mcaplog import LogWriter
 from uwbd.logs.reading import read_log
 from uwbd.tools.evaluate import merge, run_filter, score_poses
@@ -27,7 +27,6 @@ from uwbd.tools.imu_calibration import Calibration, calibrate, write_capture
 from uwbd.tools.logtools import load_recording, simulation_toml
 from uwbd.tools.simulator import (
     DEFAULT_SEGMENTS,
-    Z_DOWN,
     SimConfig,
     simulate,
     six_position_capture,

@@ -161,6 +161,26 @@ def build_parser() -> argparse.ArgumentParser:
                    help="shortest still segment used, s (default 1.5)")
     p.set_defaults(func="tools:cmd_calibrate_imu")
 
+    p = add("calibrate-ranges", help="the range model from a log with ground truth",
+            description="Fit the tag antenna's direction-dependent delay (real spherical "
+            "harmonics of the ray in the tag's axes) and each anchor's antenna delay to a "
+            "log with ground truth (/truth: the tag's pose, or the IMU's with the config's "
+            "lever arm), by robust maximum likelihood; print each coefficient with its "
+            "sigma, every degree's held-out check (fitted on the first 70 %%, scored on the "
+            "rest) and the noise left. Record about 90 s, the tag turned through every "
+            "heading, near and far from every anchor.")
+    p.add_argument("log")
+    _config_outputs(p, "the [range_model] keys found as a TOML snippet",
+                    "with the [range_model] keys set")
+    p.add_argument("--degree", type=int, default=1, choices=range(0, 4),
+                   help="of the tag's term: 1 (default: a phase centre) to 3; 0 for the "
+                   "anchors' delays alone")
+    p.add_argument("--no-anchor-delays", action="store_true",
+                   help="write the tag's term only (the robot's anchors are other units than "
+                   "the calibration's: the filter estimates their delays)")
+    _tuning(p)
+    p.set_defaults(func="tools:cmd_calibrate_ranges")
+
     p = add("survey", help="the anchors' positions from a log's ranges",
             description="Estimate the anchor positions from a log: from anchor-to-anchor "
             "ranges (TREK1000 ma reports) by multilateration, and from a moving tag's ranges "

@@ -9,6 +9,7 @@ import json
 import os
 import tempfile
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,7 @@ from uwbd import journal
 from uwbd.codec import frame_from_dict
 from uwbd.config import Config, ConfigError, apply_overrides
 from uwbd.config import load as load_config
+from uwbd.config import parse as parse_config
 from uwbd.logs.reading import LogContents, not_a_log, read_log
 
 LOG = journal.get("cli")
@@ -190,3 +192,39 @@ def load_config_file(path: str, warn: bool = False) -> Config:
         for warning in config.warnings:
             LOG.warning("%s", warning)
     return config
+
+
+@dataclass(frozen=True)
+class ConfigRewrite:
+    """``--write-config BASE OUT``: the base config (it loads as it is) and where its copy
+    with the found keys goes."""
+
+    base: Path
+    text: str
+    out: Path
+
+    @staticmethod
+    def of(args: argparse.Namespace, *others: Path) -> ConfigRewrite | None:
+        """Checked before any work: ``OUT`` writable, and neither the base nor ``others``
+        (the log)."""
+        if not args.write_config:
+            return None
+        base, out = Path(args.write_config[0]), Path(args.write_config[1])
+        text = read_config_text(base)
+        if out.exists():
+            for other, what in ((base, "config"), *((o, "log") for o in others)):
+                if out.resolve() == other.resolve():
+                    raise UsageError(f"{out}: give another file to write, not the {what} "
+                                     "itself")
+        writable_folder(out, "the config")
+        return ConfigRewrite(base, text, out)
+
+    def write(self, overrides: list[str], said: str) -> None:
+        """The base with ``overrides`` set, checked as a config, written whole."""
+        try:
+            new = apply_overrides(self.text, overrides, str(self.base))
+            parse_config(new, str(self.out))
+        except ConfigError as err:
+            raise UsageError(str(err)) from err
+        write_atomically(self.out, new)
+        print(f"wrote {self.out}: {self.base} with {said}")

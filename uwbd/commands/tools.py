@@ -6,33 +6,28 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from uwbd.commands.common import (
+    ConfigRewrite,
     RunError,
     UsageError,
     driver_name,
     log_config,
     open_log,
-    read_config_text,
     require_replayable,
     tools_report,
     writable_folder,
     write_atomically,
 )
-from uwbd.config import ConfigError, apply_overrides
-from uwbd.tools.importer import (
-    INROL_LEVER_ARM_M,
-    INROL_MOUNTING,
-    Dataset,
-    DatasetError,
-    load_iasl,
-    load_inrol,
-)
+from uwbd.config import ConfigError
+from uwbd.tools.importer import Dataset, DatasetError, load_iasl, load_inrol
 from uwbd.tools.logtools import load_recording, write_dataset, write_simulation
-from uwbd.tools.simulator import Z_DOWN, SimConfig, segments_for, simulate
+from uwbd.tools.simulator import SimConfig, segments_for, simulate
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -55,32 +50,30 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-# dataset layout -> (loader, IMU mounting sensor -> body, IMU -> antenna lever arm m)
-IMPORTERS: dict[str, tuple[Callable[[Path], Dataset], Sequence[Sequence[float]],
-                           Sequence[float]]] = {
-    "iasl": (load_iasl, Z_DOWN, (0.0, 0.0, 0.0)),
-    "inrol": (load_inrol, INROL_MOUNTING, INROL_LEVER_ARM_M),
-}
+# dataset layout -> its loader (which says the IMU's mounting and lever arm)
+IMPORTERS: dict[str, Callable[[Path], Dataset]] = {"iasl": load_iasl, "inrol": load_inrol}
 
 
 def cmd_import(args: argparse.Namespace) -> int:
     """Turn a recorded dataset into a replayable log with its ground truth."""
     directory, out = Path(args.directory), Path(args.output)
     writable_folder(out, "the log")
-    load, mounting, lever_arm_m = IMPORTERS[args.format]
     try:
-        ds = load(directory)
+        ds = IMPORTERS[args.format](directory)
     except DatasetError as err:
         raise UsageError(str(err)) from err
     try:
-        write_dataset(ds, out, mounting, lever_arm_m, progress=sys.stderr.isatty())
+        write_dataset(ds, out, ds.mounting, ds.lever_arm_m, progress=sys.stderr.isatty())
     except OSError as err:
         out.unlink(missing_ok=True)  # half a log claims nothing
         raise RunError(f"cannot write {out}: {err.strerror or err}") from err
-    # the loaders return every stream non-empty and in time order
-    start = min(ds.imu[0].t_ns, ds.uwb[0].t_ns, int(ds.truth_t_ns[0]))
-    end = max(ds.imu[-1].t_ns, ds.uwb[-1].t_ns, int(ds.truth_t_ns[-1]))
-    print(f"{out}: {len(ds.imu)} IMU samples, {len(ds.uwb)} UWB messages "
+    # the loaders return ranges and truth non-empty, every stream in time order
+    starts = [ds.uwb[0].t_ns, int(ds.truth_t_ns[0])] + [f.t_ns for f in ds.imu[:1]]
+    ends = [ds.uwb[-1].t_ns, int(ds.truth_t_ns[-1])] + [f.t_ns for f in ds.imu[-1:]]
+    start, end = min(starts), max(ends)
+    print(f"{out}: " + (f"{len(ds.imu)} IMU samples" if ds.imu else
+                        "no IMU (a range-model calibration recording: calibrate-ranges)")
+          + f", {len(ds.uwb)} UWB messages "
           f"({sum(len(m.ranges) for m in ds.uwb)} ranges), {len(ds.truth_t_ns)} truth samples, "
           f"{(end - start) / 1e9:.1f} s from {directory}")
     return 0
@@ -118,7 +111,6 @@ def cmd_calibrate_imu(args: argparse.Namespace) -> int:
     static capture (:mod:`uwbd.tools.imu_calibration`); ``-o`` writes them as an ``[imu]``
     snippet, ``--write-config`` into a copy of a config."""
     from drivers.frames import ImuSample
-    from uwbd.config import parse as parse_config
     from uwbd.fusion.core.eskf import GRAVITY_MPS2
     from uwbd.tools.imu_calibration import MIN_STATIC_S, CalibrationError, calibrate
 
@@ -131,14 +123,7 @@ def cmd_calibrate_imu(args: argparse.Namespace) -> int:
     snippet = Path(args.output) if args.output else None
     if snippet is not None:
         writable_folder(snippet, "the [imu] snippet")
-    rewrite = None
-    if args.write_config:
-        base, out = Path(args.write_config[0]), Path(args.write_config[1])
-        text = read_config_text(base)  # the config must load as it is
-        if out.exists() and out.resolve() == base.resolve():
-            raise UsageError(f"{out}: give another file to write, not the config itself")
-        writable_folder(out, "the config")
-        rewrite = (base, text, out)
+    rewrite = ConfigRewrite.of(args)
     try:
         rec = load_recording(contents, str(path))
         logged_g = rec.config.imu_intrinsics.get("gravity_mps2")
@@ -163,15 +148,58 @@ def cmd_calibrate_imu(args: argparse.Namespace) -> int:
         write_atomically(snippet, cal.snippet(str(path)))
         print(f"wrote {snippet}: the [imu] keys (merge them into the config's [imu] section)")
     if rewrite is not None:
-        base, text, out = rewrite
-        try:
-            new = apply_overrides(text, cal.overrides(), str(base))
-            parse_config(new, str(out))
-        except ConfigError as err:
-            raise UsageError(str(err)) from err
-        write_atomically(out, new)
-        print(f"wrote {out}: {base} with imu.acc_scale, acc_offset_mps2, gyro_offset_rps and "
-              "gravity_mps2 set")
+        rewrite.write(cal.overrides(), "imu.acc_scale, acc_offset_mps2, gyro_offset_rps and "
+                      "gravity_mps2 set")
+    return 0
+
+
+def cmd_calibrate_ranges(args: argparse.Namespace) -> int:
+    """The range model (the tag antenna's direction term, the anchors' delays) from a log
+    with ground truth (:mod:`uwbd.tools.range_calibration`); ``-o`` writes the keys as a
+    snippet, ``--write-config`` into a copy of a config."""
+    path, contents = open_log(args.log, "calibrating from")
+    config_toml = log_config(args, path, contents)
+    snippet = Path(args.output) if args.output else None
+    if snippet is not None:
+        writable_folder(snippet, "the [range_model] snippet")
+    rewrite = ConfigRewrite.of(args, path)
+    try:
+        from uwbd.tools.range_calibration import (
+            RangeCalibrationError,
+            calibrate,
+            range_samples,
+        )
+    except ImportError as err:
+        raise UsageError(f"calibrate-ranges needs the tools extra ({err.name} is missing): pip "
+                         "install 'uwbd[tools]' (from a checkout: pip install '.[tools]')") from err
+    try:
+        rec = load_recording(contents, str(path), config_toml)
+    except ConfigError as err:
+        raise UsageError(str(err)) from err
+    if not len(rec.truth_t_ns):
+        raise UsageError(f"{path}: no ground truth (/truth): a range calibration needs the "
+                         "tag's or the IMU's true pose (record under motion capture; `uwbd "
+                         "import` keeps a dataset's)")
+    c, model = rec.config, rec.config.range_model_settings()
+    try:
+        samples = range_samples(rec.frames, c.anchors_m, rec.truth_t_ns, rec.truth_p_m,
+                                rec.truth_rotation, c.lever_arm_m, model.tag_mounting)
+        cal = calibrate(samples, args.degree)
+    except RangeCalibrationError as err:
+        raise UsageError(f"{path}: {err}") from err
+    mounted = ("tag axes = body axes" if np.allclose(model.tag_mounting, np.eye(3))
+               else "tag axes by range_model.tag_mounting")
+    print(cal.summary(str(path), mounted))
+    delays = not args.no_anchor_delays
+    if snippet is not None:
+        write_atomically(snippet, cal.snippet(str(path), delays))
+        print(f"wrote {snippet}: the [range_model] keys"
+              + (" and fusion.range_bias_states" if delays else "")
+              + " (merge them into the config)")
+    if rewrite is not None:
+        rewrite.write(cal.overrides(str(path), delays), "its [range_model] set"
+                      + (" and fusion.range_bias_states = false (the delays are known)"
+                         if delays else ""))
     return 0
 
 
@@ -189,15 +217,7 @@ def cmd_survey(args: argparse.Namespace) -> int:
         writable_folder(table_out, "the anchors")
         if table_out.exists() and table_out.resolve() == path.resolve():
             raise UsageError(f"{table_out}: give another file to write, not the log itself")
-    rewrite = None
-    if args.write_config:
-        base, out = Path(args.write_config[0]), Path(args.write_config[1])
-        text = read_config_text(base)  # the config must load as it is
-        if out.exists() and out.resolve() in (base.resolve(), path.resolve()):
-            raise UsageError(f"{out}: give another file to write, not the "
-                             f"{'config' if out.resolve() == base.resolve() else 'log'} itself")
-        writable_folder(out, "the config")
-        rewrite = (base, text, out)
+    rewrite = ConfigRewrite.of(args, path)
     if not 0 < args.prior_sigma < float("inf"):
         raise UsageError(f"--prior-sigma {args.prior_sigma:g}: expected a positive number of m")
 
@@ -268,13 +288,14 @@ def cmd_survey(args: argparse.Namespace) -> int:
         write_atomically(table_out, anchors_document(result, header))
         print(f"wrote {table_out}: the surveyed [anchors] table (replace the config's with it)")
     if rewrite is not None:
-        base, text, out = rewrite
         try:
-            new = with_anchors(text, result, f"{base} with its {header}", str(base))
+            new = with_anchors(rewrite.text, result, f"{rewrite.base} with its {header}",
+                               str(rewrite.base))
         except SurveyError as err:
             raise UsageError(str(err)) from err
-        write_atomically(out, new)
-        print(f"wrote {out}: {base} with the surveyed anchors (its comments are not kept)")
+        write_atomically(rewrite.out, new)
+        print(f"wrote {rewrite.out}: {rewrite.base} with the surveyed anchors (its comments "
+              "are not kept)")
     return 0
 
 

@@ -33,6 +33,7 @@ from uwbd.config.schema import (
     STANDARD_BAUDS,
     UWB_DRIVERS,
     ZENOH_PROTOCOLS,
+    anchor_id,
 )
 from uwbd.config.spelling import known, show, toml_key
 from uwbd.fusion.filter import MAX_ANCHOR_COORD_M, Filter
@@ -200,11 +201,19 @@ def check_fusion(r: Report, fusion: Mapping[str, Any], anchors: Mapping[int, Vec
 
 
 MAX_TAG_TERM_M = 0.3  # an antenna's direction term is centimetres; more is not an antenna
+MAX_ANCHOR_DELAY_M = 1.0  # a DW1000's uncalibrated antenna delay is ~0.3 m of range at most
 
 
 def check_range_model(r: Report, model: dict[str, Any]) -> None:
     """``[range_model]``: as many coefficients as the degree takes, each plausible for an
     antenna; the tag's mounting a rotation (kept orthonormalised in the table)."""
+    for key, delay in model.get("anchor_delays_m", {}).items():
+        if anchor_id(key) is None:
+            r.error(f"range_model.anchor_delays_m.{toml_key(key)}", "not an anchor id (an "
+                    "integer of 0 or more: 3, 0x1151)")
+        elif abs(delay) > MAX_ANCHOR_DELAY_M:
+            r.error(f"range_model.anchor_delays_m.{toml_key(key)}", f"{delay:g} m: an antenna "
+                    f"delay is at most {MAX_ANCHOR_DELAY_M:g} m (is it in metres?)")
     degree = model.get("tag_degree", 0)
     coefficients = model.get("tag_coefficients_m")
     if "tag_mounting" in model:

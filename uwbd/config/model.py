@@ -13,7 +13,7 @@ from uwbd.fusion.checks.gating import GatingPolicy
 from uwbd.fusion.checks.imu_check import ImuLimits
 from uwbd.fusion.checks.intrinsics import ImuIntrinsics
 from uwbd.fusion.core.eskf import GRAVITY_MPS2, ImuNoise
-from uwbd.fusion.models.range_model import TagRangeModel
+from uwbd.fusion.models.range_model import RangeModel
 from uwbd.fusion.policy.robust import RobustPolicy
 from uwbd.fusion.settings import IDENTITY3, FilterConfig, Mode
 
@@ -114,14 +114,15 @@ class Config:
         given = self.imu_intrinsics
         return ImuIntrinsics(**{k: given[k] for k in IMU_INTRINSIC_KEYS[:-1] if k in given})
 
-    def tag_range_model(self) -> TagRangeModel:
+    def range_model_settings(self) -> RangeModel:
         """``[range_model]``: off (degree 0) unless given; checked by ``check_range_model``."""
         m = self.range_model
         degree = int(m.get("tag_degree", 0))
-        if degree == 0:
-            return TagRangeModel()
-        return TagRangeModel(degree, tuple(float(c) for c in m["tag_coefficients_m"]),
-                             tuple(vec3(row) for row in m.get("tag_mounting", IDENTITY3)))
+        delays = tuple(sorted((int(k, 0), float(v))
+                              for k, v in m.get("anchor_delays_m", {}).items()))
+        return RangeModel(degree, tuple(float(c) for c in m["tag_coefficients_m"])
+                          if degree else (),
+                          tuple(vec3(row) for row in m.get("tag_mounting", IDENTITY3)), delays)
 
     def filter_config(self) -> FilterConfig:
         f = self.fusion
@@ -144,7 +145,7 @@ class Config:
             multipath_states=f.get("multipath_sigma_m", MULTIPATH_SIGMA_M) > 0,
             multipath_sigma_m=f.get("multipath_sigma_m", MULTIPATH_SIGMA_M) or MULTIPATH_SIGMA_M,
             multipath_tau_s=f.get("multipath_tau_s", 1.0),
-            range_model=self.tag_range_model(),
+            range_model=self.range_model_settings(),
             tag_side=f.get("tag_side", "auto"),
             height_range_m=((float(f["height_range_m"][0]), float(f["height_range_m"][1]))
                             if "height_range_m" in f else None),

@@ -165,6 +165,8 @@ def write_toml(doc: Mapping[str, Mapping[str, Any] | Sequence[Mapping[str, Any]]
     def value(v: Any) -> str:
         if isinstance(v, (list, tuple)):
             return "[" + ", ".join(value(x) for x in v) + "]"
+        if isinstance(v, Mapping):  # an inline table ({ 1 = -0.12, 2 = 0.02 })
+            return "{ " + ", ".join(f"{key(str(k))} = {value(x)}" for k, x in v.items()) + " }"
         return tomli_w.dumps({"v": v})[len("v = "):].rstrip("\n")
 
     lines: list[str] = []

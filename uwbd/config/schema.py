@@ -48,6 +48,9 @@ ROWS = Kind("3 rows of 3 finite numbers ([[1, 0, 0], [0, 1, 0], [0, 0, 1]])",
             lambda v: isinstance(v, list) and len(v) == 3 and all(_is_finite_vec(r, 3) for r in v))
 NUMBERS = Kind("an array of finite numbers", lambda v: isinstance(v, list) and all(
     _is_number(x) and math.isfinite(x) for x in v))
+DELAYS = Kind("a table of anchor id = delay in m ({ 1 = -0.12, 2 = 0.02 })",
+               lambda v: isinstance(v, dict) and all(_is_number(x) and math.isfinite(x)
+                                                     for x in v.values()))
 PAIR = Kind("[lowest, highest] of finite numbers, in m", lambda v: _is_finite_vec(v, 2))
 
 
@@ -151,7 +154,7 @@ _ROBOT_SPEC = {"name": Key(NAME), "nav_frame_id": Key(FRAME_ID),
 # `uwbd calibrate-ranges` writes it
 _RANGE_MODEL_SPEC = {"tag_degree": Key(INTEGER, Range(0.0, MAX_DEGREE, lo_closed=True)),
                      "tag_coefficients_m": Key(NUMBERS), "tag_mounting": Key(ROWS),
-                     "calibrated_from": Key(STRING)}
+                     "anchor_delays_m": Key(DELAYS), "calibrated_from": Key(STRING)}
 TABLES: dict[str, dict[str, Key]] = {
     "imu": _IMU_SPEC, "fusion": _FUSION_SPEC, "range_model": _RANGE_MODEL_SPEC,
     "pipeline": _PIPELINE_SPEC, "log": _LOG_SPEC, "zenoh": _ZENOH_SPEC, "robot": _ROBOT_SPEC}

@@ -11,13 +11,14 @@ from uwbd.fusion.checks.gating import GatingPolicy
 from uwbd.fusion.checks.imu_check import ImuLimits
 from uwbd.fusion.checks.intrinsics import ImuIntrinsics
 from uwbd.fusion.core.eskf import GRAVITY_MPS2, ImuNoise
-from uwbd.fusion.models.range_model import TagRangeModel
+from uwbd.fusion.models.range_model import RangeModel
 from uwbd.fusion.policy.health import HealthLimits
 from uwbd.fusion.policy.rest import RestLimits
 from uwbd.fusion.policy.robust import RobustPolicy
 
 Vec3 = tuple[float, float, float]
 IDENTITY3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+Z_DOWN = ((1.0, 0.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0))  # an IMU mounted upside down
 
 
 class Mode(str, Enum):
@@ -52,7 +53,7 @@ class FilterConfig:
     multipath_sigma_m: float = 0.07
     multipath_tau_s: float = 1.0
     # the tag antenna's direction-dependent delay (models.range_model): off unless calibrated
-    range_model: TagRangeModel = field(default_factory=TagRangeModel)
+    range_model: RangeModel = field(default_factory=RangeModel)
     tag_side: str = "auto"  # of a plane of anchors: auto | below | above (see .mirror)
     height_range_m: tuple[float, float] | None = None  # where the tag can be (a hint)
     zupt: bool = True

@@ -10,7 +10,10 @@ Ranges ``d1..d8`` become anchor ids 0..7 (the TagFrame0 slots), 0 meaning "no ra
 with a ``#`` header line, times in seconds from the start of the recording, one range per
 line (a tag ranging one anchor at a time), anchor ids as in the files. The IMU is z up and
 the truth is the IMU's own pose, so the body frame is the IMU frame (mounting identity);
-the tag antenna sits :data:`INROL_LEVER_ARM_M` from the IMU.
+the tag antenna sits :data:`INROL_LEVER_ARM_M` from the IMU. Its range-model calibration
+recording (``tag_pose.txt`` in place of ``imu.txt`` and ``imu_pose.txt``, see
+``shared/data/inrol-calib/README.md``) has no IMU and the tag's own pose as truth: the body
+frame is the tag's, and the lever arm zero.
 
 Every file problem (missing file, wrong header or column count, a value that is not a
 number) is a :class:`DatasetError` naming the file and line. Rows are put in time order.
@@ -31,7 +34,7 @@ import numpy.typing as npt
 
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
 from uwbd.fusion.core.rotation import Array, quat_to_matrix
-from uwbd.fusion.settings import IDENTITY3
+from uwbd.fusion.settings import IDENTITY3, Z_DOWN
 
 IASL_ANCHORS_M: dict[int, tuple[float, float, float]] = {
     i: (x, y, z) for i, (x, y, z) in enumerate(zip(
@@ -60,6 +63,8 @@ class Dataset:
     truth_p_m: Array
     truth_rotation: Array  # (n, 3, 3) body-to-anchor-frame rotations
     anchors_m: dict[int, tuple[float, float, float]]
+    mounting: tuple[tuple[float, float, float], ...] = IDENTITY3  # IMU axes -> body
+    lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # IMU -> tag antenna, body axes
 
 
 _DECIMAL = re.compile(r"([+-]?)(\d*)(?:\.(\d*))?")
@@ -133,13 +138,16 @@ def _floats(path: Path, line: int, columns: Sequence[str], row: Sequence[str]) -
 
 def _dataset(imu: list[ImuSample], uwb: list[UwbRanges], truth_t_ns: list[int],
              truth_p_m: list[list[float]], truth_rotation: list[Array],
-             anchors_m: dict[int, tuple[float, float, float]]) -> Dataset:
+             anchors_m: dict[int, tuple[float, float, float]],
+             mounting: tuple[tuple[float, float, float], ...] = IDENTITY3,
+             lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Dataset:
     """The dataset with every stream in time order (stable: equal times keep file order)."""
     t = np.array(truth_t_ns, dtype=np.int64)
     order = np.argsort(t, kind="stable")
     return Dataset(sorted(imu, key=lambda f: f.t_ns), sorted(uwb, key=lambda f: f.t_ns),
                    t[order], np.array(truth_p_m, dtype=float).reshape(-1, 3)[order],
-                   np.array(truth_rotation, dtype=float).reshape(-1, 3, 3)[order], anchors_m)
+                   np.array(truth_rotation, dtype=float).reshape(-1, 3, 3)[order], anchors_m,
+                   mounting, lever_arm_m)
 
 
 def load_iasl(directory: Path) -> Dataset:
@@ -165,7 +173,7 @@ def load_iasl(directory: Path) -> Dataset:
         t_ns.append(_cell(gt_path, line, "t", row[0], seconds_to_ns))
         p.append(values[:3])
         rot.append(np.array(values[3:]).reshape(3, 3))
-    return _dataset(imu, uwb, t_ns, p, rot, dict(IASL_ANCHORS_M))
+    return _dataset(imu, uwb, t_ns, p, rot, dict(IASL_ANCHORS_M), Z_DOWN)
 
 
 def _inrol_time(path: Path, line: int, text: str) -> int:
@@ -175,10 +183,15 @@ def _inrol_time(path: Path, line: int, text: str) -> int:
 def load_inrol(directory: Path) -> Dataset:
     """An inrol directory: anchor positions (their antenna orientations are not used), IMU
     samples (gyro columns first in the file), ranges, and the IMU's true pose, every time
-    on :data:`INROL_EPOCH_NS`. Ranges with exactly the same timestamp become one
-    ``UwbRanges`` message, any other range a message of its own."""
+    on :data:`INROL_EPOCH_NS`; or, where ``tag_pose.txt`` stands in for ``imu_pose.txt``, a
+    range-model calibration recording: no IMU, the tag's pose as truth. Ranges with exactly
+    the same timestamp become one ``UwbRanges`` message, any other range a message of its
+    own."""
     anchor_path, imu_path = directory / "anchor.txt", directory / "imu.txt"
     uwb_path, pose_path = directory / "uwb.txt", directory / "imu_pose.txt"
+    calibration = not pose_path.exists() and (directory / "tag_pose.txt").exists()
+    if calibration:
+        pose_path = directory / "tag_pose.txt"
     anchors: dict[int, tuple[float, float, float]] = {}
     cols = ["anchor_id", "tx", "ty", "tz", "qx", "qy", "qz", "qw"]
     for line, row in _rows(anchor_path, cols, spaces=True):
@@ -190,7 +203,7 @@ def load_inrol(directory: Path) -> Dataset:
         anchors[anchor_id] = (x, y, z)
     imu = []
     cols = ["index", "timestamp", "wx", "wy", "wz", "ax", "ay", "az"]
-    for line, row in _rows(imu_path, cols, spaces=True):
+    for line, row in [] if calibration else _rows(imu_path, cols, spaces=True):
         _cell(imu_path, line, "index", row[0], int)
         wx, wy, wz, ax, ay, az = _floats(imu_path, line, cols[2:], row[2:])
         imu.append(ImuSample(_inrol_time(imu_path, line, row[1]), (ax, ay, az), (wx, wy, wz)))
@@ -215,4 +228,6 @@ def load_inrol(directory: Path) -> Dataset:
         t_ns.append(_inrol_time(pose_path, line, row[0]))
         p.append([x, y, z])
         rot.append(quat_to_matrix(np.array([qw, qx, qy, qz]) / norm))
-    return _dataset(imu, uwb, t_ns, p, rot, anchors)
+    if calibration:  # the truth is the tag's own pose: body frame = tag frame
+        return _dataset(imu, uwb, t_ns, p, rot, anchors)
+    return _dataset(imu, uwb, t_ns, p, rot, anchors, INROL_MOUNTING, INROL_LEVER_ARM_M)

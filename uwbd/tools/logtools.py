@@ -25,7 +25,7 @@ from drivers.frames import Frame, ImuSample, UwbRanges
 from uwbd import config as cfgmod
 from uwbd import journal
 from uwbd.codec import frame_from_dict
-from uwbd.fusion.core.rotation import Array, quat_from_euler, quat_from_matrix
+from uwbd.fusion.core.rotation import Array, quat_from_euler, quat_from_matrix, quat_to_matrix
 from uwbd.logs.mcaplog import LogWriter, SourceInfo, pose_message
 from uwbd.logs.reading import LogContents
 from uwbd.tools.evaluate import merge
@@ -141,6 +141,7 @@ class Recording:
     truth_t_ns: npt.NDArray[np.int64]
     truth_p_m: Array
     parser_stats: dict[str, dict[str, object]]
+    truth_rotation: Array  # (n, 3, 3) body -> navigation frame (identity where a log has none)
 
 
 def load_recording(contents: LogContents, where: str,
@@ -168,9 +169,13 @@ def load_recording(contents: LogContents, where: str,
     truth = list(contents.json("/truth"))
     t = np.array([d["t_ns"] for d in truth], dtype=np.int64)
     p = np.array([[d["pose"]["position"][k] for k in "xyz"] for d in truth]).reshape(-1, 3)
+    q = np.array([[d["pose"].get("orientation", {}).get(k, 1.0 if k == "w" else 0.0)
+                   for k in "wxyz"] for d in truth], dtype=float).reshape(-1, 4)
+    q /= np.maximum(np.linalg.norm(q, axis=1), 1e-12)[:, None]
     imu.sort(key=lambda f: f.t_ns)
     uwb.sort(key=lambda f: f.t_ns)
-    return Recording(config, list(merge(imu, uwb)), t, p, stats)
+    return Recording(config, list(merge(imu, uwb)), t, p, stats,
+                     np.array([quat_to_matrix(x) for x in q]).reshape(-1, 3, 3))
 
 
 def decoded_frames(contents: LogContents, topics: tuple[str, ...], where: str) -> list[Frame]:

@@ -45,13 +45,13 @@ import numpy.typing as npt
 
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
 from uwbd.fusion.core.rotation import Array, quat_from_matrix, quat_from_rotvec, quat_to_matrix
+from uwbd.fusion.settings import Z_DOWN  # sensor -> body FLU: an IMU mounted upside down
 
 GRAVITY_MPS2 = 9.80665
 DEFAULT_ANCHORS_M: tuple[tuple[float, float, float], ...] = (
     (-5.0, 30.0, 0.0), (-5.0, -30.0, 0.0), (10.0, 10.0, 5.0),
     (10.0, -10.0, 5.0), (20.0, 30.0, 0.0), (20.0, -30.0, 0.0),
 )
-Z_DOWN = ((1.0, 0.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0))  # sensor -> body FLU
 EPOCH_NS = 1_700_000_000 * 10**9  # simulated runs start at 2023-11-14T22:13:20Z
 
 # (duration s, forward speed m/s, yaw rate rad/s, climb rate m/s)

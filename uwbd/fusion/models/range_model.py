@@ -13,6 +13,10 @@ has a mean square of 1 over the sphere (4π-normalised: the orthonormal ones × 
 coefficient is the RMS delay of its term over all directions, in metres. Degree 0 (a
 constant) is not part of the model: the filter's delay states take it.
 
+Each anchor's own antenna delay is a constant of the device (it carries from one room to
+another with the unit: measured 1.6 cm RMS between the two INRoL rooms); a calibration
+gives it, and the ranges are corrected by it from the first one.
+
 Degree 1 is exactly a shift of the antenna's phase centre: ``Σ_m c_1m Y_1m(u) = δ·u`` with
 ``δ = √3 (c_11, c_1−1, c_10)`` (tag x, y, z), and ``|d + R δ| ≈ |d| + δ·u``. The filter
 applies it as a lever arm of ``lever + C_tb δ``, so its Jacobian comes free. Higher degrees
@@ -59,12 +63,15 @@ def basis(u: Array, degree: int) -> Array:
 
 
 @dataclass(frozen=True)
-class TagRangeModel:
-    """The ``[range_model]`` section: degree 0 is off."""
+class RangeModel:
+    """The ``[range_model]`` section: the tag's direction term (degree 0: none) and the
+    anchors' calibrated antenna delays (none: the filter's delay states estimate them)."""
 
     degree: int = 0
     coefficients_m: tuple[float, ...] = ()  # degrees 1..degree, each m = −l..l
     tag_mounting: tuple[tuple[float, float, float], ...] = IDENTITY3  # tag axes -> body
+    # (anchor id, delay m): taken off that anchor's every range, before anything else
+    anchor_delays_m: tuple[tuple[int, float], ...] = ()
 
     def __post_init__(self) -> None:
         if len(self.coefficients_m) != n_coefficients(self.degree):

@@ -1,0 +1,362 @@
+"""Range-model calibration (``uwbd calibrate-ranges``): the tag antenna's direction term and
+the ranges' noise, from a log with ground truth (:mod:`uwbd.fusion.models.range_model`).
+
+The recording: the tag (or the robot with it) carried for about 90 s through the anchors'
+room under motion capture or another pose truth, turned through every heading and tilted a
+little, near and far from each anchor. The truth may be the tag's own pose (lever arm 0, as
+``uwbd import inrol`` writes a calibration recording) or the IMU's (the config's mounting
+and lever arm take it to the antenna).
+
+1. **Samples**: each range against the truth interpolated at its time (position linear,
+   attitude by slerp), skipping ranges whose truth neighbours are more than 50 ms apart and
+   motion-capture glitches (a jump and back faster than 5 m/s, or an attitude spike: turned
+   and back faster than 20 rad/s). The residual ``e = r − |p_antenna − a|`` and the ray's
+   direction ``u`` in the tag's axes.
+2. **Fit** of ``e = o_anchor + Σ c_lm Y_lm(u)`` by robust maximum likelihood: iteratively
+   reweighted least squares with a Cauchy loss (scale 2.385 × the residuals' robust σ).
+   The per-anchor offsets ``o`` are each anchor's antenna delay (plus the tag's, common
+   to all): a constant of the unit, which carries to another room with it (measured 1.6 cm
+   RMS between the two INRoL rooms). Each coefficient's σ
+   is a delete-one-block jackknife over 10 s blocks (the residuals are correlated over
+   seconds: the textbook σ of independent samples would be several times too small).
+3. **Held-out check**: the same fit on the first 70 % of the recording, scored on the last
+   30 %, for every degree: the robust spread of the ranges with the offsets only, then with
+   the model. A degree that does not lower the held-out spread is not worth configuring.
+4. **Noise** of what is left: a robust σ of the core, the share of long and short ranges
+   beyond 3 σ (NLOS only ever lengthens a range), the residuals' autocovariance split into
+   white noise, a fast correlated part (what the filter's multipath states model) and a slow
+   one (what constant delays would miss). Printed, to compare with the config's
+   ``range_sigma_m``, ``multipath_sigma_m`` and ``multipath_tau_s``; not written (on the
+   recordings measured, the defaults did as well as the measured values).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation, Slerp
+
+from drivers.frames import Frame, UwbRanges
+from uwbd.config.overrides import write_toml
+from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.models.range_model import MAX_DEGREE, basis, n_coefficients
+from uwbd.tools.evaluate import truth_spikes
+
+MAX_TRUTH_GAP_NS = 50_000_000
+MAX_SPIKE_RATE_RPS = 20.0
+CAUCHY_C = 2.385  # the Cauchy loss's scale in σ: 95 % efficiency at Gaussian noise
+BLOCK_S = 10.0
+HOLDOUT_FRACTION = 0.3
+MIN_RANGES = 500
+MIN_SPAN_S = 30.0
+TAIL_SIGMA = 3.0
+MAX_LAG_S = 20.0
+LAG_BIN_S = 0.1
+
+
+class RangeCalibrationError(ValueError):
+    """The log cannot calibrate a range model (no truth, too few ranges, ...)."""
+
+
+@dataclass
+class RangeSamples:
+    """Each range with the truth at its time."""
+
+    t_ns: npt.NDArray[np.int64]
+    anchor: npt.NDArray[np.int64]
+    range_m: Array
+    distance_m: Array  # |p_antenna − a| by the truth
+    u_tag: Array  # (n, 3) the anchor -> tag ray in the tag's axes
+
+    @property
+    def residual_m(self) -> Array:
+        return self.range_m - self.distance_m
+
+    def take(self, keep: npt.NDArray[np.bool_]) -> RangeSamples:
+        return RangeSamples(self.t_ns[keep], self.anchor[keep], self.range_m[keep],
+                            self.distance_m[keep], self.u_tag[keep])
+
+
+def _attitude_spikes(rotation: Array, t_ns: npt.NDArray[np.int64]) -> npt.NDArray[np.bool_]:
+    """Lone attitude samples turned away from both neighbours faster than
+    ``MAX_SPIKE_RATE_RPS``."""
+    rel = np.einsum("nji,njk->nik", rotation[:-1], rotation[1:])  # R_kᵀ R_k+1
+    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)
+    rate = np.arccos(cos) / np.maximum(np.diff(t_ns) / 1e9, 1e-6)
+    fast = rate > MAX_SPIKE_RATE_RPS
+    spikes = np.zeros(len(t_ns), dtype=bool)
+    spikes[1:-1] = fast[:-1] & fast[1:]
+    return spikes
+
+
+def range_samples(frames: Iterable[Frame], anchors_m: Mapping[int, Sequence[float]],
+                  truth_t_ns: npt.NDArray[np.int64], truth_p_m: Array, truth_rotation: Array,
+                  lever_arm_m: Sequence[float],
+                  tag_mounting: Sequence[Sequence[float]]) -> RangeSamples:
+    """Every tag range of ``frames`` whose anchor is known (configured, or sent with it)
+    against the truth at its time."""
+    good = ~(truth_spikes(truth_t_ns, truth_p_m) | _attitude_spikes(truth_rotation, truth_t_ns))
+    tt, tp, tr = truth_t_ns[good], truth_p_m[good], truth_rotation[good]
+    if len(tt) < 2:
+        raise RangeCalibrationError("no ground truth (/truth) to calibrate against")
+    t, ids, r, a = [], [], [], []
+    for f in frames:
+        if not isinstance(f, UwbRanges):
+            continue
+        for x in f.ranges:
+            pos = anchors_m.get(x.anchor_id, x.anchor_position_m)
+            if pos is not None and math.isfinite(x.range_m):
+                t.append(f.t_ns)
+                ids.append(x.anchor_id)
+                r.append(x.range_m)
+                a.append(pos)
+    t_ns = np.array(t, dtype=np.int64)
+    k = np.searchsorted(tt, t_ns)
+    inside = (k > 0) & (k < len(tt))
+    k = np.clip(k, 1, len(tt) - 1)
+    inside &= (tt[k] - tt[k - 1]) <= MAX_TRUTH_GAP_NS
+    t_ns, k = t_ns[inside], k[inside]
+    anchor = np.array(ids, dtype=np.int64)[inside]
+    range_m = np.array(r, dtype=float)[inside]
+    anchors = np.array(a, dtype=float).reshape(-1, 3)[inside]
+    frac = ((t_ns - tt[k - 1]) / (tt[k] - tt[k - 1]))[:, None]
+    p = tp[k - 1] * (1 - frac) + tp[k] * frac
+    unique_t, first = np.unique(tt, return_index=True)
+    slerp = Slerp(unique_t.astype(float), Rotation.from_matrix(tr[first]))
+    R = slerp(t_ns.astype(float)).as_matrix().reshape(-1, 3, 3)
+    d = p + R @ np.asarray(lever_arm_m, dtype=float) - anchors
+    dist = np.linalg.norm(d, axis=1)
+    # u = C_tbᵀ Rᵀ d / |d|
+    u = np.einsum("ji,nkj,nk->ni", np.asarray(tag_mounting, dtype=float), R, d)
+    u /= np.maximum(np.linalg.norm(u, axis=1), 1e-9)[:, None]
+    return RangeSamples(t_ns, anchor, range_m, dist, u)
+
+
+def robust_sigma(e: Array) -> float:
+    """1.4826 × the median absolute deviation from the median: σ of a Gaussian core."""
+    return float(1.4826 * np.median(np.abs(e - np.median(e)))) if len(e) else math.nan
+
+
+def _design(s: RangeSamples, degree: int, anchor_ids: Sequence[int]) -> Array:
+    offsets = (s.anchor[:, None] == np.asarray(anchor_ids)[None, :]).astype(float)
+    return np.hstack([offsets, basis(s.u_tag, degree)])
+
+
+def _irls(A: Array, e: Array, iterations: int = 30) -> Array:
+    """Cauchy-loss fit of ``e ≈ A x`` (iteratively reweighted least squares)."""
+    x: Array = np.linalg.lstsq(A, e, rcond=None)[0].astype(float)
+    for _ in range(iterations):
+        res = e - A @ x
+        scale = max(CAUCHY_C * robust_sigma(res), 0.005)
+        w = 1.0 / (1.0 + (res / scale) ** 2)
+        sw = np.sqrt(w)
+        new: Array = np.linalg.lstsq(A * sw[:, None], e * sw, rcond=None)[0].astype(float)
+        if np.max(np.abs(new - x)) < 1e-6:
+            return new
+        x = new
+    return x
+
+
+@dataclass
+class ModelFit:
+    degree: int
+    anchor_ids: tuple[int, ...]
+    offsets_m: Array
+    coefficients_m: Array
+    coefficient_sigma_m: Array
+
+    def delay_m(self, s: RangeSamples) -> Array:
+        """The model's delay of each sample (offsets and the direction term)."""
+        x = np.concatenate([self.offsets_m, self.coefficients_m])
+        return np.asarray(_design(s, self.degree, self.anchor_ids) @ x, dtype=float)
+
+
+def fit(s: RangeSamples, degree: int, jackknife: bool = True) -> ModelFit:
+    ids = tuple(int(a) for a in np.unique(s.anchor))
+    e = s.residual_m
+    A = _design(s, degree, ids)
+    x = _irls(A, e)
+    n_off = len(ids)
+    sigma = np.full(n_coefficients(degree), math.nan)
+    if jackknife and degree > 0:
+        block = (s.t_ns - s.t_ns[0]) // int(BLOCK_S * 1e9)
+        blocks = np.unique(block)
+        if len(blocks) >= 3:
+            xs = np.array([_irls(A[block != b], e[block != b], 10)[n_off:] for b in blocks])
+            m = len(blocks)
+            sigma = np.sqrt((m - 1) / m * ((xs - xs.mean(axis=0)) ** 2).sum(axis=0))
+    return ModelFit(degree, ids, x[:n_off], x[n_off:], sigma)
+
+
+@dataclass
+class NoiseShape:
+    core_sigma_m: float
+    long_fraction: float  # beyond TAIL_SIGMA σ, long
+    short_fraction: float
+    white_sigma_m: float
+    fast_sigma_m: float
+    fast_tau_s: float
+    slow_sigma_m: float
+    slow_tau_s: float
+
+
+def _autocovariance(s: RangeSamples, e: Array) -> tuple[Array, Array, float]:
+    """The residuals' autocovariance by lag (bins of ``LAG_BIN_S`` up to ``MAX_LAG_S``),
+    pooled over the anchors, and the variance at lag 0."""
+    n_bins = int(MAX_LAG_S / LAG_BIN_S)
+    total, count = np.zeros(n_bins), np.zeros(n_bins)
+    var_sum, var_n = 0.0, 0
+    for a in np.unique(s.anchor):
+        mine = s.anchor == a
+        t, x = s.t_ns[mine] / 1e9, e[mine] - np.mean(e[mine])
+        var_sum, var_n = var_sum + float(x @ x), var_n + len(x)
+        for k in range(1, len(x)):
+            dt = t[k:] - t[:-k]
+            if dt.min() > MAX_LAG_S:
+                break
+            b = (dt / LAG_BIN_S).astype(int)
+            ok = b < n_bins
+            np.add.at(total, b[ok], x[k:][ok] * x[:-k][ok])
+            np.add.at(count, b[ok], 1)
+    lags = np.asarray((np.arange(n_bins) + 0.5) * LAG_BIN_S, dtype=float)
+    keep = count > 50
+    return lags[keep], np.asarray(total[keep] / count[keep], dtype=float), var_sum / max(var_n, 1)
+
+
+def _split_covariance(lags: Array, cov: Array, var0: float) -> tuple[float, float, float,
+                                                                       float, float]:
+    """``cov(τ) ≈ σ_f² e^(−τ/τ_f) + σ_s² e^(−τ/τ_s)``: (white σ, σ_f, τ_f, σ_s, τ_s)."""
+    def model(x: Array) -> Array:
+        vf, tf, vs, ts = x
+        return np.asarray(vf * np.exp(-lags / tf) + vs * np.exp(-lags / ts), dtype=float)
+
+    x0 = np.array([0.6 * var0, 1.0, 0.2 * var0, 30.0])
+    lo, hi = [0.0, 0.1, 0.0, 10.0], [var0, 10.0, var0, 1000.0]
+    sol = least_squares(lambda x: model(x) - cov, x0, bounds=(lo, hi))
+    vf, tf, vs, ts = sol.x
+    white = max(var0 - vf - vs, 0.0)
+    return math.sqrt(white), math.sqrt(vf), float(tf), math.sqrt(vs), float(ts)
+
+
+def noise_shape(s: RangeSamples, e: Array) -> NoiseShape:
+    """The noise of the residuals ``e`` left by the model (see the module doc, step 4)."""
+    sigma = robust_sigma(e)
+    centred = e - np.median(e)
+    z = centred / sigma
+    core = np.abs(z) <= TAIL_SIGMA
+    lags, cov, var0 = _autocovariance(s.take(core), centred[core])
+    white, fast, tau_f, slow, tau_s = _split_covariance(lags, cov, var0)
+    return NoiseShape(sigma, float(np.mean(z > TAIL_SIGMA)), float(np.mean(z < -TAIL_SIGMA)),
+                      white, fast, tau_f, slow, tau_s)
+
+
+@dataclass
+class RangeCalibration:
+    fit: ModelFit
+    noise: NoiseShape
+    n_ranges: int
+    span_s: float
+    anchors: int
+    held_out: dict[int, tuple[float, float]]  # degree -> (σ offsets only, σ with the model)
+    before_sigma_m: float  # the robust σ of the ranges with the offsets only
+
+    def keys(self, anchor_delays: bool = True) -> dict[str, dict[str, object]]:
+        """The config keys: ``[range_model]`` (the tag's term; with ``anchor_delays`` each
+        anchor's delay too), and with the delays ``fusion.range_bias_states = false``: the
+        delays are known, and on the recordings measured estimating them again costs
+        accuracy (docs/ekf.md §4, range model)."""
+        f = self.fit
+        model: dict[str, object] = {"tag_degree": f.degree, "tag_coefficients_m": [
+            round(float(c), 5) for c in f.coefficients_m]}
+        if not anchor_delays:
+            return {"range_model": model}
+        model["anchor_delays_m"] = {str(a): round(float(o), 4)
+                                    for a, o in zip(f.anchor_ids, f.offsets_m, strict=True)}
+        return {"range_model": model, "fusion": {"range_bias_states": False}}
+
+    def overrides(self, source: str, anchor_delays: bool = True) -> list[str]:
+        """The keys as ``--set`` items."""
+        items = [f"range_model.calibrated_from={_toml(source)}"]
+        for section, table in self.keys(anchor_delays).items():
+            items += [f"{section}.{k}={_toml(v)}" for k, v in table.items()]
+        return items
+
+    def snippet(self, source: str, anchor_delays: bool = True) -> str:
+        """The keys as TOML, for a config."""
+        keys = self.keys(anchor_delays)
+        keys["range_model"] = {**keys["range_model"], "calibrated_from": source}
+        return (f"# uwbd calibrate-ranges {source}: the tag antenna's direction term"
+                + (" and the anchors' antenna delays" if anchor_delays else "")
+                + "\n# merge these sections' keys into the config\n" + write_toml(keys))
+
+    def summary(self, where: str, tag_mounting_said: str) -> str:
+        f, n = self.fit, self.noise
+        lines = [f"{where}: {self.n_ranges} ranges to {self.anchors} anchors over "
+                 f"{self.span_s:.0f} s against the truth"]
+        lines.append("held out (fitted on the first 70 %, scored on the last 30 %), robust σ "
+                     "of the ranges:")
+        for degree, (plain, model) in sorted(self.held_out.items()):
+            lines.append(f"  degree {degree}: {plain:.4f} m with the offsets only -> "
+                         f"{model:.4f} m with the model ({100 * (model / plain - 1):+.0f} %)"
+                         + ("   <- fitted" if degree == f.degree else ""))
+        if f.degree:
+            lines.append(f"tag term, degree {f.degree} ({tag_mounting_said}), coefficients "
+                         "± σ (10 s block jackknife):")
+            k = 0
+            for lv in range(1, f.degree + 1):
+                row = []
+                for m in range(-lv, lv + 1):
+                    row.append(f"c{lv},{m:+d} {f.coefficients_m[k]:+.4f} ± "
+                               f"{f.coefficient_sigma_m[k]:.4f}")
+                    k += 1
+                lines.append("  " + "   ".join(row))
+            c = f.coefficients_m
+            lines.append(f"  degree 1 as a phase centre (tag axes): ({math.sqrt(3) * c[2]:+.3f}, "
+                         f"{math.sqrt(3) * c[0]:+.3f}, {math.sqrt(3) * c[1]:+.3f}) m")
+        lines.append("anchor antenna delays (each unit's own; with the tag's delay, common to "
+                     "all): " + ", ".join(f"{a} {o:+.3f}" for a, o in
+                                          zip(f.anchor_ids, f.offsets_m, strict=True)) + " m")
+        lines.append(f"robust σ of the ranges: {self.before_sigma_m:.4f} m with the offsets "
+                     f"only, {n.core_sigma_m:.4f} m with the model")
+        lines.append(f"noise left: robust σ {n.core_sigma_m:.4f} m; beyond {TAIL_SIGMA:g} σ "
+                     f"{100 * n.long_fraction:.1f} % long, {100 * n.short_fraction:.1f} % short")
+        lines.append(f"  white {n.white_sigma_m:.4f} m, correlated {n.fast_sigma_m:.4f} m over "
+                     f"{n.fast_tau_s:.2f} s, slow {n.slow_sigma_m:.4f} m over "
+                     f"{n.slow_tau_s:.0f} s")
+        return "\n".join(lines)
+
+
+def _toml(v: object) -> str:
+    return write_toml({"t": {"v": v}}).split(" = ", 1)[1].strip()
+
+
+def calibrate(s: RangeSamples, degree: int) -> RangeCalibration:
+    """The model of ``degree`` and the noise, with every degree's held-out check."""
+    if not 0 <= degree <= MAX_DEGREE:
+        raise RangeCalibrationError(f"degree {degree}: expected 0..{MAX_DEGREE}")
+    span_s = float(s.t_ns[-1] - s.t_ns[0]) / 1e9 if len(s.t_ns) else 0.0
+    if len(s.t_ns) < MIN_RANGES or span_s < MIN_SPAN_S:
+        raise RangeCalibrationError(
+            f"{len(s.t_ns)} ranges with truth over {span_s:.0f} s: a calibration needs "
+            f"{MIN_RANGES} at least, over {MIN_SPAN_S:g} s (record about 90 s, the tag turned "
+            "through every heading)")
+    cut = s.t_ns[0] + int((1 - HOLDOUT_FRACTION) * span_s * 1e9)
+    train, test = s.take(s.t_ns < cut), s.take(s.t_ns >= cut)
+    train = train.take(np.isin(train.anchor, np.unique(test.anchor)))
+    test = test.take(np.isin(test.anchor, np.unique(train.anchor)))
+    held_out = {}
+    plain_fit = fit(train, 0, jackknife=False)
+    plain = robust_sigma(test.residual_m - plain_fit.delay_m(test))
+    for d in range(1, MAX_DEGREE + 1):
+        m = fit(train, d, jackknife=False)
+        held_out[d] = (plain, robust_sigma(test.residual_m - m.delay_m(test)))
+    model = fit(s, degree)
+    before = fit(s, 0, jackknife=False)
+    return RangeCalibration(model, noise_shape(s, s.residual_m - model.delay_m(s)),
+                            len(s.t_ns), span_s, len(model.anchor_ids), held_out,
+                            robust_sigma(s.residual_m - before.delay_m(s)))
