@@ -70,17 +70,25 @@ class EpochFusion:
         """The tag antenna's direction term (:mod:`~uwbd.fusion.models.range_model`), once
         the heading is known: its degree 1 as the antenna's phase centre (the lever arm of
         the range rows), higher degrees taken off the ranges at the prior attitude. Before,
-        the term would be turned by a heading that may be anything: it is held back (the
+        the term would be turned by a heading that may be anything: only the phase centre's
+        part along the vertical is applied (the tilt is known), the rest held back (the
         health note ``range_model_held``)."""
         model = self.cfg.range_model
         if not model.enabled:
             return ranges
         self.monitor.range_model_held = not self._aligned
-        self.lever = self._model_lever if self._aligned else self._plain_lever
         ekf = self.ekf
-        if not self._aligned or model.degree < 2 or ekf is None:
+        if ekf is None:
             return ranges
         R = ekf.R
+        if not self._aligned:
+            up_b = R[2]  # the vertical in body axes: Rᵀ e_z, whatever the heading
+            shift = self._model_lever - self._plain_lever
+            self.lever = self._plain_lever + float(shift @ up_b) * up_b
+            return ranges
+        self.lever = self._model_lever
+        if model.degree < 2:
+            return ranges
         return ranges - model.higher_delay_m(R, np.array(ekf.p) + R @ self.lever, anchors)
 
     def _measurement_rows(self, ids: list[int], anchors: Array, ranges: Array,

@@ -1,0 +1,227 @@
+"""The range model: the tag antenna's direction term (real spherical harmonics) and the
+anchors' antenna delays; in the filter, in the config, and fitted by ``uwbd calibrate-ranges``
+from a calibration recording imported with ``uwbd import inrol``. Real logs on disk, the
+real CLI as a subprocess."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from procs import one_line, uwbd
+
+from uwbd.config import ConfigError, parse
+from uwbd.fusion.core.rotation import quat_from_euler, quat_to_matrix
+from uwbd.fusion.filter import Filter
+from uwbd.fusion.models.range_model import RangeModel, basis, n_coefficients
+from uwbd.fusion.settings import FilterConfig
+from uwbd.tools.evaluate import merge, run_filter, score_poses
+from uwbd.tools.logtools import simulation_toml
+from uwbd.tools.simulator import SimConfig, handheld_async, simulate
+
+S3 = math.sqrt(3.0)
+ANCHORS = {1: (0.0, 0.0, 0.3), 2: (5.0, 0.0, 0.3), 3: (5.0, 4.0, 0.3), 4: (0.0, 4.0, 0.3),
+           5: (0.0, 0.0, 2.4), 6: (5.0, 0.0, 2.4), 7: (5.0, 4.0, 2.4), 8: (0.0, 4.0, 2.4)}
+DELAYS = {1: -0.12, 2: 0.02, 3: -0.08, 4: 0.03, 5: 0.0, 6: 0.01, 7: -0.02, 8: -0.04}
+PHASE_CENTRE_M = np.array([0.05, 0.01, 0.09])  # tag axes
+
+
+def sphere(n: int) -> np.ndarray:
+    """``n`` near-uniform unit vectors (a Fibonacci lattice)."""
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    phi = k * math.pi * (3 - math.sqrt(5))
+    r = np.sqrt(1 - z * z)
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+def test_the_harmonics_have_mean_square_one_and_are_orthogonal() -> None:
+    Y = basis(sphere(40_000), 3)
+    assert Y.shape == (40_000, n_coefficients(3)) == (40_000, 15)
+    gram = Y.T @ Y / len(Y)
+    assert np.abs(gram - np.eye(15)).max() < 2e-3
+
+
+def test_degree_one_is_a_phase_centre_and_higher_degrees_come_off_the_ranges() -> None:
+    c = (0.01, 0.02, -0.03, 0.004, -0.005, 0.006, 0.007, -0.008)
+    model = RangeModel(2, c)
+    assert model.phase_centre_m() == pytest.approx(S3 * np.array([-0.03, 0.01, 0.02]))
+    # far anchors: |d + R δ| − |d| → δ·u, the degree-1 term of the ray's direction
+    R = quat_to_matrix(quat_from_euler(0.1, -0.2, 1.0))
+    d = sphere(50) * 1e4
+    u = d @ R / 1e4
+    shift = np.linalg.norm(d + R @ model.phase_centre_m(), axis=1) - np.linalg.norm(d, axis=1)
+    assert shift == pytest.approx(basis(u, 1) @ np.array(c[:3]), abs=1e-6)
+    anchors = -d[:, :] + np.array([1.0, 2.0, 3.0])
+    higher = model.higher_delay_m(R, np.array([1.0, 2.0, 3.0]), anchors)
+    assert higher == pytest.approx(basis(u, 2)[:, 3:] @ np.array(c[3:]))
+    assert not RangeModel().enabled and RangeModel(1, (0, 0, 0)).enabled
+    with pytest.raises(ValueError, match="degree 2 takes 8 coefficients, got 3"):
+        RangeModel(2, (0.0, 0.0, 0.0))
+
+
+BASE = """
+[[sources]]
+name = "uwb"
+driver = "dwm1001"
+port = "/dev/ttyACM0"
+"""
+
+
+def test_the_config_section_parses_into_the_filter_and_is_off_by_default() -> None:
+    assert parse(BASE).filter_config().range_model == RangeModel()
+    got = parse(BASE + """
+[range_model]
+tag_degree = 1
+tag_coefficients_m = [0.001, 0.05, 0.03]
+tag_mounting = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+anchor_delays_m = { 1 = -0.12, 0x1151 = 0.02 }
+calibrated_from = "calib.mcap"
+""").filter_config().range_model
+    assert got.degree == 1 and got.coefficients_m == (0.001, 0.05, 0.03)
+    assert got.anchor_delays_m == ((1, -0.12), (0x1151, 0.02))
+    # the tag's x axis is the body's y: the phase centre turns with it
+    assert got.phase_centre_m() == pytest.approx(S3 * np.array([-0.001, 0.03, 0.05]))
+
+
+@pytest.mark.parametrize(("section", "message"), [
+    ("tag_degree = 2\ntag_coefficients_m = [0.1, 0.0, 0.0]",
+     "range_model.tag_coefficients_m: degree 2 takes 8 coefficients"),
+    ("tag_coefficients_m = [0.1, 0.0, 0.0]",
+     "range_model.tag_coefficients_m: given without range_model.tag_degree"),
+    ("tag_degree = 1\ntag_coefficients_m = [0.1, 5.0, 0.0]",
+     "range_model.tag_coefficients_m: element 1 is 5 m"),
+    ("tag_degree = 4", "range_model.tag_degree: must be zero or more and at most 3, got 4"),
+    ("anchor_delays_m = { x = 0.1 }", "range_model.anchor_delays_m.x: not an anchor id"),
+    ("anchor_delays_m = { 3 = 12.0 }", "range_model.anchor_delays_m.3: 12 m"),
+    ("tag_degree = 1\ntag_coefficients_m = [0.0, 0.0, 0.0]\ntag_mounting = [[1, 0, 0], "
+     "[0, 1, 0], [0, 0, -1]]", "range_model.tag_mounting: rows must be orthonormal"),
+    ("tag_degre = 1", "range_model.tag_degre: unknown key"),
+])
+def test_config_mistakes_are_errors_naming_the_key(section: str, message: str) -> None:
+    with pytest.raises(ConfigError) as err:
+        parse(BASE + "[range_model]\n" + section + "\n", "robot.toml")
+    assert f"robot.toml: {message}" in str(err.value), str(err.value)
+
+
+def run(cfg: FilterConfig, sim: object) -> tuple[list, Filter]:
+    poses, _, flt = run_filter(cfg, merge(sim.imu, sim.uwb))  # type: ignore[attr-defined]
+    return poses, flt
+
+
+def test_the_filter_applies_the_term_once_the_heading_is_known_and_says_so_before() -> None:
+    """A tag whose phase centre is 12 cm off the configured antenna (the simulator's lever
+    arm is where the ranges come from): the term in [range_model] puts it back."""
+    offset = np.array([0.06, 0.0, 0.10])
+    sim = simulate(dataclasses.replace(handheld_async(3), lever_arm_m=(0.0, 0.0, 0.1) + offset))
+    told = parse(simulation_toml(sim)).filter_config()
+    plain = dataclasses.replace(told, lever_arm_m=(0.0, 0.0, 0.1))
+    x, y, z = offset / S3
+    modelled = dataclasses.replace(plain, range_model=RangeModel(1, (y, z, x)))
+    scores = {}
+    for name, cfg in (("plain", plain), ("modelled", modelled), ("told", told)):
+        poses, flt = run(cfg, sim)
+        scores[name] = score_poses(poses, sim.truth_t_ns, sim.truth_p_m, 10.0).rmse_3d_m
+        held = [p for p in poses if "range_model_held" in p.health.notes]
+        if name == "modelled":
+            assert held and held[-1].t_ns < poses[-1].t_ns and flt._aligned
+            assert all(p.health.phase.value != "tracking" for p in held)
+        else:
+            assert not held
+    assert scores["modelled"] < 0.85 * scores["plain"], scores
+    assert scores["modelled"] < 1.4 * scores["told"], scores
+
+
+def test_model_off_gives_the_very_same_poses() -> None:
+    sim = simulate(SimConfig(segments=((3.0, 0.0, 0.0, 0.0), (4.0, 1.0, 0.2, 0.0)), seed=4))
+    cfg = parse(simulation_toml(sim)).filter_config()
+    off = dataclasses.replace(cfg, range_model=RangeModel(0, ()))
+    a, _ = run(cfg, sim)
+    b, _ = run(off, sim)
+    assert [p.position_m for p in a] == [p.position_m for p in b] and a
+
+
+def calibration_recording(root: Path, seconds: float = 80.0, seed: int = 0) -> Path:
+    """A range-model calibration recording in the inrol layout (``anchor.txt``,
+    ``tag_pose.txt``, ``uwb.txt``): the tag walked round the room turning through every
+    heading, each range with its anchor's delay, the tag's phase-centre term, noise and a
+    few one-sided NLOS ranges."""
+    rng = np.random.default_rng(seed)
+    root.mkdir()
+    lines = ["# anchor_id tx ty tz qx qy qz qw"]
+    lines += [f"{a} {x} {y} {z} 0 0 0 1" for a, (x, y, z) in ANCHORS.items()]
+    (root / "anchor.txt").write_text("\n".join(lines) + "\n")
+    t = np.arange(0.0, seconds, 0.01)
+    p = np.column_stack([2.5 + 1.5 * np.cos(0.21 * t), 2.0 + 1.2 * np.sin(0.33 * t),
+                         1.0 + 0.3 * np.sin(0.5 * t)])
+    yaw, roll, pitch = 0.7 * t, 0.2 * np.sin(0.9 * t), 0.2 * np.cos(0.7 * t)
+    q = np.array([quat_from_euler(r, pt, y) for r, pt, y in zip(roll, pitch, yaw, strict=True)])
+    lines = ["# timestamp tx ty tz qx qy qz qw"]
+    lines += [f"{ti:.6f} {x:.6f} {y:.6f} {z:.6f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}"
+              for ti, (x, y, z), (qw, qx, qy, qz) in zip(t, p, q, strict=True)]
+    (root / "tag_pose.txt").write_text("\n".join(lines) + "\n")
+    lines = ["# index timestamp anchor_id r"]
+    ids = list(ANCHORS)
+    for k, tr in enumerate(np.arange(0.05, seconds - 0.05, 1 / 160)):
+        a = ids[k % len(ids)]
+        i = int(tr / 0.01)
+        f = tr / 0.01 - i
+        pos = p[i] * (1 - f) + p[i + 1] * f
+        R = quat_to_matrix(q[i])
+        r = (np.linalg.norm(pos + R @ PHASE_CENTRE_M - np.array(ANCHORS[a])) + DELAYS[a]
+             + rng.normal(0, 0.03) + (rng.uniform(0.3, 1.0) if rng.random() < 0.04 else 0.0))
+        lines.append(f"{k} {tr:.6f} {a} {r:.6f}")
+    (root / "uwb.txt").write_text("\n".join(lines) + "\n")
+    return root
+
+
+def test_calibrate_ranges_recovers_the_term_and_the_delays(tmp_path: Path) -> None:
+    data = calibration_recording(tmp_path / "calib")
+    imp = uwbd("import", "inrol", str(data), "-o", "calib.mcap", cwd=tmp_path)
+    assert imp.returncode == 0, imp.stderr
+    assert "no IMU (a range-model calibration recording" in imp.stdout
+    base = tmp_path / "robot.toml"
+    base.write_text(BASE + "[anchors]\n" + "".join(f"{a} = [{x}, {y}, {z}]\n"
+                                                 for a, (x, y, z) in ANCHORS.items()))
+    done = uwbd("calibrate-ranges", "calib.mcap", "-o", "rm.toml", "--write-config",
+                str(base), "calibrated.toml", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    out = done.stdout
+    assert "ranges to 8 anchors over 80 s against the truth" in out
+    assert "degree 1:" in out and "<- fitted" in out and "degree 3:" in out
+    assert "wrote rm.toml" in out and "wrote calibrated.toml" in out
+    snippet = parse(BASE + (tmp_path / "rm.toml").read_text())
+    written = parse((tmp_path / "calibrated.toml").read_text())
+    model = written.filter_config().range_model
+    assert model == snippet.filter_config().range_model
+    assert written.filter_config().range_bias_states is False  # the delays are known
+    assert written.anchors_m == parse(base.read_text()).anchors_m
+    assert model.phase_centre_m() == pytest.approx(PHASE_CENTRE_M, abs=0.01)
+    delays = dict(model.anchor_delays_m)
+    assert sorted(delays) == sorted(DELAYS)
+    assert all(abs(delays[a] - DELAYS[a]) < 0.01 for a in DELAYS), delays
+    checked = uwbd("check-config", "calibrated.toml", cwd=tmp_path)
+    assert checked.returncode == 0, checked.stderr
+    # the tag's term alone, for a robot whose anchors are other units
+    alone = uwbd("calibrate-ranges", "calib.mcap", "--degree", "2", "--no-anchor-delays",
+                 "-o", "tag.toml", cwd=tmp_path)
+    assert alone.returncode == 0, alone.stderr
+    tag_only = parse(BASE + (tmp_path / "tag.toml").read_text()).filter_config()
+    assert tag_only.range_model.degree == 2 and tag_only.range_model.anchor_delays_m == ()
+    assert tag_only.range_bias_states is True
+
+
+def test_calibrate_ranges_errors_are_one_line(tmp_path: Path) -> None:
+    sim = tmp_path / "sim.mcap"
+    assert uwbd("simulate", "-o", str(sim), "--duration", "5").returncode == 0
+    one_line(uwbd("calibrate-ranges", str(sim), cwd=tmp_path), 2,
+             "uwbd calibrate-ranges:", "ranges with truth over", "record about 90 s")
+    one_line(uwbd("calibrate-ranges", "missing.mcap", cwd=tmp_path), 2,
+             "cannot read missing.mcap")
+    one_line(uwbd("calibrate-ranges", str(sim), "-o", "nowhere/rm.toml", cwd=tmp_path), 2,
+             "folder nowhere does not exist")
+    one_line(uwbd("calibrate-ranges", str(sim), "--write-config", str(sim), "out.toml",
+                  cwd=tmp_path), 2, str(sim))
