@@ -116,7 +116,8 @@ def test_the_filter_applies_the_term_once_the_heading_is_known_and_says_so_befor
     """A tag whose phase centre is 12 cm off the configured antenna (the simulator's lever
     arm is where the ranges come from): the term in [range_model] puts it back."""
     offset = np.array([0.06, 0.0, 0.10])
-    sim = simulate(dataclasses.replace(handheld_async(3), lever_arm_m=(0.0, 0.0, 0.1) + offset))
+    true_lever = tuple(float(c) for c in np.array([0.0, 0.0, 0.1]) + offset)
+    sim = simulate(dataclasses.replace(handheld_async(3), lever_arm_m=true_lever))
     told = parse(simulation_toml(sim)).filter_config()
     plain = dataclasses.replace(told, lever_arm_m=(0.0, 0.0, 0.1))
     x, y, z = offset / S3
