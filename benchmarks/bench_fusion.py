@@ -5,7 +5,8 @@
 Speed: the filter alone (frames built beforehand and frozen out of the garbage collector's
 walks, as ``uwbd replay`` freezes its log) on a 200 Hz IMU and 8 anchors at 10 Hz,
 per mode, and on a 100 Hz IMU with 170 single ranges a second (tight), as a multiple of
-real time, on the C core and on the pure-Python reference.
+real time, on the C core and on the pure-Python reference; and the cost of the range model
+(``[range_model]``, degrees 1 and 2 with anchor delays) against none on the single ranges.
 Accuracy: position RMSE against ground truth for the baselines (pure INS, UWB least
 squares, the same with static-point filtering at rest, the thesis's 4-state KF with its
 dual-gain complementary attitude filter and static points, and that KF with the two gains
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import gc
 import math
 import time
@@ -31,6 +33,7 @@ from drivers.frames import Frame, ImuSample, UwbRanges
 from uwbd.config import parse
 from uwbd.fusion.core import native
 from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.models.range_model import RangeModel
 from uwbd.fusion.settings import Z_DOWN, FilterConfig, Mode
 from uwbd.tools.baselines import comparison_methods
 from uwbd.tools.evaluate import (
@@ -89,6 +92,30 @@ def speed(modes: list[Mode]) -> None:
               f"{duration_s / best['pure Python']:5.0f} x (C core / pure Python "
               f"{best['pure Python'] / best['C core']:.2f}; "
               f"{best['C core'] / len(run.imu) * 1e6:.1f} us per IMU sample, all in)")
+
+
+def range_model_cost() -> None:
+    """The filter with the range model on (degree 1: a phase centre; degree 2: the rest
+    taken off the ranges each epoch) and off, side by side, on single ranges at 170/s."""
+    hand = simulate(handheld_async(1))
+    base = parse(simulation_toml(hand)).filter_config()
+    c2 = (0.003, 0.081, 0.029, -0.011, -0.009, 0.018, 0.010, 0.001)
+    delays = tuple((a, 0.01 * a) for a in range(len(hand.config.anchors_m)))
+    loads = {"off": base,
+             "degree 1 + anchor delays": dataclasses.replace(
+                 base, range_model=RangeModel(1, c2[:3], anchor_delays_m=delays)),
+             "degree 2 + anchor delays": dataclasses.replace(
+                 base, range_model=RangeModel(2, c2, anchor_delays_m=delays))}
+    frames = list(merge(hand.imu, hand.uwb))
+    gc.freeze()
+    best = dict.fromkeys(loads, math.inf)
+    for _ in range(3):
+        for name, cfg in loads.items():
+            best[name] = min(best[name], _timed(cfg, frames))
+    print("range model: the filter alone, C core, 100 Hz IMU + 170 single ranges/s (best of 3, "
+          "alternated)")
+    for name, t in best.items():
+        print(f"  {name}: {t:.2f} s ({100 * (t / best['off'] - 1):+.0f} % of off)")
 
 
 def _timed(cfg: FilterConfig, frames: list[Frame]) -> float:
@@ -163,6 +190,7 @@ def main() -> None:
     ap.add_argument("--speed-only", action="store_true", help="skip the accuracy tables")
     args = ap.parse_args()
     speed(list(Mode))
+    range_model_cost()
     if args.speed_only:
         return
     accuracy_sim(args.seeds)

@@ -11,7 +11,9 @@ simulated sensors' specs; imported runs carry anchors, mounting and lever arm on
   anchor out for 20 s, 0.27 m lever arm; first 8 s left out;
 * ``handheld_async``: one range per message, 170 Hz round-robin over 8 anchors; 10 s out;
 * the real flight ``iasl-s1`` and the real handheld run ``inrol-env1`` (first 10 s out),
-  with UWB least squares beside it for reference.
+  with UWB least squares beside it for reference; on ``inrol-env1`` also with the range
+  model ``uwbd calibrate-ranges`` fits on ``inrol-calib`` (another room, same hardware;
+  degrees 1 and 2 of the tag's term, the anchors' delays, delay states off as it writes).
 
 Faults on the seed layout: the IMU pinned at full scale for 0.5 s, one corrupted sample,
 a 30 s IMU gap, a 20 s UWB outage, every anchor NLOS (+0.5-2 m each) for 10 s (3 seeds).
@@ -43,12 +45,14 @@ import numpy as np
 
 from drivers.frames import UwbRanges
 from uwbd.config import parse
-from uwbd.fusion.settings import Z_DOWN, FilterConfig
+from uwbd.fusion.models.range_model import RangeModel
+from uwbd.fusion.settings import IDENTITY3, Z_DOWN, FilterConfig
 from uwbd.fusion.types import Pose
 from uwbd.tools.baselines import UwbLeastSquares
 from uwbd.tools.evaluate import merge, run_filter, run_method, score, truth_spikes
 from uwbd.tools.importer import INROL_LEVER_ARM_M, INROL_MOUNTING, Dataset, load_iasl, load_inrol
 from uwbd.tools.logtools import simulation_toml
+from uwbd.tools.range_calibration import calibrate, range_samples
 from uwbd.tools.simulator import PRESETS, SimConfig, Simulation, simulate
 
 Vec3 = tuple[float, float, float]
@@ -127,8 +131,34 @@ def accuracy_real(data: Path, only: str | None) -> None:
         row("tight ESKF, defaults", score(t, p, tt, tp, c, skip),
             f"restarts {flt.counters['restarts']}, resets {flt.counters['position_resets']}, "
             + findings(poses))
+        if name == "inrol-env1":
+            for degree in (1, 2):
+                model = calibrated_model(data / "inrol-calib", degree)
+                if model is None:
+                    print("  range model: skipped (inrol-calib not found)")
+                    break
+                t0 = time.perf_counter()
+                poses, _, flt = run_filter(dataclasses.replace(
+                    cfg, range_model=model, range_bias_states=False), merge(ds.imu, ds.uwb))
+                t, p, c = tracks(poses)
+                row(f"range model from inrol-calib, deg {degree}", score(t, p, tt, tp, c, skip),
+                    f"filter {time.perf_counter() - t0:.1f} s, " + findings(poses))
         tl, pl = run_method(UwbLeastSquares(cfg), merge(ds.imu, ds.uwb))
         row("UWB least squares", score(tl, pl, tt, tp, None, skip))
+
+
+def calibrated_model(directory: Path, degree: int) -> RangeModel | None:
+    """What ``uwbd calibrate-ranges`` fits on the calibration recording: the tag's term of
+    ``degree`` and the anchors' delays (the config then turns the delay states off)."""
+    if not directory.is_dir():
+        return None
+    ds = load_inrol(directory)
+    samples = range_samples(ds.uwb, ds.anchors_m, ds.truth_t_ns, ds.truth_p_m,
+                            ds.truth_rotation, ds.lever_arm_m, IDENTITY3)
+    fit = calibrate(samples, degree).fit
+    return RangeModel(degree, tuple(float(c) for c in fit.coefficients_m),
+                      anchor_delays_m=tuple((a, float(o)) for a, o in
+                                            zip(fit.anchor_ids, fit.offsets_m, strict=True)))
 
 
 def fault_case(name: str, cfg: SimConfig, start_s: float, end_s: float) -> None:

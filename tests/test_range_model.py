@@ -56,7 +56,8 @@ def test_degree_one_is_a_phase_centre_and_higher_degrees_come_off_the_ranges() -
     shift = np.linalg.norm(d + R @ model.phase_centre_m(), axis=1) - np.linalg.norm(d, axis=1)
     assert shift == pytest.approx(basis(u, 1) @ np.array(c[:3]), abs=1e-6)
     anchors = -d[:, :] + np.array([1.0, 2.0, 3.0])
-    higher = model.higher_delay_m(R, np.array([1.0, 2.0, 3.0]), anchors)
+    higher = model.higher_delay_m(quat_from_euler(0.1, -0.2, 1.0), (1.0, 2.0, 3.0), (0, 0, 0),
+                                  anchors)
     assert higher == pytest.approx(basis(u, 2)[:, 3:] @ np.array(c[3:]))
     assert not RangeModel().enabled and RangeModel(1, (0, 0, 0)).enabled
     with pytest.raises(ValueError, match="degree 2 takes 8 coefficients, got 3"):

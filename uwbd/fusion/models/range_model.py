@@ -27,13 +27,16 @@ a few millimetres per radian on the recordings measured).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from uwbd.fusion.core.rotation import Array
 
 MAX_DEGREE = 3
+SQRT3 = math.sqrt(3.0)
 IDENTITY3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 
@@ -42,23 +45,28 @@ def n_coefficients(degree: int) -> int:
     return (degree + 1) ** 2 - 1
 
 
-def basis(u: Array, degree: int) -> Array:
-    """The 4π-normalised real spherical harmonics of unit vectors ``u`` (n×3) for degrees
-    1..``degree``, each degree's in the order m = −l..l: (n, :func:`n_coefficients`)."""
+def harmonics(x: Any, y: Any, z: Any, degree: int) -> list[Any]:
+    """The 4π-normalised real spherical harmonics of the unit vector (x, y, z) for degrees
+    1..``degree``, each degree's in the order m = −l..l: floats, or arrays of them."""
     if not 0 <= degree <= MAX_DEGREE:
         raise ValueError(f"degree {degree}: expected 0..{MAX_DEGREE}")
-    x, y, z = u[:, 0], u[:, 1], u[:, 2]
-    s3 = math.sqrt(3.0)
-    cols = [s3 * y, s3 * z, s3 * x] if degree >= 1 else []
+    s3 = SQRT3
+    out = [s3 * y, s3 * z, s3 * x] if degree >= 1 else []
     if degree >= 2:
         s15 = math.sqrt(15.0)
-        cols += [s15 * x * y, s15 * y * z, math.sqrt(5.0) / 2 * (3 * z * z - 1),
-                 s15 * x * z, s15 / 2 * (x * x - y * y)]
+        out += [s15 * x * y, s15 * y * z, math.sqrt(5.0) / 2 * (3 * z * z - 1),
+                s15 * x * z, s15 / 2 * (x * x - y * y)]
     if degree >= 3:
         a, b, c = math.sqrt(35 / 8), math.sqrt(105.0), math.sqrt(21 / 8)
-        cols += [a * y * (3 * x * x - y * y), b * x * y * z, c * y * (5 * z * z - 1),
-                 math.sqrt(7.0) / 2 * z * (5 * z * z - 3), c * x * (5 * z * z - 1),
-                 b / 2 * z * (x * x - y * y), a * x * (x * x - 3 * y * y)]
+        out += [a * y * (3 * x * x - y * y), b * x * y * z, c * y * (5 * z * z - 1),
+                math.sqrt(7.0) / 2 * z * (5 * z * z - 3), c * x * (5 * z * z - 1),
+                b / 2 * z * (x * x - y * y), a * x * (x * x - 3 * y * y)]
+    return out
+
+
+def basis(u: Array, degree: int) -> Array:
+    """:func:`harmonics` of unit vectors ``u`` (n×3): (n, :func:`n_coefficients`)."""
+    cols = harmonics(u[:, 0], u[:, 1], u[:, 2], degree)
     return np.stack(cols, axis=1) if cols else np.zeros((len(u), 0))
 
 
@@ -87,14 +95,30 @@ class RangeModel:
         if not self.enabled:
             return np.zeros(3)
         c_y, c_z, c_x = self.coefficients_m[:3]
-        return np.array(self.tag_mounting) @ (math.sqrt(3.0) * np.array([c_x, c_y, c_z]))
+        return np.array(self.tag_mounting) @ (SQRT3 * np.array([c_x, c_y, c_z]))
 
-    def higher_delay_m(self, rotation: Array, p_antenna_m: Array, anchors_m: Array) -> Array:
-        """The delay of degrees 2..L of each range (m) for the attitude ``rotation`` (body to
-        navigation), zeros at degree 1."""
+    def higher_delay_m(self, q_wxyz: Sequence[float], p_m: Sequence[float],
+                       lever_m: Sequence[float], anchors_m: Array) -> Array:
+        """The delay of degrees 2..L of each range (m) for the pose (``q_wxyz`` body to
+        navigation, ``p_m``) with the antenna at ``lever_m`` (body axes); zeros at degree 1.
+        In floats: an epoch holds one range or a few."""
         if self.degree < 2:
             return np.zeros(len(anchors_m))
-        d = p_antenna_m - anchors_m
-        u = d @ rotation @ np.array(self.tag_mounting)  # rows: (C_tbᵀ Rᵀ d)ᵀ
-        u /= np.maximum(np.linalg.norm(u, axis=1), 1e-9)[:, None]
-        return basis(u, self.degree)[:, 3:] @ np.array(self.coefficients_m[3:])
+        w, x, y, z = q_wxyz
+        R = ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+             (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+             (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
+        p_ant = [p_m[i] + R[i][0] * lever_m[0] + R[i][1] * lever_m[1] + R[i][2] * lever_m[2]
+                 for i in range(3)]
+        (m00, m01, m02), (m10, m11, m12), (m20, m21, m22) = self.tag_mounting
+        out = []
+        higher = self.coefficients_m[3:]
+        for a in anchors_m.tolist():
+            d = [p_ant[0] - a[0], p_ant[1] - a[1], p_ant[2] - a[2]]
+            b = [R[0][j] * d[0] + R[1][j] * d[1] + R[2][j] * d[2] for j in range(3)]  # Rᵀ d
+            u = (m00 * b[0] + m10 * b[1] + m20 * b[2], m01 * b[0] + m11 * b[1] + m21 * b[2],
+                 m02 * b[0] + m12 * b[1] + m22 * b[2])  # C_tbᵀ Rᵀ d
+            n = math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]) or 1.0
+            terms = harmonics(u[0] / n, u[1] / n, u[2] / n, self.degree)[3:]
+            out.append(sum(c * h for c, h in zip(higher, terms, strict=True)))
+        return np.array(out)

@@ -80,16 +80,16 @@ class EpochFusion:
         ekf = self.ekf
         if ekf is None:
             return ranges
-        R = ekf.R
         if not self._aligned:
-            up_b = R[2]  # the vertical in body axes: Rᵀ e_z, whatever the heading
+            w, x, y, z = ekf.q  # the vertical in body axes, Rᵀ e_z, whatever the heading:
+            up_b = np.array((2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
             shift = self._model_lever - self._plain_lever
             self.lever = self._plain_lever + float(shift @ up_b) * up_b
             return ranges
         self.lever = self._model_lever
         if model.degree < 2:
             return ranges
-        return ranges - model.higher_delay_m(R, np.array(ekf.p) + R @ self.lever, anchors)
+        return ranges - model.higher_delay_m(ekf.q, ekf.p, self._model_lever.tolist(), anchors)
 
     def _measurement_rows(self, ids: list[int], anchors: Array, ranges: Array,
                           r_scale: Array, fix: LsqFix | None) -> Rows:
