@@ -35,6 +35,7 @@ import numpy as np
 
 from uwbd.fusion.core.rotation import Array
 
+Vector = Sequence[float] | Array
 MAX_DEGREE = 3
 SQRT3 = math.sqrt(3.0)
 IDENTITY3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
@@ -97,8 +98,8 @@ class RangeModel:
         c_y, c_z, c_x = self.coefficients_m[:3]
         return np.array(self.tag_mounting) @ (SQRT3 * np.array([c_x, c_y, c_z]))
 
-    def higher_delay_m(self, q_wxyz: Sequence[float], p_m: Sequence[float],
-                       lever_m: Sequence[float], anchors_m: Array) -> Array:
+    def higher_delay_m(self, q_wxyz: Vector, p_m: Vector, lever_m: Vector,
+                       anchors_m: Array) -> Array:
         """The delay of degrees 2..L of each range (m) for the pose (``q_wxyz`` body to
         navigation, ``p_m``) with the antenna at ``lever_m`` (body axes); zeros at degree 1.
         In floats: an epoch holds one range or a few."""
