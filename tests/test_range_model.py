@@ -227,3 +227,19 @@ def test_calibrate_ranges_errors_are_one_line(tmp_path: Path) -> None:
              "folder nowhere does not exist")
     one_line(uwbd("calibrate-ranges", str(sim), "--write-config", str(sim), "out.toml",
                   cwd=tmp_path), 2, str(sim))
+
+
+def test_report_shows_the_range_residuals_raw_and_with_the_model(tmp_path: Path) -> None:
+    assert uwbd("simulate", "-o", "s.mcap", "--duration", "20", cwd=tmp_path).returncode == 0
+    plain = uwbd("report", "s.mcap", "-o", "plain", cwd=tmp_path)
+    assert plain.returncode == 0, plain.stderr
+    assert "robust σ" in plain.stdout and "(no [range_model]: uwbd calibrate-ranges" in plain.stdout
+    assert (tmp_path / "plain" / "ranges.png").stat().st_size > 10_000
+    modelled = uwbd("report", "s.mcap", "-o", "model", "--set",
+                    "range_model.anchor_delays_m={ 0 = 0.05 }", cwd=tmp_path)
+    assert modelled.returncode == 0, modelled.stderr
+    line = next(t for t in modelled.stdout.splitlines() if t.startswith("  median per anchor"))
+    raw, taken_off = (float(x) for x in line.split("0 ")[1].split(",")[0].split("/"))
+    assert taken_off == pytest.approx(raw - 0.05, abs=1e-3)
+    assert "m with the range model" in modelled.stdout
+    assert (tmp_path / "model" / "ranges.png").stat().st_size > 10_000

@@ -33,6 +33,12 @@ Sections::
                          multipath_tau_s (1): time-correlated range error per anchor,
                          tag_side ("auto", "below", "above" a plane of anchors),
                          height_range_m ([lo, hi]: where the tag can be, a mirror hint)
+    [range_model]        (``uwbd calibrate-ranges`` writes it; all off by default)
+                         tag_degree (0..3; 0: no direction term), tag_coefficients_m (the
+                         tag antenna's direction-dependent delay: real spherical harmonics
+                         of degrees 1..tag_degree, m = -l..l each, tag axes), tag_mounting
+                         (3x3 rows, tag axes -> body; identity), anchor_delays_m ({ "<id>" =
+                         delay }: taken off each anchor's ranges), calibrated_from (a note)
     [pipeline]           aligner_wait_ms (0), pose_rate_hz (50), status_period_s (1)
     [log]                directory ("logs"), rotate_mb (256), rotate_minutes (60)
     [zenoh]              enabled (true), mode ("peer"), connect [], listen [], prefix

@@ -8,8 +8,11 @@ log allows offline); see :mod:`uwbd.tools.baselines`. Printed: position RMSE (XY
 and position NEES/3 per method, the tight filter's mean NIS per accepted range, how often
 the baselines' motion tests fired (the share of time at the attitude's turning or
 accelerating gain, the share of fixes averaged at rest), and, where the truth has
-motion-capture spikes, the same table without them. Written: ``trajectory.png`` (XY paths)
-and ``error.png`` (horizontal error over time).
+motion-capture spikes, the same table without them; where the log has truth and ranges,
+the ranges' residuals against it (robust σ, median per anchor), raw and with the config's
+range model taken off. Written: ``trajectory.png`` (XY paths), ``error.png`` (horizontal
+error over time) and ``ranges.png`` (the range residuals by anchor and by the ray's
+direction in the tag's axes, raw and with the range model).
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import numpy as np
 from tqdm import tqdm
 
 from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.models.range_model import basis
 from uwbd.fusion.settings import Mode
 from uwbd.tools.baselines import Baseline, Kf4, StaticPoints, comparison_methods
 from uwbd.tools.evaluate import (
@@ -38,6 +42,12 @@ from uwbd.tools.evaluate import (
     truth_spikes,
 )
 from uwbd.tools.logtools import Recording
+from uwbd.tools.range_calibration import (
+    RangeCalibrationError,
+    RangeSamples,
+    range_samples,
+    robust_sigma,
+)
 
 Track = tuple[Times, Array, Array | None]
 
@@ -111,6 +121,12 @@ def report(rec: Recording, out_dir: Path, skip_s: float = 0.0, progress: bool = 
     lines += [f"{k}: {v:.2f}" for k, v in extra.items()]
     out_dir.mkdir(parents=True, exist_ok=True)
     written = _plots(rec, tracks, out_dir)
+    residuals = range_residuals(rec)
+    if residuals is not None:
+        lines += residuals.summary()
+        written.append(residuals.plot(out_dir / "ranges.png"))
+    else:
+        (out_dir / "ranges.png").unlink(missing_ok=True)
     lines.append("plots: " + ", ".join(str(path) for path in written))
     return "\n".join(lines)
 
@@ -150,3 +166,90 @@ def _plots(rec: Recording, tracks: dict[str, Track], out_dir: Path) -> list[Path
     fig.savefig(out_dir / "error.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
     return [*written, out_dir / "error.png"]
+
+
+@dataclasses.dataclass
+class RangeResiduals:
+    """Each range against the truth: raw (``r − |p_antenna − a|``), and with the config's
+    range model taken off (the anchors' delays and the tag's direction term)."""
+
+    samples: RangeSamples
+    raw_m: Array
+    modelled_m: Array | None  # None: no [range_model] configured
+
+    def summary(self) -> list[str]:
+        s, raw = self.samples, self.raw_m
+        line = (f"ranges against the truth ({len(raw)}): robust σ {robust_sigma(raw):.3f} m raw"
+                + (f", {robust_sigma(self.modelled_m):.3f} m with the range model"
+                   if self.modelled_m is not None else
+                   " (no [range_model]: uwbd calibrate-ranges fits one)"))
+        per = []
+        for a in np.unique(s.anchor):
+            mine = s.anchor == a
+            per.append(f"{a} {np.median(raw[mine]):+.3f}"
+                       + (f"/{np.median(self.modelled_m[mine]):+.3f}"
+                          if self.modelled_m is not None else ""))
+        return [line, "  median per anchor (raw" + ("/modelled" if self.modelled_m is not None
+                                                      else "") + ", m): " + ", ".join(per)]
+
+    def plot(self, path: Path) -> Path:
+        s = self.samples
+        cases = [("raw", self.raw_m)] + ([("range model taken off", self.modelled_m)]
+                                          if self.modelled_m is not None else [])
+        fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+        ids = np.unique(s.anchor)
+        width = 0.8 / len(cases)
+        for k, (label, e) in enumerate(cases):
+            axes[0].boxplot([e[s.anchor == a] for a in ids], positions=np.arange(len(ids))
+                            + (k - (len(cases) - 1) / 2) * width, widths=width * 0.9,
+                            showfliers=False, patch_artist=True,
+                            boxprops={"facecolor": f"C{k}", "alpha": 0.6})
+            axes[0].plot([], [], color=f"C{k}", lw=6, alpha=0.6, label=label)
+            for ax, angle, name in ((axes[1], np.degrees(np.arctan2(s.u_tag[:, 1],
+                                                                    s.u_tag[:, 0])), "azimuth"),
+                                    (axes[2], np.degrees(np.arcsin(np.clip(s.u_tag[:, 2], -1,
+                                                                           1))), "elevation")):
+                edges = np.linspace(-180, 180, 37) if name == "azimuth" else \
+                    np.linspace(-90, 90, 19)
+                where = np.digitize(angle, edges) - 1
+                mid = (edges[:-1] + edges[1:]) / 2
+                med = np.array([np.median(e[where == i]) if (where == i).sum() >= 20
+                                else np.nan for i in range(len(mid))])
+                ax.plot(mid, med, "o-", color=f"C{k}", label=label)
+        axes[0].set_xticks(np.arange(len(ids)), [str(a) for a in ids])
+        axes[0].set(xlabel="anchor", ylabel="range residual (m)",
+                    title="by anchor (boxes: quartiles, whiskers 1.5 IQR)")
+        axes[1].set(xlabel="azimuth of the anchor→tag ray, tag axes (°)",
+                    ylabel="median residual (m)", title="by direction: azimuth")
+        axes[2].set(xlabel="elevation of the anchor→tag ray, tag axes (°)",
+                    ylabel="median residual (m)", title="by direction: elevation")
+        for ax in axes:
+            ax.axhline(0.0, color="k", lw=0.5)
+            ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(path, dpi=110, bbox_inches="tight")
+        plt.close(fig)
+        return path
+
+
+def range_residuals(rec: Recording) -> RangeResiduals | None:
+    """The ranges against the truth, where the log has both (``None`` otherwise)."""
+    c = rec.config
+    model = c.range_model_settings()
+    if len(rec.truth_t_ns) < 2:
+        return None
+    try:
+        s = range_samples(rec.frames, c.anchors_m, rec.truth_t_ns, rec.truth_p_m,
+                          rec.truth_rotation, c.lever_arm_m, model.tag_mounting)
+    except RangeCalibrationError:
+        return None
+    if len(s.t_ns) < 20:
+        return None
+    raw = s.residual_m
+    if not model.enabled and not model.anchor_delays_m:
+        return RangeResiduals(s, raw, None)
+    delays = dict(model.anchor_delays_m)
+    modelled = raw - np.array([delays.get(int(a), 0.0) for a in s.anchor])
+    if model.enabled:
+        modelled = modelled - basis(s.u_tag, model.degree) @ np.array(model.coefficients_m)
+    return RangeResiduals(s, raw, modelled)
