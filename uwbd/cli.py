@@ -89,6 +89,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="e.g. tcp/192.168.1.10:7447 (repeatable); default: scouting")
     p.add_argument("--count", type=int, help="stop after N messages")
     p.add_argument("--timeout", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument("--zenoh-config", metavar="FILE",
+                   help="a Zenoh config file (JSON5) for this subscriber: its TLS certificates "
+                   "or user and password (default: -c's zenoh.config, if any)")
     p.set_defaults(func="service:cmd_echo")
 
     p = add("router", help="a Zenoh router for a fleet of daemons (as zenohd)")
@@ -97,6 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "repeatable)")
     p.add_argument("--multicast-scouting", action="store_true",
                    help="also answer multicast scouting on the LAN (default off)")
+    p.add_argument("--zenoh-config", metavar="FILE",
+                   help="a Zenoh config file (JSON5): TLS, authentication, access control "
+                   "(README, \"Securing Zenoh\")")
     p.set_defaults(func="service:cmd_router")
 
     p = add("replay", help="re-run a log through the same pipeline")

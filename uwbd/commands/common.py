@@ -19,6 +19,7 @@ from uwbd.codec import frame_from_dict
 from uwbd.config import Config, ConfigError, apply_overrides
 from uwbd.config import load as load_config
 from uwbd.config import parse as parse_config
+from uwbd.config.checks import host_problems
 from uwbd.logs.reading import LogContents, not_a_log, read_log
 
 LOG = journal.get("cli")
@@ -181,13 +182,17 @@ def write_atomically(target: Path, text: str) -> None:
         raise RunError(f"cannot write {target}: {err.strerror or err}") from err
 
 
-def load_config_file(path: str, warn: bool = False) -> Config:
+def load_config_file(path: str, warn: bool = False, host: bool = False) -> Config:
     """A configuration file, or every problem with it, one line each naming file and key
-    (exit 2); ``warn``: the warnings of a config that loads are said too."""
+    (exit 2); ``warn``: the warnings of a config that loads are said too; ``host``: what
+    this machine needs to run it is checked too (the Zenoh file and its certificates)."""
     try:
         config = load_config(Path(path))
     except ConfigError as err:
         raise UsageError(str(err)) from err
+    problems = host_problems(config, path) if host else []
+    if problems:
+        raise UsageError("\n".join(problems))
     if warn:
         for warning in config.warnings:
             LOG.warning("%s", warning)

@@ -8,6 +8,7 @@ from pathlib import Path
 from uwbd.commands.common import LOG, UsageError
 from uwbd.config import ConfigError
 from uwbd.config import load as load_config
+from uwbd.config.checks import host_problems
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
@@ -21,6 +22,9 @@ def cmd_check_config(args: argparse.Namespace) -> int:
         raise UsageError(str(err)) from err
     for warning in config.warnings:
         LOG.warning("%s", warning)
+    problems = host_problems(config, args.config)
+    if problems:
+        raise UsageError("\n".join(problems))
     ports = ", ".join(f"{s.name}={s.driver}@{s.port}" for s in config.sources) or "no sources"
     mode = config.filter_config().mode.value
     print(f"{args.config}: ok ({ports}; {len(config.anchors_m)} anchors; {mode} fusion"

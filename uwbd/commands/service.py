@@ -24,13 +24,14 @@ from uwbd.commands.common import (
     load_config_file,
 )
 from uwbd.config import default_robot_name
+from uwbd.config.checks import Report, check_zenoh_file
+from uwbd.config.zenoh_session import zenoh_reason
 from uwbd.service.daemon import PipelineError
 from uwbd.service.daemon import run as run_daemon
 from uwbd.service.demo import run_demo
 from uwbd.service.echo import EchoError, dial_endpoints, echo
 from uwbd.service.interrupt import shielded, wait_until
 from uwbd.service.router import RouterError, run_router
-from uwbd.service.zenohsink import zenoh_reason
 
 
 def cmd_emulate(args: argparse.Namespace) -> int:
@@ -83,7 +84,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """The daemon: serial ports → fusion → MCAP logs, until SIGINT/SIGTERM."""
-    config = load_config_file(args.config, warn=True)
+    config = load_config_file(args.config, warn=True, host=True)
     if not config.sources:
         raise UsageError(f"{args.config}: sources: at least one [[sources]] is needed")
     log_dir = Path(args.log_dir or config.log.get("directory", "logs"))
@@ -116,7 +117,11 @@ def cmd_echo(args: argparse.Namespace) -> int:
         dial = [*zenoh_cfg.get("connect", []), *dial_endpoints(zenoh_cfg.get("listen", []))]
         zcfg.update(multicast_scouting=zenoh_cfg.get("multicast_scouting", True),
                     connect=dial)
+        if "config" in zenoh_cfg:  # the daemon's certificates, on the daemon's machine
+            zcfg["config"] = zenoh_cfg["config"]
         prefix = prefix or config.zenoh_prefix
+    if args.zenoh_config:
+        zcfg["config"] = args.zenoh_config
     if args.connect:
         zcfg["connect"] = [*args.connect, *zcfg.get("connect", [])]
     prefix = str(prefix or f"uwbd/{default_robot_name()}")
@@ -124,6 +129,8 @@ def cmd_echo(args: argparse.Namespace) -> int:
         # it dials a daemon or a router and only listens: as a client it needs no listen
         # endpoint of its own, which a peer would (peers mesh with each other directly)
         zcfg["mode"] = "client"
+        zcfg["listen"] = []  # nor the daemon's, which its Zenoh file may give
+    _zenoh_file_usable(zcfg, "--zenoh-config" if args.zenoh_config else "-c")
     try:
         zenoh.KeyExpr(f"{prefix.strip('/')}/pose")
     except zenoh.ZError as err:
@@ -139,10 +146,26 @@ def cmd_echo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _zenoh_file_usable(zcfg: dict[str, Any], option: str) -> None:
+    """A Zenoh file given on the command line: checked as ``check-config`` checks one."""
+    if "config" in zcfg:
+        r = Report(option)
+        check_zenoh_file(r, zcfg)
+        if r.errors:
+            raise UsageError("\n".join(r.errors))
+
+
 def cmd_router(args: argparse.Namespace) -> int:
     """A Zenoh router for several daemons (as ``zenohd``)."""
+    zcfg: dict[str, Any] = {"mode": "router", "listen": args.listen or [ROUTER_LISTEN_DEFAULT],
+                            "multicast_scouting": args.multicast_scouting}
+    if args.zenoh_config:
+        zcfg["config"] = args.zenoh_config
+        if not args.listen:  # the file's listen endpoints, if it gives any
+            zcfg.pop("listen")
+        _zenoh_file_usable(zcfg, "--zenoh-config")
     try:
-        run_router(args.listen or [ROUTER_LISTEN_DEFAULT], args.multicast_scouting)
+        run_router(zcfg)
     except RouterError as err:
         raise UsageError(str(err)) from err
     return 0

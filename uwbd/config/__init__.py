@@ -42,7 +42,10 @@ Sections::
     [pipeline]           aligner_wait_ms (0), pose_rate_hz (50), status_period_s (1)
     [log]                directory ("logs"), rotate_mb (256), rotate_minutes (60)
     [zenoh]              enabled (true), mode ("peer"), connect [], listen [], prefix
-                         ("uwbd/<robot name>"), multicast_scouting (true)
+                         ("uwbd/<robot name>"), multicast_scouting (true), config (a Zenoh
+                         config file, JSON5: TLS, authentication, access control; the keys
+                         above that the table gives are set over it, the others are the
+                         file's)
 
 Beyond types and ranges (the tables in :mod:`uwbd.config.schema`), the file must make sense
 as a whole (:mod:`uwbd.config.checks`): with sources, one of them is UWB; a driver that

@@ -11,6 +11,7 @@ import json
 import math
 import re
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -288,6 +289,13 @@ def check_zenoh(r: Report, zenoh: Mapping[str, Any]) -> None:
                 r.warn(f"zenoh.{key}[{k}]", f"{show(endpoint)} is listed twice")
             seen.add(endpoint)
             good[key].append((k, endpoint))
+    if "config" not in zenoh:
+        for key, listed in good.items():
+            for k, endpoint in listed:
+                if endpoint.partition("/")[0] in SECURE_PROTOCOLS:
+                    r.error(f"zenoh.{key}[{k}]", f"{show(endpoint)}: TLS needs certificates: "
+                            "name a Zenoh config file that gives them with zenoh.config "
+                            "(README, \"Securing Zenoh\")")
     if zenoh.get("mode") == "client" and not zenoh.get("connect"):
         r.error("zenoh.mode", "\"client\" needs a zenoh.connect endpoint (a router or peer)")
     prefix = zenoh.get("prefix", "").strip("/")
@@ -385,3 +393,71 @@ def check_filter(r: Report, config: Config) -> None:
         r.error(_FILTER_NAMES[found.group()] if found else "fusion",
                 "the filter cannot use it: "
                 + _FILTER_WORDS.sub(lambda m: _FILTER_NAMES[m.group()], text))
+
+
+SECURE_PROTOCOLS = ("tls", "quic")
+TLS = "transport/link/tls/"
+
+
+def check_zenoh_file(r: Report, zcfg: Mapping[str, Any]) -> None:
+    """``zenoh.config`` on this machine (``check-config`` and ``run``; a replay on another
+    machine needs none of it): the file is there and Zenoh reads it merged with the table's
+    keys; a ``tls/`` or ``quic/`` endpoint has the key, certificates and CA it needs, and
+    every file the TLS settings name exists."""
+    import zenoh  # noqa: PLC0415 - only for configs that name a Zenoh file
+
+    from uwbd.config.zenoh_session import session_config, zenoh_reason  # noqa: PLC0415
+
+    path = zcfg.get("config")
+    if path is None:
+        return
+    if not Path(path).is_file():
+        r.error("zenoh.config", f"{path}: no such file (a Zenoh config file, JSON5)")
+        return
+    try:
+        merged = session_config(dict(zcfg))
+    except zenoh.ZError as err:
+        r.error("zenoh.config", f"{path}: Zenoh: {zenoh_reason(err)}")
+        return
+
+    def get(key: str) -> Any:
+        try:
+            return json.loads(merged.get_json(key))
+        except (zenoh.ZError, ValueError):
+            return None
+
+    def endpoints(section: str) -> list[str]:
+        listed = get(f"{section}/endpoints") or []
+        if isinstance(listed, dict):  # per mode: {router: [...], peer: [...]}
+            listed = [e for v in listed.values() for e in (v or [])]
+        return [e for e in listed if isinstance(e, str)]
+
+    def given(name: str) -> bool:
+        return bool(get(TLS + name) or get(TLS + name + "_base64"))
+
+    mtls = bool(get(TLS + "enable_mtls"))
+    needs = {"listen": ["listen_private_key", "listen_certificate"]
+             + (["root_ca_certificate"] if mtls else []),
+             "connect": ["root_ca_certificate"]
+             + (["connect_private_key", "connect_certificate"] if mtls else [])}
+    for section, names in needs.items():
+        secure = [e for e in endpoints(section) if e.partition("/")[0] in SECURE_PROTOCOLS]
+        missing = [n for n in names if not given(n)]
+        if secure and missing:
+            r.error("zenoh.config", f"{path}: {section} endpoint {secure[0]} needs "
+                    + ", ".join(f"transport.link.tls.{n}" for n in missing)
+                    + (" (enable_mtls: each side shows a certificate)" if mtls else ""))
+    for name in ("root_ca_certificate", "listen_private_key", "listen_certificate",
+                 "connect_private_key", "connect_certificate"):
+        file = get(TLS + name)
+        if isinstance(file, str) and not Path(file).is_file():
+            r.error("zenoh.config", f"{path}: transport.link.tls.{name} {file}: no such file")
+
+
+def host_problems(config: Config, where: str) -> list[str]:
+    """What this machine lacks to run ``config`` (its Zenoh file and what that names), one
+    line each; nothing where Zenoh is off."""
+    r = Report(where)
+    if config.zenoh.get("enabled", True):
+        check_zenoh_file(r, config.zenoh)
+    return r.errors

@@ -80,6 +80,8 @@ def parse(text: str, where: str = "<config>") -> Config:
     anchors, anchor_keys, anchors_complete = _anchors(r, doc)
     tables = {name: _table(r, doc, name, spec) for name, spec in TABLES.items()}
     imu, fusion, zenoh = tables["imu"], tables["fusion"], tables["zenoh"]
+    if "config" in zenoh and Path(where).is_file():  # a Zenoh config file beside this one
+        zenoh["config"] = str(Path(where).parent / Path(zenoh["config"]).expanduser())
     mounting = mounting_rotation(r, imu.get("mounting"))
     lever = vec3(imu.get("lever_arm_m", [0.0, 0.0, 0.0]))
     check_sources(r, sources, sources_complete)

@@ -142,6 +142,7 @@ _LOG_SPEC = {"directory": Key(STRING, non_empty=True),
              "rotate_minutes": Key(NUMBER, _POSITIVE_RANGE)}
 _ZENOH_SPEC = {"enabled": Key(BOOL), "mode": Key(STRING, choices=("peer", "client", "router")),
                "connect": Key(ENDPOINTS), "listen": Key(ENDPOINTS), "prefix": Key(STRING),
+               "config": Key(STRING, non_empty=True),
                "multicast_scouting": Key(BOOL)}
 NAME = Kind("a name of letters, digits, '-' and '_' (\"robot1\")",
             lambda v: isinstance(v, str) and re.fullmatch(r"[A-Za-z0-9_-]+", v) is not None)

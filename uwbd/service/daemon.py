@@ -22,6 +22,7 @@ import zenoh
 
 from uwbd import __version__, journal
 from uwbd.config import Config
+from uwbd.config.zenoh_session import zenoh_reason
 from uwbd.fusion.core import native
 from uwbd.logs.sink import McapSink
 from uwbd.service.narrator import Narrator
@@ -35,7 +36,7 @@ from uwbd.service.ports import (
     ThreadReads,
     make_reads,
 )
-from uwbd.service.zenohsink import ZenohSink, zenoh_reason
+from uwbd.service.zenohsink import ZenohSink
 
 ZENOH_RETRY_S = 5.0
 LOG = journal.get("daemon")

@@ -22,7 +22,7 @@ from typing import Any
 import zenoh
 
 from uwbd import journal
-from uwbd.service.zenohsink import session_config, zenoh_reason
+from uwbd.config.zenoh_session import session_config, zenoh_reason
 
 LOG = journal.get("echo")
 QUIET_AFTER_S = 3.0  # nothing this long: say what is (not) there

@@ -7,13 +7,16 @@ router, and one subscriber on ``uwbd/*/pose`` there sees every robot. This is a 
 
 from __future__ import annotations
 
+import json
+import socket
 import threading
+from typing import Any
 
 import zenoh
 
 from uwbd import journal
+from uwbd.config.zenoh_session import session_config, zenoh_reason
 from uwbd.service.interrupt import wait_until
-from uwbd.service.zenohsink import session_config, zenoh_reason
 
 LOG = journal.get("router")
 
@@ -22,20 +25,34 @@ class RouterError(Exception):
     """Zenoh could not start a router with these settings (a port taken, a bad endpoint)."""
 
 
-def run_router(listen: list[str], multicast_scouting: bool,
-               stop: threading.Event | None = None) -> None:
-    """Route until Ctrl-C, SIGTERM or ``stop``."""
+def run_router(zcfg: dict[str, Any], stop: threading.Event | None = None) -> None:
+    """Route until Ctrl-C, SIGTERM or ``stop``; ``zcfg`` as a ``[zenoh]`` table (mode
+    router, listen, multicast_scouting, a Zenoh file in ``config``)."""
     try:
-        session = zenoh.open(session_config({"mode": "router", "listen": listen,
-                                             "multicast_scouting": multicast_scouting}))
+        config = session_config(zcfg)
+        session = zenoh.open(config)
     except zenoh.ZError as err:
-        raise RouterError(f"cannot start a router on {', '.join(listen)}: "
-                          f"{zenoh_reason(err)}") from err
+        where = ", ".join(zcfg.get("listen", [])) or zcfg.get("config", "")
+        raise RouterError(f"cannot start a router on {where}: {zenoh_reason(err)}") from err
+    listen = json.loads(config.get_json("listen/endpoints"))
+    if isinstance(listen, dict):
+        listen = listen.get("router", [])
     try:
         LOG.info("routing on %s (multicast scouting %s); daemons connect with [zenoh] "
-                 "connect = [%s]", ", ".join(listen), "on" if multicast_scouting else "off",
-                 ", ".join(f'"{e}"' for e in listen))
+                 "connect = [%s]", ", ".join(listen),
+                 "on" if json.loads(config.get_json("scouting/multicast/enabled")) else "off",
+                 ", ".join(f'"{_dialled(e)}"' for e in listen))
         wait_until(stop or threading.Event())
     finally:
         session.close()
         LOG.info("router stopped")
+
+
+def _dialled(endpoint: str) -> str:
+    """What a daemon on another machine dials for a listen endpoint: this machine's name in
+    place of a wildcard address."""
+    proto, _, address = endpoint.partition("/")
+    host, _, port = address.rpartition(":")
+    if host in ("0.0.0.0", "[::]"):
+        host = socket.gethostname()
+    return f"{proto}/{host}:{port}" if port else endpoint

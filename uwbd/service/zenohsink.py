@@ -12,32 +12,17 @@ queryable runs on a Zenoh thread and only reads the last status bytes, swapped a
 
 from __future__ import annotations
 
-import json
-import re
 from typing import Any
 
 import zenoh
 
 from drivers.frames import Frame
 from uwbd.codec import strict_json
+from uwbd.config.zenoh_session import session_config, zenoh_reason
 from uwbd.fusion.types import Pose
 from uwbd.logs.mcaplog import pose_json
 
-
-def zenoh_reason(err: Exception) -> str:
-    """A Zenoh error as a user reads it: without the Rust source location it ends with."""
-    return re.sub(r"\s+at \S+\.rs:\d+\.?\s*$", "", str(err))
-
-
-def session_config(zcfg: dict[str, Any]) -> zenoh.Config:
-    """A Zenoh config from the ``[zenoh]`` table (mode, connect, listen, multicast_scouting)."""
-    config: zenoh.Config = zenoh.Config.from_json5(json.dumps({
-        "mode": zcfg.get("mode", "peer"),
-        "connect": {"endpoints": list(zcfg.get("connect", []))},
-        "listen": {"endpoints": list(zcfg.get("listen", []))},
-        "scouting": {"multicast": {"enabled": bool(zcfg.get("multicast_scouting", True))}},
-    }))
-    return config
+__all__ = ["ZenohSink", "session_config", "zenoh_reason"]
 
 
 class ZenohSink:

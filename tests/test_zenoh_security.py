@@ -1,0 +1,232 @@
+"""Zenoh security, the ecosystem's way: a ``[zenoh] config`` Zenoh file (TLS, mutual TLS,
+access control) merged under uwbd's keys; what ``check-config`` and ``run`` say of one that
+cannot work; and the README's fleet over mutual TLS with the shipped router and robot files,
+certificates made here: the daemon's poses reach a viewer, a forged pose is refused, a peer
+without a certificate gets nothing. Real processes on 127.0.0.1, multicast scouting off."""
+
+from __future__ import annotations
+
+import json
+import signal
+import socket
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+from certs import make_certificates
+from procs import UNBUFFERED, UWBD, one_line, read_until, uwbd
+
+from drivers.emulator import DeviceSpec, Emulator, Faults
+from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
+from uwbd.config import load
+from uwbd.config.zenoh_session import session_config
+
+ROOT = Path(__file__).resolve().parents[1]
+ANCHORS = "\n".join(f'"{i}" = [{x}, {y}, {z}]' for i, (x, y, z) in enumerate(DEFAULT_ANCHORS_M))
+SOURCES = """
+[[sources]]
+name = "uwb"
+driver = "nlink"
+port = "/dev/ttyUSB0"
+"""
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def shipped(name: str, tls: Path, **replace: str) -> str:
+    """A shipped Zenoh file with its certificate folder (and anything else) replaced."""
+    text = (ROOT / "config" / "zenoh" / name).read_text().replace("/etc/uwbd/tls", str(tls))
+    for old, new in replace.items():
+        text = text.replace(old, new)
+    return text
+
+
+def config_with(tmp: Path, zenoh_table: str) -> Path:
+    path = tmp / "robot.toml"
+    path.write_text(f"{SOURCES}\n[anchors]\n{ANCHORS}\n\n[zenoh]\nmulticast_scouting = false\n"
+                    f"{zenoh_table}\n")
+    return path
+
+
+@pytest.mark.parametrize(("table", "file_text", "said"), [
+    ('listen = ["tls/127.0.0.1:7447"]', None,
+     ('zenoh.listen[0]: "tls/127.0.0.1:7447": TLS needs certificates: name a Zenoh config '
+      "file",)),
+    ('config = "nowhere.json5"', None, ("zenoh.config: ", "nowhere.json5: no such file")),
+    ('config = "z.json5"', "{ mode: ", ("zenoh.config: ", "z.json5: Zenoh: ")),
+    ('config = "z.json5"', "{ modee: 'peer' }", ("zenoh.config: ", "unknown field `modee`")),
+    ('listen = ["tls/127.0.0.1:7447"]\nconfig = "z.json5"', "{}",
+     ("zenoh.config: ", "z.json5: listen endpoint tls/127.0.0.1:7447 needs "
+      "transport.link.tls.listen_private_key, transport.link.tls.listen_certificate")),
+    ('connect = ["quic/127.0.0.1:7447"]\nmode = "client"\nconfig = "z.json5"',
+     "{ transport: { link: { tls: { enable_mtls: true, root_ca_certificate: '/nowhere/ca.pem' "
+     "} } } }",
+     ("zenoh.config: ", "connect endpoint quic/127.0.0.1:7447 needs "
+      "transport.link.tls.connect_private_key", "/nowhere/ca.pem: no such file")),
+])
+def test_a_zenoh_setup_that_cannot_work_is_refused_before_any_run(
+        tmp_path: Path, table: str, file_text: str | None, said: tuple[str, ...]) -> None:
+    if file_text is not None:
+        (tmp_path / "z.json5").write_text(file_text)
+    cfg = config_with(tmp_path, table)
+    checked = uwbd("check-config", str(cfg))
+    assert checked.returncode == 2 and "Traceback" not in checked.stderr, checked.stderr
+    for part in said:
+        assert part in checked.stderr, checked.stderr
+    run = uwbd("run", "-c", str(cfg), "--duration", "1", "--log-dir", str(tmp_path / "logs"))
+    assert run.returncode == 2 and said[0] in run.stderr, run.stderr
+    assert not (tmp_path / "logs").exists()  # no run without Zenoh
+
+
+def test_the_zenoh_file_is_the_base_and_the_tables_keys_go_over_it(tmp_path: Path) -> None:
+    (tmp_path / "z.json5").write_text(
+        "{ mode: 'client', connect: { endpoints: ['tcp/127.0.0.1:9'] },"
+        " scouting: { multicast: { enabled: false } }, queries_default_timeout: 1234 }")
+    cfg = config_with(tmp_path, 'config = "z.json5"\nconnect = ["tcp/127.0.0.1:7"]')
+    zcfg = load(cfg).zenoh
+    assert zcfg["config"] == str(tmp_path / "z.json5")  # beside the config that names it
+    merged = session_config(zcfg)
+    assert json.loads(merged.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7"]
+    assert json.loads(merged.get_json("mode")) == "client"  # the table left it to the file
+    assert json.loads(merged.get_json("queries_default_timeout")) == 1234
+    checked = uwbd("check-config", str(cfg))
+    assert checked.returncode == 0, checked.stderr
+
+
+def client_config(tls: Path, name: str, port: int) -> zenoh.Config:
+    return zenoh.Config.from_json5(json.dumps({
+        "mode": "client", "connect": {"endpoints": [f"tls/127.0.0.1:{port}"]},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"link": {"tls": {
+            "root_ca_certificate": str(tls / "ca.pem"), "enable_mtls": True,
+            "connect_private_key": str(tls / f"{name}.key"),
+            "connect_certificate": str(tls / f"{name}.pem")}}}}))
+
+
+def test_fleet_over_mutual_tls_admits_the_robot_and_refuses_a_forger(tmp_path: Path) -> None:
+    tls = make_certificates(tmp_path / "tls", ["router", "robot1", "viewer", "outsider"])
+    make_certificates(tmp_path / "other", ["outsider"], ca_name="other-ca")  # another CA
+    port = free_port()
+    router_file = tmp_path / "router.json5"
+    router_file.write_text(shipped("router.json5", tls, **{
+        "tls/0.0.0.0:7447": f"tls/127.0.0.1:{port}"}))
+    robot_file = tmp_path / "robot.json5"
+    robot_file.write_text(shipped("robot.json5", tls))
+    viewer_file = tmp_path / "viewer.json5"
+    viewer_file.write_text(shipped("robot.json5", tls, **{"robot1.": "viewer."}))
+    procs: list[subprocess.Popen[bytes]] = []
+    sessions: list[zenoh.Session] = []
+    received: list[bytes] = []
+    lock = threading.Lock()
+    (tmp_path / "links").mkdir()
+    emu = Emulator([DeviceSpec("imu", "wit", Faults()), DeviceSpec("uwb", "nlink")],
+                   CircleScenario(seed=3), duration_s=30.0, link_dir=tmp_path / "links")
+    try:
+        router = subprocess.Popen([*UWBD, "router", "--zenoh-config", str(router_file)],
+                                  stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                                  env=UNBUFFERED)
+        procs.append(router)
+        said = read_until(router, b"routing on", 20, "stderr").decode()
+        assert f"tls/127.0.0.1:{port}" in said
+        ports = {n: p.path for n, p in emu.ports.items()}
+        cfg = tmp_path / "robot1.toml"
+        cfg.write_text(f"""[robot]
+name = "robot1"
+
+[[sources]]
+name = "imu"
+driver = "wit"
+port = "{ports['imu']}"
+baud = 921600
+
+[[sources]]
+name = "uwb"
+driver = "nlink"
+port = "{ports['uwb']}"
+baud = 921600
+
+[anchors]
+{ANCHORS}
+
+[zenoh]
+mode = "client"
+connect = ["tls/127.0.0.1:{port}"]
+listen = []
+multicast_scouting = false
+config = "robot.json5"
+""")
+        assert uwbd("check-config", str(cfg)).returncode == 0
+        daemon = subprocess.Popen([*UWBD, "run", "-c", str(cfg), "--log-dir",
+                                   str(tmp_path / "logs")], stderr=subprocess.PIPE,
+                                  stdout=subprocess.DEVNULL, env=UNBUFFERED)
+        procs.append(daemon)
+        read_until(daemon, b"uwb: opened", 20, "stderr")
+        viewer = zenoh.open(client_config(tls, "viewer", port))
+        sessions.append(viewer)
+
+        def on_pose(sample: zenoh.Sample) -> None:
+            with lock:
+                received.append(bytes(sample.payload.to_bytes()))
+
+        viewer.declare_subscriber("uwbd/robot1/pose", on_pose)
+        # a holder of a valid certificate who forges the robot's pose
+        forger = zenoh.open(client_config(tls, "viewer", port))
+        sessions.append(forger)
+        time.sleep(0.5)
+        emu.start()
+        for _ in range(20):
+            forger.put("uwbd/robot1/pose", b'{"forged": true}')
+            time.sleep(0.05)
+        deadline = time.monotonic() + 15.0
+        while time.monotonic() < deadline:
+            with lock:
+                if sum(b"forged" not in r for r in received) >= 20:
+                    break
+            time.sleep(0.1)
+        status = [json.loads(r.ok.payload.to_bytes())
+                  for r in viewer.get("uwbd/robot1/status", timeout=3.0) if r.ok is not None]
+        # the walk-through's viewer command
+        echo = uwbd("echo", "--connect", f"tls/127.0.0.1:{port}", "--prefix", "uwbd/*",
+                    "--zenoh-config", str(viewer_file), "--count", "3", "--timeout", "15")
+        # no certificate, or one from another CA: no connection at all
+        refused = []
+        for name, folder in (("none", None), ("outsider", tmp_path / "other")):
+            conf = {"mode": "client", "connect": {"endpoints": [f"tls/127.0.0.1:{port}"]},
+                    "scouting": {"multicast": {"enabled": False}},
+                    "transport": {"link": {"tls": {"root_ca_certificate": str(tls / "ca.pem")}}}}
+            if folder is not None:
+                conf["transport"]["link"]["tls"].update(
+                    enable_mtls=True, connect_private_key=str(folder / f"{name}.key"),
+                    connect_certificate=str(folder / f"{name}.pem"))
+            try:
+                sessions.append(zenoh.open(zenoh.Config.from_json5(json.dumps(conf))))
+            except zenoh.ZError:
+                refused.append(name)
+        plain = subprocess.run([*UWBD, "echo", "--connect", f"tcp/127.0.0.1:{port}",
+                                "--prefix", "uwbd/*", "--count", "1", "--timeout", "3"],
+                               capture_output=True, text=True, timeout=30, check=False)
+    finally:
+        for s in sessions:
+            s.close()
+        for proc in reversed(procs):
+            proc.send_signal(signal.SIGINT)
+            proc.communicate(timeout=20)
+        emu.close()
+    assert [p.returncode for p in procs] == [0, 0]
+    with lock:
+        real = [r for r in received if b"forged" not in r]
+        forged = [r for r in received if b"forged" in r]
+    assert len(real) >= 20 and forged == []
+    assert status and status[0]["zenoh"]["state"] == "up"
+    assert echo.returncode == 0, echo.stderr
+    assert len([x for x in echo.stdout.splitlines() if "uwbd/robot1/pose" in x]) == 3
+    assert refused == ["none", "outsider"]
+    one_line(subprocess.CompletedProcess(plain.args, plain.returncode, plain.stdout,
+                                         plain.stderr), 1, "cannot reach")
