@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from procs import UNBUFFERED, read_until
 
 from drivers.emulator import DeviceSpec, Emulator, Faults, Window
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
@@ -401,3 +402,99 @@ def test_the_narrator_says_each_anchor_finding_once_until_it_goes(
                                      "anchor_findings": findings})
     said = [r.getMessage() for r in caplog.records if "anchor 3" in r.getMessage()]
     assert said == [finding["finding"]] * 2
+
+
+def test_silent_ports_are_stalled_unhealthy_and_said_until_bytes_come_back(
+        tmp_path: Path) -> None:
+    """Both devices send nothing for 3 s (powered but hung): the status says each port is
+    stalled and the estimate unhealthy within about a second, a line says it, and another
+    when the bytes are back."""
+    devices = [DeviceSpec("imu", "wit", Faults(stalls=(Window(3.0, 3.0),))),
+               DeviceSpec("uwb", "nlink", Faults(stalls=(Window(3.0, 3.0),)))]
+    sock = tmp_path / "z.sock"
+    statuses: list[tuple[float, dict[str, object]]] = []
+    with Emulator(devices, CircleScenario(seed=2), duration_s=9.0, link_dir=tmp_path) as emu:
+        cfg = write_config(tmp_path, {n: p.path for n, p in emu.ports.items()})
+        daemon = start_daemon(cfg, tmp_path / "logs")
+        session = None
+        try:
+            for _ in range(100):
+                if sock.exists():
+                    break
+                time.sleep(0.05)
+            session = zenoh.open(zenoh.Config.from_json5(json.dumps({
+                "mode": "client", "connect": {"endpoints": [f"unixsock-stream/{sock}"]},
+                "scouting": {"multicast": {"enabled": False}}})))
+            session.declare_subscriber("uwbd/test/status", lambda s: statuses.append(
+                (time.monotonic(), json.loads(s.payload.to_bytes()))))
+            time.sleep(0.3)
+            started = time.monotonic()
+            emu.start()
+            while time.monotonic() - started < 8.5:
+                time.sleep(0.1)
+        finally:
+            if session is not None:
+                session.close()
+            daemon.send_signal(signal.SIGTERM)
+            _, err = daemon.communicate(timeout=20)
+    assert daemon.returncode == 0, err
+    log = err.decode()
+
+    def when(cond: object) -> list[float]:
+        return [t - started for t, s in statuses if cond(s)]  # type: ignore[operator]
+
+    stalled = when(lambda s: {v["state"] for v in s["sources"].values()} == {"stalled"})
+    assert stalled, [s["sources"] for _, s in statuses]
+    # the stall begins 3.0 s in: both said within 1 s (stall_after_s) + a status period + slack
+    assert 3.5 < stalled[0] < 5.6, stalled
+    assert not any(s["health"]["healthy"] for t, s in statuses if t - started in stalled)
+    back = [t for t in when(lambda s: {v["state"] for v in s["sources"].values()} == {"open"})
+            if t > stalled[-1]]
+    assert back, "the ports were never open again after the stall"
+    last = statuses[-1][1]["sources"]
+    assert all(v["stalls"] == 1 for v in last.values()), last
+    for name in ("imu", "uwb"):
+        assert f"{name}: no byte from" in log and "stalled (is the device powered" in log
+        assert f"{name}: bytes again from" in log
+
+
+def test_a_lost_router_is_in_the_status_and_said_when_it_goes_and_comes_back(
+        tmp_path: Path, emulator) -> None:
+    router_at = f"unixsock-stream/{tmp_path / 'router.sock'}"
+
+    def router() -> subprocess.Popen[bytes]:
+        proc = subprocess.Popen([*UWBD, "router", "--listen", router_at],
+                                stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                                env=UNBUFFERED)
+        read_until(proc, b"routing on", 20, "stderr")
+        return proc
+
+    cfg = write_config(tmp_path, {n: p.path for n, p in emulator.ports.items()})
+    cfg.write_text(cfg.read_text().replace(
+        f'listen = ["unixsock-stream/{tmp_path / "z.sock"}"]',
+        f'mode = "client"\nconnect = ["{router_at}"]\nlisten = []'))
+    first = router()
+    daemon = start_daemon(cfg, tmp_path / "logs")
+    second = None
+    try:
+        read_until(daemon, b"uwb: opened", 20, "stderr")
+        emulator.start()
+        time.sleep(1.5)
+        first.send_signal(signal.SIGINT)
+        first.communicate(timeout=20)
+        time.sleep(2.0)
+        second = router()
+        time.sleep(2.0)
+    finally:
+        daemon.send_signal(signal.SIGTERM)
+        _, err = daemon.communicate(timeout=20)
+        if second is not None:
+            second.send_signal(signal.SIGINT)
+            second.communicate(timeout=20)
+    assert daemon.returncode == 0, err
+    log = err.decode()
+    assert "zenoh: no router or peer reached" in log and "zenoh: connected again" in log, log
+    (path,) = (tmp_path / "logs").glob("*.mcap")
+    states = [s["zenoh"]["state"] for s in read_log(path).json("/status") if "zenoh" in s]
+    assert "disconnected" in states and states[-1] == "up", states
+    assert states.index("up") < states.index("disconnected")

@@ -39,7 +39,8 @@ Sections::
                          of degrees 1..tag_degree, m = -l..l each, tag axes), tag_mounting
                          (3x3 rows, tag axes -> body; identity), anchor_delays_m ({ "<id>" =
                          delay }: taken off each anchor's ranges), calibrated_from (a note)
-    [pipeline]           aligner_wait_ms (0), pose_rate_hz (50), status_period_s (1)
+    [pipeline]           aligner_wait_ms (0), pose_rate_hz (50), status_period_s (1),
+                         stall_after_s (1: a port silent this long is "stalled")
     [log]                directory ("logs"), rotate_mb (256), rotate_minutes (60)
     [zenoh]              enabled (true), mode ("peer"), connect [], listen [], prefix
                          ("uwbd/<robot name>"), multicast_scouting (true), config (a Zenoh

@@ -136,7 +136,8 @@ _FUSION_SPEC = {
 }
 _PIPELINE_SPEC = {"aligner_wait_ms": Key(NUMBER, Range(0.0, 1000.0, lo_closed=True)),
                   "pose_rate_hz": Key(NUMBER, Range(0.0, 1000.0)),
-                  "status_period_s": Key(NUMBER, Range(0.05, 3600.0, lo_closed=True))}
+                  "status_period_s": Key(NUMBER, Range(0.05, 3600.0, lo_closed=True)),
+                  "stall_after_s": Key(NUMBER, Range(0.1, 3600.0, lo_closed=True))}
 _LOG_SPEC = {"directory": Key(STRING, non_empty=True),
              "rotate_mb": Key(NUMBER, _POSITIVE_RANGE),
              "rotate_minutes": Key(NUMBER, _POSITIVE_RANGE)}

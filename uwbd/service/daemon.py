@@ -42,6 +42,9 @@ ZENOH_RETRY_S = 5.0
 LOG = journal.get("daemon")
 
 
+STALL_AFTER_S = 1.0  # [pipeline] stall_after_s: no byte this long, the port is stalled
+
+
 class PipelineError(RuntimeError):
     """The pipeline raised: the run stopped (its log is finished)."""
 
@@ -78,7 +81,9 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
         loop.add_signal_handler(sig, stop.set)
     notifier = Notifier()
     period_s = config.status_period_ns / 1e9
-    tick_s = min(0.5, period_s / 2, notifier.watchdog_s or 0.5)
+    stall_after_ns = int(config.pipeline.get("stall_after_s", STALL_AFTER_S) * 1e9)
+    # a tick at least four times per stall time: a stall is said within a quarter of it
+    tick_s = min(0.5, period_s / 2, notifier.watchdog_s or 0.5, stall_after_ns / 4e9)
     started = loop.time()
     # what start-up made (modules, config, pipeline) lives as long as the daemon: the cyclic
     # garbage collector leaves it be, so a full collection takes a few ms, not ~30
@@ -92,15 +97,20 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
         while not stop.is_set() and queue.failure is None:
             reads.drain()  # what the reader thread holds, before a status on the wall clock
             _note_dropped(reads, pipeline)
+            now_ns = clock.now_ns()
+            for source in sources:
+                source.check_stall(now_ns, stall_after_ns)
             pipeline.extra_status["sources"] = {
                 s.cfg.name: {"port": s.cfg.port, "state": s.info.state, "opens": s.info.opens,
-                             "losses": s.info.losses, "bytes": s.info.bytes_read,
+                             "losses": s.info.losses, "stalls": s.info.stalls,
+                             "bytes": s.info.bytes_read,
                              "last_error": s.info.last_error} for s in sources}
             pipeline.extra_status["log"] = {
                 "files": [str(f) for f in mcap.files], "error": mcap.error,
                 "records_lost": mcap.records_lost, "bad_records": mcap.bad_records}
             queue.flush()  # and what waited in the queue
             zenoh_link.retry()
+            zenoh_link.watch()
             try:
                 pipeline.tick(clock.now_ns())
             except Exception as err:
@@ -182,6 +192,32 @@ class ZenohLink:
         self.pipeline.extra_status["zenoh"] = {"state": "up", "error": ""}
         if self._said:
             LOG.info("zenoh started: publishing on %s/pose", self.sink.prefix)
+        self._said = ""
+
+    def watch(self) -> None:
+        """Who the session reaches (routers, peers), in the status; where it is to reach a
+        router or peer (``connect``, or client mode) and reaches none, the state is
+        ``disconnected`` and one line says so, and another when it is back."""
+        if self.sink is None:
+            return
+        try:
+            info = self.sink.session.info
+            routers, peers = len(list(info.routers_zid())), len(list(info.peers_zid()))
+        except zenoh.ZError as err:  # a session closing under us: said as such
+            routers, peers, self._said = 0, 0, zenoh_reason(err)
+        z = self.config.zenoh
+        expects = bool(z.get("connect")) or z.get("mode") == "client"
+        state = "disconnected" if expects and routers + peers == 0 else "up"
+        before = self.pipeline.extra_status.get("zenoh", {}).get("state")
+        if state != before and before in ("up", "disconnected"):
+            if state == "disconnected":
+                LOG.warning("zenoh: no router or peer reached (connect %s): poses reach no "
+                            "one off this process; Zenoh keeps trying",
+                            ", ".join(z.get("connect", [])) or "by scouting")
+            else:
+                LOG.info("zenoh: connected again (%d router(s), %d peer(s))", routers, peers)
+        self.pipeline.extra_status["zenoh"] = {"state": state, "error": self._said,
+                                               "routers": routers, "peers": peers}
 
 
 def _announce(config: Config, where: str, log_dir: Path,

@@ -47,11 +47,13 @@ LOG = journal.get("daemon")
 
 @dataclass
 class SourceState:
-    state: str = "closed"  # closed | open
+    state: str = "closed"  # closed | open | stalled (open, but no byte for stall_after_s)
     opens: int = 0
     losses: int = 0
     last_error: str = ""
     bytes_read: int = 0
+    last_read_ns: int | None = None  # when the last read returned (EpochClock)
+    stalls: int = 0
 
 
 class EpochClock:
@@ -143,6 +145,7 @@ class SerialSource:
         self.fd = -1
         self._backoff_s = BACKOFF_START_S
         self._opened_at = 0.0
+        self._opened_ns = 0
         self._retry: asyncio.TimerHandle | None = None
         self._poller: asyncio.TimerHandle | None = None
         self._closed = False
@@ -170,6 +173,7 @@ class SerialSource:
             return
         self.info.state = "open"
         self.info.opens += 1
+        self._opened_ns = self.clock.now_ns()
         LOG.info("%s: %s %s at %d baud (%s)", self.cfg.name,
                  "opened" if self.info.opens == 1 else "reopened", self.cfg.port,
                  self.cfg.baud, self.cfg.driver)
@@ -216,12 +220,33 @@ class SerialSource:
     def take(self, t_ns: int, data: bytes) -> None:
         """A read of ``data`` that returned at ``t_ns``."""
         self.info.bytes_read += len(data)
+        self.info.last_read_ns = t_ns
         self.queue.push(self.cfg.name, t_ns, data)
 
     def counted(self, t_ns: int, data: bytes) -> tuple[str, int, bytes]:
         """A read the reader thread held, counted; for :meth:`ReadQueue.push_held`."""
         self.info.bytes_read += len(data)
+        self.info.last_read_ns = t_ns
         return self.cfg.name, t_ns, data
+
+    def check_stall(self, now_ns: int, stall_after_ns: int) -> None:
+        """An open port that has not given a byte for ``stall_after_ns`` (since it opened,
+        or since its last read) is ``stalled`` — the device off or hung, a cable half out —
+        and said once; a read makes it ``open`` again, and that is said too."""
+        if self.info.state == "closed":
+            return
+        last = self.info.last_read_ns
+        since = self._opened_ns if last is None or last < self._opened_ns else last
+        quiet_ns = now_ns - since
+        if self.info.state == "open" and quiet_ns > stall_after_ns:
+            self.info.state = "stalled"
+            self.info.stalls += 1
+            LOG.warning("%s: no byte from %s for %.1f s: stalled (is the device powered and "
+                        "sending? is the baud %d right?)", self.cfg.name, self.cfg.port,
+                        quiet_ns / 1e9, self.cfg.baud)
+        elif self.info.state == "stalled" and quiet_ns <= stall_after_ns:
+            self.info.state = "open"
+            LOG.info("%s: bytes again from %s", self.cfg.name, self.cfg.port)
 
     def lost(self, err: OSError) -> None:
         self.info.losses += 1

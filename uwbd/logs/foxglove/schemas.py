@@ -329,8 +329,12 @@ STATUS_SCHEMA = _obj("uwbd.Status", "once a second: the filter's health, counter
     "aligner": _open_map(_COUNT, "time-aligner counters (late, overflow, pending)"),
     "parsers": _open_map({"type": "object", "properties": {}}, "per source: the parser's "
                          "counters and its last error"),
-    "sources": _open_map({"type": "object", "properties": {}}, "per source: port, state, "
-                         "opens, losses, bytes, last_error (the daemon)"),
+    "sources": _open_map({"type": "object", "properties": {}}, "per source: port, state "
+                         "(closed, open, stalled: open but no byte for stall_after_s), opens, "
+                         "losses, stalls, bytes, last_error (the daemon)"),
+    "zenoh": {"type": "object", "description": "the Zenoh session (the daemon): state (up, "
+              "disconnected: no router or peer reached where one is to be, not started), "
+              "error, routers and peers reached", "properties": {}},
     "log": {"type": "object", "description": "the log's files and errors (the daemon)",
             "properties": {}},
     "sink_errors": {"type": "array", "items": {"type": "string"},
