@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.writer import Writer
 from procs import one_line, uwbd
 
 from uwbd.config import ConfigError, parse
@@ -243,3 +244,24 @@ def test_report_shows_the_range_residuals_raw_and_with_the_model(tmp_path: Path)
     assert taken_off == pytest.approx(raw - 0.05, abs=1e-3)
     assert "m with the range model" in modelled.stdout
     assert (tmp_path / "model" / "ranges.png").stat().st_size > 10_000
+
+
+def test_another_programs_log_of_the_same_topics_is_said_not_crashed_on(tmp_path: Path) -> None:
+    with (tmp_path / "foreign.mcap").open("wb") as f:
+        w = Writer(f)
+        w.start()
+        schema = w.register_schema("x", "jsonschema", b"{}")
+        for topic in ("/imu", "/uwb", "/truth"):
+            channel = w.register_channel(topic, "json", schema)
+            for k in range(5):
+                w.add_message(channel, log_time=k * 10**9, publish_time=k * 10**9,
+                              data=b'{"hello": %d}' % k)
+        w.finish()
+    for command in (("calibrate-ranges", "-c", str(tmp_path / "robot.toml")),
+                    ("calibrate-imu",)):
+        (tmp_path / "robot.toml").write_text(BASE)
+        done = uwbd(command[0], "foreign.mcap", *command[1:], cwd=tmp_path)
+        assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+        assert "internal error" not in done.stderr
+        assert "5 of 5 /truth records are not poses and were skipped" in done.stderr
+        assert done.stderr.splitlines()[-1].startswith(f"uwbd {command[0]}: foreign.mcap: no ")

@@ -166,16 +166,40 @@ def load_recording(contents: LogContents, where: str,
             stats[topic] = parser.stats.as_dict()
     else:
         _sort(decoded_frames(contents, ("/imu", "/uwb"), where), imu, uwb)
-    truth = list(contents.json("/truth"))
-    t = np.array([d["t_ns"] for d in truth], dtype=np.int64)
-    p = np.array([[d["pose"]["position"][k] for k in "xyz"] for d in truth]).reshape(-1, 3)
-    q = np.array([[d["pose"].get("orientation", {}).get(k, 1.0 if k == "w" else 0.0)
-                   for k in "wxyz"] for d in truth], dtype=float).reshape(-1, 4)
-    q /= np.maximum(np.linalg.norm(q, axis=1), 1e-12)[:, None]
+    t, p, q = truth_poses(contents, where)
     imu.sort(key=lambda f: f.t_ns)
     uwb.sort(key=lambda f: f.t_ns)
     return Recording(config, list(merge(imu, uwb)), t, p, stats,
                      np.array([quat_to_matrix(x) for x in q]).reshape(-1, 3, 3))
+
+
+def truth_poses(contents: LogContents, where: str) -> tuple[npt.NDArray[np.int64], Array,
+                                                              Array]:
+    """``/truth``: times, positions and unit quaternions (w, x, y, z; identity where a record
+    has no orientation). A record that is not a pose (another program's channel of the
+    name) is skipped, and said once with how many were."""
+    t, p, q = [], [], []
+    bad, first = 0, ""
+    for d in contents.json("/truth"):
+        try:
+            pose = d["pose"]
+            orientation = pose.get("orientation", {})
+            row = [float(pose["position"][k]) for k in "xyz"]
+            quat = [float(orientation.get(k, 1.0 if k == "w" else 0.0)) for k in "wxyz"]
+            t_ns = int(d["t_ns"])
+        except (KeyError, TypeError, ValueError, AttributeError) as err:
+            bad += 1
+            first = first or f"{type(err).__name__}: {err}"
+            continue
+        t.append(t_ns)
+        p.append(row)
+        q.append(quat)
+    if bad:
+        LOG.warning("%s: %d of %d /truth records are not poses and were skipped (the first: "
+                    "%s)", where, bad, bad + len(t), first)
+    quats = np.array(q, dtype=float).reshape(-1, 4)
+    quats /= np.maximum(np.linalg.norm(quats, axis=1), 1e-12)[:, None]
+    return (np.array(t, dtype=np.int64), np.array(p, dtype=float).reshape(-1, 3), quats)
 
 
 def decoded_frames(contents: LogContents, topics: tuple[str, ...], where: str) -> list[Frame]:
