@@ -82,7 +82,8 @@ def foxglove_server(args: argparse.Namespace) -> Callable[[Config], Any] | None:
 
 
 def open_log(name: str, doing: str) -> tuple[Path, LogContents]:
-    """A log read for ``doing``; a log cut short by a crash is used up to its last chunk."""
+    """A log read for ``doing``; of a log cut short by a crash or damaged, what is intact
+    (every chunk that reads whole) is used, and a warning says what was not."""
     path = Path(name)
     if not path.exists():
         raise UsageError(f"cannot read {path}: no such file")
@@ -91,7 +92,7 @@ def open_log(name: str, doing: str) -> tuple[Path, LogContents]:
         raise UsageError(problem)
     contents = read_log(path)
     if contents.truncated:
-        LOG.warning("%s; %s what was complete", contents.error, doing)
+        LOG.warning("%s; %s what is intact", contents.error, doing)
     return path, contents
 
 

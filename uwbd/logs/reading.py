@@ -1,20 +1,23 @@
 """uwbd's MCAP logs read back (:mod:`uwbd.logs.mcaplog` writes them), and recovered.
 
 Reading is a linear scan of the records, so a log cut short by a crash (no footer, which
-the seeking reader refuses) reads up to its last complete chunk; ``LogContents.truncated``
-says so. :func:`recover` rewrites such a file, any MCAP file, as a valid one.
+the seeking reader refuses) reads up to its last complete chunk, and a damaged chunk (a
+flipped bit: its CRC fails) costs that chunk only: reading goes on after it
+(:func:`intact_records`); ``LogContents.truncated`` says something was lost, ``error`` what
+and where. :func:`recover` rewrites such a file, any MCAP file, as a valid one.
 """
 
 from __future__ import annotations
 
 import contextlib
 import gc
+import io
 import json
 import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any, NamedTuple
+from typing import Any, NamedTuple
 
 import zstandard
 from mcap.exceptions import EndOfFile, McapError
@@ -25,7 +28,7 @@ from uwbd import __version__
 from uwbd.logs import foxglove as fx
 from uwbd.logs.chunked import MCAP0_MAGIC
 from uwbd.logs.mcaplog import CHUNK_BYTES, METADATA_NAME
-from uwbd.logs.scan import C_SCAN, UnusualRecordError, scan
+from uwbd.logs.scan import C_SCAN, HEAD, UnusualRecordError, scan
 
 
 class LogMessage(NamedTuple):
@@ -143,31 +146,140 @@ def _read_by_library(path: Path) -> LogContents:
     channels: dict[int, str] = {}
     raw_protobuf: set[int] = set()  # channels of uwbd.Raw messages (new logs)
     schemas: dict[int, str] = {}
-    with path.open("rb") as f:
-        try:
-            for record in StreamReader(f, validate_crcs=True).records:
-                if isinstance(record, Schema):
-                    schemas[record.id] = record.name
-                elif isinstance(record, Channel):
-                    channels[record.id] = record.topic
-                    if (record.message_encoding == fx.RAW_MESSAGE_ENCODING
-                            and schemas.get(record.schema_id) == fx.RAW_SCHEMA_NAME):
-                        raw_protobuf.add(record.id)
-                elif isinstance(record, Message):
-                    data = record.data
-                    if record.channel_id in raw_protobuf:
-                        with contextlib.suppress(ValueError):  # not one: left as it is
-                            data = fx.decode_raw(data)
-                    out.messages.append(LogMessage(channels.get(record.channel_id, "?"),
-                                                   record.log_time, data))
-                elif isinstance(record, Metadata) and record.name == METADATA_NAME:
-                    out.metadata = dict(record.metadata)
-        except DAMAGED as err:
-            # a torn last record (mcap raises struct.error when the stream ends inside one),
-            # or a damaged chunk: what came before it is kept
-            out.truncated = True
-            out.error = f"{path}: {_damage(err, f)}"
+    damage = Damage()
+    messages: list[tuple[int, int, bytes]] = []
+    for record in intact_records(path.read_bytes(), damage):
+        if isinstance(record, Schema):
+            schemas[record.id] = record.name
+        elif isinstance(record, Channel):
+            channels[record.id] = record.topic
+            if (record.message_encoding == fx.RAW_MESSAGE_ENCODING
+                    and schemas.get(record.schema_id) == fx.RAW_SCHEMA_NAME):
+                raw_protobuf.add(record.id)
+        elif isinstance(record, Message):
+            messages.append((record.channel_id, record.log_time, record.data))
+        elif isinstance(record, Metadata) and record.name == METADATA_NAME:
+            out.metadata = dict(record.metadata)
+    # topics at the end: a damaged chunk may have held a channel's record, which a finished
+    # file's summary section repeats
+    for channel, log_time, record_data in messages:
+        data = record_data
+        if channel in raw_protobuf:
+            with contextlib.suppress(ValueError):  # not one: left as it is
+                data = fx.decode_raw(record_data)
+        out.messages.append(LogMessage(channels.get(channel, "?"), log_time, data))
+    if damage:
+        out.truncated, out.error = True, damage.said(path)
     return out
+
+
+@dataclass
+class Damage:
+    """What :func:`intact_records` had to pass over: damaged stretches (from byte, to byte,
+    why), and whether the file ends mid-record (a crash)."""
+
+    skipped: list[tuple[int, int, str]] = field(default_factory=list)
+    torn_at: int | None = None  # where the last, unfinished record starts
+    torn_why: str = ""
+
+    def __bool__(self) -> bool:
+        return bool(self.skipped) or self.torn_at is not None
+
+    def said(self, path: Path) -> str:
+        parts = []
+        if self.skipped:
+            lost = sum(end - start for start, end, _ in self.skipped)
+            start, end, why = self.skipped[0]
+            parts.append(f"{len(self.skipped)} damaged stretch(es) skipped ({lost} bytes; the "
+                         f"first, bytes {start}-{end}: {why}), read on from the next intact "
+                         "chunk")
+        if self.torn_at is not None:
+            parts.append(f"it ends mid-record near byte {self.torn_at} ({self.torn_why})")
+        return f"{path}: " + "; ".join(parts)
+
+
+def intact_records(buf: bytes, damage: Damage) -> Iterator[Any]:
+    """Every record of the MCAP file ``buf`` that reads whole and passes its CRC, in file
+    order. Where one does not (a flipped bit, a torn write), the next intact chunk is found
+    by a scan for a chunk record that reads whole, and reading goes on there: one damaged
+    chunk costs that chunk, not the rest of the file. What was passed over goes in
+    ``damage``."""
+    pos = len(MCAP0_MAGIC)
+    while True:
+        stream = io.BytesIO(buf)
+        stream.seek(pos)
+        good_end = pos
+        try:
+            for record in StreamReader(stream, skip_magic=True, validate_crcs=True).records:
+                yield record
+                good_end = stream.tell()
+            return
+        except DAMAGED as err:
+            why = f"{type(err).__name__}: {err}"
+            resume = _after_record(buf, good_end)
+            if resume is None:
+                resume = _next_chunk(buf, good_end + 1)
+            if resume is None:
+                if isinstance(err, (EndOfFile, EOFError, struct.error)):
+                    damage.torn_at, damage.torn_why = good_end, why
+                else:  # damaged, and nothing intact after it
+                    damage.skipped.append((good_end, len(buf), why))
+                return
+            damage.skipped.append((good_end, resume, why))
+            pos = resume
+
+
+MAX_OPCODE = 0x10
+
+
+def _after_record(buf: bytes, at: int) -> int | None:
+    """Where the record at ``at`` ends by its own length field, if that lands on the start
+    of another record that fits the file (a bit flipped in a chunk's contents leaves its
+    length intact: skipping just that record loses nothing else); None otherwise."""
+    if at + HEAD.size > len(buf):
+        return None
+    opcode, length = HEAD.unpack_from(buf, at)
+    end = int(at + HEAD.size + length)
+    if not 0 < opcode <= MAX_OPCODE or end + HEAD.size > len(buf):
+        return None
+    next_opcode, next_length = HEAD.unpack_from(buf, end)
+    if not 0 < next_opcode <= MAX_OPCODE or end + HEAD.size + next_length > len(buf):
+        return None
+    if next_opcode == 0x06 and not _whole_chunk(buf[end:end + HEAD.size + next_length]):
+        return None
+    return end
+
+
+def _whole_chunk(record: bytes) -> bool:
+    """``record`` is one chunk record that decompresses, passes its CRC and holds whole
+    records (the reader then finds the end of the bytes, as it would a file cut there)."""
+    stream = io.BytesIO(record)
+    inner = 0
+    try:
+        for _ in StreamReader(stream, skip_magic=True, validate_crcs=True).records:
+            inner += 1
+    except (EndOfFile, EOFError, struct.error):
+        return inner > 0 and stream.tell() == len(record)
+    except DAMAGED:
+        return False
+    return inner > 0
+
+
+_CHUNK_HEAD = struct.Struct("<BQQQQII")  # opcode, length, start, end, size, CRC, compression
+
+
+def _next_chunk(buf: bytes, start: int) -> int | None:
+    """The offset of the first chunk record at or after ``start`` that reads whole, with
+    its CRC right (None: none)."""
+    i = buf.find(b"\x06", start)
+    while i != -1:
+        if i + _CHUNK_HEAD.size <= len(buf):
+            _, length, *_, compression_len = _CHUNK_HEAD.unpack_from(buf, i)
+            if (compression_len <= 16 and 32 <= length <= len(buf) - i - 9
+                    and _whole_chunk(buf[i:i + 9 + length])):
+                return i
+        i = buf.find(b"\x06", i + 1)
+    return None
 
 
 # what reading a damaged or torn file raises: mcap's own errors, a record cut off (EOFError,
@@ -177,12 +289,6 @@ def _read_by_library(path: Path) -> LogContents:
 # damaged-log property test)
 DAMAGED = (McapError, EOFError, ValueError, struct.error, zstandard.ZstdError, RuntimeError,
            OverflowError, MemoryError)
-
-
-def _damage(err: BaseException, f: IO[bytes]) -> str:
-    kind = ("ends mid-record" if isinstance(err, (EOFError, struct.error, EndOfFile))
-            else "is damaged")
-    return f"it {kind} near byte {f.tell()} ({type(err).__name__}: {err})"
 
 
 @dataclass(frozen=True)
@@ -198,31 +304,30 @@ def recover(source: Path, target: Path) -> Recovered:
     ``mcap`` tools) open. ``source`` may be any MCAP file, typically one a crash cut short."""
     schemas: dict[int, int] = {0: 0}
     channels: dict[int, int] = {}
-    count, error = 0, ""
-    with source.open("rb") as f, target.open("wb") as out:
+    count = 0
+    damage = Damage()
+    with target.open("wb") as out:
         from mcap.writer import CompressionType, Writer  # noqa: PLC0415 - not at start-up
 
         w = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
         w.start(profile="", library=f"uwbd {__version__} (recover)")
-        try:
-            for record in StreamReader(f, validate_crcs=True).records:
-                if isinstance(record, Schema):
-                    schemas[record.id] = w.register_schema(record.name, record.encoding,
-                                                           record.data)
-                elif isinstance(record, Channel):
-                    channels[record.id] = w.register_channel(
-                        record.topic, record.message_encoding,
-                        schemas.get(record.schema_id, 0), dict(record.metadata))
-                elif isinstance(record, Message) and record.channel_id in channels:
-                    w.add_message(channels[record.channel_id], record.log_time, record.data,
-                                  record.publish_time, record.sequence)
-                    count += 1
-                elif isinstance(record, Metadata):
-                    w.add_metadata(record.name, dict(record.metadata))
-                elif isinstance(record, Attachment):
-                    w.add_attachment(record.create_time, record.log_time, record.name,
-                                     record.media_type, record.data)
-        except DAMAGED as err:
-            error = f"{source}: {_damage(err, f)}"
+        for record in intact_records(source.read_bytes(), damage):
+            if isinstance(record, Schema) and record.id not in schemas:  # (the summary
+                # section repeats them)
+                schemas[record.id] = w.register_schema(record.name, record.encoding,
+                                                       record.data)
+            elif isinstance(record, Channel) and record.id not in channels:
+                channels[record.id] = w.register_channel(
+                    record.topic, record.message_encoding,
+                    schemas.get(record.schema_id, 0), dict(record.metadata))
+            elif isinstance(record, Message) and record.channel_id in channels:
+                w.add_message(channels[record.channel_id], record.log_time, record.data,
+                              record.publish_time, record.sequence)
+                count += 1
+            elif isinstance(record, Metadata):
+                w.add_metadata(record.name, dict(record.metadata))
+            elif isinstance(record, Attachment):
+                w.add_attachment(record.create_time, record.log_time, record.name,
+                                 record.media_type, record.data)
         w.finish()  # type: ignore[no-untyped-call]
-    return Recovered(count, bool(error), error)
+    return Recovered(count, bool(damage), damage.said(source) if damage else "")

@@ -25,7 +25,7 @@ import zstandard
 from uwbd.fusion.core import native
 
 MAGIC = b"\x89MCAP0\r\n"
-_HEAD = struct.Struct("<BQ")  # opcode, record length
+HEAD = struct.Struct("<BQ")  # a record's opcode and length
 _MESSAGE = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 _CHUNK = struct.Struct("<QQQI")  # start, end, uncompressed size, uncompressed CRC
 _U16 = struct.Struct("<H")
@@ -96,7 +96,7 @@ def _records(buf: bytes, pos: int) -> Iterator[tuple[int, int, int]]:
     """Each record from ``pos`` to the end of ``buf``: its opcode and where its body starts
     and stops."""
     end = len(buf)
-    head = _HEAD.unpack_from
+    head = HEAD.unpack_from
     while pos < end:
         if pos + 9 > end:
             raise UnusualRecordError("ends mid-record")
@@ -128,7 +128,7 @@ def _chunk(buf: bytes, body: int, stop: int) -> Iterator[Event]:
         raise UnusualRecordError("chunk CRC")
     messages: list[tuple[int, int, bytes]] = []
     message = _MESSAGE.unpack_from
-    head = _HEAD.unpack_from
+    head = HEAD.unpack_from
     append = messages.append
     end, nxt = len(data), 0
     while nxt < end:  # _records(data, 0), inline: a chunk holds thousands of messages
