@@ -1,0 +1,100 @@
+"""A long daemon run: does anything grow?
+
+    python benchmarks/bench_soak.py [--minutes 120] [--warmup-minutes 10] [--every-s 30]
+
+The daemon's own loop (``uwbd.service.daemon.run``, as ``uwbd run`` runs it) in this
+process, fed by the emulator (a 200 Hz WitMotion and a 10 Hz Nooploop tag over
+pseudo-terminals, its threads in this process too, steady), logging to a temporary folder
+with rotation, Zenoh on a unix socket, no scouting. Every ``--every-s`` seconds: the RSS
+(``/proc/self/statm``) and the Python heap (``tracemalloc``). Printed after the warm-up: both
+slopes (MB/min, least squares over the samples after it), and the ten allocation sites that
+grew most between the first sample after the warm-up and the last. Target: RSS slope
+≤ 0.01 MB/min over two hours.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import tempfile
+import threading
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+
+from drivers.emulator import DeviceSpec, Emulator, Faults
+from drivers.emulator.scenario import CircleScenario
+from uwbd.config import SourceConfig, parse, to_toml
+from uwbd.service.daemon import run
+
+PAGE_MB = os.sysconf("SC_PAGE_SIZE") / 1e6
+
+
+def rss_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * PAGE_MB
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--minutes", type=float, default=120.0)
+    ap.add_argument("--warmup-minutes", type=float, default=10.0)
+    ap.add_argument("--every-s", type=float, default=30.0)
+    args = ap.parse_args()
+    tracemalloc.start(10)
+    with tempfile.TemporaryDirectory(prefix="uwbd-soak-") as tmp:
+        work = Path(tmp)
+        devices = [DeviceSpec("imu", "wit", Faults()), DeviceSpec("uwb", "nlink", Faults())]
+        scenario = CircleScenario(seed=1)
+        with Emulator(devices, scenario, None, work) as emu:
+            sources = [SourceConfig(d.name, d.driver, emu.ports[d.name].path, 921600)
+                       for d in devices]
+            text = to_toml(sources, dict(enumerate(scenario.anchors_m)), ((1, 0, 0),
+                           (0, 1, 0), (0, 0, 1)), (0.0, 0.0, 0.0))
+            text += (f'\n[zenoh]\nprefix = "uwbd/soak"\nlisten = ["unixsock-stream/'
+                     f'{work / "z.sock"}"]\nmulticast_scouting = false\n'
+                     '\n[log]\nrotate_minutes = 10\n')
+            config = parse(text, "soak config")
+            samples: list[tuple[float, float, float]] = []
+            snapshots: list[tracemalloc.Snapshot] = []
+            stop = threading.Event()
+            started = time.monotonic()
+            warm_s = args.warmup_minutes * 60
+
+            def sample() -> None:
+                while not stop.wait(args.every_s):
+                    t = time.monotonic() - started
+                    heap = tracemalloc.get_traced_memory()[0] / 1e6
+                    samples.append((t, rss_mb(), heap))
+                    if t >= warm_s and not snapshots:
+                        snapshots.append(tracemalloc.take_snapshot())
+                    print(f"  {t / 60:6.1f} min  RSS {samples[-1][1]:6.1f} MB  Python heap "
+                          f"{heap:6.1f} MB", flush=True)
+
+            sampler = threading.Thread(target=sample, daemon=True)
+            emu.start()
+            sampler.start()
+            pipeline = asyncio.run(run(config, work / "logs", args.minutes * 60, summary_s=600))
+            stop.set()
+            snapshots.append(tracemalloc.take_snapshot())
+    after = np.array([s for s in samples if s[0] >= warm_s])
+    print(f"{args.minutes:g} min, {pipeline.poses} poses; after the {args.warmup_minutes:g} "
+          "min warm-up:")
+    if len(after) < 3:
+        print("  too few samples after the warm-up for a slope")
+        return
+    minutes = after[:, 0] / 60
+    for k, name in ((1, "RSS"), (2, "Python heap")):
+        slope = np.polyfit(minutes, after[:, k], 1)[0]
+        print(f"  {name}: {after[0, k]:.1f} -> {after[-1, k]:.1f} MB, slope {slope:+.4f} MB/min")
+    if len(snapshots) == 2:
+        print("  allocation sites that grew most (first sample after the warm-up -> the end):")
+        for stat in snapshots[1].compare_to(snapshots[0], "lineno")[:10]:
+            print(f"    {stat.size_diff / 1e3:+9.1f} kB  {stat.traceback.format()[-1].strip()}")
+
+
+if __name__ == "__main__":
+    main()
