@@ -57,8 +57,8 @@ def config_with(tmp: Path, zenoh_table: str) -> Path:
 
 @pytest.mark.parametrize(("table", "file_text", "said"), [
     ('listen = ["tls/127.0.0.1:7447"]', None,
-     ('zenoh.listen[0]: "tls/127.0.0.1:7447": TLS needs certificates: name a Zenoh config '
-      "file",)),
+     ('zenoh.listen[0]: "tls/127.0.0.1:7447": listening on TLS needs a key and certificate: '
+      "name a Zenoh config file",)),
     ('config = "nowhere.json5"', None, ("zenoh.config: ", "nowhere.json5: no such file")),
     ('config = "z.json5"', "{ mode: ", ("zenoh.config: ", "z.json5: Zenoh: ")),
     ('config = "z.json5"', "{ modee: 'peer' }", ("zenoh.config: ", "unknown field `modee`")),
@@ -83,6 +83,14 @@ def test_a_zenoh_setup_that_cannot_work_is_refused_before_any_run(
     run = uwbd("run", "-c", str(cfg), "--duration", "1", "--log-dir", str(tmp_path / "logs"))
     assert run.returncode == 2 and said[0] in run.stderr, run.stderr
     assert not (tmp_path / "logs").exists()  # no run without Zenoh
+
+
+def test_a_tls_client_of_a_public_certificate_needs_no_zenoh_file(tmp_path: Path) -> None:
+    """Without a CA of its own a Zenoh TLS client trusts the Web PKI's: a router with a
+    public certificate is reached with the endpoint alone."""
+    cfg = config_with(tmp_path, 'mode = "client"\nconnect = ["tls/zenoh.example.com:7447"]')
+    checked = uwbd("check-config", str(cfg))
+    assert checked.returncode == 0 and "zenoh" not in checked.stderr, checked.stderr
 
 
 def test_the_zenoh_file_is_the_base_and_the_tables_keys_go_over_it(tmp_path: Path) -> None:

@@ -289,13 +289,6 @@ def check_zenoh(r: Report, zenoh: Mapping[str, Any]) -> None:
                 r.warn(f"zenoh.{key}[{k}]", f"{show(endpoint)} is listed twice")
             seen.add(endpoint)
             good[key].append((k, endpoint))
-    if "config" not in zenoh:
-        for key, listed in good.items():
-            for k, endpoint in listed:
-                if endpoint.partition("/")[0] in SECURE_PROTOCOLS:
-                    r.error(f"zenoh.{key}[{k}]", f"{show(endpoint)}: TLS needs certificates: "
-                            "name a Zenoh config file that gives them with zenoh.config "
-                            "(README, \"Securing Zenoh\")")
     if zenoh.get("mode") == "client" and not zenoh.get("connect"):
         r.error("zenoh.mode", "\"client\" needs a zenoh.connect endpoint (a router or peer)")
     prefix = zenoh.get("prefix", "").strip("/")
@@ -435,11 +428,13 @@ def check_zenoh_file(r: Report, zcfg: Mapping[str, Any]) -> None:
     def given(name: str) -> bool:
         return bool(get(TLS + name) or get(TLS + name + "_base64"))
 
+    # a TLS client without a CA of its own trusts the Web PKI's (Zenoh's default): a router
+    # with a public certificate needs no file; with mTLS each side shows its own
     mtls = bool(get(TLS + "enable_mtls"))
     needs = {"listen": ["listen_private_key", "listen_certificate"]
              + (["root_ca_certificate"] if mtls else []),
-             "connect": ["root_ca_certificate"]
-             + (["connect_private_key", "connect_certificate"] if mtls else [])}
+             "connect": ["root_ca_certificate", "connect_private_key", "connect_certificate"]
+             if mtls else []}
     for section, names in needs.items():
         secure = [e for e in endpoints(section) if e.partition("/")[0] in SECURE_PROTOCOLS]
         missing = [n for n in names if not given(n)]
@@ -458,6 +453,14 @@ def host_problems(config: Config, where: str) -> list[str]:
     """What this machine lacks to run ``config`` (its Zenoh file and what that names), one
     line each; nothing where Zenoh is off."""
     r = Report(where)
-    if config.zenoh.get("enabled", True):
-        check_zenoh_file(r, config.zenoh)
+    zcfg = config.zenoh
+    if not zcfg.get("enabled", True):
+        return r.errors
+    if "config" not in zcfg:  # (a TLS client needs nothing: it trusts the Web PKI's CAs)
+        for k, endpoint in enumerate(zcfg.get("listen", [])):
+            if str(endpoint).partition("/")[0] in SECURE_PROTOCOLS:
+                r.error(f"zenoh.listen[{k}]", f"{show(endpoint)}: listening on TLS needs a "
+                        "key and certificate: name a Zenoh config file that gives them with "
+                        "zenoh.config (README, \"Securing Zenoh\")")
+    check_zenoh_file(r, zcfg)
     return r.errors

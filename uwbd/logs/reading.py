@@ -311,16 +311,20 @@ def recover(source: Path, target: Path) -> Recovered:
 
         w = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
         w.start(profile="", library=f"uwbd {__version__} (recover)")
-        for record in intact_records(source.read_bytes(), damage):
-            if isinstance(record, Schema) and record.id not in schemas:  # (the summary
-                # section repeats them)
+        records = list(intact_records(source.read_bytes(), damage))
+        # schemas and channels first, from anywhere in the file: a damaged first chunk may
+        # have held them, and a finished file's summary section repeats them
+        for record in records:
+            if isinstance(record, Schema) and record.id not in schemas:
                 schemas[record.id] = w.register_schema(record.name, record.encoding,
                                                        record.data)
-            elif isinstance(record, Channel) and record.id not in channels:
+        for record in records:
+            if isinstance(record, Channel) and record.id not in channels:
                 channels[record.id] = w.register_channel(
                     record.topic, record.message_encoding,
                     schemas.get(record.schema_id, 0), dict(record.metadata))
-            elif isinstance(record, Message) and record.channel_id in channels:
+        for record in records:
+            if isinstance(record, Message) and record.channel_id in channels:
                 w.add_message(channels[record.channel_id], record.log_time, record.data,
                               record.publish_time, record.sequence)
                 count += 1
