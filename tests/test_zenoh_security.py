@@ -104,6 +104,15 @@ def test_the_zenoh_file_is_the_base_and_the_tables_keys_go_over_it(tmp_path: Pat
     assert json.loads(merged.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7"]
     assert json.loads(merged.get_json("mode")) == "client"  # the table left it to the file
     assert json.loads(merged.get_json("queries_default_timeout")) == 1234
+    # what neither gives is uwbd's default, not Zenoh's (a peer on tcp/[::]:0, every interface)
+    (tmp_path / "bare.json5").write_text("{ transport: { link: { tx: { lease: 10000 } } } }")
+    bare = session_config({"config": str(tmp_path / "bare.json5")})
+    assert json.loads(bare.get_json("listen/endpoints")) == []
+    assert json.loads(bare.get_json("mode")) == "peer"
+    assert json.loads(bare.get_json("scouting/multicast/enabled")) is True
+    (tmp_path / "own.json5").write_text("{ listen: { endpoints: ['tcp/127.0.0.1:0'] } }")
+    own = session_config({"config": str(tmp_path / "own.json5")})
+    assert json.loads(own.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
     checked = uwbd("check-config", str(cfg))
     assert checked.returncode == 0, checked.stderr
 

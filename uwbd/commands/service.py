@@ -25,7 +25,7 @@ from uwbd.commands.common import (
 )
 from uwbd.config import default_robot_name
 from uwbd.config.checks import Report, check_zenoh_file
-from uwbd.config.zenoh_session import zenoh_reason
+from uwbd.config.zenoh_session import endpoints, session_config, zenoh_reason
 from uwbd.service.daemon import PipelineError
 from uwbd.service.daemon import run as run_daemon
 from uwbd.service.demo import run_demo
@@ -107,29 +107,24 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_echo(args: argparse.Namespace) -> int:
     """Print the poses (or status) a daemon publishes."""
-    zcfg: dict[str, Any] = {"mode": "peer", "multicast_scouting": not args.connect}
+    zcfg: dict[str, Any] = {"mode": "peer"}
     prefix = args.prefix
     if args.config:
         config = load_config_file(args.config)
-        # dial the daemon: its routers, and its own listen endpoints (a subscriber must not
-        # take the daemon's listen port itself)
-        zenoh_cfg = config.zenoh
-        dial = [*zenoh_cfg.get("connect", []), *dial_endpoints(zenoh_cfg.get("listen", []))]
-        zcfg.update(multicast_scouting=zenoh_cfg.get("multicast_scouting", True),
-                    connect=dial)
-        if "config" in zenoh_cfg:  # the daemon's certificates, on the daemon's machine
-            zcfg["config"] = zenoh_cfg["config"]
+        zcfg.update(_daemons_reach(config.zenoh, args.config))
         prefix = prefix or config.zenoh_prefix
     if args.zenoh_config:
         zcfg["config"] = args.zenoh_config
+    if "config" not in zcfg and "multicast_scouting" not in zcfg:
+        zcfg["multicast_scouting"] = not args.connect  # scouting for a daemon not named
     if args.connect:
         zcfg["connect"] = [*args.connect, *zcfg.get("connect", [])]
     prefix = str(prefix or f"uwbd/{default_robot_name()}")
     if zcfg.get("connect"):
-        # it dials a daemon or a router and only listens: as a client it needs no listen
-        # endpoint of its own, which a peer would (peers mesh with each other directly)
+        # it dials a daemon or a router: as a client it needs no listen endpoint of its own,
+        # which a peer would (peers mesh with each other directly)
         zcfg["mode"] = "client"
-        zcfg["listen"] = []  # nor the daemon's, which its Zenoh file may give
+    zcfg["listen"] = []  # never the daemon's own, which its Zenoh file may give
     _zenoh_file_usable(zcfg, "--zenoh-config" if args.zenoh_config else "-c")
     try:
         zenoh.KeyExpr(f"{prefix.strip('/')}/pose")
@@ -146,6 +141,22 @@ def cmd_echo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _daemons_reach(zenoh_cfg: dict[str, Any], where: str) -> dict[str, Any]:
+    """What a subscriber on the daemon's machine takes from its ``[zenoh]`` table and Zenoh
+    file: the daemon's routers and its own listen endpoints to dial (it must not take the
+    daemon's listen port itself), its certificates and its scouting."""
+    _zenoh_file_usable(dict(zenoh_cfg), f"{where}: zenoh.config")
+    daemon = session_config(zenoh_cfg)
+    mode = json.loads(daemon.get_json("mode"))
+    out: dict[str, Any] = {"connect": [*endpoints(daemon, "connect", mode),
+                                       *dial_endpoints(endpoints(daemon, "listen", mode))]}
+    if "config" in zenoh_cfg:  # the daemon's certificates (and scouting, unless the table's)
+        out["config"] = zenoh_cfg["config"]
+    if "multicast_scouting" in zenoh_cfg or "config" not in zenoh_cfg:
+        out["multicast_scouting"] = zenoh_cfg.get("multicast_scouting", True)
+    return out
+
+
 def _zenoh_file_usable(zcfg: dict[str, Any], option: str) -> None:
     """A Zenoh file given on the command line: checked as ``check-config`` checks one."""
     if "config" in zcfg:
@@ -157,15 +168,14 @@ def _zenoh_file_usable(zcfg: dict[str, Any], option: str) -> None:
 
 def cmd_router(args: argparse.Namespace) -> int:
     """A Zenoh router for several daemons (as ``zenohd``)."""
-    zcfg: dict[str, Any] = {"mode": "router", "listen": args.listen or [ROUTER_LISTEN_DEFAULT],
-                            "multicast_scouting": args.multicast_scouting}
+    zcfg: dict[str, Any] = {"mode": "router", "multicast_scouting": args.multicast_scouting}
+    if args.listen:  # else the Zenoh file's listen endpoints, else the default
+        zcfg["listen"] = args.listen
     if args.zenoh_config:
         zcfg["config"] = args.zenoh_config
-        if not args.listen:  # the file's listen endpoints, if it gives any
-            zcfg.pop("listen")
         _zenoh_file_usable(zcfg, "--zenoh-config")
     try:
-        run_router(zcfg)
+        run_router(zcfg, listen_default=[ROUTER_LISTEN_DEFAULT])
     except RouterError as err:
         raise UsageError(str(err)) from err
     return 0

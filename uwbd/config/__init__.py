@@ -46,7 +46,7 @@ Sections::
                          ("uwbd/<robot name>"), multicast_scouting (true), config (a Zenoh
                          config file, JSON5: TLS, authentication, access control; the keys
                          above that the table gives are set over it, the others are the
-                         file's)
+                         file's, else these defaults, never Zenoh's own)
 
 Beyond types and ranges (the tables in :mod:`uwbd.config.schema`), the file must make sense
 as a whole (:mod:`uwbd.config.checks`): with sources, one of them is UWB; a driver that

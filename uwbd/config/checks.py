@@ -399,7 +399,7 @@ def check_zenoh_file(r: Report, zcfg: Mapping[str, Any]) -> None:
     every file the TLS settings name exists."""
     import zenoh  # noqa: PLC0415 - only for configs that name a Zenoh file
 
-    from uwbd.config.zenoh_session import session_config, zenoh_reason  # noqa: PLC0415
+    from uwbd.config import zenoh_session as zs  # noqa: PLC0415
 
     path = zcfg.get("config")
     if path is None:
@@ -408,9 +408,9 @@ def check_zenoh_file(r: Report, zcfg: Mapping[str, Any]) -> None:
         r.error("zenoh.config", f"{path}: no such file (a Zenoh config file, JSON5)")
         return
     try:
-        merged = session_config(dict(zcfg))
+        merged = zs.session_config(dict(zcfg))
     except zenoh.ZError as err:
-        r.error("zenoh.config", f"{path}: Zenoh: {zenoh_reason(err)}")
+        r.error("zenoh.config", f"{path}: Zenoh: {zs.zenoh_reason(err)}")
         return
 
     def get(key: str) -> Any:
@@ -418,12 +418,6 @@ def check_zenoh_file(r: Report, zcfg: Mapping[str, Any]) -> None:
             return json.loads(merged.get_json(key))
         except (zenoh.ZError, ValueError):
             return None
-
-    def endpoints(section: str) -> list[str]:
-        listed = get(f"{section}/endpoints") or []
-        if isinstance(listed, dict):  # per mode: {router: [...], peer: [...]}
-            listed = [e for v in listed.values() for e in (v or [])]
-        return [e for e in listed if isinstance(e, str)]
 
     def given(name: str) -> bool:
         return bool(get(TLS + name) or get(TLS + name + "_base64"))
@@ -436,7 +430,8 @@ def check_zenoh_file(r: Report, zcfg: Mapping[str, Any]) -> None:
              "connect": ["root_ca_certificate", "connect_private_key", "connect_certificate"]
              if mtls else []}
     for section, names in needs.items():
-        secure = [e for e in endpoints(section) if e.partition("/")[0] in SECURE_PROTOCOLS]
+        secure = [e for e in zs.endpoints(merged, section)
+                  if e.partition("/")[0] in SECURE_PROTOCOLS]
         missing = [n for n in names if not given(n)]
         if secure and missing:
             r.error("zenoh.config", f"{path}: {section} endpoint {secure[0]} needs "

@@ -21,21 +21,43 @@ ZENOH_PATHS = {"mode": "mode", "connect": "connect/endpoints", "listen": "listen
                "multicast_scouting": "scouting/multicast/enabled"}
 
 
-def session_config(zcfg: dict[str, Any]) -> zenoh.Config:
+# what uwbd sets where neither the table nor a Zenoh file does (Zenoh's own defaults differ:
+# a peer listens on every interface, tcp/[::]:0)
+UWBD_DEFAULTS: dict[str, Any] = {"mode": "peer", "connect": [], "listen": [],
+                                 "multicast_scouting": True}
+
+
+def session_config(zcfg: dict[str, Any],
+                   defaults: dict[str, Any] | None = None) -> zenoh.Config:
     """A Zenoh config from the ``[zenoh]`` table (mode, connect, listen, multicast_scouting).
     With ``config``, a Zenoh config file (JSON5: TLS, authentication, access control, all
-    Zenoh's own) is the base, and only the keys the table gives are set over it."""
+    Zenoh's own) is the base, and the keys the table gives are set over it. A key neither
+    gives is ``defaults``' (uwbd's: a peer, listening nowhere, scouting on), never Zenoh's
+    own default."""
+    defaults = {**UWBD_DEFAULTS, **(defaults or {})}
     path = zcfg.get("config")
-    if path is None:
-        config: zenoh.Config = zenoh.Config.from_json5(json.dumps({
-            "mode": zcfg.get("mode", "peer"),
-            "connect": {"endpoints": list(zcfg.get("connect", []))},
-            "listen": {"endpoints": list(zcfg.get("listen", []))},
-            "scouting": {"multicast": {"enabled": bool(zcfg.get("multicast_scouting", True))}},
-        }))
-        return config
-    config = zenoh.Config.from_file(str(path))
+    config: zenoh.Config = (zenoh.Config() if path is None
+                            else zenoh.Config.from_file(str(path)))
+    untouched = zenoh.Config()
     for key, where in ZENOH_PATHS.items():
         if key in zcfg:
-            config.insert_json5(where, json.dumps(zcfg[key]))
+            value = zcfg[key]
+        elif config.get_json(where) == untouched.get_json(where):  # the file left it
+            value = defaults[key]
+        else:
+            continue
+        config.insert_json5(where, json.dumps(value))
     return config
+
+
+def endpoints(config: zenoh.Config, section: str, mode: str | None = None) -> list[str]:
+    """The ``listen`` or ``connect`` endpoints of a Zenoh config (of ``mode``'s, where they
+    are given per mode; every mode's without one)."""
+    try:
+        listed = json.loads(config.get_json(f"{section}/endpoints")) or []
+    except (zenoh.ZError, ValueError):
+        return []
+    if isinstance(listed, dict):  # per mode: {router: [...], peer: [...]}
+        chosen = [listed.get(mode)] if mode else list(listed.values())
+        listed = [e for v in chosen for e in (v or [])]
+    return [e for e in listed if isinstance(e, str)]

@@ -15,7 +15,7 @@ from typing import Any
 import zenoh
 
 from uwbd import journal
-from uwbd.config.zenoh_session import session_config, zenoh_reason
+from uwbd.config.zenoh_session import endpoints, session_config, zenoh_reason
 from uwbd.service.interrupt import wait_until
 
 LOG = journal.get("router")
@@ -25,18 +25,18 @@ class RouterError(Exception):
     """Zenoh could not start a router with these settings (a port taken, a bad endpoint)."""
 
 
-def run_router(zcfg: dict[str, Any], stop: threading.Event | None = None) -> None:
+def run_router(zcfg: dict[str, Any], stop: threading.Event | None = None,
+               listen_default: list[str] | None = None) -> None:
     """Route until Ctrl-C, SIGTERM or ``stop``; ``zcfg`` as a ``[zenoh]`` table (mode
-    router, listen, multicast_scouting, a Zenoh file in ``config``)."""
+    router, listen, multicast_scouting, a Zenoh file in ``config``); ``listen_default``
+    where neither it nor the file gives a listen endpoint."""
     try:
-        config = session_config(zcfg)
+        config = session_config(zcfg, {"mode": "router", "listen": listen_default or []})
         session = zenoh.open(config)
     except zenoh.ZError as err:
-        where = ", ".join(zcfg.get("listen", [])) or zcfg.get("config", "")
+        where = ", ".join(zcfg.get("listen", listen_default or [])) or zcfg.get("config", "")
         raise RouterError(f"cannot start a router on {where}: {zenoh_reason(err)}") from err
-    listen = json.loads(config.get_json("listen/endpoints"))
-    if isinstance(listen, dict):
-        listen = listen.get("router", [])
+    listen = endpoints(config, "listen", "router")
     try:
         LOG.info("routing on %s (multicast scouting %s); daemons connect with [zenoh] "
                  "connect = [%s]", ", ".join(listen),
