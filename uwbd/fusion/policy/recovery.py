@@ -52,6 +52,7 @@ class Recovery:
     ekf: Eskf | None
     t_ns: int | None
     lever: Array
+    _plain_lever: Array
     counters: collections.Counter[str]
     monitor: HealthMonitor
     consistency: AnchorConsistency
@@ -203,6 +204,7 @@ class Recovery:
         self._aligner = HeadingAligner(self.cfg.align_window_s, self.cfg.align_min_dv_mps,
                                        self.cfg.range_sigma_m)
         self._aligned = False
+        self.lever = self._plain_lever  # the phase centre waits for the heading again
         self.monitor.reset(t_ns, reason, None)
 
     def _restart_not_finite(self, t_ns: int) -> None:
