@@ -109,6 +109,23 @@ def test_config_mistakes_are_errors_naming_the_key(section: str, message: str) -
     assert f"robot.toml: {message}" in str(err.value), str(err.value)
 
 
+def test_an_anchor_without_a_delay_while_the_delay_states_are_off_is_a_warning() -> None:
+    base = BASE + "[anchors]\n1 = [0, 0, 2]\n2 = [5, 0, 2]\n3 = [5, 4, 2]\n"
+    delays = "[range_model]\nanchor_delays_m = { 1 = 0.05, 3 = -0.02 }\n"
+    off = "[fusion]\nrange_bias_states = false\n"
+    def warned(text: str) -> list[str]:
+        return [w for w in parse(text).warnings if "range_model" in w]
+
+    said = warned(base + off + delays)
+    assert len(said) == 1 and "range_model.anchor_delays_m: no delay for anchor(s) 2 and " \
+        "fusion.range_bias_states = false" in said[0], said
+    assert not warned(base + delays)  # the states estimate what is not given
+    assert not warned(base + off)  # no delays calibrated at all: a choice
+    loose = '[fusion]\nmode = "loose"\n[range_model]\ntag_degree = 2\ntag_coefficients_m = ' \
+        + str([0.0] * 8) + "\n"
+    assert "loose mode's fixes take degree 1" in " ".join(warned(base + loose))
+
+
 def run(cfg: FilterConfig, sim: object) -> tuple[list, Filter]:
     poses, _, flt = run_filter(cfg, merge(sim.imu, sim.uwb))  # type: ignore[attr-defined]
     return poses, flt
@@ -175,7 +192,8 @@ def test_calibrated_anchor_delays_do_what_the_delay_states_would() -> None:
         assert scores[f"delays, degree {d}"] < 1.1 * scores["states"], scores
 
 
-def calibration_recording(root: Path, seconds: float = 80.0, seed: int = 0) -> Path:
+def calibration_recording(root: Path, seconds: float = 80.0, seed: int = 0,
+                          attitude: bool = True) -> Path:
     """A range-model calibration recording in the inrol layout (``anchor.txt``,
     ``tag_pose.txt``, ``uwb.txt``): the tag walked round the room turning through every
     heading, each range with its anchor's delay, the tag's phase-centre term, noise and a
@@ -192,7 +210,9 @@ def calibration_recording(root: Path, seconds: float = 80.0, seed: int = 0) -> P
     q = np.array([quat_from_euler(r, pt, y) for r, pt, y in zip(roll, pitch, yaw, strict=True)])
     lines = ["# timestamp tx ty tz qx qy qz qw"]
     lines += [f"{ti:.6f} {x:.6f} {y:.6f} {z:.6f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}"
-              for ti, (x, y, z), (qw, qx, qy, qz) in zip(t, p, q, strict=True)]
+              for ti, (x, y, z), (qw, qx, qy, qz)
+              in zip(t, p, q if attitude else np.tile((1.0, 0, 0, 0), (len(t), 1)),
+                     strict=True)]
     (root / "tag_pose.txt").write_text("\n".join(lines) + "\n")
     lines = ["# index timestamp anchor_id r"]
     ids = list(ANCHORS)
@@ -256,6 +276,12 @@ def test_calibrate_ranges_errors_are_one_line(tmp_path: Path) -> None:
              "folder nowhere does not exist")
     one_line(uwbd("calibrate-ranges", str(sim), "--write-config", str(sim), "out.toml",
                   cwd=tmp_path), 2, str(sim))
+    flat = calibration_recording(tmp_path / "flat", seconds=35.0, attitude=False)
+    assert uwbd("import", "inrol", str(flat), "-o", "flat.mcap", cwd=tmp_path).returncode == 0
+    one_line(uwbd("calibrate-ranges", "flat.mcap", cwd=tmp_path), 2,
+             "the ground truth has no orientation", "--degree 0 fits the anchors' delays")
+    delays = uwbd("calibrate-ranges", "flat.mcap", "--degree", "0", cwd=tmp_path)
+    assert delays.returncode == 0 and "anchor antenna delays" in delays.stdout, delays.stderr
 
 
 def test_report_shows_the_range_residuals_raw_and_with_the_model(tmp_path: Path) -> None:

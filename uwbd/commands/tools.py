@@ -184,7 +184,8 @@ def cmd_calibrate_ranges(args: argparse.Namespace) -> int:
     try:
         samples = range_samples(rec.frames, c.anchors_m, rec.truth_t_ns, rec.truth_p_m,
                                 rec.truth_rotation, c.lever_arm_m, model.tag_mounting)
-        cal = calibrate(samples, args.degree)
+        cal = calibrate(samples, args.degree,
+                        oriented=not np.allclose(rec.truth_rotation, np.eye(3)))
     except RangeCalibrationError as err:
         raise UsageError(f"{path}: {err}") from err
     mounted = ("tag axes = body axes" if np.allclose(model.tag_mounting, np.eye(3))

@@ -205,18 +205,30 @@ MAX_TAG_TERM_M = 0.3  # an antenna's direction term is centimetres; more is not 
 MAX_ANCHOR_DELAY_M = 1.0  # a DW1000's uncalibrated antenna delay is ~0.3 m of range at most
 
 
-def check_range_model(r: Report, model: dict[str, Any]) -> None:
+def check_range_model(r: Report, model: dict[str, Any], fusion: Mapping[str, Any],
+                      anchors: Mapping[int, Vec3]) -> None:
     """``[range_model]``: as many coefficients as the degree takes, each plausible for an
-    antenna; the tag's mounting a rotation (kept orthonormalised in the table)."""
-    for key, delay in model.get("anchor_delays_m", {}).items():
+    antenna; the tag's mounting a rotation (kept orthonormalised in the table); with the
+    delay states off, every configured anchor's delay given."""
+    delays = model.get("anchor_delays_m", {})
+    for key, delay in delays.items():
         if anchor_id(key) is None:
             r.error(f"range_model.anchor_delays_m.{toml_key(key)}", "not an anchor id (an "
                     "integer of 0 or more: 3, 0x1151)")
         elif abs(delay) > MAX_ANCHOR_DELAY_M:
             r.error(f"range_model.anchor_delays_m.{toml_key(key)}", f"{delay:g} m: an antenna "
                     f"delay is at most {MAX_ANCHOR_DELAY_M:g} m (is it in metres?)")
+    without = sorted(set(anchors) - {anchor_id(k) for k in delays})
+    if delays and without and fusion.get("range_bias_states", True) is False:
+        r.warn("range_model.anchor_delays_m", "no delay for anchor(s) "
+               + ", ".join(map(str, without)) + " and fusion.range_bias_states = false: "
+               "their ranges are taken with their antenna delay in them (calibrate-ranges "
+               "on a recording that sees them, or the delay states back on)")
     degree = model.get("tag_degree", 0)
     coefficients = model.get("tag_coefficients_m")
+    if degree >= 2 and fusion.get("mode") == "loose":
+        r.warn("range_model.tag_degree", f"{degree}: loose mode's fixes take degree 1 (the "
+               "phase centre) only; the higher degrees apply to single ranges, in tight mode")
     if "tag_mounting" in model:
         model["tag_mounting"] = [list(row) for row in mounting_rotation(
             r, model["tag_mounting"], "range_model.tag_mounting", "tag axes -> body")]

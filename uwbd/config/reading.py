@@ -87,7 +87,7 @@ def parse(text: str, where: str = "<config>") -> Config:
     check_sources(r, sources, sources_complete)
     check_anchors(r, anchors, anchor_keys, anchors_complete, sources, fusion)
     check_fusion(r, fusion, anchors)
-    check_range_model(r, tables["range_model"])
+    check_range_model(r, tables["range_model"], fusion, anchors)
     check_imu(r, imu, lever)
     check_zenoh(r, zenoh)
     if r.errors:

@@ -335,8 +335,9 @@ def _toml(v: object) -> str:
     return write_toml({"t": {"v": v}}).split(" = ", 1)[1].strip()
 
 
-def calibrate(s: RangeSamples, degree: int) -> RangeCalibration:
-    """The model of ``degree`` and the noise, with every degree's held-out check."""
+def calibrate(s: RangeSamples, degree: int, oriented: bool = True) -> RangeCalibration:
+    """The model of ``degree`` and the noise, with every degree's held-out check.
+    ``oriented``: the truth gives the tag's attitude (not the identity throughout)."""
     if not 0 <= degree <= MAX_DEGREE:
         raise RangeCalibrationError(f"degree {degree}: expected 0..{MAX_DEGREE}")
     span_s = float(s.t_ns[-1] - s.t_ns[0]) / 1e9 if len(s.t_ns) else 0.0
@@ -345,6 +346,11 @@ def calibrate(s: RangeSamples, degree: int) -> RangeCalibration:
             f"{len(s.t_ns)} ranges with truth over {span_s:.0f} s: a calibration needs "
             f"{MIN_RANGES} at least, over {MIN_SPAN_S:g} s (record about 90 s, the tag turned "
             "through every heading)")
+    if degree > 0 and not oriented:
+        raise RangeCalibrationError(
+            "the ground truth has no orientation (every pose's attitude is the identity): the "
+            "tag's direction term needs its attitude; --degree 0 fits the anchors' delays "
+            "alone")
     cut = s.t_ns[0] + int((1 - HOLDOUT_FRACTION) * span_s * 1e9)
     train, test = s.take(s.t_ns < cut), s.take(s.t_ns >= cut)
     train = train.take(np.isin(train.anchor, np.unique(test.anchor)))
