@@ -22,7 +22,7 @@ from procs import UNBUFFERED, UWBD, one_line, read_until, uwbd
 from drivers.emulator import DeviceSpec, Emulator, Faults
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
 from uwbd.config import load
-from uwbd.config.zenoh_session import session_config
+from uwbd.config.zenoh_session import effective, session_config
 
 ROOT = Path(__file__).resolve().parents[1]
 ANCHORS = "\n".join(f'"{i}" = [{x}, {y}, {z}]' for i, (x, y, z) in enumerate(DEFAULT_ANCHORS_M))
@@ -104,6 +104,9 @@ def test_the_zenoh_file_is_the_base_and_the_tables_keys_go_over_it(tmp_path: Pat
     assert json.loads(merged.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7"]
     assert json.loads(merged.get_json("mode")) == "client"  # the table left it to the file
     assert json.loads(merged.get_json("queries_default_timeout")) == 1234
+    # what the daemon's status and start-up line go by (a client: "disconnected" when alone)
+    assert effective(zcfg) == {"mode": "client", "connect": ["tcp/127.0.0.1:7"], "listen": [],
+                               "multicast_scouting": False}
     # what neither gives is uwbd's default, not Zenoh's (a peer on tcp/[::]:0, every interface)
     (tmp_path / "bare.json5").write_text("{ transport: { link: { tx: { lease: 10000 } } } }")
     bare = session_config({"config": str(tmp_path / "bare.json5")})

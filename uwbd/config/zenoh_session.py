@@ -61,3 +61,17 @@ def endpoints(config: zenoh.Config, section: str, mode: str | None = None) -> li
         chosen = [listed.get(mode)] if mode else list(listed.values())
         listed = [e for v in chosen for e in (v or [])]
     return [e for e in listed if isinstance(e, str)]
+
+
+def effective(zcfg: dict[str, Any]) -> dict[str, Any]:
+    """The four keys of ``ZENOH_PATHS`` as the session will have them (the table over its
+    Zenoh file over uwbd's defaults); the table's own where the file cannot be read."""
+    try:
+        config = session_config(zcfg)
+        mode = json.loads(config.get_json("mode"))
+        return {"mode": mode, "connect": endpoints(config, "connect", mode),
+                "listen": endpoints(config, "listen", mode),
+                "multicast_scouting": bool(json.loads(
+                    config.get_json("scouting/multicast/enabled")))}
+    except (zenoh.ZError, ValueError):
+        return {**UWBD_DEFAULTS, **{k: zcfg[k] for k in ZENOH_PATHS if k in zcfg}}

@@ -22,7 +22,7 @@ import zenoh
 
 from uwbd import __version__, journal
 from uwbd.config import Config
-from uwbd.config.zenoh_session import zenoh_reason
+from uwbd.config.zenoh_session import effective, zenoh_reason
 from uwbd.fusion.core import native
 from uwbd.logs.sink import McapSink
 from uwbd.service.narrator import Narrator
@@ -168,6 +168,7 @@ class ZenohLink:
         self.sink: ZenohSink | None = None
         self._next_try = loop.time()
         self._said = ""
+        self._reach = effective(config.zenoh)  # (with its Zenoh file's keys)
         if config.zenoh.get("enabled", True):
             self.retry()
 
@@ -200,13 +201,14 @@ class ZenohLink:
         ``disconnected`` and one line says so, and another when it is back."""
         if self.sink is None:
             return
+        error = ""
         try:
             info = self.sink.session.info
             routers, peers = len(list(info.routers_zid())), len(list(info.peers_zid()))
         except zenoh.ZError as err:  # a session closing under us: said as such
-            routers, peers, self._said = 0, 0, zenoh_reason(err)
-        z = self.config.zenoh
-        expects = bool(z.get("connect")) or z.get("mode") == "client"
+            routers, peers, error = 0, 0, zenoh_reason(err)
+        z = self._reach
+        expects = bool(z["connect"]) or z["mode"] == "client"
         state = "disconnected" if expects and routers + peers == 0 else "up"
         before = self.pipeline.extra_status.get("zenoh", {}).get("state")
         if state != before and before in ("up", "disconnected"):
@@ -216,7 +218,7 @@ class ZenohLink:
                             ", ".join(z.get("connect", [])) or "by scouting")
             else:
                 LOG.info("zenoh: connected again (%d router(s), %d peer(s))", routers, peers)
-        self.pipeline.extra_status["zenoh"] = {"state": state, "error": self._said,
+        self.pipeline.extra_status["zenoh"] = {"state": state, "error": error,
                                                "routers": routers, "peers": peers}
 
 
@@ -235,11 +237,12 @@ def _announce(config: Config, where: str, log_dir: Path,
              f.mode.value, f.range_sigma_m, 1e9 / config.pose_period_ns,
              config.status_period_ns / 1e9)
     if config.zenoh.get("enabled", True):
-        z = config.zenoh
+        z = effective(config.zenoh)
         LOG.info("zenoh %s: keys %s/{pose,status,alive}; listen %s; connect %s; multicast "
-                 "scouting %s", z.get("mode", "peer"), config.zenoh_prefix,
-                 ", ".join(z.get("listen", [])) or "default", ", ".join(z.get("connect", []))
-                 or "none", "on" if z.get("multicast_scouting", True) else "off")
+                 "scouting %s%s", z["mode"], config.zenoh_prefix,
+                 ", ".join(z["listen"]) or "none", ", ".join(z["connect"]) or "none",
+                 "on" if z["multicast_scouting"] else "off",
+                 f" (with {config.zenoh['config']})" if "config" in config.zenoh else "")
     else:
         LOG.info("zenoh: disabled in the config")
     LOG.info("logs: %s", log_dir.resolve())

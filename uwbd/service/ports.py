@@ -196,7 +196,7 @@ class SerialSource:
         self._poller = self.loop.call_later(period_s, self._poll)
 
     def _schedule_retry(self, reason: str) -> None:
-        if reason != self.info.last_error or self.info.state == "open":
+        if reason != self.info.last_error or self.info.state != "closed":
             LOG.warning("%s: %s; retrying every %.1f s at most", self.cfg.name, reason,
                         BACKOFF_MAX_S)
         self.info.state = "closed"
