@@ -670,6 +670,7 @@ def test_a_full_disk_counts_every_record_a_pose_writes(small_disk: Path, sim_log
                 log.json("/a", pose.t_ns, {"pad": os.urandom(300).hex()})
                 padding += 1
         log.close()
+        assert all(read_log(path).messages for path in log.files), log.files  # none empty
         kept = sum(m.topic in (*topics, "/a") for path in log.files
                    for m in read_log(path).messages)
         return kept, padding, log.records_lost

@@ -150,6 +150,7 @@ class LogWriter:
         self.flushed_bytes = 0  # the file is whole records up to here (see finish_cut)
         self.unflushed = 0  # records since then: what a cut there loses
         self.flush()  # header and metadata reach the disk now: a cut file keeps them
+        self.header_bytes = self.flushed_bytes  # a cut here holds no message
 
     def _channel(self, topic: str, encoding: str, schema_name: str = "",
                  schema: dict[str, Any] | None = None, schema_encoding: str = "jsonschema",

@@ -210,8 +210,13 @@ class McapSink:
             self.records_lost += log.unflushed  # the cut loses them (the failing one among)
             log.abandon()
             try:
-                finish_cut(log.path, log.flushed_bytes)
-                kept = f"{log.path} is finished with what was written before"
+                if log.flushed_bytes <= log.header_bytes:  # no message reached it: no log
+                    log.path.unlink()
+                    self.files.remove(log.path)
+                    kept = f"{log.path} held no message and is removed"
+                else:
+                    finish_cut(log.path, log.flushed_bytes)
+                    kept = f"{log.path} is finished with what was written before"
             except OSError as err:
                 kept = (f"{log.path} could not be finished ({err.strerror or err}); "
                         f"`uwbd recover {log.path} -o OUT` reads what it holds")
