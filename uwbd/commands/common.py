@@ -19,7 +19,7 @@ from uwbd.codec import frame_from_dict
 from uwbd.config import Config, ConfigError, apply_overrides
 from uwbd.config import load as load_config
 from uwbd.config import parse as parse_config
-from uwbd.config.checks import host_problems
+from uwbd.config.zenoh_checks import host_problems
 from uwbd.logs.reading import LogContents, not_a_log, read_log
 
 LOG = journal.get("cli")

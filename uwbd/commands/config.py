@@ -8,7 +8,7 @@ from pathlib import Path
 from uwbd.commands.common import LOG, UsageError
 from uwbd.config import ConfigError
 from uwbd.config import load as load_config
-from uwbd.config.checks import host_problems
+from uwbd.config.zenoh_checks import host_problems
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:

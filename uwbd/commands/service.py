@@ -24,8 +24,9 @@ from uwbd.commands.common import (
     load_config_file,
 )
 from uwbd.config import default_robot_name
-from uwbd.config.checks import Report, check_zenoh_file
-from uwbd.config.zenoh_session import endpoints, session_config, zenoh_reason
+from uwbd.config.checks import Report
+from uwbd.config.zenoh_checks import check_zenoh_file
+from uwbd.config.zenoh_session import effective, zenoh_reason
 from uwbd.service.daemon import PipelineError
 from uwbd.service.daemon import run as run_daemon
 from uwbd.service.demo import run_demo
@@ -146,10 +147,8 @@ def _daemons_reach(zenoh_cfg: dict[str, Any], where: str) -> dict[str, Any]:
     file: the daemon's routers and its own listen endpoints to dial (it must not take the
     daemon's listen port itself), its certificates and its scouting."""
     _zenoh_file_usable(dict(zenoh_cfg), f"{where}: zenoh.config")
-    daemon = session_config(zenoh_cfg)
-    mode = json.loads(daemon.get_json("mode"))
-    out: dict[str, Any] = {"connect": [*endpoints(daemon, "connect", mode),
-                                       *dial_endpoints(endpoints(daemon, "listen", mode))]}
+    daemon = effective(zenoh_cfg)
+    out: dict[str, Any] = {"connect": [*daemon["connect"], *dial_endpoints(daemon["listen"])]}
     if "config" in zenoh_cfg:  # the daemon's certificates (and scouting, unless the table's)
         out["config"] = zenoh_cfg["config"]
     if "multicast_scouting" in zenoh_cfg or "config" not in zenoh_cfg:

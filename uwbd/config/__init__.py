@@ -63,7 +63,6 @@ Modules: :mod:`~uwbd.config.model` (what a parsed config is), :mod:`~uwbd.config
 writing TOML), :mod:`~uwbd.config.spelling` (how messages spell keys and values).
 """
 
-from uwbd.config.checks import endpoint_problem
 from uwbd.config.model import (
     IMU_INTRINSIC_KEYS,
     IMU_LIMIT_KEYS,
@@ -87,6 +86,7 @@ from uwbd.config.schema import (
     UWB_DRIVERS,
     ZENOH_PROTOCOLS,
 )
+from uwbd.config.zenoh_checks import endpoint_problem
 
 __all__ = [
     "G_MPS2", "IMU_DRIVERS", "IMU_INTRINSIC_KEYS", "IMU_LIMIT_KEYS", "IMU_NOISE_KEYS",

@@ -18,7 +18,6 @@ from uwbd.config.checks import (
     check_imu,
     check_range_model,
     check_sources,
-    check_zenoh,
     mounting_rotation,
 )
 from uwbd.config.model import (
@@ -35,6 +34,7 @@ from uwbd.config.model import (
 from uwbd.config.overrides import apply_overrides
 from uwbd.config.schema import SECTIONS, SOURCE_SPEC, TABLES, VEC3, Key, anchor_id
 from uwbd.config.spelling import known, show, toml_key, type_name
+from uwbd.config.zenoh_checks import check_zenoh
 
 if sys.version_info >= (3, 11):
     import tomllib
