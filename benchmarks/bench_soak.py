@@ -6,7 +6,8 @@ The daemon's own loop (``uwbd.service.daemon.run``, as ``uwbd run`` runs it) in 
 process, fed by the emulator (a 200 Hz WitMotion and a 10 Hz Nooploop tag over
 pseudo-terminals, its threads in this process too, steady), logging to a temporary folder
 with rotation, Zenoh on a unix socket, no scouting. Every ``--every-s`` seconds: the RSS
-(``/proc/self/statm``) and the Python heap (``tracemalloc``). Printed after the warm-up: both
+(``/proc/self/statm``), the Python heap (``tracemalloc``) and glibc's heap (held from the OS
+and in use, ``mallinfo2``). Printed after the warm-up: both
 slopes (MB/min, least squares over the samples after it), and the ten allocation sites that
 grew most between the first sample after the warm-up and the last. Target: RSS slope
 ≤ 0.01 MB/min over two hours.
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import ctypes
 import os
 import tempfile
 import threading
@@ -36,6 +38,26 @@ PAGE_MB = os.sysconf("SC_PAGE_SIZE") / 1e6
 def rss_mb() -> float:
     with open("/proc/self/statm") as f:
         return int(f.read().split()[1]) * PAGE_MB
+
+
+class _MallInfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in (
+        "arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks",
+        "fordblks", "keepcost")]
+
+
+def malloc_mb() -> tuple[float, float]:
+    """glibc's heap: (held from the OS, in use) in MB, or NaN off glibc.
+
+    RSS that grows while "in use" stays flat is the allocator keeping freed memory (its
+    arenas), not a leak; "in use" growing is live C or Python memory."""
+    try:
+        info = ctypes.CDLL("libc.so.6").mallinfo2
+    except (OSError, AttributeError):
+        return float("nan"), float("nan")
+    info.restype = _MallInfo2
+    m = info()
+    return (m.arena + m.hblkhd) / 1e6, (m.uordblks + m.hblkhd) / 1e6
 
 
 def main() -> None:
@@ -71,8 +93,10 @@ def main() -> None:
                     samples.append((t, rss_mb(), heap))
                     if t >= warm_s and not snapshots:
                         snapshots.append(tracemalloc.take_snapshot())
+                    held, used = malloc_mb()
                     print(f"  {t / 60:6.1f} min  RSS {samples[-1][1]:6.1f} MB  Python heap "
-                          f"{heap:6.1f} MB", flush=True)
+                          f"{heap:6.1f} MB  malloc held {held:6.1f} / in use {used:6.1f} MB",
+                          flush=True)
 
             sampler = threading.Thread(target=sample, daemon=True)
             emu.start()
