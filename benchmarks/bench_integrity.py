@@ -72,9 +72,30 @@ def tracks(poses: list[Pose]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return t, pos, cov
 
 
-def findings(poses: list[Pose]) -> str:
-    flagged = sum("anchor_inconsistent" in q.health.faults for q in poses)
-    return f"anchor_inconsistent on {flagged}/{len(poses)} poses"
+def findings(poses: list[Pose], truth_t_ns: np.ndarray | None = None,
+             truth_p_m: np.ndarray | None = None, skip_s: float = 0.0) -> str:
+    """How often the window test said something, and (with truth) how often the protection
+    levels bounded the error, their median, and the healthy poses more than 0.5 m off."""
+    if truth_t_ns is not None:
+        poses = [q for q in poses if q.t_ns >= truth_t_ns[0] + skip_s * NS]
+    n = len(poses)
+    said = {k: sum(k in q.health.faults or k in q.health.notes for q in poses)
+            for k in ("ranges_inconsistent", "anchor_inconsistent", "anchor_excluded")}
+    text = ", ".join(f"{k} {v}/{n}" for k, v in said.items())
+    if truth_t_ns is None or truth_p_m is None or not n:
+        return text
+    t, p, _ = tracks(poses)
+    e = p - np.column_stack([np.interp(t, truth_t_ns, truth_p_m[:, i]) for i in range(3)])
+    hpl = np.array([np.nan if q.health.horizontal_protection_m is None
+                    else q.health.horizontal_protection_m for q in poses])
+    vpl = np.array([np.nan if q.health.vertical_protection_m is None
+                    else q.health.vertical_protection_m for q in poses])
+    healthy = np.array([q.health.healthy for q in poses])
+    off = np.linalg.norm(e, axis=1) > 0.5
+    return (text + f"; HPL covers {np.mean(np.hypot(e[:, 0], e[:, 1]) <= hpl):.2%} "
+            f"(median {np.nanmedian(hpl):.2f} m), VPL {np.mean(np.abs(e[:, 2]) <= vpl):.2%} "
+            f"(median {np.nanmedian(vpl):.2f} m); healthy {healthy.mean():.0%}, "
+            f"healthy while >0.5 m off {int((healthy & off).sum())}")
 
 
 def row(name: str, acc: object, extra: str = "") -> None:
@@ -130,7 +151,7 @@ def accuracy_real(data: Path, only: str | None) -> None:
         print(f"{name} (filter {elapsed:.1f} s)")
         row("tight ESKF, defaults", score(t, p, tt, tp, c, skip),
             f"restarts {flt.counters['restarts']}, resets {flt.counters['position_resets']}, "
-            + findings(poses))
+            + findings(poses, tt, tp, skip))
         if name == "inrol-env1":
             for degree in (1, 2):
                 model = calibrated_model(data / "inrol-calib", degree)
@@ -142,7 +163,7 @@ def accuracy_real(data: Path, only: str | None) -> None:
                     cfg, range_model=model, range_bias_states=False), merge(ds.imu, ds.uwb))
                 t, p, c = tracks(poses)
                 row(f"range model from inrol-calib, deg {degree}", score(t, p, tt, tp, c, skip),
-                    f"filter {time.perf_counter() - t0:.1f} s, " + findings(poses))
+                    f"filter {time.perf_counter() - t0:.1f} s, " + findings(poses, tt, tp, skip))
         tl, pl = run_method(UwbLeastSquares(cfg), merge(ds.imu, ds.uwb))
         row("UWB least squares", score(tl, pl, tt, tp, None, skip))
 

@@ -559,8 +559,9 @@ def test_an_anchor_surveyed_off_is_named_and_the_estimate_is_not_healthy() -> No
         err = np.linalg.norm(np.array([p.position_m for p in poses]) - truth, axis=1)
         off = err > 0.5
         healthy_off = sum(p.health.healthy for p, o in zip(poses, off, strict=True) if o)
-        # what the health said without the test: healthy but for its fault
-        without = healthy_off + sum(p.health.faults == ("anchor_inconsistent",)
+        # what the health said without the tests: healthy but for their faults
+        tests = {"anchor_inconsistent", "ranges_inconsistent"}
+        without = healthy_off + sum(bool(p.health.faults) and set(p.health.faults) <= tests
                                     for p, o in zip(poses, off, strict=True) if o)
         assert off.sum() > 100 and healthy_off < 0.6 * without, (healthy_off, without)
         # excluded, and its pull undone: the last 20 s near the fault-free run's accuracy

@@ -14,6 +14,7 @@ from uwbd.fusion.checks.imu_check import ImuLimits
 from uwbd.fusion.checks.intrinsics import ImuIntrinsics
 from uwbd.fusion.core.eskf import GRAVITY_MPS2, ImuNoise
 from uwbd.fusion.models.range_model import RangeModel
+from uwbd.fusion.policy.health import HealthLimits
 from uwbd.fusion.policy.robust import RobustPolicy
 from uwbd.fusion.settings import IDENTITY3, FilterConfig, Mode
 
@@ -25,6 +26,9 @@ IMU_LIMIT_KEYS = ("acc_full_scale_mps2", "gyro_full_scale_rps")  # ImuLimits fie
 # [imu] key -> ImuIntrinsics field (the same names): a_true = (a_meas − offset) / scale
 IMU_INTRINSIC_VECTORS = ("acc_scale", "acc_offset_mps2", "gyro_offset_rps")
 IMU_INTRINSIC_KEYS = (*IMU_INTRINSIC_VECTORS, "gyro_deadband_rps", "gravity_mps2")
+# [fusion] keys that are HealthLimits fields (the same names): the protection levels' risk
+# and alert limits
+_HEALTH_KEYS = ("integrity_risk", "horizontal_alert_limit_m", "vertical_alert_limit_m")
 MULTIPATH_SIGMA_M = 0.07  # the default time-correlated range error (real installations)
 
 
@@ -154,4 +158,5 @@ class Config:
             gate_probability=f.get("gate_probability", 0.997),
             gating=GatingPolicy(min_anchors=f.get("min_anchors", 1),
                                 max_range_m=f.get("max_range_m", 100.0)),
+            health=HealthLimits(**{k: f[k] for k in _HEALTH_KEYS if k in f}),
         )

@@ -133,6 +133,10 @@ _FUSION_SPEC = {
     "multipath_tau_s": Key(NUMBER, _POSITIVE_RANGE),
     "tag_side": Key(STRING, choices=("auto", "below", "above")),
     "height_range_m": Key(PAIR),
+    # a pose is healthy only while its protection levels, at this risk, are within these
+    "integrity_risk": Key(NUMBER, Range(1e-9, 0.5)),
+    "horizontal_alert_limit_m": Key(NUMBER, _POSITIVE_RANGE),
+    "vertical_alert_limit_m": Key(NUMBER, _POSITIVE_RANGE),
 }
 _PIPELINE_SPEC = {"aligner_wait_ms": Key(NUMBER, Range(0.0, 1000.0, lo_closed=True)),
                   "pose_rate_hz": Key(NUMBER, Range(0.0, 1000.0)),

@@ -52,6 +52,7 @@ from uwbd.fusion.checks.anchor_consistency import AnchorConsistency, Consistency
 from uwbd.fusion.checks.gating import GatingCounters, chi2_quantile, gate
 from uwbd.fusion.checks.imu_check import ImuCheck, new_imu_check
 from uwbd.fusion.checks.intrinsics import body_maps, to_body
+from uwbd.fusion.checks.window_raim import RaimLimits, WindowRaim
 from uwbd.fusion.core.eskf import BA_, BG_, N_CORE, TH_, Eskf
 from uwbd.fusion.core.lsq import LsqFix, coplanar
 from uwbd.fusion.core.rotation import Array
@@ -121,6 +122,7 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         self.monitor = HealthMonitor(config.health)
         self.monitor.range_model_held = config.range_model.enabled  # until the heading is known
         self.consistency = AnchorConsistency(ConsistencyLimits())
+        self.raim = WindowRaim(RaimLimits())
         self._excluded: set[int] = set()
         self.mounting_finding = ""
         self.imu_check = new_imu_check(config.imu_limits, body_maps(rows, config.imu_intrinsics))

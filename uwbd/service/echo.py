@@ -119,8 +119,11 @@ def _line(payload: bytes, status: bool) -> str:
         if status:
             return json.dumps(msg)
         p, q = msg["pose"]["position"], msg["pose"]["orientation"]
+        health = msg.get("health") or {}
+        hpl, vpl = health.get("horizontal_protection_m"), health.get("vertical_protection_m")
+        bound = "" if hpl is None or vpl is None else f"  ±{hpl:.2f} h ±{vpl:.2f} v m"
         return (f"{msg['t_ns']}  p=({p['x']:.3f}, {p['y']:.3f}, {p['z']:.3f}) m  "
-                f"q=({q['x']:.3f}, {q['y']:.3f}, {q['z']:.3f}, {q['w']:.3f})  "
+                f"q=({q['x']:.3f}, {q['y']:.3f}, {q['z']:.3f}, {q['w']:.3f}){bound}  "
                 f"{msg.get('status', '')}")
     except (ValueError, KeyError, TypeError) as err:
         return f"(not a uwbd pose: {type(err).__name__}: {payload[:80]!r})"

@@ -82,9 +82,12 @@ class Narrator:
             self._last_summary = (t_ns, poses, accepted, rejected)
             rate = (poses - last[1]) / ((t_ns - last[0]) / 1e9)
             sigma = health.get("position_sigma_m")
-            LOG.info("%s; %.1f poses/s; ranges %d accepted, %d rejected in %.0f s; σxy %s%s",
-                     status.get("filter", phase), rate, accepted - last[2], rejected - last[3],
-                     (t_ns - last[0]) / 1e9, "-" if sigma is None else f"{sigma:.3f} m",
+            hpl, vpl = health.get("horizontal_protection_m"), health.get("vertical_protection_m")
+            LOG.info("%s; %.1f poses/s; ranges %d accepted, %d rejected in %.0f s; σxy %s; "
+                     "protection %s%s", status.get("filter", phase), rate, accepted - last[2],
+                     rejected - last[3], (t_ns - last[0]) / 1e9,
+                     "-" if sigma is None else f"{sigma:.3f} m",
+                     "-" if hpl is None or vpl is None else f"{hpl:.2f} m h, {vpl:.2f} m v",
                      f"; {self.ports()}" if self.ports() else "")
 
     def _phase_changed(self, phase: str, text: str) -> None:

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from uwbd.fusion.checks.anchor_consistency import CHECK_EVERY_NS, AnchorConsistency
+from uwbd.fusion.checks.window_raim import WindowRaim
 from uwbd.fusion.core.eskf import BA_, BG_, P_, TH_, Eskf, RawRow
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.core.rotation import Array
@@ -54,6 +55,7 @@ class EpochFusion:
     counters: collections.Counter[str]
     monitor: HealthMonitor
     consistency: AnchorConsistency
+    raim: WindowRaim
     anchor_stats: dict[int, AnchorStats]
     _range_columns: dict[int, tuple[int, ...]]
     _fixed_z: float | None
@@ -149,20 +151,35 @@ class EpochFusion:
 
     def _check_anchors(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                        r_scale: Array) -> None:
-        """The epoch's ranges, before the update, to the anchor consistency test
-        (:mod:`~uwbd.fusion.checks.anchor_consistency`): tight, with the heading known, and
-        three ranges at least (a single range cannot be told from the others); about ten
-        epochs a second (the test's σ takes them as that correlated)."""
-        ekf = self.ekf
-        if (ekf is None or len(ids) < 3 or self.cfg.mode is not Mode.TIGHT or not self._aligned
-                or t_ns - self.consistency.last_ns < CHECK_EVERY_NS):
+        """The epoch's ranges, before the update, to the two tests of the installation:
+        tight, with the heading known (the lever arm's direction). The snapshot test
+        (:mod:`~uwbd.fusion.checks.window_raim`: do the ranges agree?), each range's
+        variance its own plus the multipath state's; and the anchor test
+        (:mod:`~uwbd.fusion.checks.anchor_consistency`: which one disagrees?), three
+        ranges at least (a single range cannot be told from the others), about ten
+        epochs a second (its σ takes them as that correlated)."""
+        ekf, cfg = self.ekf, self.cfg
+        if ekf is None or not ids or cfg.mode is not Mode.TIGHT or not self._aligned:
             return
-        H, y, R, _ = range_rows(ekf, self.lever, ids, anchors, ranges,
-                                self.cfg.range_sigma_m**2 * r_scale, self._range_columns)
-        self.consistency.last_ns = t_ns
-        if len(y) == len(ids):  # (no antenna on an anchor: one row per range)
-            self.consistency.add(t_ns, ids, y, H @ ekf.P @ H.T + np.diag(R))
-        self.monitor.anchor_suspects = tuple(sorted(self.consistency.findings))
+        raim, consistency = self.raim, self.consistency
+        snapshot = raim.due(t_ns, ids)
+        anchor_test = len(ids) >= 3 and t_ns - consistency.last_ns >= CHECK_EVERY_NS
+        if not (snapshot or anchor_test):
+            return
+        var = cfg.range_sigma_m**2 * r_scale
+        H, y, R, _ = range_rows(ekf, self.lever, ids, anchors, ranges, var, self._range_columns)
+        if len(y) != len(ids):  # (no antenna on an anchor: one row per range)
+            return
+        monitor = self.monitor
+        if snapshot:
+            raim.add(t_ns, ids, y, H[:, P_],
+                     var + cfg.multipath_sigma_m**2 if cfg.multipath_states else var)
+            monitor.ranges_inconsistent = raim.inconsistent
+            monitor.inflation = raim.ratio
+        if anchor_test:
+            consistency.last_ns = t_ns
+            consistency.add(t_ns, ids, y, H @ ekf.P @ H.T + np.diag(R))
+            monitor.anchor_suspects = tuple(sorted(consistency.findings))
 
     def _exclude_findings(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                           r_scale: Array, reports: list[FusionReport]

@@ -20,9 +20,12 @@ positive definiteness along a measurement), ``innovations_inconsistent`` (most o
 ``window_count`` UWB measurements, or the last four, fail the gate, or their NIS is far
 above 1), ``imu_rejected`` (a sample was rejected within the last second), ``imu_gap``,
 ``range_timeout`` (no accepted range for ``range_timeout_s``), ``position_uncertain``
-(horizontal σ above ``max_sigma_m``, or vertical σ above ``max_vertical_sigma_m``),
+(a protection level over its alert limit: ``K √k σ`` at ``integrity_risk``, σ the
+horizontal ellipse's major axis or σz, ``k`` the snapshot test's inflation),
 ``anchor_inconsistent`` (an anchor's ranges disagree with the others':
-:mod:`uwbd.fusion.checks.anchor_consistency`; the status names it).
+:mod:`uwbd.fusion.checks.anchor_consistency`; the status names it),
+``ranges_inconsistent`` (the ranges disagree with each other beyond their noise:
+:mod:`uwbd.fusion.checks.window_raim`; the status names the candidates).
 Notes do not make the estimate unhealthy: ``mirror_unresolved`` (coplanar anchors, side
 not yet told by the data, the configured or default side in use), ``mounting_suspect``
 (at the start at rest gravity was over 30° from the body's up axis: a wrong
@@ -37,6 +40,7 @@ import collections
 import math
 from dataclasses import dataclass
 from enum import Enum
+from statistics import NormalDist
 from typing import Any, NamedTuple
 
 NS = 1_000_000_000
@@ -60,6 +64,9 @@ class Health(NamedTuple):
     notes: tuple[str, ...] = ()
     since_range_s: float | None = None  # since the last accepted UWB measurement
     position_sigma_m: float | None = None  # horizontal, √(σx² + σy²)
+    # the error bounds at the integrity risk (m): covariance inflated by the window test
+    horizontal_protection_m: float | None = None
+    vertical_protection_m: float | None = None
     resets: int = 0
     last_reset_t_ns: int | None = None
     last_reset_reason: str = ""
@@ -90,7 +97,10 @@ class Health(NamedTuple):
         return {"phase": self.phase.value, "healthy": self.healthy,
                 "faults": list(self.faults), "notes": list(self.notes),
                 "since_range_s": num(self.since_range_s),
-                "position_sigma_m": num(self.position_sigma_m), "resets": self.resets,
+                "position_sigma_m": num(self.position_sigma_m),
+                "horizontal_protection_m": num(self.horizontal_protection_m),
+                "vertical_protection_m": num(self.vertical_protection_m),
+                "resets": self.resets,
                 "last_reset_t_ns": self.last_reset_t_ns,
                 "last_reset_reason": self.last_reset_reason,
                 "last_reset_jump_m": num(self.last_reset_jump_m)}
@@ -109,8 +119,10 @@ _PLAIN = {p: p.value for p in Phase if p not in (Phase.COASTING, Phase.RECOVERIN
 class HealthLimits:
     coast_after_s: float = 1.0
     range_timeout_s: float = 5.0
-    max_sigma_m: float = 0.3  # horizontal σ above this is not a trustworthy fix
-    max_vertical_sigma_m: float = 0.5  # nor a vertical σ above this
+    # a pose is healthy only while its protection levels, at this risk, are within these
+    integrity_risk: float = 1e-3
+    horizontal_alert_limit_m: float = 1.0
+    vertical_alert_limit_m: float = 1.5
     window_count: int = 12  # innovations judged over the last this many UWB measurements
     max_rejected_fraction: float = 0.5
     max_mean_nis: float = 6.0  # of the window's NIS, each clipped at 25
@@ -139,7 +151,14 @@ class HealthMonitor:
         self.resets = 0
         self.last_reset: tuple[int, str, float | None] | None = None
         self.mirror_unresolved = False
-        self.anchor_suspects: tuple[int, ...] = ()  # checks.anchor_consistency's
+        self.anchor_suspects: tuple[int, ...] = ()  # checks.anchor_consistency's findings
+        # checks.window_raim's: the candidates when the ranges disagree, and the window's
+        # χ² per degree of freedom (≥ 1), which inflates the protection levels
+        self.ranges_inconsistent: tuple[int, ...] = ()
+        self.inflation = 1.0
+        risk = limits.integrity_risk
+        self._k_horizontal = math.sqrt(-2.0 * math.log(risk))  # Rayleigh, on the major axis
+        self._k_vertical = NormalDist().inv_cdf(1.0 - risk / 2.0)  # two-sided
         self.mounting_suspect = False  # gravity far from body up at the start at rest
         self.range_model_held = False  # a range model configured, not applied yet (no heading)
         self._after_reset = False
@@ -193,7 +212,8 @@ class HealthMonitor:
         self._rejected, self._nis_sum, self._rejected_run = 0, 0.0, 0
         self._inconsistent_since_ns = None
         self._rejudging = False
-        self.anchor_suspects = ()
+        self.anchor_suspects = self.ranges_inconsistent = ()
+        self.inflation = 1.0
         self._after_reset = True  # recovering until a window of innovations agrees
 
     # -- judgements -----------------------------------------------------------------------
@@ -219,9 +239,12 @@ class HealthMonitor:
 
     def assess(self, t_ns: int, running: bool, heading_observable: bool,
                position_sigma_m: float | None, finite: bool,
-               vertical_sigma_m: float | None = 0.0, imu_silent: bool = False) -> Health:
+               vertical_sigma_m: float | None = 0.0, imu_silent: bool = False,
+               major_sigma_m: float | None = None) -> Health:
         """``position_sigma_m``: √(σx² + σy²); ``vertical_sigma_m``: σz (``None``: not
-        known, uncertain); ``imu_silent``: no good IMU sample for longer than an IMU gap."""
+        known, uncertain); ``major_sigma_m``: the horizontal error ellipse's major axis
+        (``None``: ``position_sigma_m``, which bounds it); ``imu_silent``: no good IMU
+        sample for longer than an IMU gap."""
         lim = self.limits
         since = None if self.last_range_ns is None else (t_ns - self.last_range_ns) / NS
         faults = []
@@ -237,12 +260,19 @@ class HealthMonitor:
             faults.append("imu_gap")
         if running and since is not None and (since > lim.range_timeout_s or self._rejudging):
             faults.append("range_timeout")  # or just back, the state not yet judged again
-        if running and (position_sigma_m is None or not position_sigma_m <= lim.max_sigma_m
-                        or vertical_sigma_m is None
-                        or not vertical_sigma_m <= lim.max_vertical_sigma_m):
-            faults.append("position_uncertain")
-        if running and self.anchor_suspects:
-            faults.append("anchor_inconsistent")
+        hpl = vpl = None
+        if running:
+            k = math.sqrt(self.inflation)
+            major = position_sigma_m if major_sigma_m is None else major_sigma_m
+            hpl = None if major is None else self._k_horizontal * k * major
+            vpl = None if vertical_sigma_m is None else self._k_vertical * k * vertical_sigma_m
+            if (hpl is None or not hpl <= lim.horizontal_alert_limit_m
+                    or vpl is None or not vpl <= lim.vertical_alert_limit_m):
+                faults.append("position_uncertain")
+            if self.anchor_suspects:
+                faults.append("anchor_inconsistent")
+            if self.ranges_inconsistent:
+                faults.append("ranges_inconsistent")
         notes = (("mirror_unresolved",) if self.mirror_unresolved else ()) + (
             ("mounting_suspect",) if self.mounting_suspect else ()) + (
             ("range_model_held",) if self.range_model_held else ())
@@ -260,5 +290,5 @@ class HealthMonitor:
             phase = Phase.ALIGNING
         else:
             phase = Phase.TRACKING
-        return Health(phase, tuple(faults), notes, since, position_sigma_m, self.resets,
-                      reset_t, reason, jump)
+        return Health(phase, tuple(faults), notes, since, position_sigma_m, hpl, vpl,
+                      self.resets, reset_t, reason, jump)

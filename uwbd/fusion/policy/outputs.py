@@ -10,6 +10,7 @@ from collections.abc import Callable
 from typing import Any
 
 from uwbd.fusion.checks.anchor_consistency import AnchorConsistency
+from uwbd.fusion.checks.window_raim import WindowRaim
 from uwbd.fusion.core.eskf import Eskf
 from uwbd.fusion.policy.health import WAITING, Health, HealthMonitor
 from uwbd.fusion.policy.mirror import MirrorSide
@@ -34,6 +35,7 @@ class FilterOutputs:
     mirror: MirrorSide
     anchor_stats: dict[int, AnchorStats]
     consistency: AnchorConsistency
+    raim: WindowRaim
     mounting_finding: str
     _aligned: bool
     _restart_not_finite: Callable[[int], None]  # the filter's (recovery)
@@ -57,7 +59,7 @@ class FilterOutputs:
         sigma_z = math.sqrt(max(P[2, 2], 0.0))
         finite = math.isfinite(sigma_xy + sigma_z + sum(ekf.p) + sum(ekf.v) + sum(ekf.q))
         return self.monitor.assess(t_ns, True, self.heading_observable(), sigma_xy, finite,
-                                   sigma_z, imu_silent)
+                                   sigma_z, imu_silent, _major_sigma(P[0, 0], P[0, 1], P[1, 1]))
 
     @property
     def status(self) -> str:
@@ -80,13 +82,14 @@ class FilterOutputs:
             return None
         covariance, sigma_xy, observable, position, velocity, orientation = numbers
         health = self.monitor.assess(t_ns, True, observable, sigma_xy, True,
-                                     math.sqrt(max(covariance[14], 0.0)))  # σz²: [2, 2]
+                                     math.sqrt(max(covariance[14], 0.0)), False,  # σz²: [2, 2]
+                                     _major_sigma(covariance[0], covariance[1], covariance[7]))
         return Pose(t_ns, position, velocity, orientation, covariance, health.summary(),
                     observable, health)
 
     def diagnostics(self, now_ns: int | None = None) -> dict[str, Any]:
         """For the status: the health record (at ``now_ns``, as :meth:`health`), the mirror
-        side, per-anchor range statistics and findings."""
+        side, per-anchor range statistics, findings and the snapshot test's suspects."""
         m = self.mirror
         return {"health": self.health(now_ns).as_dict(),
                 "mirror": {"ambiguous": m.ambiguous, "side": "above" if m.sign > 0 else "below",
@@ -94,4 +97,12 @@ class FilterOutputs:
                 "anchors": {str(a): s.as_dict() for a, s in sorted(self.anchor_stats.items())},
                 "anchor_findings": [f.as_dict() for _, f in
                                     sorted(self.consistency.findings.items())],
+                # the snapshot test fails: the anchors it suspects (checks.window_raim)
+                "ranges_inconsistent": list(self.raim.inconsistent),
                 **({"mounting_finding": self.mounting_finding} if self.mounting_finding else {})}
+
+
+def _major_sigma(xx: float, xy: float, yy: float) -> float:
+    """σ along the major axis of the horizontal error ellipse (NaN stays NaN)."""
+    half = (xx - yy) / 2
+    return math.sqrt(max((xx + yy) / 2 + math.sqrt(half * half + xy * xy), 0.0))

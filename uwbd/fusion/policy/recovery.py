@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from uwbd.fusion.checks.anchor_consistency import AnchorConsistency
+from uwbd.fusion.checks.window_raim import WindowRaim
 from uwbd.fusion.core.eskf import P_, TH_, V_, Eskf
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.core.rotation import Array
@@ -56,6 +57,7 @@ class Recovery:
     counters: collections.Counter[str]
     monitor: HealthMonitor
     consistency: AnchorConsistency
+    raim: WindowRaim
     window: ImuWindow
     ranges: RangeWindow
     _aligner: HeadingAligner
@@ -112,6 +114,7 @@ class Recovery:
         self._start_started_ns = t_ns
         self._fixes.clear()  # from the old estimate's side of a mirror, perhaps
         self.consistency.clear()  # its evidence was against the old estimate
+        self.raim.clear()
         self._forget_attitude(t_ns, reason)
 
     def _lose_attitude(self, t_ns: int, reason: str) -> None:

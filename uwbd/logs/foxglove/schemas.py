@@ -102,6 +102,9 @@ def _health_schema() -> Schema:
                   "description": "what to know, not wrong (e.g. mirror_unresolved)"},
         "since_range_s": _num("s since the last accepted UWB measurement" + optional),
         "position_sigma_m": _num("horizontal σ, √(σx² + σy²), m" + optional),
+        "horizontal_protection_m": _num("horizontal protection level: the bound on the "
+                                        "horizontal error at the integrity risk, m" + optional),
+        "vertical_protection_m": _num("vertical protection level, m" + optional),
         "resets": {"type": "integer", "description": "filter restarts so far"},
         "last_reset_t_ns": {"type": "integer",
                             "description": "time of the last restart, ns" + optional},

@@ -1,0 +1,129 @@
+"""The snapshot test of the installation (checks.window_raim) and the protection levels it
+inflates (policy.health): on synthetic snapshots, and in the filter on simulated runs with
+the installation right and wrong."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from drivers.frames import ImuSample
+from uwbd.config import parse
+from uwbd.fusion.checks.window_raim import RaimLimits, WindowRaim
+from uwbd.fusion.filter import Filter
+from uwbd.fusion.types import Pose
+from uwbd.tools.evaluate import merge
+from uwbd.tools.logtools import simulation_toml
+from uwbd.tools.simulator import SimConfig, simulate
+
+NS = 1_000_000_000
+EPOCH_NS = 1_700_000_000 * NS
+
+
+def _directions(rng: np.random.Generator, n: int) -> np.ndarray:
+    u = rng.normal(size=(n, 3))
+    return u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
+def test_ranges_that_agree_pass_and_one_biased_anchor_is_the_candidate() -> None:
+    """Six anchors at 10 Hz: noise alone (a common offset of the state included) never
+    fails the window and leaves the inflation near 1; anchor 2's ranges 0.5 m long fail
+    it within the window, with anchor 2 the only candidate and an inflation well above 1;
+    once they agree again the window passes again; a restart forgets."""
+    rng = np.random.default_rng(4)
+    quiet, check = WindowRaim(RaimLimits()), WindowRaim(RaimLimits())
+    ids = [0, 1, 2, 3, 4, 5]
+    var = np.full(6, 0.1**2)
+    failed_at = None
+    for k in range(400):  # 40 s: 20 s wrong, then 20 s right
+        t_ns = EPOCH_NS + k * NS // 10
+        u = _directions(rng, 6)
+        y = u @ np.array([0.3, -0.2, 0.1]) + rng.normal(0, 0.1, 6)  # the state 0.4 m off
+        quiet.add(t_ns, ids, y, u, var)
+        assert quiet.inconsistent == () and quiet.ratio < 1.5
+        check.add(t_ns, ids, y + (0.5 * np.eye(6)[2] if k < 200 else 0.0), u, var)
+        if check.inconsistent and failed_at is None:
+            failed_at = k
+        if 100 <= k < 200:
+            assert check.inconsistent == (2,) and check.ratio > 2.0
+    assert failed_at is not None and failed_at < 40
+    assert check.inconsistent == () and check.ratio < 1.5
+    check.clear()
+    assert check.inconsistent == () and check.ratio == 1.0
+
+
+def test_single_ranges_make_snapshots_of_each_anchors_latest() -> None:
+    """One range a message, 8 anchors in turn at 160 Hz: the window gathers them and
+    finds anchor 5's offset as it does an epoch's."""
+    rng = np.random.default_rng(5)
+    check = WindowRaim(RaimLimits())
+    for k in range(160 * 20):
+        t_ns = EPOCH_NS + k * NS // 160
+        a = k % 8
+        u = _directions(rng, 1)
+        y = rng.normal(0, 0.1, 1) + (0.5 if a == 5 else 0.0)
+        check.add(t_ns, [a], y, u, np.array([0.1**2]))
+    assert check.inconsistent == (5,) and check.ratio > 2.0
+
+
+def _run(sim_cfg: SimConfig, move_anchor: tuple[float, float, float] | None,
+         raim: bool = True) -> tuple[list[Pose], np.ndarray]:
+    """The seed layout's run with the datasheet config (anchor 3 moved in it), the poses
+    after 8 s and their 3-D errors; ``raim=False`` silences the snapshot test."""
+    sim = simulate(sim_cfg)
+    cfg = parse(simulation_toml(sim)).filter_config()
+    if move_anchor is not None:
+        anchors = dict(cfg.anchors_m)
+        anchors[3] = tuple(a + d for a, d in zip(anchors[3], move_anchor, strict=True))  # type: ignore[assignment]
+        cfg = dataclasses.replace(cfg, anchors_m=anchors)
+    flt = Filter(cfg)
+    if not raim:
+        flt.raim = WindowRaim(RaimLimits(window_s=0.0))  # a window that holds nothing
+    poses = []
+    for frame in merge(sim.imu, sim.uwb):
+        if isinstance(frame, ImuSample):
+            flt.predict(frame)
+            continue
+        flt.update(frame)
+        pose = flt.pose()
+        if pose is not None and pose.t_ns > sim.truth_t_ns[0] + 8 * NS:
+            poses.append(pose)
+    t = np.array([p.t_ns for p in poses])
+    truth = np.column_stack([np.interp(t, sim.truth_t_ns, sim.truth_p_m[:, i])
+                             for i in range(3)])
+    return poses, np.array([p.position_m for p in poses]) - truth
+
+
+def test_protection_levels_bound_the_error_of_a_right_installation() -> None:
+    """Every pose carries both levels (in its JSON too); they bound the true error on
+    every pose of a fault-free run, and stay well under the alert limits there."""
+    poses, err = _run(SimConfig(seed=1), None)
+    hpl = np.array([p.health.horizontal_protection_m for p in poses], dtype=float)
+    vpl = np.array([p.health.vertical_protection_m for p in poses], dtype=float)
+    assert np.isfinite(hpl).all() and np.isfinite(vpl).all()
+    assert (np.hypot(err[:, 0], err[:, 1]) <= hpl).all()
+    assert (np.abs(err[:, 2]) <= vpl).all()
+    assert np.median(hpl) < 0.5 and np.median(vpl) < 0.75
+    said = poses[-1].health.as_dict()
+    assert said["horizontal_protection_m"] == pytest.approx(hpl[-1], abs=1e-4)
+    assert said["vertical_protection_m"] == pytest.approx(vpl[-1], abs=1e-4)
+
+
+def test_an_anchor_surveyed_off_makes_the_ranges_inconsistent_and_not_healthy() -> None:
+    """Anchor 3 1 m off sideways in the config: the snapshot test says the ranges disagree
+    on poses more than 0.5 m off, and takes "healthy" from at least a third of those the
+    filter would call healthy without it."""
+    poses, err = _run(SimConfig(seed=1), (1.0, 0.0, 0.0))
+    off = np.linalg.norm(err, axis=1) > 0.5
+    flagged = [p for p, o in zip(poses, off, strict=True)
+               if o and "ranges_inconsistent" in p.health.faults]
+    healthy_off = sum(p.health.healthy for p, o in zip(poses, off, strict=True) if o)
+    quiet, qerr = _run(SimConfig(seed=1), (1.0, 0.0, 0.0), raim=False)
+    qoff = np.linalg.norm(qerr, axis=1) > 0.5
+    without = sum(p.health.healthy for p, o in zip(quiet, qoff, strict=True) if o)
+    assert off.sum() > 100 and len(flagged) > off.sum() // 3
+    assert healthy_off <= 2 * without / 3, (healthy_off, without)
+    assert not any("ranges_inconsistent" in p.health.faults for p in quiet)
+    assert np.isfinite(err).all()

@@ -1,0 +1,164 @@
+"""Do the ranges agree with each other? A snapshot test over a window, in the spirit of GNSS
+RAIM (docs/ekf.md §6), independent of what the filter has absorbed.
+
+About ten times a second the latest range of each anchor (an epoch, or single ranges of
+the last ``SNAPSHOT_NS``) makes a *snapshot*: their innovations before the update
+``y = z − h(x̂)`` and unit vectors anchor → tag ``u`` are solved by weighted least squares
+for one position offset, ``y ≈ uᵀ δp`` (weights ``1 / (σ_r² + σ_m²)``, each innovation
+clipped at ``CLIP_SIGMAS`` σ: an NLOS range counts as a large one, not as a huge one).
+What the offset cannot explain, the snapshot's SSE, does not depend on the filter's
+state: a wrong installation that the state and the range-model states have absorbed
+(their innovations grow small) still leaves it, where the geometry shows it at all.
+
+Over ``window_s`` the snapshots' ``T = ΣSSE / Σ(n − 3)`` is tested against its
+``1 − false_alarm`` quantile, successive snapshots taken as one in ``CORRELATED`` independent
+(real range errors are correlated over about a second). A failing window is the health
+fault ``ranges_inconsistent``; its candidates are the anchors whose removal (Baarda's
+leave-one-out, summed over the window) leaves a consistent rest, or all of them. ``T`` is
+also the factor the covariance is inflated by for the protection levels
+(:mod:`uwbd.fusion.policy.health`). Which anchor to exclude is
+:mod:`.anchor_consistency`'s call; this test only says the set disagrees.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from dataclasses import dataclass
+from statistics import NormalDist
+
+import numpy as np
+
+from uwbd.fusion.core.rotation import Array
+
+NS = 1_000_000_000
+SNAPSHOT_EVERY_NS = 95_000_000
+SNAPSHOT_NS = 200_000_000  # single ranges: each anchor's latest this recent make a snapshot
+JUDGE_EVERY_NS = 500_000_000
+CORRELATED = 3  # snapshots taken as one independent
+MIN_ANCHORS = 5  # a snapshot needs two ranges more than the offset's three
+MIN_SNAPSHOTS = 20  # an anchor is a candidate only with this many in the window
+CLIP_SIGMAS = 4.0
+
+
+@dataclass(frozen=True)
+class RaimLimits:
+    window_s: float = 8.0
+    false_alarm: float = 1e-4  # of the window test, on a consistent window
+
+
+class WindowRaim:
+    """The window of snapshots and its test (see module doc)."""
+
+    def __init__(self, limits: RaimLimits) -> None:
+        self.limits = limits
+        self._latest: dict[int, tuple[int, float, Array, float]] = {}  # t, y, u, 1/var
+        self._snapshot_ns = -(2**63)
+        self._judged_ns = -(2**63)
+        # per snapshot: its time, SSE, degrees of freedom, and each anchor's SSE reduction
+        self._entries: collections.deque[tuple[int, float, int, dict[int, float]]] = (
+            collections.deque())
+        self._sse = 0.0
+        self._dof = 0
+        self._reduction: dict[int, float] = {}
+        self._count: collections.Counter[int] = collections.Counter()
+        self._z = NormalDist().inv_cdf(1.0 - limits.false_alarm)
+        self.inconsistent: tuple[int, ...] = ()  # the window fails: its candidates
+        self.ratio = 1.0  # max(1, T): the covariance's inflation
+
+    def due(self, t_ns: int, ids: list[int]) -> bool:
+        """Whether these ranges are wanted: a snapshot is due, or they are single ranges
+        (a snapshot gathers each anchor's latest)."""
+        return len(ids) < MIN_ANCHORS or t_ns - self._snapshot_ns >= SNAPSHOT_EVERY_NS
+
+    def add(self, t_ns: int, ids: list[int], y: Array, u: Array, var_m2: Array) -> None:
+        """Ranges before their update: anchors, innovations (m), unit vectors anchor → tag
+        (rows of ``u``), the ranges' variances (m²)."""
+        latest = self._latest
+        for k, anchor in enumerate(ids):
+            yk, w = float(y[k]), 1.0 / float(var_m2[k])
+            uk = np.array(u[k], dtype=float)
+            if math.isfinite(yk) and math.isfinite(w) and w > 0 and np.isfinite(uk).all():
+                clip = CLIP_SIGMAS / math.sqrt(w)
+                latest[anchor] = (t_ns, min(max(yk, -clip), clip), uk, w)
+        if t_ns - self._snapshot_ns < SNAPSHOT_EVERY_NS:
+            return
+        self._snapshot_ns = t_ns
+        self._snapshot(t_ns, [r for r in latest.items() if r[1][0] >= t_ns - SNAPSHOT_NS])
+        if t_ns - self._judged_ns >= JUDGE_EVERY_NS:
+            self._judged_ns = t_ns
+            self._forget_before(t_ns - int(self.limits.window_s * NS))
+            self._judge()
+
+    def clear(self) -> None:
+        """A restart: the evidence was about the old estimate."""
+        self._latest.clear()
+        self._entries.clear()
+        self._reduction.clear()
+        self._count.clear()
+        self._sse, self._dof = 0.0, 0
+        self.inconsistent, self.ratio = (), 1.0
+
+    def _snapshot(self, t_ns: int, rows: list[tuple[int, tuple[int, float, Array, float]]]
+                  ) -> None:
+        if len(rows) < MIN_ANCHORS:
+            return
+        U = np.array([r[2] for _, r in rows])
+        y = np.array([r[1] for _, r in rows])
+        w = np.array([r[3] for _, r in rows])
+        N = U.T @ (U * w[:, None])
+        try:
+            Ni = np.linalg.inv(N + 1e-9 * np.trace(N) * np.eye(3))
+        except np.linalg.LinAlgError:
+            return
+        r = y - U @ (Ni @ (U.T @ (w * y)))
+        free = 1.0 - w * np.einsum("ij,jk,ik->i", U, Ni, U)  # 1 − leverage
+        sse = float(w @ (r * r))
+        # removing range k lowers the SSE by w r² / (1 − h): Baarda's w-test squared
+        reduction = {a: float(w[k] * r[k] ** 2 / free[k]) for k, (a, _) in enumerate(rows)
+                     if free[k] > 1e-3}
+        self._entries.append((t_ns, sse, len(rows) - 3, reduction))
+        self._sse += sse
+        self._dof += len(rows) - 3
+        for a, red in reduction.items():
+            self._reduction[a] = self._reduction.get(a, 0.0) + red
+            self._count[a] += 1
+
+    def _forget_before(self, oldest_ns: int) -> None:
+        entries, count, reduction = self._entries, self._count, self._reduction
+        while entries and entries[0][0] < oldest_ns:
+            _, sse, dof, per = entries.popleft()
+            self._sse -= sse
+            self._dof -= dof
+            for a, red in per.items():
+                count[a] -= 1
+                if count[a] == 0:  # (and no rounding left behind)
+                    del count[a], reduction[a]
+                else:
+                    reduction[a] -= red
+        if not entries:
+            self._sse, self._dof = 0.0, 0
+
+    def _judge(self) -> None:
+        dof = self._dof
+        t = max(self._sse, 0.0) / dof if dof > 0 else 0.0
+        self.ratio = max(1.0, t)
+        if dof <= 0 or t <= _ratio_quantile(self._z, dof / CORRELATED):
+            self.inconsistent = ()
+            return
+        passing = []
+        for anchor, n in self._count.items():
+            rest = dof - n
+            if n >= MIN_SNAPSHOTS and rest > 0:
+                t_rest = max(self._sse - self._reduction[anchor], 0.0) / rest
+                if t_rest <= _ratio_quantile(self._z, rest / CORRELATED):
+                    passing.append(anchor)
+        self.inconsistent = tuple(sorted(passing or self._count))
+
+
+def _ratio_quantile(z: float, dof: float) -> float:
+    """The quantile of χ²(dof)/dof at the standard normal's ``z`` (Wilson–Hilferty: within
+    1 % from dof 3)."""
+    dof = max(dof, 1.0)
+    a = 2.0 / (9.0 * dof)
+    return (1.0 - a + z * math.sqrt(a)) ** 3
