@@ -12,11 +12,13 @@ state: a wrong installation that the state and the range-model states have absor
 
 Over ``window_s`` the snapshots' ``T = ΣSSE / Σ(n − 3)`` is tested against its
 ``1 − false_alarm`` quantile, successive snapshots taken as one in ``CORRELATED`` independent
-(real range errors are correlated over about a second). A failing window is the health
+(real range errors are correlated over about a second), and more than ``HIGH_SHARE`` of
+its snapshots must each be over their own 90 % quantile. A failing window is the health
 fault ``ranges_inconsistent``; its candidates are the anchors whose removal (Baarda's
 leave-one-out, summed over the window) leaves a consistent rest, or all of them. ``T`` is
-also the factor the covariance is inflated by for the protection levels
-(:mod:`uwbd.fusion.policy.health`). Which anchor to exclude is
+also the factor the covariance is inflated by for the protection levels, and the
+snapshots' mean ``δp`` (where the ranges alone put the tag, against the state) is added to
+them (:mod:`uwbd.fusion.policy.health`). Which anchor to exclude is
 :mod:`.anchor_consistency`'s call; this test only says the set disagrees.
 """
 
@@ -39,6 +41,11 @@ CORRELATED = 3  # snapshots taken as one independent
 MIN_ANCHORS = 5  # a snapshot needs two ranges more than the offset's three
 MIN_SNAPSHOTS = 20  # an anchor is a candidate only with this many in the window
 CLIP_SIGMAS = 4.0
+# ... and the window fails only if more than this share of its snapshots are each over
+# their own 90 % quantile: a fault of the installation is in every snapshot, a burst of
+# NLOS (seconds) in a few, however large it makes the sum
+HIGH_Z = 1.2816  # the standard normal's 90 % quantile
+HIGH_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -56,15 +63,19 @@ class WindowRaim:
         self._snapshot_ns = -(2**63)
         self._judged_ns = -(2**63)
         # per snapshot: its time, SSE, degrees of freedom, and each anchor's SSE reduction
-        self._entries: collections.deque[tuple[int, float, int, dict[int, float]]] = (
-            collections.deque())
+        self._entries: collections.deque[
+            tuple[int, float, int, bool, Array, dict[int, float]]] = collections.deque()
+        self._offset_sum = np.zeros(3)
         self._sse = 0.0
         self._dof = 0
+        self._high = 0  # snapshots over their own 90 % quantile
         self._reduction: dict[int, float] = {}
         self._count: collections.Counter[int] = collections.Counter()
         self._z = NormalDist().inv_cdf(1.0 - limits.false_alarm)
         self.inconsistent: tuple[int, ...] = ()  # the window fails: its candidates
         self.ratio = 1.0  # max(1, T): the covariance's inflation
+        # the snapshots' mean δp: where the ranges alone put the tag, against the state
+        self.offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def due(self, t_ns: int, ids: list[int]) -> bool:
         """Whether these ranges are wanted: a snapshot is due, or they are single ranges
@@ -96,8 +107,9 @@ class WindowRaim:
         self._entries.clear()
         self._reduction.clear()
         self._count.clear()
-        self._sse, self._dof = 0.0, 0
-        self.inconsistent, self.ratio = (), 1.0
+        self._sse, self._dof, self._high = 0.0, 0, 0
+        self._offset_sum = np.zeros(3)
+        self.inconsistent, self.ratio, self.offset_m = (), 1.0, (0.0, 0.0, 0.0)
 
     def _snapshot(self, t_ns: int, rows: list[tuple[int, tuple[int, float, Array, float]]]
                   ) -> None:
@@ -111,15 +123,20 @@ class WindowRaim:
             Ni = np.linalg.inv(N + 1e-9 * np.trace(N) * np.eye(3))
         except np.linalg.LinAlgError:
             return
-        r = y - U @ (Ni @ (U.T @ (w * y)))
+        dp = Ni @ (U.T @ (w * y))
+        r = y - U @ dp
         free = 1.0 - w * np.einsum("ij,jk,ik->i", U, Ni, U)  # 1 − leverage
         sse = float(w @ (r * r))
         # removing range k lowers the SSE by w r² / (1 − h): Baarda's w-test squared
         reduction = {a: float(w[k] * r[k] ** 2 / free[k]) for k, (a, _) in enumerate(rows)
                      if free[k] > 1e-3}
-        self._entries.append((t_ns, sse, len(rows) - 3, reduction))
+        dof = len(rows) - 3
+        high = sse / dof > _ratio_quantile(HIGH_Z, dof)
+        self._entries.append((t_ns, sse, dof, high, dp, reduction))
+        self._offset_sum += dp
         self._sse += sse
-        self._dof += len(rows) - 3
+        self._dof += dof
+        self._high += high
         for a, red in reduction.items():
             self._reduction[a] = self._reduction.get(a, 0.0) + red
             self._count[a] += 1
@@ -127,9 +144,11 @@ class WindowRaim:
     def _forget_before(self, oldest_ns: int) -> None:
         entries, count, reduction = self._entries, self._count, self._reduction
         while entries and entries[0][0] < oldest_ns:
-            _, sse, dof, per = entries.popleft()
+            _, sse, dof, high, dp, per = entries.popleft()
+            self._offset_sum -= dp
             self._sse -= sse
             self._dof -= dof
+            self._high -= high
             for a, red in per.items():
                 count[a] -= 1
                 if count[a] == 0:  # (and no rounding left behind)
@@ -137,13 +156,17 @@ class WindowRaim:
                 else:
                     reduction[a] -= red
         if not entries:
-            self._sse, self._dof = 0.0, 0
+            self._sse, self._dof, self._high = 0.0, 0, 0
+            self._offset_sum = np.zeros(3)
 
     def _judge(self) -> None:
         dof = self._dof
         t = max(self._sse, 0.0) / dof if dof > 0 else 0.0
         self.ratio = max(1.0, t)
-        if dof <= 0 or t <= _ratio_quantile(self._z, dof / CORRELATED):
+        x, y, z = (self._offset_sum / len(self._entries)).tolist() if self._entries else (0, 0, 0)
+        self.offset_m = (x, y, z)
+        if (dof <= 0 or t <= _ratio_quantile(self._z, dof / CORRELATED)
+                or self._high <= HIGH_SHARE * len(self._entries)):
             self.inconsistent = ()
             return
         passing = []

@@ -176,6 +176,7 @@ class EpochFusion:
                      var + cfg.multipath_sigma_m**2 if cfg.multipath_states else var)
             monitor.ranges_inconsistent = raim.inconsistent
             monitor.inflation = raim.ratio
+            monitor.offset_m = raim.offset_m
         if anchor_test:
             consistency.last_ns = t_ns
             consistency.add(t_ns, ids, y, H @ ekf.P @ H.T + np.diag(R))

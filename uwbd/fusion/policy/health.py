@@ -20,8 +20,9 @@ positive definiteness along a measurement), ``innovations_inconsistent`` (most o
 ``window_count`` UWB measurements, or the last four, fail the gate, or their NIS is far
 above 1), ``imu_rejected`` (a sample was rejected within the last second), ``imu_gap``,
 ``range_timeout`` (no accepted range for ``range_timeout_s``), ``position_uncertain``
-(a protection level over its alert limit: ``K √k σ`` at ``integrity_risk``, σ the
-horizontal ellipse's major axis or σz, ``k`` the snapshot test's inflation),
+(a protection level over its alert limit: ``K √k σ + |δp|`` at ``integrity_risk``, σ the
+horizontal ellipse's major axis or σz, ``k`` the snapshot test's inflation and ``δp`` its
+mean offset of the state, horizontal or vertical),
 ``anchor_inconsistent`` (an anchor's ranges disagree with the others':
 :mod:`uwbd.fusion.checks.anchor_consistency`; the status names it),
 ``ranges_inconsistent`` (the ranges disagree with each other beyond their noise:
@@ -156,6 +157,7 @@ class HealthMonitor:
         # χ² per degree of freedom (≥ 1), which inflates the protection levels
         self.ranges_inconsistent: tuple[int, ...] = ()
         self.inflation = 1.0
+        self.offset_m = (0.0, 0.0, 0.0)  # and its mean offset of the state (m, ENU)
         risk = limits.integrity_risk
         self._k_horizontal = math.sqrt(-2.0 * math.log(risk))  # Rayleigh, on the major axis
         self._k_vertical = NormalDist().inv_cdf(1.0 - risk / 2.0)  # two-sided
@@ -214,6 +216,7 @@ class HealthMonitor:
         self._rejudging = False
         self.anchor_suspects = self.ranges_inconsistent = ()
         self.inflation = 1.0
+        self.offset_m = (0.0, 0.0, 0.0)
         self._after_reset = True  # recovering until a window of innovations agrees
 
     # -- judgements -----------------------------------------------------------------------
@@ -264,8 +267,10 @@ class HealthMonitor:
         if running:
             k = math.sqrt(self.inflation)
             major = position_sigma_m if major_sigma_m is None else major_sigma_m
-            hpl = None if major is None else self._k_horizontal * k * major
-            vpl = None if vertical_sigma_m is None else self._k_vertical * k * vertical_sigma_m
+            dx, dy, dz = self.offset_m  # where the ranges alone put the tag: a bias to bound
+            hpl = None if major is None else self._k_horizontal * k * major + math.hypot(dx, dy)
+            vpl = (None if vertical_sigma_m is None
+                   else self._k_vertical * k * vertical_sigma_m + abs(dz))
             if (hpl is None or not hpl <= lim.horizontal_alert_limit_m
                     or vpl is None or not vpl <= lim.vertical_alert_limit_m):
                 faults.append("position_uncertain")
