@@ -559,8 +559,9 @@ def test_an_anchor_surveyed_off_is_named_and_the_estimate_is_not_healthy() -> No
         err = np.linalg.norm(np.array([p.position_m for p in poses]) - truth, axis=1)
         off = err > 0.5
         healthy_off = sum(p.health.healthy for p, o in zip(poses, off, strict=True) if o)
-        # what the health said without the tests: healthy but for their faults
-        tests = {"anchor_inconsistent", "ranges_inconsistent"}
+        # what the health said without the tests: healthy but for their faults (and the
+        # protection level they widen)
+        tests = {"anchor_inconsistent", "ranges_inconsistent", "position_uncertain"}
         without = healthy_off + sum(bool(p.health.faults) and set(p.health.faults) <= tests
                                     for p, o in zip(poses, off, strict=True) if o)
         assert off.sum() > 100 and healthy_off < 0.6 * without, (healthy_off, without)
@@ -607,3 +608,28 @@ def test_nlos_on_every_anchor_moves_the_state_to_no_fix_it_then_trusts(seed: int
     err = np.linalg.norm(np.array([p.position_m for p in poses]) - truth, axis=1)
     never_tracking_when_far(poses, err)
     assert flt.counters["fix_height_implausible"] > 0
+
+
+@pytest.mark.parametrize(("turn_deg", "found"), [(90.0, True), (-30.0, True), (0.0, False)])
+def test_a_mounting_turned_about_z_is_found_by_a_ground_vehicle_moving_sideways(
+        turn_deg: float, found: bool) -> None:
+    """NHC on, imu.mounting turned about z in the config: the heading aligns to the ranges,
+    the vehicle then moves sideways in body axes; the health says mounting_inconsistent
+    (never healthy while it does) and the status's mounting_finding gives the turn within
+    3°; a mounting typed right is never flagged."""
+    sim = simulate(SimConfig(seed=0, ground_vehicle=True))
+    right = datasheet(sim, nhc=True)
+    a = math.radians(turn_deg)
+    turn = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0],
+                     [0.0, 0.0, 1.0]])
+    mounting = turn @ np.array(right.mounting_rotation)
+    cfg = dataclasses.replace(right, mounting_rotation=tuple(map(tuple, mounting.tolist())))
+    poses, _, flt = run_filter(cfg, merge(sim.imu, sim.uwb))
+    flagged = [p for p in poses if "mounting_inconsistent" in p.health.faults]
+    finding = flt.diagnostics().get("mounting_finding", "")
+    if not found:
+        assert not flagged and not finding
+        return
+    assert len(flagged) > len(poses) // 2 and not any(p.health.healthy for p in flagged)
+    assert flt.mounting_yaw.error_deg == pytest.approx(turn_deg, abs=3.0)
+    assert "imu.mounting is likely turned about z by" in finding

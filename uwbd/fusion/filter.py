@@ -52,10 +52,11 @@ from uwbd.fusion.checks.anchor_consistency import AnchorConsistency, Consistency
 from uwbd.fusion.checks.gating import GatingCounters, chi2_quantile, gate
 from uwbd.fusion.checks.imu_check import ImuCheck, new_imu_check
 from uwbd.fusion.checks.intrinsics import body_maps, to_body
+from uwbd.fusion.checks.mounting_yaw import MountingYaw
 from uwbd.fusion.checks.window_raim import RaimLimits, WindowRaim
 from uwbd.fusion.core.eskf import BA_, BG_, N_CORE, TH_, Eskf
 from uwbd.fusion.core.lsq import LsqFix, coplanar
-from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.core.rotation import Array, quat_to_matrix
 from uwbd.fusion.core.smoother import EpochRecord, Nominal
 from uwbd.fusion.models.measurements import (
     Rows,
@@ -123,6 +124,7 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         self.monitor.range_model_held = config.range_model.enabled  # until the heading is known
         self.consistency = AnchorConsistency(ConsistencyLimits())
         self.raim = WindowRaim(RaimLimits())
+        self.mounting_yaw = MountingYaw()
         self._excluded: set[int] = set()
         self.mounting_finding = ""
         self.imu_check = new_imu_check(config.imu_limits, body_maps(rows, config.imu_intrinsics))
@@ -427,6 +429,10 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
             rows.append(zupt_rows(ekf, cfg.zupt_sigma_mps))
         if cfg.nhc:
             rows.append(nhc_rows(ekf, cfg.nhc_sigma_mps))
+            if self._aligned and not self._at_rest:  # the direction of travel in body axes
+                vx, vy, _ = (quat_to_matrix(np.asarray(ekf.q)).T @ np.asarray(ekf.v)).tolist()
+                self.mounting_yaw.add(vx, vy)
+                self.monitor.mounting_inconsistent = self.mounting_yaw.error_deg is not None
         if cfg.known_height_m is not None:
             rows.append(height_rows(ekf, cfg.known_height_m, cfg.height_sigma_m))
         return rows

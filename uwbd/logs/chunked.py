@@ -118,6 +118,10 @@ class ChunkedWriter:
         self._zstd = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
         self._schemas: list[Schema] = []
         self._channels: list[Channel] = []
+        # the channels (and their schemas) the open chunk defines: every chunk defines the
+        # channels of its messages, so a damaged chunk cannot take a definition with it
+        self._defined: set[int] = set()
+        self._schemas_defined: set[int] = set()
         self._chunk_indexes: list[ChunkIndex] = []
         self._metadata_indexes: list[MetadataIndex] = []
         self._counts: defaultdict[int, int] = defaultdict(int)
@@ -141,18 +145,28 @@ class ChunkedWriter:
         schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
         self._schemas.append(schema)
         self._chunk.append(_record(schema))
+        self._schemas_defined.add(schema.id)
         return schema.id
 
     def register_channel(self, topic: str, message_encoding: str, schema_id: int) -> int:
         channel = Channel(id=len(self._channels) + 1, topic=topic,
                           message_encoding=message_encoding, schema_id=schema_id, metadata={})
         self._channels.append(channel)
-        self._chunk.append(_record(channel))
+        self._define(channel)
         return channel.id
+
+    def _define(self, channel: Channel) -> None:
+        if channel.schema_id and channel.schema_id not in self._schemas_defined:
+            self._chunk.append(_record(self._schemas[channel.schema_id - 1]))
+            self._schemas_defined.add(channel.schema_id)
+        self._chunk.append(_record(channel))
+        self._defined.add(channel.id)
 
     def add_message(self, channel_id: int, log_time: int, data: bytes, sequence: int) -> None:
         """A message with ``publish_time = log_time``; a value its field cannot hold raises
         (``struct.error`` or ``ValueError``) and leaves the chunk as it was."""
+        if channel_id not in self._defined and 0 < channel_id <= len(self._channels):
+            self._define(self._channels[channel_id - 1])
         if self._chunk.add(channel_id, log_time, data, sequence) > self._chunk_size:
             self.end_chunk()
 
@@ -202,6 +216,7 @@ class ChunkedWriter:
         taken = self._chunk.take()
         if taken is None:
             return  # schemas and channels wait for the chunk of their first message
+        self._defined, self._schemas_defined = set(), set()
         data, message_indexes, start, end, messages = taken
         for channel_id, count, _ in message_indexes:
             self._counts[channel_id] += count

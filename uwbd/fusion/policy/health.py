@@ -26,7 +26,10 @@ mean offset of the state, horizontal or vertical),
 ``anchor_inconsistent`` (an anchor's ranges disagree with the others':
 :mod:`uwbd.fusion.checks.anchor_consistency`; the status names it),
 ``ranges_inconsistent`` (the ranges disagree with each other beyond their noise:
-:mod:`uwbd.fusion.checks.window_raim`; the status names the candidates).
+:mod:`uwbd.fusion.checks.window_raim`; the status names the candidates),
+``mounting_inconsistent`` (with NHC on, the vehicle moves sideways in body axes: a
+mounting turned about z, :mod:`uwbd.fusion.checks.mounting_yaw`; the status's
+``mounting_finding`` says by how much).
 Notes do not make the estimate unhealthy: ``mirror_unresolved`` (coplanar anchors, side
 not yet told by the data, the configured or default side in use), ``mounting_suspect``
 (at the start at rest gravity was over 30° from the body's up axis: a wrong
@@ -162,6 +165,7 @@ class HealthMonitor:
         self._k_horizontal = math.sqrt(-2.0 * math.log(risk))  # Rayleigh, on the major axis
         self._k_vertical = NormalDist().inv_cdf(1.0 - risk / 2.0)  # two-sided
         self.mounting_suspect = False  # gravity far from body up at the start at rest
+        self.mounting_inconsistent = False  # the vehicle moves sideways in body axes (NHC)
         self.range_model_held = False  # a range model configured, not applied yet (no heading)
         self._after_reset = False
 
@@ -278,6 +282,8 @@ class HealthMonitor:
                 faults.append("anchor_inconsistent")
             if self.ranges_inconsistent:
                 faults.append("ranges_inconsistent")
+            if self.mounting_inconsistent:
+                faults.append("mounting_inconsistent")
         notes = (("mirror_unresolved",) if self.mirror_unresolved else ()) + (
             ("mounting_suspect",) if self.mounting_suspect else ()) + (
             ("range_model_held",) if self.range_model_held else ())

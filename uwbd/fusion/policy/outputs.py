@@ -10,6 +10,7 @@ from collections.abc import Callable
 from typing import Any
 
 from uwbd.fusion.checks.anchor_consistency import AnchorConsistency
+from uwbd.fusion.checks.mounting_yaw import MountingYaw
 from uwbd.fusion.checks.window_raim import WindowRaim
 from uwbd.fusion.core.eskf import Eskf
 from uwbd.fusion.policy.health import WAITING, Health, HealthMonitor
@@ -37,6 +38,7 @@ class FilterOutputs:
     consistency: AnchorConsistency
     raim: WindowRaim
     mounting_finding: str
+    mounting_yaw: MountingYaw
     _aligned: bool
     _restart_not_finite: Callable[[int], None]  # the filter's (recovery)
 
@@ -91,6 +93,7 @@ class FilterOutputs:
         """For the status: the health record (at ``now_ns``, as :meth:`health`), the mirror
         side, per-anchor range statistics, findings and the snapshot test's suspects."""
         m = self.mirror
+        mounting = self.mounting_finding or self.mounting_yaw.text()
         return {"health": self.health(now_ns).as_dict(),
                 "mirror": {"ambiguous": m.ambiguous, "side": "above" if m.sign > 0 else "below",
                            "decided_by": m.decided_by, "resolved": m.resolved},
@@ -99,7 +102,7 @@ class FilterOutputs:
                                     sorted(self.consistency.findings.items())],
                 # the snapshot test fails: the anchors it suspects (checks.window_raim)
                 "ranges_inconsistent": list(self.raim.inconsistent),
-                **({"mounting_finding": self.mounting_finding} if self.mounting_finding else {})}
+                **({"mounting_finding": mounting} if mounting else {})}
 
 
 def _major_sigma(xx: float, xy: float, yy: float) -> float:

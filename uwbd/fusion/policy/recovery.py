@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from uwbd.fusion.checks.anchor_consistency import AnchorConsistency
+from uwbd.fusion.checks.mounting_yaw import MountingYaw
 from uwbd.fusion.checks.window_raim import WindowRaim
 from uwbd.fusion.core.eskf import P_, TH_, V_, Eskf
 from uwbd.fusion.core.lsq import LsqFix
@@ -58,6 +59,7 @@ class Recovery:
     monitor: HealthMonitor
     consistency: AnchorConsistency
     raim: WindowRaim
+    mounting_yaw: MountingYaw
     window: ImuWindow
     ranges: RangeWindow
     _aligner: HeadingAligner
@@ -115,6 +117,8 @@ class Recovery:
         self._fixes.clear()  # from the old estimate's side of a mirror, perhaps
         self.consistency.clear()  # its evidence was against the old estimate
         self.raim.clear()
+        self.mounting_yaw.clear()  # (the body velocity was the old heading's)
+        self.monitor.mounting_inconsistent = False
         self._forget_attitude(t_ns, reason)
 
     def _lose_attitude(self, t_ns: int, reason: str) -> None:

@@ -323,8 +323,12 @@ STATUS_SCHEMA = _obj("uwbd.Status", "once a second: the filter's health, counter
                             "sigma_m": _num("that mean's σ (m)"),
                             "finding": {"type": "string",
                                         "description": "what a technician should check"}})},
-    "mounting_finding": {"type": "string", "description": "what the start at rest said of "
-                         "imu.mounting (gravity far from the body's up axis)"},
+    "mounting_finding": {"type": "string", "description": "what the data say of "
+                         "imu.mounting (gravity far from the body's up axis at the start at "
+                         "rest, or, with NHC, a vehicle moving sideways in body axes)"},
+    "ranges_inconsistent": {"type": "array", "items": {"type": "integer"},
+                            "description": "the ranges disagree with each other: the "
+                            "anchors suspected (empty: they agree)"},
     "heading_observable": {"type": "boolean", "description": "the heading is known"},
     "poses": {"type": "integer", "description": "poses so far"},
     "fusion_counters": _open_map(_COUNT, "filter events by name"),
