@@ -393,6 +393,7 @@ def test_the_scans_loops_in_c_read_what_their_reference_reads(
 @given(cut=st.floats(0.0, 1.0), flips=st.lists(st.tuples(st.floats(0.0, 1.0),
                                                         st.integers(1, 255)), max_size=3))
 @example(cut=1.0, flips=[(0.625, 128)])  # a chunk's size field: OverflowError, MemoryError
+@example(cut=0.5, flips=[(0.015625, 1)])  # the first chunk, which defined every channel
 def test_a_damaged_or_cut_log_reads_as_the_library_reads_it(
         tmp_path_factory: pytest.TempPathFactory, cut: float,
         flips: list[tuple[float, int]]) -> None:

@@ -118,10 +118,10 @@ class ChunkedWriter:
         self._zstd = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
         self._schemas: list[Schema] = []
         self._channels: list[Channel] = []
-        # the channels (and their schemas) the open chunk defines: every chunk defines the
-        # channels of its messages, so a damaged chunk cannot take a definition with it
+        # the channels the open chunk defines: every chunk defines the channels of its
+        # messages, so a damaged chunk cannot take their topics with it (schemas, kilobytes
+        # of JSON each, are written once: in the chunk of their first message, and the summary)
         self._defined: set[int] = set()
-        self._schemas_defined: set[int] = set()
         self._chunk_indexes: list[ChunkIndex] = []
         self._metadata_indexes: list[MetadataIndex] = []
         self._counts: defaultdict[int, int] = defaultdict(int)
@@ -145,7 +145,6 @@ class ChunkedWriter:
         schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
         self._schemas.append(schema)
         self._chunk.append(_record(schema))
-        self._schemas_defined.add(schema.id)
         return schema.id
 
     def register_channel(self, topic: str, message_encoding: str, schema_id: int) -> int:
@@ -156,9 +155,6 @@ class ChunkedWriter:
         return channel.id
 
     def _define(self, channel: Channel) -> None:
-        if channel.schema_id and channel.schema_id not in self._schemas_defined:
-            self._chunk.append(_record(self._schemas[channel.schema_id - 1]))
-            self._schemas_defined.add(channel.schema_id)
         self._chunk.append(_record(channel))
         self._defined.add(channel.id)
 
@@ -216,7 +212,7 @@ class ChunkedWriter:
         taken = self._chunk.take()
         if taken is None:
             return  # schemas and channels wait for the chunk of their first message
-        self._defined, self._schemas_defined = set(), set()
+        self._defined = set()
         data, message_indexes, start, end, messages = taken
         for channel_id, count, _ in message_indexes:
             self._counts[channel_id] += count

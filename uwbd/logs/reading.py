@@ -133,12 +133,18 @@ def _read_whole(buf: bytes) -> LogContents:
         elif kind == "channel":
             _, ident, schema_id, topic, encoding = event
             topics[ident] = topic
-            if (encoding == fx.RAW_MESSAGE_ENCODING
-                    and schemas.get(schema_id) == fx.RAW_SCHEMA_NAME):
+            if _raw_protobuf(encoding, schemas.get(schema_id), topic):
                 raw_protobuf.add(ident)
         elif event[1] == METADATA_NAME:
             out.metadata = dict(event[2])
     return out
+
+
+def _raw_protobuf(encoding: str, schema: str | None, topic: str) -> bool:
+    """A channel of ``uwbd.Raw`` messages: by its schema, or, where a damaged chunk took the
+    schema's record with it (each is written once), by its topic."""
+    return encoding == fx.RAW_MESSAGE_ENCODING and (
+        schema == fx.RAW_SCHEMA_NAME or (schema is None and topic.startswith("/raw/")))
 
 
 def _read_by_library(path: Path) -> LogContents:
@@ -153,8 +159,8 @@ def _read_by_library(path: Path) -> LogContents:
             schemas[record.id] = record.name
         elif isinstance(record, Channel):
             channels[record.id] = record.topic
-            if (record.message_encoding == fx.RAW_MESSAGE_ENCODING
-                    and schemas.get(record.schema_id) == fx.RAW_SCHEMA_NAME):
+            if _raw_protobuf(record.message_encoding, schemas.get(record.schema_id),
+                             record.topic):
                 raw_protobuf.add(record.id)
         elif isinstance(record, Message):
             messages.append((record.channel_id, record.log_time, record.data))
