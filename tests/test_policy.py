@@ -141,3 +141,19 @@ def test_the_aligner_tells_the_heading_error_from_the_ins_against_the_fixes() ->
 
 def test_without_a_change_of_velocity_the_heading_stays_untold() -> None:
     assert aligned_heading(1.0, accelerating=False) is None
+
+
+def test_the_phase_returns_to_tracking_only_after_the_faults_have_been_gone_a_while() -> None:
+    """Hysteresis: a fault that clears leaves the estimate degraded (the note
+    faults_clearing) for clear_hold_s more, so that the phase does not flicker."""
+    monitor = HealthMonitor(HealthLimits(clear_hold_s=0.5))
+    monitor.uwb_outcome(T0, True, 1.0)
+    assert tracking(monitor, T0) is Phase.TRACKING
+    monitor.ranges_inconsistent = (3,)
+    assert tracking(monitor, T0 + NS // 10) is Phase.DEGRADED
+    monitor.ranges_inconsistent = ()
+    monitor.uwb_outcome(T0 + NS // 5, True, 1.0)
+    held = monitor.assess(T0 + NS // 5, True, True, 0.05, True)
+    assert held.phase is Phase.DEGRADED and not held.faults and "faults_clearing" in held.notes
+    monitor.uwb_outcome(T0 + 6 * NS // 10, True, 1.0)
+    assert tracking(monitor, T0 + 6 * NS // 10 + 1) is Phase.TRACKING

@@ -35,7 +35,8 @@ not yet told by the data, the configured or default side in use), ``mounting_sus
 (at the start at rest gravity was over 30° from the body's up axis: a wrong
 ``imu.mounting``, or a vehicle on a slope; the status's ``mounting_finding`` says which way),
 ``range_model_held`` (a ``[range_model]`` is configured but not applied yet: it needs the
-heading, which is not known yet).
+heading, which is not known yet), ``faults_clearing`` (the last fault ended less than
+``clear_hold_s`` ago: still ``degraded``, so that the phase does not flicker).
 """
 
 from __future__ import annotations
@@ -133,6 +134,7 @@ class HealthLimits:
     diverged_after_s: float = 2.0  # inconsistent this long: the state may be wrong
     recover_hold_s: float = 3.0
     imu_fault_hold_s: float = 1.0
+    clear_hold_s: float = 0.5  # after the last fault, degraded this long still (hysteresis)
 
 
 class HealthMonitor:
@@ -168,6 +170,7 @@ class HealthMonitor:
         self.mounting_inconsistent = False  # the vehicle moves sideways in body axes (NHC)
         self.range_model_held = False  # a range model configured, not applied yet (no heading)
         self._after_reset = False
+        self._fault_ns: int | None = None  # the last assessment with a fault
 
     # -- evidence -------------------------------------------------------------------------
     def uwb_outcome(self, t_ns: int, accepted: bool, nis: float) -> None:
@@ -287,6 +290,12 @@ class HealthMonitor:
         notes = (("mirror_unresolved",) if self.mirror_unresolved else ()) + (
             ("mounting_suspect",) if self.mounting_suspect else ()) + (
             ("range_model_held",) if self.range_model_held else ())
+        if running and faults:
+            self._fault_ns = t_ns if self._fault_ns is None else max(self._fault_ns, t_ns)
+        clearing = (running and not faults and self._fault_ns is not None
+                    and t_ns - self._fault_ns < lim.clear_hold_s * NS)
+        if clearing:  # hysteresis: back to tracking only once no fault for clear_hold_s
+            notes += ("faults_clearing",)
         reset_t, reason, jump = self.last_reset or (None, "", None)
         recent_reset = reset_t is not None and t_ns - reset_t < lim.recover_hold_s * NS
         if not running:
@@ -295,7 +304,7 @@ class HealthMonitor:
             phase = Phase.RECOVERING
         elif since is None or since > lim.coast_after_s:
             phase = Phase.COASTING
-        elif faults:
+        elif faults or clearing:
             phase = Phase.DEGRADED
         elif not heading_observable:
             phase = Phase.ALIGNING
