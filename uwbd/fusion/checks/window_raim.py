@@ -1,9 +1,10 @@
 """Do the ranges agree with each other? A snapshot test over a window, in the spirit of GNSS
 RAIM (docs/ekf.md §6), independent of what the filter has absorbed.
 
-About ten times a second the latest range of each anchor (an epoch, or single ranges of
-the last ``SNAPSHOT_NS``) makes a *snapshot*: their innovations before the update
-``y = z − h(x̂)`` and unit vectors anchor → tag ``u`` are solved by weighted least squares
+About ten times a second the latest range of each anchor (an epoch; or single ranges, five
+times a second, each anchor's latest of the last two ``SINGLE_EVERY_NS``) makes a
+*snapshot*: their innovations before the update ``y = z − h(x̂)`` and unit vectors anchor →
+tag ``u`` are solved by weighted least squares
 for one position offset, ``y ≈ uᵀ δp`` (weights ``1 / (σ_r² + σ_m²)``, each innovation
 clipped at ``CLIP_SIGMAS`` σ: an NLOS range counts as a large one, not as a huge one).
 What the offset cannot explain, the snapshot's SSE, does not depend on the filter's
@@ -34,8 +35,9 @@ import numpy as np
 from uwbd.fusion.core.rotation import Array
 
 NS = 1_000_000_000
-SNAPSHOT_EVERY_NS = 95_000_000
-SNAPSHOT_NS = 200_000_000  # single ranges: each anchor's latest this recent make a snapshot
+SNAPSHOT_EVERY_NS = 95_000_000  # epochs
+# single ranges (100+ a second): a snapshot of each anchor's latest of the last two periods
+SINGLE_EVERY_NS = 190_000_000
 JUDGE_EVERY_NS = 500_000_000
 CORRELATED = 3  # snapshots taken as one independent
 MIN_ANCHORS = 5  # a snapshot needs two ranges more than the offset's three
@@ -59,7 +61,7 @@ class WindowRaim:
 
     def __init__(self, limits: RaimLimits) -> None:
         self.limits = limits
-        self._latest: dict[int, tuple[int, float, Array, float]] = {}  # t, y, u, 1/var
+        self._latest: dict[int, tuple[int, float, float, list[float]]] = {}  # t, y, 1/var, u
         self._snapshot_ns = -(2**63)
         self._judged_ns = -(2**63)
         # per snapshot: its time, SSE, degrees of freedom, and each anchor's SSE reduction
@@ -78,24 +80,31 @@ class WindowRaim:
         self.offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def due(self, t_ns: int, ids: list[int]) -> bool:
-        """Whether these ranges are wanted: a snapshot is due, or they are single ranges
-        (a snapshot gathers each anchor's latest)."""
-        return len(ids) < MIN_ANCHORS or t_ns - self._snapshot_ns >= SNAPSHOT_EVERY_NS
+        """Whether these ranges are wanted: a snapshot is due, or one of them is a single
+        range whose anchor's latest is older than a snapshot's period (a snapshot gathers
+        each anchor's latest)."""
+        single = len(ids) < MIN_ANCHORS
+        if t_ns - self._snapshot_ns >= (SINGLE_EVERY_NS if single else SNAPSHOT_EVERY_NS):
+            return True
+        latest = self._latest
+        return single and any(
+            a not in latest or t_ns - latest[a][0] >= SINGLE_EVERY_NS for a in ids)
 
     def add(self, t_ns: int, ids: list[int], y: Array, u: Array, var_m2: Array) -> None:
         """Ranges before their update: anchors, innovations (m), unit vectors anchor → tag
         (rows of ``u``), the ranges' variances (m²)."""
         latest = self._latest
-        for k, anchor in enumerate(ids):
-            yk, w = float(y[k]), 1.0 / float(var_m2[k])
-            uk = np.array(u[k], dtype=float)
-            if math.isfinite(yk) and math.isfinite(w) and w > 0 and np.isfinite(uk).all():
-                clip = CLIP_SIGMAS / math.sqrt(w)
-                latest[anchor] = (t_ns, min(max(yk, -clip), clip), uk, w)
-        if t_ns - self._snapshot_ns < SNAPSHOT_EVERY_NS:
+        ok = np.isfinite(y) & (var_m2 > 0) & np.isfinite(var_m2) & np.isfinite(u).all(axis=1)
+        clip = CLIP_SIGMAS * np.sqrt(np.abs(var_m2))
+        for anchor, good, yk, uk, vk in zip(ids, ok.tolist(), np.clip(y, -clip, clip).tolist(),
+                                            u.tolist(), var_m2.tolist(), strict=True):
+            if good:
+                latest[anchor] = (t_ns, yk, 1.0 / vk, uk)
+        period = SINGLE_EVERY_NS if len(ids) < MIN_ANCHORS else SNAPSHOT_EVERY_NS
+        if t_ns - self._snapshot_ns < period:
             return
         self._snapshot_ns = t_ns
-        self._snapshot(t_ns, [r for r in latest.items() if r[1][0] >= t_ns - SNAPSHOT_NS])
+        self._snapshot(t_ns, [r for r in latest.items() if r[1][0] >= t_ns - 2 * period])
         if t_ns - self._judged_ns >= JUDGE_EVERY_NS:
             self._judged_ns = t_ns
             self._forget_before(t_ns - int(self.limits.window_s * NS))
@@ -111,13 +120,12 @@ class WindowRaim:
         self._offset_sum = np.zeros(3)
         self.inconsistent, self.ratio, self.offset_m = (), 1.0, (0.0, 0.0, 0.0)
 
-    def _snapshot(self, t_ns: int, rows: list[tuple[int, tuple[int, float, Array, float]]]
-                  ) -> None:
+    def _snapshot(self, t_ns: int,
+                  rows: list[tuple[int, tuple[int, float, float, list[float]]]]) -> None:
         if len(rows) < MIN_ANCHORS:
             return
-        U = np.array([r[2] for _, r in rows])
-        y = np.array([r[1] for _, r in rows])
-        w = np.array([r[3] for _, r in rows])
+        table = np.array([(r[1], r[2], *r[3]) for _, r in rows])  # y, w, u
+        y, w, U = table[:, 0], table[:, 1], table[:, 2:]
         N = U.T @ (U * w[:, None])
         try:
             Ni = np.linalg.inv(N + 1e-9 * np.trace(N) * np.eye(3))
@@ -125,11 +133,12 @@ class WindowRaim:
             return
         dp = Ni @ (U.T @ (w * y))
         r = y - U @ dp
-        free = 1.0 - w * np.einsum("ij,jk,ik->i", U, Ni, U)  # 1 − leverage
+        free = 1.0 - w * ((U @ Ni) * U).sum(axis=1)  # 1 − leverage
         sse = float(w @ (r * r))
         # removing range k lowers the SSE by w r² / (1 − h): Baarda's w-test squared
-        reduction = {a: float(w[k] * r[k] ** 2 / free[k]) for k, (a, _) in enumerate(rows)
-                     if free[k] > 1e-3}
+        red = w * r * r / np.maximum(free, 1e-3)
+        reduction = {a: x for (a, _), x, f in zip(rows, red.tolist(), free.tolist(), strict=True)
+                     if f > 1e-3}
         dof = len(rows) - 3
         high = sse / dof > _ratio_quantile(HIGH_Z, dof)
         self._entries.append((t_ns, sse, dof, high, dp, reduction))

@@ -46,25 +46,36 @@ def range_rows(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array, ranges
     reference of the C core's tight epoch (:meth:`Eskf.fuse_ranges`), and the rows where
     that declines: a range whose antenna is within 1 mm of its anchor is dropped here."""
     keys = range_keys(ids)
-    R = ekf.R
-    p_ant = np.array(ekf.p) + R @ lever_m
-    diff = p_ant - anchors
-    dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
-    keep = dist >= 1e-3  # the antenna on an anchor: no line of sight to linearise
+    U, y, keep = range_innovations(ekf, lever_m, ids, anchors, ranges, columns)
     if not keep.all():
         ids = [a for a, k in zip(ids, keep, strict=True) if k]
         keys = [k for k, kept in zip(keys, keep, strict=True) if kept]
-        diff, dist, ranges, var = diff[keep], dist[keep], ranges[keep], var[keep]
-    U = diff / dist[:, None]
+        U, y, var = U[keep], y[keep], var[keep]
     H = np.zeros((len(ids), ekf.n))
     H[:, P_] = U
-    H[:, TH_] = U @ (-R @ skew(lever_m))
-    h = dist
+    H[:, TH_] = U @ (-ekf.R @ skew(lever_m))
     for i, anchor_id in enumerate(ids):
         for k in columns.get(anchor_id, ()):
             H[i, k] = 1.0
-            h[i] += ekf.b_r[k - N_CORE]
-    return Rows(H, ranges - h, var, keys)
+    return Rows(H, y, var, keys)
+
+
+def range_innovations(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array,
+                      ranges: Array, columns: Mapping[int, tuple[int, ...]]
+                      ) -> tuple[Array, Array, Array]:
+    """What :func:`range_rows` predicts, without the rows: the unit vectors anchor →
+    antenna, the innovations ``z − h``, and which ranges have a line to linearise (the
+    antenna over 1 mm from its anchor)."""
+    diff = np.array(ekf.p) + ekf.R @ lever_m - anchors
+    dist = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+    keep = dist >= 1e-3  # the antenna on an anchor: no line of sight to linearise
+    U = diff / np.where(keep, dist, 1.0)[:, None]
+    h = dist
+    b_r = ekf.b_r
+    for i, anchor_id in enumerate(ids):
+        for k in columns.get(anchor_id, ()):
+            h[i] += b_r[k - N_CORE]
+    return U, ranges - h, keep
 
 
 RANGE_KEYS: dict[int, tuple[str, str]] = {}  # anchor id -> its rows' (kind, key)

@@ -25,7 +25,13 @@ from uwbd.fusion.checks.window_raim import WindowRaim
 from uwbd.fusion.core.eskf import BA_, BG_, P_, TH_, Eskf, RawRow
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.core.rotation import Array
-from uwbd.fusion.models.measurements import Rows, position_rows, range_keys, range_rows
+from uwbd.fusion.models.measurements import (
+    Rows,
+    position_rows,
+    range_innovations,
+    range_keys,
+    range_rows,
+)
 from uwbd.fusion.policy.health import HealthMonitor
 from uwbd.fusion.policy.robust import AnchorStats, RowPolicy
 from uwbd.fusion.settings import Mode
@@ -167,20 +173,27 @@ class EpochFusion:
         if not (snapshot or anchor_test):
             return
         var = cfg.range_sigma_m**2 * r_scale
-        H, y, R, _ = range_rows(ekf, self.lever, ids, anchors, ranges, var, self._range_columns)
-        if len(y) != len(ids):  # (no antenna on an anchor: one row per range)
-            return
         monitor = self.monitor
+        if anchor_test:
+            H, y, R, _ = range_rows(ekf, self.lever, ids, anchors, ranges, var,
+                                    self._range_columns)
+            if len(y) != len(ids):  # (no antenna on an anchor: one row per range)
+                return
+            U = H[:, P_]
+            consistency.last_ns = t_ns
+            consistency.add(t_ns, ids, y, H @ ekf.P @ H.T + np.diag(R))
+            monitor.anchor_suspects = tuple(sorted(consistency.findings))
+        else:  # (the rows are not needed: single ranges come 100+ a second)
+            U, y, keep = range_innovations(ekf, self.lever, ids, anchors, ranges,
+                                           self._range_columns)
+            if not keep.all():
+                return
         if snapshot:
-            raim.add(t_ns, ids, y, H[:, P_],
+            raim.add(t_ns, ids, y, U,
                      var + cfg.multipath_sigma_m**2 if cfg.multipath_states else var)
             monitor.ranges_inconsistent = raim.inconsistent
             monitor.inflation = raim.ratio
             monitor.offset_m = raim.offset_m
-        if anchor_test:
-            consistency.last_ns = t_ns
-            consistency.add(t_ns, ids, y, H @ ekf.P @ H.T + np.diag(R))
-            monitor.anchor_suspects = tuple(sorted(consistency.findings))
 
     def _exclude_findings(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                           r_scale: Array, reports: list[FusionReport]
