@@ -129,8 +129,9 @@ def test_an_anchor_surveyed_off_makes_the_ranges_inconsistent() -> None:
 
 
 def test_the_protection_levels_widen_with_the_window_and_bound_its_offset() -> None:
-    """K √k σ + |δp|: the Rayleigh and two-sided normal quantiles at the risk, widened by
-    the window's χ² ratio and shifted by its offset; over an alert limit: uncertain."""
+    """K √k σ + |δp| + g b: the Rayleigh and two-sided normal quantiles at the risk, widened
+    by the window's χ² ratio, shifted by its offset and by what a bias of the bound on every
+    range makes of its geometry; over an alert limit: uncertain."""
     monitor = HealthMonitor(HealthLimits(integrity_risk=1e-3))
     monitor.uwb_outcome(EPOCH_NS, True, 1.0)
     h = monitor.assess(EPOCH_NS, True, True, 0.2, True, 0.1, False, 0.1)
@@ -141,6 +142,10 @@ def test_the_protection_levels_widen_with_the_window_and_bound_its_offset() -> N
     assert h.horizontal_protection_m == pytest.approx(2 * 3.7169 * 0.1 + 0.2, rel=1e-4)
     assert h.vertical_protection_m == pytest.approx(2 * 3.2905 * 0.1 + 0.2, rel=1e-4)
     assert "position_uncertain" not in h.faults
+    monitor.bias_gain = (1.0, 2.0)  # m per m of range bias, at the default 0.05 m bound
+    h = monitor.assess(EPOCH_NS, True, True, 0.2, True, 0.1, False, 0.1)
+    assert h.horizontal_protection_m == pytest.approx(2 * 3.7169 * 0.1 + 0.2 + 0.05, rel=1e-4)
+    assert h.vertical_protection_m == pytest.approx(2 * 3.2905 * 0.1 + 0.2 + 0.1, rel=1e-4)
     monitor.offset_m = (1.0, 0.0, 0.0)
     assert "position_uncertain" in monitor.assess(EPOCH_NS, True, True, 0.2, True, 0.1,
                                                   False, 0.1).faults

@@ -27,8 +27,9 @@ IMU_LIMIT_KEYS = ("acc_full_scale_mps2", "gyro_full_scale_rps")  # ImuLimits fie
 IMU_INTRINSIC_VECTORS = ("acc_scale", "acc_offset_mps2", "gyro_offset_rps")
 IMU_INTRINSIC_KEYS = (*IMU_INTRINSIC_VECTORS, "gyro_deadband_rps", "gravity_mps2")
 # [fusion] keys that are HealthLimits fields (the same names): the protection levels' risk
-# and alert limits
-_HEALTH_KEYS = ("integrity_risk", "horizontal_alert_limit_m", "vertical_alert_limit_m")
+# and alert limits, and the ranges' bias bound
+_HEALTH_KEYS = ("integrity_risk", "horizontal_alert_limit_m", "vertical_alert_limit_m",
+                "range_bias_bound_m")
 MULTIPATH_SIGMA_M = 0.07  # the default time-correlated range error (real installations)
 
 

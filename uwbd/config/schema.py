@@ -137,6 +137,7 @@ _FUSION_SPEC = {
     "integrity_risk": Key(NUMBER, Range(1e-9, 0.5)),
     "horizontal_alert_limit_m": Key(NUMBER, _POSITIVE_RANGE),
     "vertical_alert_limit_m": Key(NUMBER, _POSITIVE_RANGE),
+    "range_bias_bound_m": Key(NUMBER, Range(0.0, 5.0, lo_closed=True)),
 }
 _PIPELINE_SPEC = {"aligner_wait_ms": Key(NUMBER, Range(0.0, 1000.0, lo_closed=True)),
                   "pose_rate_hz": Key(NUMBER, Range(0.0, 1000.0)),

@@ -17,9 +17,11 @@ Over ``window_s`` the snapshots' ``T = ΣSSE / Σ(n − 3)`` is tested against i
 its snapshots must each be over their own 90 % quantile. A failing window is the health
 fault ``ranges_inconsistent``; its candidates are the anchors whose removal (Baarda's
 leave-one-out, summed over the window) leaves a consistent rest, or all of them. ``T`` is
-also the factor the covariance is inflated by for the protection levels, and the
-snapshots' mean ``δp`` (where the ranges alone put the tag, against the state) is added to
-them (:mod:`uwbd.fusion.policy.health`). Which anchor to exclude is
+also the factor the covariance is inflated by for the protection levels; the snapshots'
+mean ``δp`` (where the ranges alone put the tag, against the state) is added to them, and
+so is their geometry's gain ``Σ_j |S_ij|`` (the most position error a bias of 1 m on every
+range can make, ``S = (UᵀWU)⁻¹UᵀW``) times ``range_bias_bound_m``
+(:mod:`uwbd.fusion.policy.health`). Which anchor to exclude is
 :mod:`.anchor_consistency`'s call; this test only says the set disagrees.
 """
 
@@ -66,8 +68,12 @@ class WindowRaim:
         self._judged_ns = -(2**63)
         # per snapshot: its time, SSE, degrees of freedom, and each anchor's SSE reduction
         self._entries: collections.deque[
-            tuple[int, float, int, bool, Array, dict[int, float]]] = collections.deque()
+            tuple[int, float, int, bool, Array, Array, dict[int, float]]] = collections.deque()
         self._offset_sum = np.zeros(3)
+        self._gain_sum = np.zeros(3)
+        # the window's mean horizontal and vertical position error per metre of a bias on
+        # every range (signs the worst): what the ranges' unmodelled biases can do
+        self.bias_gain = (0.0, 0.0)
         self._sse = 0.0
         self._dof = 0
         self._high = 0  # snapshots over their own 90 % quantile
@@ -117,8 +123,9 @@ class WindowRaim:
         self._reduction.clear()
         self._count.clear()
         self._sse, self._dof, self._high = 0.0, 0, 0
-        self._offset_sum = np.zeros(3)
+        self._offset_sum, self._gain_sum = np.zeros(3), np.zeros(3)
         self.inconsistent, self.ratio, self.offset_m = (), 1.0, (0.0, 0.0, 0.0)
+        self.bias_gain = (0.0, 0.0)
 
     def _snapshot(self, t_ns: int,
                   rows: list[tuple[int, tuple[int, float, float, list[float]]]]) -> None:
@@ -131,8 +138,10 @@ class WindowRaim:
             Ni = np.linalg.inv(N + 1e-9 * np.trace(N) * np.eye(3))
         except np.linalg.LinAlgError:
             return
-        dp = Ni @ (U.T @ (w * y))
+        S = Ni @ (U.T * w)  # δp per metre of each range
+        dp = S @ y
         r = y - U @ dp
+        gain = np.abs(S).sum(axis=1)  # the most δp a bias of 1 m on every range can make
         free = 1.0 - w * ((U @ Ni) * U).sum(axis=1)  # 1 − leverage
         sse = float(w @ (r * r))
         # removing range k lowers the SSE by w r² / (1 − h): Baarda's w-test squared
@@ -141,8 +150,9 @@ class WindowRaim:
                      if f > 1e-3}
         dof = len(rows) - 3
         high = sse / dof > _ratio_quantile(HIGH_Z, dof)
-        self._entries.append((t_ns, sse, dof, high, dp, reduction))
+        self._entries.append((t_ns, sse, dof, high, dp, gain, reduction))
         self._offset_sum += dp
+        self._gain_sum += gain
         self._sse += sse
         self._dof += dof
         self._high += high
@@ -153,8 +163,9 @@ class WindowRaim:
     def _forget_before(self, oldest_ns: int) -> None:
         entries, count, reduction = self._entries, self._count, self._reduction
         while entries and entries[0][0] < oldest_ns:
-            _, sse, dof, high, dp, per = entries.popleft()
+            _, sse, dof, high, dp, gain, per = entries.popleft()
             self._offset_sum -= dp
+            self._gain_sum -= gain
             self._sse -= sse
             self._dof -= dof
             self._high -= high
@@ -166,14 +177,17 @@ class WindowRaim:
                     reduction[a] -= red
         if not entries:
             self._sse, self._dof, self._high = 0.0, 0, 0
-            self._offset_sum = np.zeros(3)
+            self._offset_sum, self._gain_sum = np.zeros(3), np.zeros(3)
 
     def _judge(self) -> None:
         dof = self._dof
         t = max(self._sse, 0.0) / dof if dof > 0 else 0.0
         self.ratio = max(1.0, t)
-        x, y, z = (self._offset_sum / len(self._entries)).tolist() if self._entries else (0, 0, 0)
+        n = len(self._entries)
+        x, y, z = (self._offset_sum / n).tolist() if n else (0, 0, 0)
         self.offset_m = (x, y, z)
+        gx, gy, gz = (self._gain_sum / n).tolist() if n else (0, 0, 0)
+        self.bias_gain = (math.hypot(gx, gy), gz)
         if (dof <= 0 or t <= _ratio_quantile(self._z, dof / CORRELATED)
                 or self._high <= HIGH_SHARE * len(self._entries)):
             self.inconsistent = ()

@@ -194,6 +194,7 @@ class EpochFusion:
             monitor.ranges_inconsistent = raim.inconsistent
             monitor.inflation = raim.ratio
             monitor.offset_m = raim.offset_m
+            monitor.bias_gain = raim.bias_gain
 
     def _exclude_findings(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                           r_scale: Array, reports: list[FusionReport]

@@ -20,9 +20,10 @@ positive definiteness along a measurement), ``innovations_inconsistent`` (most o
 ``window_count`` UWB measurements, or the last four, fail the gate, or their NIS is far
 above 1), ``imu_rejected`` (a sample was rejected within the last second), ``imu_gap``,
 ``range_timeout`` (no accepted range for ``range_timeout_s``), ``position_uncertain``
-(a protection level over its alert limit: ``K √k σ + |δp|`` at ``integrity_risk``, σ the
-horizontal ellipse's major axis or σz, ``k`` the snapshot test's inflation and ``δp`` its
-mean offset of the state, horizontal or vertical),
+(a protection level over its alert limit: ``K √k σ + |δp| + g b`` at ``integrity_risk``,
+σ the horizontal ellipse's major axis or σz, ``k`` the snapshot test's inflation, ``δp``
+its mean offset of the state and ``g`` its geometry's position error per metre of a bias
+``range_bias_bound_m`` on every range, horizontal or vertical),
 ``anchor_inconsistent`` (an anchor's ranges disagree with the others':
 :mod:`uwbd.fusion.checks.anchor_consistency`; the status names it),
 ``ranges_inconsistent`` (the ranges disagree with each other beyond their noise:
@@ -128,6 +129,8 @@ class HealthLimits:
     integrity_risk: float = 1e-3
     horizontal_alert_limit_m: float = 1.0
     vertical_alert_limit_m: float = 1.5
+    # each range's unmodelled bias at most (ARAIM's nominal bias): antenna patterns, delays
+    range_bias_bound_m: float = 0.05
     window_count: int = 12  # innovations judged over the last this many UWB measurements
     max_rejected_fraction: float = 0.5
     max_mean_nis: float = 6.0  # of the window's NIS, each clipped at 25
@@ -163,6 +166,7 @@ class HealthMonitor:
         self.ranges_inconsistent: tuple[int, ...] = ()
         self.inflation = 1.0
         self.offset_m = (0.0, 0.0, 0.0)  # and its mean offset of the state (m, ENU)
+        self.bias_gain = (0.0, 0.0)  # and its position error per metre of range bias (h, v)
         risk = limits.integrity_risk
         self._k_horizontal = math.sqrt(-2.0 * math.log(risk))  # Rayleigh, on the major axis
         self._k_vertical = NormalDist().inv_cdf(1.0 - risk / 2.0)  # two-sided
@@ -275,9 +279,12 @@ class HealthMonitor:
             k = math.sqrt(self.inflation)
             major = position_sigma_m if major_sigma_m is None else major_sigma_m
             dx, dy, dz = self.offset_m  # where the ranges alone put the tag: a bias to bound
-            hpl = None if major is None else self._k_horizontal * k * major + math.hypot(dx, dy)
+            gh, gv = self.bias_gain  # and what the ranges' unmodelled biases can do
+            b = lim.range_bias_bound_m
+            hpl = (None if major is None
+                   else self._k_horizontal * k * major + math.hypot(dx, dy) + gh * b)
             vpl = (None if vertical_sigma_m is None
-                   else self._k_vertical * k * vertical_sigma_m + abs(dz))
+                   else self._k_vertical * k * vertical_sigma_m + abs(dz) + gv * b)
             if (hpl is None or not hpl <= lim.horizontal_alert_limit_m
                     or vpl is None or not vpl <= lim.vertical_alert_limit_m):
                 faults.append("position_uncertain")
