@@ -34,6 +34,7 @@ TYPES = {
     "/tf": "tf2_msgs/msg/TFMessage",
     "/tf_static": "tf2_msgs/msg/TFMessage",
     "/uwbd/truth": "geometry_msgs/msg/PoseStamped",
+    "/uwbd/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
 TOL = 1e-9
 
@@ -120,7 +121,8 @@ def test_every_topic_is_there_with_its_type_and_count(logs: tuple[Path, Path], b
     assert bag.types == TYPES  # the replayed log carries the source's truth
     assert tuned_bag.types == TYPES
     expected = {"/uwbd/pose": n_poses, "/uwbd/odom": n_poses, "/tf": n_poses,
-                "/uwbd/imu": n_imu, "/tf_static": 1, "/uwbd/truth": n_truth}
+                "/uwbd/imu": n_imu, "/tf_static": 1, "/uwbd/truth": n_truth,
+                "/uwbd/diagnostics": n_poses}
     assert {t: len(m) for t, m in tuned_bag.messages.items()} == expected
     # metadata.yaml, as `ros2 bag info` reads it: the storage, the file, each topic's count
     info = YAML(typ="safe").load((bag.path / "metadata.yaml").read_text())[
@@ -158,6 +160,27 @@ def test_poses_equal_the_logs(logs: tuple[Path, Path], bag: Bag, tuned_bag: Bag)
         assert [stamp_ns(m.transforms[0].header) for m in tf] == [d["t_ns"] for d in source]
         last, d = tf[-1].transforms[0], source[-1]
         assert close(xyz(last.transform.translation), list(d["pose"]["position"].values()))
+
+
+def test_diagnostics_carry_each_poses_health(logs: tuple[Path, Path], bag: Bag) -> None:
+    """One DiagnosticArray a pose: OK exactly when the log's pose said healthy, the summary
+    as its message, the phase, faults and protection levels as its values."""
+    source = log_json(logs[1], "/pose")
+    pairs = bag.messages["/uwbd/diagnostics"]
+    assert len(pairs) == len(source)
+    levels = set()
+    for (t_ns, msg), d in zip(pairs, source, strict=True):
+        (status,) = msg.status
+        assert t_ns == d["t_ns"] == stamp_ns(msg.header) and status.name == "uwbd: filter"
+        health = d["health"]
+        assert (status.level == 0) == health["healthy"] and status.message == d["status"]
+        values = {kv.key: kv.value for kv in status.values}
+        assert values["phase"] == health["phase"]
+        assert values["faults"] == ",".join(health["faults"])
+        for key in ("horizontal_protection_m", "vertical_protection_m"):
+            assert float(values[key]) == pytest.approx(health[key], abs=1e-4)
+        levels.add(status.level)
+    assert 0 in levels  # (and the run is long enough to be healthy)
 
 
 def test_odometry_twist_is_the_velocity_in_the_body_frame(logs: tuple[Path, Path],
@@ -271,7 +294,7 @@ def test_transforms_follow_the_ros_conventions(tmp_path: Path) -> None:
     sample = ImuSample(heading_north.t_ns, (9.81, 0.0, 0.0), (0.0, 0.0, 0.5))
     counts = write_bag(tmp_path / "b", config, [heading_north], [sample])
     assert counts == {"/tf_static": 1, "/uwbd/pose": 1, "/uwbd/odom": 1, "/tf": 1,
-                      "/uwbd/imu": 1}
+                      "/uwbd/imu": 1, "/uwbd/diagnostics": 1}
     bag = Bag(tmp_path / "b")
     (odom,) = bag.msgs("/uwbd/odom")
     assert (odom.header.frame_id, odom.child_frame_id) == ("map", "b")

@@ -13,7 +13,10 @@ installation, which this machine does not have).
 - ``/tf``, ``tf2_msgs/msg/TFMessage``: ``nav_frame_id`` → ``body_frame_id`` at each pose;
 - ``/tf_static``, ``tf2_msgs/msg/TFMessage``: ``body`` → ``body_imu`` (the mounting) and
   ``body`` → ``body_uwb`` (the lever arm), once, offered transient local (latched);
-- ``/uwbd/truth``, ``geometry_msgs/msg/PoseStamped``: the log's ``/truth``, if it has one.
+- ``/uwbd/truth``, ``geometry_msgs/msg/PoseStamped``: the log's ``/truth``, if it has one;
+- ``/uwbd/diagnostics``, ``diagnostic_msgs/msg/DiagnosticArray``: each pose's health, one
+  status ``uwbd: filter`` (level OK when healthy, WARN when not, STALE while waiting; the
+  message the health's summary; values its phase, faults, notes, σ and protection levels).
 
 Conventions. uwbd's body frame (forward-left-up) has its origin at the IMU (the pose is the
 IMU's), so ``body → body_imu`` is the ``[imu] mounting`` rotation (sensor → body) with no
@@ -61,6 +64,7 @@ from tqdm import tqdm
 from drivers.frames import ImuSample
 from uwbd.config import Config, parse
 from uwbd.fusion.core.rotation import quat_from_matrix, quat_to_matrix
+from uwbd.fusion.policy.health import Phase, health_from_dict
 from uwbd.fusion.types import Pose
 from uwbd.logs.reading import LogContents
 from uwbd.logs.replay import replay
@@ -83,6 +87,9 @@ Odometry = msgs.nav_msgs__msg__Odometry
 Imu = msgs.sensor_msgs__msg__Imu
 Header = msgs.std_msgs__msg__Header
 TFMessage = msgs.tf2_msgs__msg__TFMessage
+DiagnosticArray = msgs.diagnostic_msgs__msg__DiagnosticArray
+DiagnosticStatus = msgs.diagnostic_msgs__msg__DiagnosticStatus
+KeyValue = msgs.diagnostic_msgs__msg__KeyValue
 
 # The message definitions of these types are the same from Humble to Kilted (same RIHS01
 # hashes); bag format version 8 (Jazzy's) keeps the QoS profiles a string, which Humble's
@@ -95,7 +102,9 @@ IMU_TOPIC = "/uwbd/imu"
 TF_TOPIC = "/tf"
 TF_STATIC_TOPIC = "/tf_static"
 TRUTH_TOPIC = "/uwbd/truth"
+DIAGNOSTICS_TOPIC = "/uwbd/diagnostics"
 TOPIC_TYPES = {
+    DIAGNOSTICS_TOPIC: DiagnosticArray.__msgtype__,
     POSE_TOPIC: PoseWithCovarianceStamped.__msgtype__,
     ODOM_TOPIC: Odometry.__msgtype__,
     IMU_TOPIC: Imu.__msgtype__,
@@ -167,8 +176,8 @@ def _vec3(v: Sequence[Any]) -> tuple[float, float, float]:
 
 
 def log_poses(contents: LogContents) -> list[Pose]:
-    """The log's ``/pose`` messages as poses (``null``, a number that was not finite, as NaN);
-    the health record is not read back."""
+    """The log's ``/pose`` messages as poses (``null``, a number that was not finite, as NaN),
+    with their health records."""
     out: list[Pose] = []
     for d in contents.json("/pose"):
         p, q = d["pose"]["position"], d["pose"]["orientation"]
@@ -177,7 +186,8 @@ def log_poses(contents: LogContents) -> list[Pose]:
             velocity_mps=_vec3(d.get("velocity_mps") or [None] * 3),
             orientation_xyzw=(_num(q["x"]), _num(q["y"]), _num(q["z"]), _num(q["w"])),
             covariance=tuple(_num(c) for c in d.get("covariance") or [None] * 36),
-            status=str(d.get("status", "")), heading_observable=bool(d.get("heading_observable"))))
+            status=str(d.get("status", "")), heading_observable=bool(d.get("heading_observable")),
+            health=health_from_dict(d.get("health") or {})))
     return out
 
 
@@ -300,6 +310,23 @@ def imu_msg(sample: ImuSample, frames: FrameIds, gyro_var: float = 0.0,
                linear_acceleration_covariance=np.diag([acc_var] * 3).ravel())
 
 
+def diagnostics_msg(pose: Pose, hardware_id: str) -> DiagnosticArray:
+    """A pose's health as ROS diagnostics (``diagnostic_msgs``' levels: 0 OK, 1 WARN,
+    3 STALE)."""
+    h = pose.health
+    level = 0 if h.healthy else 3 if h.phase is Phase.WAITING else 1
+
+    def text(x: float | None) -> str:
+        return "" if x is None else f"{x:.4f}"
+    values = [("phase", h.phase.value), ("faults", ",".join(h.faults)),
+              ("notes", ",".join(h.notes)), ("position_sigma_m", text(h.position_sigma_m)),
+              ("horizontal_protection_m", text(h.horizontal_protection_m)),
+              ("vertical_protection_m", text(h.vertical_protection_m))]
+    return DiagnosticArray(header=_header(pose.t_ns, ""), status=[DiagnosticStatus(
+        level=level, name="uwbd: filter", message=h.summary(),
+        hardware_id=hardware_id, values=[KeyValue(key=k, value=v) for k, v in values])])
+
+
 def truth_msg(truth: TruthPose, frames: FrameIds) -> PoseStamped:
     return PoseStamped(header=_header(truth.t_ns, frames.nav),
                        pose=_ros_pose(truth.position_m, truth.orientation_xyzw))
@@ -328,12 +355,14 @@ def write_bag(out: Path, config: Config, poses: Sequence[Pose], imu: Sequence[Im
         stream(ODOM_TOPIC, ((p.t_ns, odometry_msg(p, frames)) for p in poses)),
         stream(TF_TOPIC, ((p.t_ns, tf_msg(p, frames)) for p in poses)),
         stream(IMU_TOPIC, ((s.t_ns, imu_msg(s, frames, gyro_var, acc_var)) for s in imu)),
+        stream(DIAGNOSTICS_TOPIC, ((p.t_ns, diagnostics_msg(p, config.robot_name))
+                                   for p in poses)),
     ]
-    topics = [TF_STATIC_TOPIC, POSE_TOPIC, ODOM_TOPIC, TF_TOPIC, IMU_TOPIC]
+    topics = [TF_STATIC_TOPIC, POSE_TOPIC, ODOM_TOPIC, TF_TOPIC, IMU_TOPIC, DIAGNOSTICS_TOPIC]
     if truth:
         streams.append(stream(TRUTH_TOPIC, ((t.t_ns, truth_msg(t, frames)) for t in truth)))
         topics.append(TRUTH_TOPIC)
-    total = 1 + 3 * len(poses) + len(imu) + len(truth)
+    total = 1 + 4 * len(poses) + len(imu) + len(truth)
     # refuses an existing folder (WriterError), which is then left alone
     writer = Writer(out, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP)
     try:

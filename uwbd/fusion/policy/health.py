@@ -112,6 +112,20 @@ class Health(NamedTuple):
                 "last_reset_jump_m": num(self.last_reset_jump_m)}
 
 
+def health_from_dict(d: dict[str, Any]) -> Health:
+    """The record :meth:`Health.as_dict` wrote (a log's ``/pose``): what it holds, the rest
+    at its default."""
+    def num(key: str) -> float | None:
+        v = d.get(key)
+        return None if v is None else float(v)
+    reset_t = d.get("last_reset_t_ns")
+    return Health(Phase(d.get("phase", "waiting")), tuple(d.get("faults") or ()),
+                  tuple(d.get("notes") or ()), num("since_range_s"), num("position_sigma_m"),
+                  num("horizontal_protection_m"), num("vertical_protection_m"),
+                  int(d.get("resets") or 0), None if reset_t is None else int(reset_t),
+                  str(d.get("last_reset_reason") or ""), num("last_reset_jump_m"))
+
+
 def _rounded(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else round(x, 4)
 
