@@ -8,7 +8,7 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 from drivers import PARSERS, Frame
 from uwbd.codec import frame_to_dict
@@ -84,10 +84,27 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if poses.poses:
         x, y, z = poses.poses[-1].position_m
         print(f"last pose ({x:.3f}, {y:.3f}, {z:.3f}) m")
+    for line in _findings(pipeline.filter.diagnostics()):
+        print(line)
     if out is not None and (log_errors or not out.is_file()):
         raise RunError(f"{out}: the replayed log is incomplete: "
                        f"{log_errors[0] if log_errors else 'the file was not written'}")
     return 0
+
+
+def _findings(diagnostics: dict[str, Any]) -> list[str]:
+    """What the filter found of the installation by the end of a replay, a line each."""
+    lines = [str(f["finding"]) for f in diagnostics.get("anchor_findings", [])]
+    if diagnostics.get("ranges_inconsistent"):
+        lines.append("the ranges disagree with each other: anchors suspected "
+                     + ", ".join(map(str, diagnostics["ranges_inconsistent"])))
+    if diagnostics.get("mounting_finding"):
+        lines.append(str(diagnostics["mounting_finding"]))
+    if "lever_arm_estimate_m" in diagnostics:
+        x, y, z = diagnostics["lever_arm_estimate_m"]
+        lines.append(f"lever arm by the data: ({x:+.3f}, {y:+.3f}, {z:+.3f}) m "
+                     "(IMU -> antenna, body axes; compare imu.lever_arm_m)")
+    return lines
 
 
 def cmd_recover(args: argparse.Namespace) -> int:

@@ -134,6 +134,7 @@ class Config:
         return FilterConfig(
             mode=Mode(f.get("mode", "tight")), anchors_m=self.anchors_m,
             mounting_rotation=self.mounting, lever_arm_m=self.lever_arm_m,
+            lever_arm_sigma_m=f.get("lever_arm_sigma_m", 0.0),
             range_sigma_m=f.get("range_sigma_m", 0.10),
             range_bias_states=f.get("range_bias_states", True),
             range_bias_sigma_m=f.get("range_bias_sigma_m", 0.1),

@@ -138,6 +138,8 @@ _FUSION_SPEC = {
     "horizontal_alert_limit_m": Key(NUMBER, _POSITIVE_RANGE),
     "vertical_alert_limit_m": Key(NUMBER, _POSITIVE_RANGE),
     "range_bias_bound_m": Key(NUMBER, Range(0.0, 5.0, lo_closed=True)),
+    # > 0: the lever arm's error estimated as states, with this prior σ per axis
+    "lever_arm_sigma_m": Key(NUMBER, Range(0.0, 2.0, lo_closed=True)),
 }
 _PIPELINE_SPEC = {"aligner_wait_ms": Key(NUMBER, Range(0.0, 1000.0, lo_closed=True)),
                   "pose_rate_hz": Key(NUMBER, Range(0.0, 1000.0)),

@@ -148,6 +148,7 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         self._bias_index: dict[int, int] = {}
         self._mp_index: dict[int, int] = {}
         self._range_columns: dict[int, tuple[int, ...]] = {}
+        self._lever_index: tuple[int, ...] = ()  # (set by _layout)
         self._new_anchors = False
         self._layout()
         self.t_ns: int | None = None  # time of the nominal state
@@ -200,6 +201,10 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         first = N_CORE + len(self._bias_index)
         self._mp_index = ({a: first + i for i, a in enumerate(ids)}
                           if cfg.multipath_states and tight else {})
+        # the lever arm's error, three constant states after those (off: none)
+        last = first + len(self._mp_index)
+        self._lever_index = (last, last + 1, last + 2) if cfg.lever_arm_sigma_m > 0 and tight \
+            else ()
         # each anchor's range-model state columns, for its range rows
         self._range_columns = {a: tuple(c for index in (self._bias_index, self._mp_index)
                                         if (c := index.get(a)) is not None) for a in ids}
@@ -281,6 +286,9 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
             constraints = self._constraints()
         prior = self._snapshot() if self.records is not None else None
         ranges = self._apply_range_model(anchors, ranges)
+        if self._lever_index:  # the rows' lever: the given one (or phase centre) + its error
+            base = self.lever if self.cfg.range_model.enabled else self._plain_lever
+            self.lever = base + ekf.b_r[self._lever_index[0] - N_CORE:][:3]
         self._check_anchors(t_ns, ids, anchors, ranges, r_scale)
         ids, anchors, ranges, r_scale = self._exclude_findings(t_ns, ids, anchors, ranges,
                                                                r_scale, reports)

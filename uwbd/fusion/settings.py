@@ -34,6 +34,8 @@ class FilterConfig:
     anchors_m: Mapping[int, Vec3] = field(default_factory=dict)
     mounting_rotation: tuple[Vec3, Vec3, Vec3] = IDENTITY3  # C_bs: sensor axes -> body FLU
     lever_arm_m: Vec3 = (0.0, 0.0, 0.0)  # IMU -> UWB antenna, body axes
+    # > 0: the lever arm's error as three states with this prior σ per axis (0: as given)
+    lever_arm_sigma_m: float = 0.0
     imu_noise: ImuNoise = field(default_factory=ImuNoise)
     imu_limits: ImuLimits = field(default_factory=ImuLimits)
     # scale, offsets (and a gyro dead-band) per sensor axis, applied before the mounting

@@ -40,9 +40,12 @@ class Rows(NamedTuple):
 
 
 def range_rows(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array, ranges: Array,
-               var: Array, columns: Mapping[int, tuple[int, ...]]) -> Rows:
+               var: Array, columns: Mapping[int, tuple[int, ...]],
+               lever_columns: tuple[int, ...] = ()) -> Rows:
     """One row per range: ``h = |p + R l − a| + Σ b`` over the range-model states whose
-    columns ``columns`` gives the anchor (antenna delay, multipath; none if absent). The
+    columns ``columns`` gives the anchor (antenna delay, multipath; none if absent), and,
+    with ``lever_columns`` (the lever arm's error states, ``l`` already holding them),
+    ``H_δl = uᵀ R`` on those. The
     reference of the C core's tight epoch (:meth:`Eskf.fuse_ranges`), and the rows where
     that declines: a range whose antenna is within 1 mm of its anchor is dropped here."""
     keys = range_keys(ids)
@@ -57,6 +60,8 @@ def range_rows(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array, ranges
     for i, anchor_id in enumerate(ids):
         for k in columns.get(anchor_id, ()):
             H[i, k] = 1.0
+    if lever_columns:
+        H[:, list(lever_columns)] = U @ ekf.R
     return Rows(H, y, var, keys)
 
 

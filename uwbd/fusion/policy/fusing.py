@@ -64,6 +64,7 @@ class EpochFusion:
     raim: WindowRaim
     anchor_stats: dict[int, AnchorStats]
     _range_columns: dict[int, tuple[int, ...]]
+    _lever_index: tuple[int, ...]  # the lever arm's error states (none: not estimated)
     _fixed_z: float | None
     _gate_1: float
     _gate_3: float
@@ -107,7 +108,7 @@ class EpochFusion:
         if self.cfg.mode is Mode.TIGHT:
             return range_rows(ekf, self.lever, ids, anchors, ranges,
                               self.cfg.range_sigma_m**2 * r_scale,
-                              self._range_columns)
+                              self._range_columns, self._lever_index)
         if fix is None:
             return Rows.empty(ekf.n)
         return position_rows(ekf, self.lever, fix, 3 if self._fixed_z is None else 2)
@@ -120,7 +121,8 @@ class EpochFusion:
         :meth:`_fuse`."""
         ekf = self.ekf
         assert ekf is not None
-        if ids and self.cfg.mode is Mode.TIGHT and ekf.fuses_ranges:
+        # (the C core's range rows have no lever-arm columns: those epochs take the rows)
+        if ids and self.cfg.mode is Mode.TIGHT and ekf.fuses_ranges and not self._lever_index:
             extra = Rows.stack(constraints) if constraints else self._no_rows(ekf.n)
             keys = range_keys(ids) + extra.keys
             outcome = ekf.fuse_ranges(

@@ -53,7 +53,8 @@ class Start(NamedTuple):
 def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
                 recent: list[tuple[int, Array]], fixes: list[tuple[int, Array]],
                 waited_long: bool, carry: Start | None, n_bias: int,
-                lever_m: Array, n_multipath: int = 0) -> tuple[Eskf, str] | None:
+                lever_m: Array, n_multipath: int = 0, n_lever: int = 0
+                ) -> tuple[Eskf, str] | None:
     """The new filter state and how it started (``rest``, ``moving``, ``carried``), or
     ``None`` while the evidence is not enough yet. ``recent``: fixes of the last
     ``init_static_s``; ``fixes``: all kept ones (time-ordered)."""
@@ -102,19 +103,22 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
     sig_ba = cfg.acc_bias_sigma_mps2
     if carry is not None:  # the biases of the estimate before: better than none
         bg, ba, sig_bg, sig_ba = carry.b_g_rps, carry.b_a_mps2, min(sig_bg, 0.01), sig_ba / 2
-    n_aux = n_bias + n_multipath
+    n_aux = n_bias + n_multipath + n_lever
     P0 = np.zeros((N_CORE + n_aux,) * 2)
     np.fill_diagonal(P0, np.concatenate([
         np.full(3, sig_p**2), np.full(3, sig_v**2),
         [sig_tilt**2, sig_tilt**2, math.pi**2],
         np.full(3, sig_bg**2), np.full(3, sig_ba**2),
         np.full(n_bias, cfg.range_bias_sigma_m**2),
-        np.full(n_multipath, cfg.multipath_sigma_m**2)]))
+        np.full(n_multipath, cfg.multipath_sigma_m**2),
+        np.full(n_lever, cfg.lever_arm_sigma_m**2)]))
     # a range's offset is the tag's delay plus its anchor's: correlated a priori
     delays = slice(N_CORE, N_CORE + n_bias)
     P0[delays, delays] += cfg.tag_delay_sigma_m**2
-    tau = np.concatenate([np.full(n_bias, np.inf), np.full(n_multipath, cfg.multipath_tau_s)])
-    sigma = np.concatenate([np.zeros(n_bias), np.full(n_multipath, cfg.multipath_sigma_m)])
+    tau = np.concatenate([np.full(n_bias, np.inf), np.full(n_multipath, cfg.multipath_tau_s),
+                          np.full(n_lever, np.inf)])  # the lever arm's error: a constant
+    sigma = np.concatenate([np.zeros(n_bias), np.full(n_multipath, cfg.multipath_sigma_m),
+                            np.zeros(n_lever)])
     b_r = carry.b_r_m if carry is not None and len(carry.b_r_m) == n_aux else None
     ekf = new_eskf(p, v, q, P0, cfg.imu_noise, n_aux, b_g=bg, b_a=ba, aux_tau_s=tau,
                    aux_sigma=sigma, gravity_mps2=cfg.gravity_mps2, b_r=b_r)

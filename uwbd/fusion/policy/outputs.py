@@ -13,6 +13,7 @@ from uwbd.fusion.checks.anchor_consistency import AnchorConsistency
 from uwbd.fusion.checks.mounting_yaw import MountingYaw
 from uwbd.fusion.checks.window_raim import WindowRaim
 from uwbd.fusion.core.eskf import Eskf
+from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.policy.health import WAITING, Health, HealthMonitor
 from uwbd.fusion.policy.mirror import MirrorSide
 from uwbd.fusion.policy.robust import AnchorStats
@@ -37,6 +38,8 @@ class FilterOutputs:
     anchor_stats: dict[int, AnchorStats]
     consistency: AnchorConsistency
     raim: WindowRaim
+    lever: Array
+    _lever_index: tuple[int, ...]
     mounting_finding: str
     mounting_yaw: MountingYaw
     _aligned: bool
@@ -102,6 +105,9 @@ class FilterOutputs:
                                     sorted(self.consistency.findings.items())],
                 # the snapshot test fails: the anchors it suspects (checks.window_raim)
                 "ranges_inconsistent": list(self.raim.inconsistent),
+                # with [fusion] lever_arm_sigma_m: where the data put the antenna (body, m)
+                **({"lever_arm_estimate_m": [round(float(c), 4) for c in self.lever]}
+                   if self._lever_index and self.ekf is not None else {}),
                 **({"mounting_finding": mounting} if mounting else {})}
 
 

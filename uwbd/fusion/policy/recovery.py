@@ -66,6 +66,7 @@ class Recovery:
     _aligned: bool
     _bias_index: dict[int, int]
     _mp_index: dict[int, int]
+    _lever_index: tuple[int, ...]
     _carry: Start | None
     _start_started_ns: int | None
     _first_t_ns: int | None
@@ -95,7 +96,8 @@ class Recovery:
             self.counters["fix_height_implausible"] += 1  # a restart waits for a fix that can be
             return
         start = start_state(cfg, self.window, fix, recent, list(self._fixes), waited_long,
-                            self._carry, len(self._bias_index), self.lever, len(self._mp_index))
+                            self._carry, len(self._bias_index), self.lever, len(self._mp_index),
+                            len(self._lever_index))
         if start is None:
             return
         self._begin(start, t_ns)
@@ -149,7 +151,8 @@ class Recovery:
         fix = LsqFix(antenna, np.diag(np.diag(ekf.P)[P_]), np.zeros(0), np.zeros(0, bool),
                      0.0, 0)
         start = start_state(self.cfg, self.window, fix, [], [], True, carry,
-                            len(self._bias_index), self.lever, len(self._mp_index))
+                            len(self._bias_index), self.lever, len(self._mp_index),
+                            len(self._lever_index))
         if start is not None:
             self._relevel = None
             self.monitor.imu_gap = False

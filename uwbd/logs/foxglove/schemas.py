@@ -326,6 +326,9 @@ STATUS_SCHEMA = _obj("uwbd.Status", "once a second: the filter's health, counter
     "mounting_finding": {"type": "string", "description": "what the data say of "
                          "imu.mounting (gravity far from the body's up axis at the start at "
                          "rest, or, with NHC, a vehicle moving sideways in body axes)"},
+    "lever_arm_estimate_m": {"type": "array", "items": {"type": "number"},
+                             "description": "with [fusion] lever_arm_sigma_m: the lever arm "
+                             "the data give (IMU -> antenna, body axes, m)"},
     "ranges_inconsistent": {"type": "array", "items": {"type": "integer"},
                             "description": "the ranges disagree with each other: the "
                             "anchors suspected (empty: they agree)"},
