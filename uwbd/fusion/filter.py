@@ -56,7 +56,7 @@ from uwbd.fusion.checks.mounting_yaw import MountingYaw
 from uwbd.fusion.checks.window_raim import RaimLimits, WindowRaim
 from uwbd.fusion.core.eskf import BA_, BG_, N_CORE, TH_, Eskf
 from uwbd.fusion.core.lsq import LsqFix, coplanar
-from uwbd.fusion.core.rotation import Array, quat_to_matrix
+from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.core.smoother import EpochRecord, Nominal
 from uwbd.fusion.models.measurements import (
     Rows,
@@ -438,7 +438,7 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         if cfg.nhc:
             rows.append(nhc_rows(ekf, cfg.nhc_sigma_mps))
             if self._aligned and not self._at_rest:  # the direction of travel in body axes
-                vx, vy, _ = (quat_to_matrix(np.asarray(ekf.q)).T @ np.asarray(ekf.v)).tolist()
+                vx, vy, _ = (ekf.R.T @ np.asarray(ekf.v)).tolist()
                 self.mounting_yaw.add(vx, vy)
                 self.monitor.mounting_inconsistent = self.mounting_yaw.error_deg is not None
         if cfg.known_height_m is not None:
