@@ -22,8 +22,8 @@ from uwbd.config import parse
 from uwbd.fusion.core.rotation import quat_to_matrix
 from uwbd.fusion.types import Pose
 from uwbd.logs.reading import read_log
+from uwbd.ros2.bag import write_bag
 from uwbd.tools.logtools import write_simulation
-from uwbd.tools.ros2 import write_bag
 from uwbd.tools.simulator import DEFAULT_SEGMENTS, SimConfig, simulate
 
 READER_TYPES = get_typestore(Stores.ROS2_JAZZY)
@@ -34,7 +34,7 @@ TYPES = {
     "/tf": "tf2_msgs/msg/TFMessage",
     "/tf_static": "tf2_msgs/msg/TFMessage",
     "/uwbd/truth": "geometry_msgs/msg/PoseStamped",
-    "/uwbd/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
+    "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
 TOL = 1e-9
 
@@ -122,7 +122,7 @@ def test_every_topic_is_there_with_its_type_and_count(logs: tuple[Path, Path], b
     assert tuned_bag.types == TYPES
     expected = {"/uwbd/pose": n_poses, "/uwbd/odom": n_poses, "/tf": n_poses,
                 "/uwbd/imu": n_imu, "/tf_static": 1, "/uwbd/truth": n_truth,
-                "/uwbd/diagnostics": n_poses}
+                "/diagnostics": n_poses}
     assert {t: len(m) for t, m in tuned_bag.messages.items()} == expected
     # metadata.yaml, as `ros2 bag info` reads it: the storage, the file, each topic's count
     info = YAML(typ="safe").load((bag.path / "metadata.yaml").read_text())[
@@ -166,7 +166,7 @@ def test_diagnostics_carry_each_poses_health(logs: tuple[Path, Path], bag: Bag) 
     """One DiagnosticArray a pose: OK exactly when the log's pose said healthy, the summary
     as its message, the phase, faults and protection levels as its values."""
     source = log_json(logs[1], "/pose")
-    pairs = bag.messages["/uwbd/diagnostics"]
+    pairs = bag.messages["/diagnostics"]
     assert len(pairs) == len(source)
     levels = set()
     for (t_ns, msg), d in zip(pairs, source, strict=True):
@@ -294,7 +294,7 @@ def test_transforms_follow_the_ros_conventions(tmp_path: Path) -> None:
     sample = ImuSample(heading_north.t_ns, (9.81, 0.0, 0.0), (0.0, 0.0, 0.5))
     counts = write_bag(tmp_path / "b", config, [heading_north], [sample])
     assert counts == {"/tf_static": 1, "/uwbd/pose": 1, "/uwbd/odom": 1, "/tf": 1,
-                      "/uwbd/imu": 1, "/uwbd/diagnostics": 1}
+                      "/uwbd/imu": 1, "/diagnostics": 1}
     bag = Bag(tmp_path / "b")
     (odom,) = bag.msgs("/uwbd/odom")
     assert (odom.header.frame_id, odom.child_frame_id) == ("map", "b")

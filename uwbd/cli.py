@@ -17,7 +17,13 @@ from typing import Any
 
 from drivers import PARSERS
 from uwbd import __version__, journal
-from uwbd.commands.common import FOXGLOVE_DEFAULT, ROUTER_LISTEN_DEFAULT, RunError, UsageError
+from uwbd.commands.common import (
+    FOXGLOVE_DEFAULT,
+    ROS2_ROUTER_DEFAULT,
+    ROUTER_LISTEN_DEFAULT,
+    RunError,
+    UsageError,
+)
 from uwbd.fusion.core import native
 from uwbd.service.interrupt import quiet_stdout
 
@@ -87,6 +93,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-c", "--config", help="take the [zenoh] settings from this config")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                    help="e.g. tcp/192.168.1.10:7447 (repeatable); default: scouting")
+    p.add_argument("--ros2", nargs="?", const="", metavar="TOPIC",
+                   help="the ROS 2 topic instead, decoded as a ROS 2 node would get it "
+                   "(default: the pose topic, /uwbd/pose; domain and names from -c's [ros2])")
     p.add_argument("--count", type=int, help="stop after N messages")
     p.add_argument("--timeout", type=float, metavar="S", help="stop after S seconds")
     p.add_argument("--zenoh-config", metavar="FILE",
@@ -218,6 +227,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("demo", help="emulated sensors through drivers and fusion, live poses")
     _common(p)
     _foxglove_option(p)
+    p.add_argument("--ros2", nargs="?", const=ROS2_ROUTER_DEFAULT, default=None,
+                   metavar="ENDPOINT",
+                   help="also publish the ROS 2 topics (rmw_zenoh), connected to the ROS 2 "
+                   f"router there (default {ROS2_ROUTER_DEFAULT}, where rmw_zenohd listens); "
+                   "needs the ros2 extra")
     p.set_defaults(func="service:cmd_demo")
     return ap
 

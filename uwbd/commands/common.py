@@ -53,6 +53,8 @@ def driver_name(name: str) -> str:
 
 FOXGLOVE_DEFAULT = "127.0.0.1:8765"
 ROUTER_LISTEN_DEFAULT = "tcp/0.0.0.0:7447"  # `uwbd router` without --listen
+# where a ROS 2 node running rmw_zenoh finds its router (rmw_zenohd) by default
+ROS2_ROUTER_DEFAULT = "tcp/127.0.0.1:7447"
 
 
 def foxglove_server(args: argparse.Namespace) -> Callable[[Config], Any] | None:

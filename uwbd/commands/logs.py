@@ -134,7 +134,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    """A log as a ROS 2 bag folder (metadata.yaml + MCAP, CDR): see :mod:`uwbd.tools.ros2`."""
+    """A log as a ROS 2 bag folder (metadata.yaml + MCAP, CDR): see :mod:`uwbd.ros2.bag`."""
     path, contents = open_log(args.log, "exporting")
     out = Path(args.ros2)
     if out.exists() or out.is_symlink():
@@ -145,7 +145,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     if config_toml is not None or not any(m.topic == "/pose" for m in contents.messages):
         require_replayable(path, contents)  # the poses come from a replay
     try:
-        from uwbd.tools.ros2 import export_ros2
+        from uwbd.ros2.bag import export_ros2
     except ImportError as err:
         raise UsageError(f"export needs the tools extra ({err.name} is missing): pip install "
                          "'uwbd[tools]' (from a checkout: pip install '.[tools]')") from err
@@ -156,9 +156,9 @@ def cmd_export(args: argparse.Namespace) -> int:
         raise UsageError(str(err)) from err
     except OSError as err:
         raise RunError(f"cannot write the bag {out}: {err.strerror or err}") from err
-    n = result.counts
+    n = {role: result.counts.get(topic, 0) for role, topic in result.topics.items()}
     origin = "the log's own" if result.poses_from == "log" else "replayed"
-    print(f"{out}: ROS 2 bag (MCAP) from {path}: {n.get('/uwbd/pose', 0)} poses ({origin}), "
-          f"{n.get('/uwbd/imu', 0)} IMU samples, {n.get('/uwbd/truth', 0)} truth poses; "
-          f"topics {', '.join(sorted(n))}")
+    print(f"{out}: ROS 2 bag (MCAP) from {path}: {n.get('pose', 0)} poses ({origin}), "
+          f"{n.get('imu', 0)} IMU samples, {n.get('truth', 0)} truth poses; "
+          f"topics {', '.join(sorted(result.counts))}")
     return 0

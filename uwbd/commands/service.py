@@ -23,14 +23,22 @@ from uwbd.commands.common import (
     foxglove_server,
     load_config_file,
 )
-from uwbd.config import default_robot_name
+from uwbd.config import default_robot_name, endpoint_problem
 from uwbd.config.checks import Report
 from uwbd.config.zenoh_checks import check_zenoh_file
 from uwbd.config.zenoh_session import effective, zenoh_reason
+from uwbd.ros2.settings import (
+    DEFAULT_TOPICS,
+    EXTRA_HINT,
+    TOPIC_NAME,
+    Ros2Settings,
+    missing_extra,
+    settings_of,
+)
 from uwbd.service.daemon import PipelineError
 from uwbd.service.daemon import run as run_daemon
 from uwbd.service.demo import run_demo
-from uwbd.service.echo import EchoError, dial_endpoints, echo
+from uwbd.service.echo import EchoError, Listen, dial_endpoints, echo, uwbd_keys
 from uwbd.service.interrupt import shielded, wait_until
 from uwbd.service.router import RouterError, run_router
 
@@ -79,8 +87,17 @@ def _faults(args: argparse.Namespace) -> Faults:
 def cmd_demo(args: argparse.Namespace) -> int:
     """Emulated sensors through the pipeline, live in the terminal, until Ctrl-C."""
     live = foxglove_server(args)
+    if args.ros2 is not None:
+        missing = missing_extra()
+        if missing is not None:
+            raise UsageError(f"demo --ros2 needs the ros2 extra ({missing} is missing): "
+                             f"{EXTRA_HINT}")
+        problem = endpoint_problem(args.ros2)
+        if problem is not None:
+            raise UsageError(f"--ros2 {args.ros2}: {problem}")
     with tempfile.TemporaryDirectory(prefix="uwbd-demo-") as tmp:
-        return run_demo(Path(tmp), duration_s=args.duration, seed=args.seed, live=live)
+        return run_demo(Path(tmp), duration_s=args.duration, seed=args.seed, live=live,
+                        ros2_router=args.ros2)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -127,19 +144,39 @@ def cmd_echo(args: argparse.Namespace) -> int:
         zcfg["mode"] = "client"
     zcfg["listen"] = []  # never the daemon's own, which its Zenoh file may give
     _zenoh_file_usable(zcfg, "--zenoh-config" if args.zenoh_config else "-c")
+    if args.ros2 is not None:
+        listen = _ros2_listen(args, config.ros2_settings if args.config else settings_of({}))
+    else:
+        try:
+            zenoh.KeyExpr(f"{prefix.strip('/')}/pose")
+        except zenoh.ZError as err:
+            raise UsageError(f"--prefix {prefix}: not a key expression ({zenoh_reason(err)}); "
+                             "e.g. uwbd/robot1 or uwbd/*") from err
+        listen = uwbd_keys(prefix, args.status)
     try:
-        zenoh.KeyExpr(f"{prefix.strip('/')}/pose")
-    except zenoh.ZError as err:
-        raise UsageError(f"--prefix {prefix}: not a key expression ({zenoh_reason(err)}); "
-                         "e.g. uwbd/robot1 or uwbd/*") from err
-    try:
-        printed = echo(zcfg, prefix, args.status, args.count, args.timeout)
+        printed = echo(zcfg, listen, args.count, args.timeout)
     except EchoError as err:
         raise RunError(str(err)) from err
     if args.timeout is not None and printed == 0:
-        raise RunError(f"nothing received on {prefix}/{'status' if args.status else 'pose'} "
-                       f"in {args.timeout:g} s")
+        raise RunError(f"nothing received on {listen.key} in {args.timeout:g} s")
     return 0
+
+
+def _ros2_listen(args: argparse.Namespace, settings: Ros2Settings) -> Listen:
+    """``--ros2 [TOPIC]``: the topic's key on the settings' domain."""
+    if args.status or args.prefix:
+        raise UsageError("--ros2 prints a ROS 2 topic: without --status or --prefix (the "
+                         "diagnostics are the topic /diagnostics)")
+    missing = missing_extra()
+    if missing is not None:
+        raise UsageError(f"echo --ros2 needs the ros2 extra ({missing} is missing): "
+                         f"{EXTRA_HINT}")
+    topic = args.ros2 or settings.topics["pose"] or DEFAULT_TOPICS["pose"]
+    if not TOPIC_NAME.fullmatch(topic):
+        raise UsageError(f"--ros2 {topic}: not a ROS 2 topic name (e.g. /uwbd/pose, /tf)")
+    from uwbd.ros2.echo import ros2_topic
+
+    return ros2_topic(settings, topic)
 
 
 def _daemons_reach(zenoh_cfg: dict[str, Any], where: str) -> dict[str, Any]:

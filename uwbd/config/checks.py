@@ -1,8 +1,8 @@
 """The file as a whole: the :class:`Report` of problems and warnings, and the checks that
 go beyond one key's type and range: sources (unique names and devices, a UWB one), anchors
 (what the driver needs, apart, within 10 km), sigmas, the IMU (a proper mounting, plausible
-noise and full scale), the range model, and last the filter itself; the ``[zenoh]`` table's
-in :mod:`uwbd.config.zenoh_checks`."""
+noise and full scale), the range model, ROS 2's topic names, and last the filter itself;
+the ``[zenoh]`` table's in :mod:`uwbd.config.zenoh_checks`."""
 
 from __future__ import annotations
 
@@ -35,6 +35,7 @@ from uwbd.fusion.filter import MAX_ANCHOR_COORD_M, Filter
 from uwbd.fusion.models.range_model import n_coefficients
 from uwbd.fusion.policy.fusing import MAX_RANGE_BIAS_SIGMA_M
 from uwbd.fusion.settings import IDENTITY3
+from uwbd.ros2.settings import TOPIC_KEYS, settings_of
 
 
 class Report:
@@ -193,6 +194,24 @@ def check_fusion(r: Report, fusion: Mapping[str, Any], anchors: Mapping[int, Vec
             r.warn("fusion.max_range_m", f"{fusion['max_range_m']:g} m, less than the "
                    f"{spread:.1f} m between the farthest anchors: ranges across the site "
                    "are dropped")
+
+
+def check_ros2(r: Report, ros2: Mapping[str, Any], zenoh: Mapping[str, Any]) -> None:
+    """The ROS 2 topics go out on the Zenoh session: not without one; two roles on one topic
+    name would mix two types there."""
+    if not ros2.get("enabled", False):
+        return
+    if not zenoh.get("enabled", True):
+        r.error("ros2.enabled", "the ROS 2 topics go out over Zenoh, and zenoh.enabled is "
+                "false: enable Zenoh, or turn ros2.enabled off")
+    settings = settings_of(ros2, env={})
+    seen: dict[str, str] = {}
+    for role, name in settings.published.items():
+        key = TOPIC_KEYS[role]
+        if name in seen:
+            r.error(f"ros2.{key}", f"{show(ros2.get(key, name))} is {name}, as "
+                    f"ros2.{seen[name]} is: give each topic its own name")
+        seen.setdefault(name, key)
 
 
 MAX_TAG_TERM_M = 0.3  # an antenna's direction term is centimetres; more is not an antenna

@@ -17,6 +17,7 @@ from uwbd.fusion.models.range_model import RangeModel
 from uwbd.fusion.policy.health import HealthLimits
 from uwbd.fusion.policy.robust import RobustPolicy
 from uwbd.fusion.settings import IDENTITY3, FilterConfig, Mode
+from uwbd.ros2.settings import Ros2Settings, settings_of
 
 Vec3 = tuple[float, float, float]
 # [imu] key -> ImuNoise field
@@ -80,6 +81,7 @@ class Config:
     log: dict[str, Any] = field(default_factory=dict)
     zenoh: dict[str, Any] = field(default_factory=dict)
     robot: dict[str, Any] = field(default_factory=dict)
+    ros2: dict[str, Any] = field(default_factory=dict)
     text: str = ""  # the TOML as read, for the log
     warnings: tuple[str, ...] = ()  # "{file}: {key}: {what}", suspicious but not wrong
 
@@ -97,6 +99,12 @@ class Config:
     def body_frame_id(self) -> str:
         """The vehicle's frame's name (forward-left-up), child of the navigation frame."""
         return str(self.robot.get("body_frame_id", "base_link"))
+
+    @property
+    def ros2_settings(self) -> Ros2Settings:
+        """The ``[ros2]`` section's names and domain (the domain from ``ROS_DOMAIN_ID`` when
+        the section gives none)."""
+        return settings_of(self.ros2)
 
     @property
     def zenoh_prefix(self) -> str:

@@ -17,6 +17,7 @@ from uwbd.config.checks import (
     check_fusion,
     check_imu,
     check_range_model,
+    check_ros2,
     check_sources,
     mounting_rotation,
 )
@@ -90,6 +91,7 @@ def parse(text: str, where: str = "<config>") -> Config:
     check_range_model(r, tables["range_model"], fusion, anchors)
     check_imu(r, imu, lever)
     check_zenoh(r, zenoh)
+    check_ros2(r, tables["ros2"], zenoh)
     if r.errors:
         raise ConfigError(r.errors, r.warnings)
     config = Config(
@@ -100,7 +102,7 @@ def parse(text: str, where: str = "<config>") -> Config:
         imu_intrinsics={k: vec3(imu[k]) if k in IMU_INTRINSIC_VECTORS else float(imu[k])
                         for k in IMU_INTRINSIC_KEYS if k in imu},
         fusion=fusion, range_model=tables["range_model"], pipeline=tables["pipeline"],
-        log=tables["log"], zenoh=zenoh, robot=tables["robot"], text=text,
+        log=tables["log"], zenoh=zenoh, robot=tables["robot"], ros2=tables["ros2"], text=text,
         warnings=tuple(r.warnings))
     check_filter(r, config)  # a last net: what only the filter understands
     if r.errors:

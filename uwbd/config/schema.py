@@ -17,6 +17,7 @@ from uwbd.fusion.core.eskf import ImuNoise
 from uwbd.fusion.filter import MAX_ANCHOR_COORD_M
 from uwbd.fusion.models.range_model import MAX_DEGREE
 from uwbd.fusion.settings import Mode
+from uwbd.ros2.settings import DISTROS, MAX_DOMAIN_ID, NAMESPACE, NODE_NAME, TOPIC_KEYS, TOPIC_NAME
 
 
 def _is_number(v: object) -> bool:
@@ -159,6 +160,18 @@ FRAME_ID = Kind("a frame name of letters, digits, '_', '-', '.' and '/' (\"base_
                 and re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_./-]*", v) is not None)
 _ROBOT_SPEC = {"name": Key(NAME), "nav_frame_id": Key(FRAME_ID),
                "body_frame_id": Key(FRAME_ID)}
+# the daemon's ROS 2 topics (uwbd.ros2.settings: ROS 2's name rules)
+ROS_NODE = Kind("a ROS 2 node name of letters, digits and '_', not starting with a digit "
+                "(\"uwbd\")", lambda v: isinstance(v, str) and NODE_NAME.fullmatch(v) is not None)
+ROS_NAMESPACE = Kind("a ROS 2 namespace (\"/robot1\", or \"/\" for none)",
+                     lambda v: isinstance(v, str) and NAMESPACE.fullmatch(v) is not None)
+ROS_TOPIC = Kind("a ROS 2 topic name (\"uwbd/pose\", \"/tf\", \"~/imu\"; \"\" turns it off)",
+                 lambda v: isinstance(v, str) and (v == "" or TOPIC_NAME.fullmatch(v) is not None))
+_ROS2_SPEC = {"enabled": Key(BOOL),
+              "domain_id": Key(INTEGER, Range(0, MAX_DOMAIN_ID, lo_closed=True)),
+              "namespace": Key(ROS_NAMESPACE), "node_name": Key(ROS_NODE),
+              "distro": Key(STRING, choices=DISTROS),
+              **{key: Key(ROS_TOPIC) for key in TOPIC_KEYS.values()}}
 # the tag antenna's direction-dependent delay (uwbd.fusion.models.range_model), as
 # `uwbd calibrate-ranges` writes it
 _RANGE_MODEL_SPEC = {"tag_degree": Key(INTEGER, Range(0.0, MAX_DEGREE, lo_closed=True)),
@@ -166,9 +179,10 @@ _RANGE_MODEL_SPEC = {"tag_degree": Key(INTEGER, Range(0.0, MAX_DEGREE, lo_closed
                      "anchor_delays_m": Key(DELAYS), "calibrated_from": Key(STRING)}
 TABLES: dict[str, dict[str, Key]] = {
     "imu": _IMU_SPEC, "fusion": _FUSION_SPEC, "range_model": _RANGE_MODEL_SPEC,
-    "pipeline": _PIPELINE_SPEC, "log": _LOG_SPEC, "zenoh": _ZENOH_SPEC, "robot": _ROBOT_SPEC}
+    "pipeline": _PIPELINE_SPEC, "log": _LOG_SPEC, "zenoh": _ZENOH_SPEC, "robot": _ROBOT_SPEC,
+    "ros2": _ROS2_SPEC}
 SECTIONS = ("sources", "anchors", "imu", "fusion", "range_model", "pipeline", "log", "zenoh",
-            "robot")
+            "robot", "ros2")
 
 
 def anchor_id(key: str) -> int | None:

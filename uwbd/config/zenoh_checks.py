@@ -15,6 +15,7 @@ from uwbd.config.checks import Report
 from uwbd.config.model import Config
 from uwbd.config.schema import HOST_PORT_PROTOCOLS, HOSTNAME, ZENOH_PROTOCOLS
 from uwbd.config.spelling import known, show
+from uwbd.ros2.settings import EXTRA_HINT, EXTRA_MODULES, missing_extra
 
 
 def check_zenoh(r: Report, zenoh: Mapping[str, Any]) -> None:
@@ -167,9 +168,13 @@ def check_zenoh_file(r: Report, zcfg: Mapping[str, Any]) -> None:
 
 def host_problems(config: Config, where: str) -> list[str]:
     """What this machine lacks to run ``config`` (its Zenoh file and what that names), one
-    line each; nothing where Zenoh is off."""
+    line each, and the ``ros2`` extra when ``[ros2]`` is on; nothing where Zenoh is off."""
     r = Report(where)
     zcfg = config.zenoh
+    missing = missing_extra() if config.ros2_settings.enabled else None
+    if missing is not None:
+        r.error("ros2.enabled", f"the ROS 2 topics need the ros2 extra ({missing}, for "
+                f"{EXTRA_MODULES[missing]}, is missing): {EXTRA_HINT}")
     if not zcfg.get("enabled", True):
         return r.errors
     if "config" not in zcfg:  # (a TLS client needs nothing: it trusts the Web PKI's CAs)

@@ -17,6 +17,7 @@ import gc
 import signal
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import zenoh
 
@@ -37,6 +38,9 @@ from uwbd.service.ports import (
     make_reads,
 )
 from uwbd.service.zenohsink import ZenohSink
+
+if TYPE_CHECKING:
+    from uwbd.ros2.publisher import Ros2Sink
 
 ZENOH_RETRY_S = 5.0
 LOG = journal.get("daemon")
@@ -166,6 +170,7 @@ class ZenohLink:
         self.pipeline = pipeline
         self.loop = loop
         self.sink: ZenohSink | None = None
+        self.ros2: Ros2Sink | None = None
         self._next_try = loop.time()
         self._said = ""
         self._reach = effective(config.zenoh)  # (with its Zenoh file's keys)
@@ -189,11 +194,42 @@ class ZenohLink:
                           ZENOH_RETRY_S)
             self.pipeline.extra_status["zenoh"] = {"state": "not started", "error": reason}
             return
-        self.pipeline.add_sink(self.sink)
+        if c.ros2_settings.enabled:
+            self._start_ros2()
+        self.pipeline.add_sink(self.sink)  # after the ROS 2 sink: closed after it
         self.pipeline.extra_status["zenoh"] = {"state": "up", "error": ""}
         if self._said:
             LOG.info("zenoh started: publishing on %s/pose", self.sink.prefix)
         self._said = ""
+
+    def _start_ros2(self) -> None:
+        """The ROS 2 topics on the session just opened; if they cannot be declared, said,
+        and the JSON keys go on without them."""
+        from uwbd.ros2.publisher import Ros2Sink  # noqa: PLC0415 - the ros2 extra, when on
+
+        assert self.sink is not None
+        s = self.config.ros2_settings
+        try:
+            self.ros2 = Ros2Sink(self.sink.session, self.config)
+        except Exception as err:  # a ROS 2 problem never stops fusion, the log or Zenoh
+            reason = (zenoh_reason(err) if isinstance(err, zenoh.ZError)
+                      else f"{type(err).__name__}: {err}")
+            LOG.error("ROS 2 topics not started: %s; the poses go on as JSON on %s/pose",
+                      reason, self.sink.prefix)
+            self.pipeline.extra_status["ros2"] = {"state": "not started", "error": reason}
+            return
+        self.pipeline.add_sink(self.ros2)
+        LOG.info("ROS 2 over rmw_zenoh (%s): domain %d (%s), node %s, topics %s", s.distro,
+                 s.domain_id, s.domain_from, s.node_path, ", ".join(s.published.values()))
+        self._ros2_status()
+
+    def _ros2_status(self) -> None:
+        if self.ros2 is not None:
+            s = self.ros2.settings
+            self.pipeline.extra_status["ros2"] = {
+                "state": "up", "domain_id": s.domain_id,
+                "node": s.node_path,
+                "published": self.ros2.counts()}
 
     def watch(self) -> None:
         """Who the session reaches (routers, peers), in the status; where it is to reach a
@@ -201,6 +237,7 @@ class ZenohLink:
         ``disconnected`` and one line says so, and another when it is back."""
         if self.sink is None:
             return
+        self._ros2_status()
         error = ""
         try:
             info = self.sink.session.info

@@ -103,9 +103,10 @@ class LiveView:
 
 
 def run_demo(workdir: Path, duration_s: float | None, seed: int,
-             live: Callable[[Config], Sink] | None = None) -> int:
+             live: Callable[[Config], Sink] | None = None, ros2_router: str | None = None) -> int:
     """Run until ``duration_s`` or Ctrl-C; returns 0. ``live`` makes a sink from the demo's
-    config (``--foxglove``: the live server), which also gets the truth."""
+    config (``--foxglove``: the live server), which also gets the truth. ``ros2_router``:
+    the ROS 2 topics on too, the session connected to that router (``--ros2``)."""
     devices = [DeviceSpec("imu", "wit", DEMO_FAULTS), DeviceSpec("uwb", "nlink", DEMO_FAULTS)]
     scenario = CircleScenario(seed=seed)
     log_dir = Path(tempfile.gettempdir()) / "uwbd-demo"
@@ -124,6 +125,9 @@ def run_demo(workdir: Path, duration_s: float | None, seed: int,
                     "multipath_sigma_m": 0.0}, imu)
     text += (f'\n[zenoh]\nprefix = "{PREFIX}"\nlisten = ["unixsock-stream/{sock}"]\n'
              "multicast_scouting = false\n")
+    if ros2_router is not None:
+        text += f'connect = ["{ros2_router}"]\n\n[ros2]\nenabled = true\n'
+
     config = parse(text, "demo config")
     view = LiveView(scenario, config.nav_frame_id)
     extra: list[Sink] = [view]
@@ -139,6 +143,9 @@ def run_demo(workdir: Path, duration_s: float | None, seed: int,
     print(f"uwbd demo: emulated WitMotion IMU on {emu.ports['imu'].path}, Nooploop tag on "
           f"{emu.ports['uwb'].path}; the daemon fuses them. Ctrl-C to stop.\n"
           f"  follow it from another terminal: {echo_command(sock)}", flush=True)
+    if ros2_router is not None:
+        print(f"  as ROS 2 sees it: {echo_command(sock, ros2=True)} (or, with ROS 2 and its router "
+              f"on {ros2_router}: ros2 topic echo /uwbd/pose)", flush=True)
     try:
         emu.start()
         view.start_ns = time.time_ns()
@@ -165,8 +172,9 @@ def run_demo(workdir: Path, duration_s: float | None, seed: int,
     return 0
 
 
-def echo_command(sock: Path) -> str:
-    """The ``uwbd echo`` line that follows this demo, with the ``uwbd`` this one was
-    started as (``.venv/bin/uwbd`` after the README's install)."""
+def echo_command(sock: Path, ros2: bool = False) -> str:
+    """The ``uwbd echo`` line that follows this demo (``ros2``: its ROS 2 pose topic), with
+    the ``uwbd`` this one was started as (``.venv/bin/uwbd`` after the README's install)."""
     me = sys.argv[0] if Path(sys.argv[0]).name == "uwbd" else f"{sys.executable} -m uwbd"
-    return f"{me} echo --prefix {PREFIX} --connect {shlex.quote(f'unixsock-stream/{sock}')}"
+    what = "--ros2" if ros2 else f"--prefix {PREFIX}"
+    return f"{me} echo {what} --connect {shlex.quote(f'unixsock-stream/{sock}')}"

@@ -17,9 +17,12 @@ import contextlib
 import json
 import queue
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import zenoh
+import zenoh.ext
 
 from uwbd import journal
 from uwbd.config.zenoh_session import session_config, zenoh_reason
@@ -43,18 +46,43 @@ def dial_endpoints(listen: list[str]) -> list[str]:
     return out
 
 
-def echo(zcfg: dict[str, Any], prefix: str, status: bool, count: int | None,
+@dataclass(frozen=True)
+class Listen:
+    """What to print: the key to subscribe to, a line per sample (its key, payload and
+    attachment), what to say when nothing arrives (the session, how it was reached), and
+    whether to ask the key's queryable first, or the publishers' caches."""
+
+    key: str
+    line: Callable[[str, bytes, bytes | None], str]
+    quiet: Callable[[zenoh.Session, str], None]
+    query_first: bool = False
+    history: bool = False  # also what publishers with a cache hold (a latched /tf_static)
+
+
+def uwbd_keys(prefix: str, status: bool) -> Listen:
+    """uwbd's own JSON keys: ``<prefix>/pose`` or ``<prefix>/status``."""
+    key = f"{prefix.strip('/')}/{'status' if status else 'pose'}"
+    show_key = "*" in key
+
+    def line(sample_key: str, payload: bytes, _attachment: bytes | None) -> str:
+        text = _line(payload, status)
+        return f"{sample_key}  {text}" if show_key else text
+    return Listen(key, line, lambda session, where: _say_what_is_there(session, key, where),
+                  query_first=status)
+
+
+def echo(zcfg: dict[str, Any], listen: Listen, count: int | None,
          timeout_s: float | None) -> int:
     """Print samples until ``count`` were printed, ``timeout_s`` passed, or Ctrl-C.
     Returns how many were printed."""
-    key = f"{prefix.strip('/')}/{'status' if status else 'pose'}"
-    show_key = "*" in key
-    inbox: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=1000)
+    key = listen.key
+    inbox: queue.Queue[tuple[str, bytes, bytes | None]] = queue.Queue(maxsize=1000)
 
     def on_sample(sample: zenoh.Sample) -> None:  # a Zenoh thread: hand off, nothing more
+        attachment = None if sample.attachment is None else sample.attachment.to_bytes()
         # the printer is behind: dropping beats blocking Zenoh's receive thread
         with contextlib.suppress(queue.Full):
-            inbox.put_nowait((str(sample.key_expr), sample.payload.to_bytes()))
+            inbox.put_nowait((str(sample.key_expr), sample.payload.to_bytes(), attachment))
 
     where = ", ".join(zcfg.get("connect", [])) or "peers found by multicast scouting"
     try:
@@ -68,28 +96,33 @@ def echo(zcfg: dict[str, Any], prefix: str, status: bool, count: int | None,
     deadline = None if timeout_s is None else started + timeout_s
     said_quiet = False
     try:
-        subscriber = session.declare_subscriber(key, on_sample)
-        if status:  # the current status right away, from the queryable
+        subscriber: Any
+        if listen.history:  # as a transient-local ROS 2 subscription (rmw_zenoh)
+            subscriber = zenoh.ext.declare_advanced_subscriber(
+                session, key, on_sample, subscriber_detection=True,
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1))
+        else:
+            subscriber = session.declare_subscriber(key, on_sample)
+        if listen.query_first:  # the current status right away, from the queryable
             for reply in session.get(key, timeout=2.0):
                 if reply.ok is not None:
-                    inbox.put_nowait((str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
+                    inbox.put_nowait((str(reply.ok.key_expr), reply.ok.payload.to_bytes(), None))
         while count is None or printed < count:
             wait = 0.2 if deadline is None else min(0.2, deadline - time.monotonic())
             if wait <= 0:
                 break
             try:
-                sample_key, payload = inbox.get(timeout=wait)
+                sample_key, payload, attachment = inbox.get(timeout=wait)
             except queue.Empty:
                 if not said_quiet and time.monotonic() - last >= QUIET_AFTER_S:
                     said_quiet = True
-                    _say_what_is_there(session, key, where)
+                    listen.quiet(session, where)
                 continue
             last = time.monotonic()
             if said_quiet:
                 said_quiet = False
                 LOG.info("receiving on %s", sample_key)
-            line = _line(payload, status)
-            print(f"{sample_key}  {line}" if show_key else line, flush=True)
+            print(listen.line(sample_key, payload, attachment), flush=True)
             printed += 1
         subscriber.undeclare()
     except KeyboardInterrupt:

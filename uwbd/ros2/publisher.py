@@ -1,0 +1,164 @@
+"""The daemon's live ROS 2 topics (``[ros2] enabled``): a pipeline sink that publishes, on
+the daemon's own Zenoh session, what a ROS 2 node running rmw_zenoh subscribes to, so
+``ros2 topic echo /uwbd/pose`` sees the poses with no bridge and no ROS 2 on the robot.
+
+- one node (``[ros2] node_name`` in ``namespace``) and a publisher per topic that is on, each
+  with its liveliness token (design.md, "Graph Cache"): ``ros2 node list`` and ``ros2 topic
+  list`` see them;
+- each sample is the message's CDR on the topic's key (design.md, "Topic and Service name
+  mapping"), with the 33-byte attachment ("Publishers"): its publisher's sequence number
+  from 1, the wall clock at publishing, the publisher's GID;
+- QoS as a ROS 2 node offers it: reliable, volatile, keep last 10; ``/tf_static`` transient
+  local, depth 1, as tf2's static broadcaster: rmw_zenoh's advanced publisher with a
+  one-sample cache, publisher detection and sporadic heartbeats (``rmw_publisher_data.cpp``),
+  so a late subscriber still gets the transforms;
+- the pose, odometry and transform at every pose, each IMU sample as it is read, the
+  diagnostics with every status (once a second), the static transforms once at start.
+
+Puts never block (congestion control DROP, as rmw_zenoh's volatile publishers): a slow
+subscriber cannot stall fusion. The messages are :mod:`uwbd.ros2.messages`, the names
+:mod:`uwbd.ros2.rmw_zenoh`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+import zenoh.ext
+
+from drivers.frames import Frame, ImuSample
+from uwbd.config import Config
+from uwbd.fusion.policy.health import health_from_dict
+from uwbd.fusion.types import Pose
+from uwbd.ros2 import rmw_zenoh as rz
+from uwbd.ros2.messages import (
+    TYPES,
+    TYPESTORE,
+    FrameIds,
+    diagnostics_msg,
+    imu_msg,
+    imu_variances,
+    odometry_msg,
+    pose_msg,
+    static_tf_msg,
+    tf_msg,
+)
+from uwbd.ros2.settings import NO_TYPE_HASH
+
+NODE_ID = 0  # the node's id in its context; its publishers' ids follow from 1
+STREAM_QOS = rz.Qos(depth=10)
+STATIC_QOS = rz.Qos(durability=rz.TRANSIENT_LOCAL, depth=1)
+HEARTBEAT_S = 0.5  # rmw_zenoh's SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD (ms → s)
+RATE_SAMPLES = 64  # IMU samples timed before their covariances are filled in
+
+
+class Topic:
+    """One ROS 2 publisher: its key, liveliness token, GID and sequence numbers."""
+
+    def __init__(self, session: zenoh.Session, key: str, token: str, qos: rz.Qos,
+                 msgtype: str, clock_ns: Callable[[], int]) -> None:
+        self.key, self.token, self.msgtype = key, token, msgtype
+        self.gid = rz.gid(token)
+        self.sent = 0  # the last sequence number used
+        self._clock_ns = clock_ns
+        self.publisher: Any
+        if qos.durability == rz.TRANSIENT_LOCAL:
+            self.publisher = zenoh.ext.declare_advanced_publisher(
+                session, key, cache=zenoh.ext.CacheConfig(max_samples=qos.depth),
+                publisher_detection=True,
+                sample_miss_detection=zenoh.ext.MissDetectionConfig(
+                    heartbeat=None, sporadic_heartbeat=HEARTBEAT_S),
+                reliability=zenoh.Reliability.RELIABLE,
+                congestion_control=zenoh.CongestionControl.DROP)
+        else:
+            self.publisher = session.declare_publisher(
+                key, reliability=zenoh.Reliability.RELIABLE,
+                congestion_control=zenoh.CongestionControl.DROP)
+        # as rmw_zenoh: the publisher first, then the token that announces it
+        self.liveliness: Any = session.liveliness().declare_token(token)
+
+    def put(self, msg: object) -> None:
+        self.sent += 1
+        self.publisher.put(bytes(TYPESTORE.serialize_cdr(msg, self.msgtype)),
+                           attachment=rz.attachment(self.sent, self._clock_ns(), self.gid))
+
+    def close(self) -> None:
+        self.liveliness.undeclare()
+        self.publisher.undeclare()
+
+
+class Ros2Sink:
+    """The pipeline sink of the ROS 2 topics, on a Zenoh session it does not own (closed
+    before it)."""
+
+    def __init__(self, session: zenoh.Session, config: Config,
+                 clock_ns: Callable[[], int] = time.time_ns) -> None:
+        s = config.ros2_settings
+        self.settings = s
+        self.config = config
+        self.frames = FrameIds.of(config)
+        self.hardware_id = config.robot_name
+        self.error = ""
+        zid = str(session.info.zid())
+        self.node_token = rz.node_token(s.domain_id, zid, NODE_ID, s.namespace, s.node_name)
+        self._node: Any = session.liveliness().declare_token(self.node_token)
+        self.topics: dict[str, Topic] = {}
+        try:
+            for entity_id, (role, name) in enumerate(s.published.items(), start=1):
+                msgtype = TYPES[role]
+                dds_type = rz.dds_type_name(msgtype)
+                hash_ = (rz.NO_TYPE_HASH if s.distro in NO_TYPE_HASH
+                         else TYPESTORE.hash_rihs01(msgtype))
+                qos = STATIC_QOS if role == "tf_static" else STREAM_QOS
+                self.topics[role] = Topic(
+                    session, rz.topic_key(s.domain_id, name, dds_type, hash_),
+                    rz.publisher_token(s.domain_id, zid, NODE_ID, entity_id, s.namespace,
+                                       s.node_name, name, dds_type, hash_, qos),
+                    qos, msgtype, clock_ns)
+        except BaseException:
+            self.close()
+            raise
+        self._imu_times: list[int] = []
+        self._imu_var = (0.0, 0.0)  # unknown until the IMU's rate is
+        self._pose_roles = [r for r in ("pose", "odom", "tf") if r in self.topics]
+        if "tf_static" in self.topics:
+            self.topics["tf_static"].put(static_tf_msg(clock_ns(), config, self.frames))
+
+    def raw(self, source: str, t_ns: int, data: bytes) -> None:
+        """Raw bytes stay in the log."""
+
+    def frame(self, frame: Frame) -> None:
+        if type(frame) is not ImuSample or "imu" not in self.topics:
+            return
+        if len(self._imu_times) < RATE_SAMPLES:
+            self._imu_times.append(frame.t_ns)
+            if len(self._imu_times) == RATE_SAMPLES:
+                self._imu_var = imu_variances(self.config, self._imu_times)
+        self.topics["imu"].put(imu_msg(frame, self.frames, *self._imu_var))
+
+    def pose(self, pose: Pose) -> None:
+        make = {"pose": pose_msg, "odom": odometry_msg, "tf": tf_msg}
+        for role in self._pose_roles:
+            self.topics[role].put(make[role](pose, self.frames))
+
+    def status(self, t_ns: int, status: dict[str, Any]) -> None:
+        """The diagnostics: the filter's health now (which the status holds)."""
+        if "diagnostics" in self.topics:
+            health = health_from_dict(status.get("health") or {})
+            self.topics["diagnostics"].put(diagnostics_msg(t_ns, health, self.hardware_id))
+
+    def counts(self) -> dict[str, int]:
+        """Samples published, by fully qualified topic name."""
+        names = self.settings.published
+        return {names[role]: topic.sent for role, topic in self.topics.items()}
+
+    def close(self) -> None:
+        topics, self.topics = self.topics, {}
+        for topic in topics.values():
+            topic.close()
+        node, self._node = self._node, None
+        if node is not None:
+            node.undeclare()
