@@ -614,7 +614,7 @@ def test_load_applies_overrides(tmp_path: Path) -> None:
     ("fusion.zupt=", "--set fusion.zupt=: no value after ="),
     ("fusoin.zupt=true", "--set fusoin.zupt=true: unknown section 'fusoin' (did you mean fusion? "
                          "known: sources, anchors, imu, fusion, range_model, pipeline, log, "
-                         "zenoh, robot)"),
+                         "zenoh, robot, ros2)"),
     ("fusion=true", "--set fusion=true: expected fusion.<key>=value"),
     ("fusion.zupy=true", "--set fusion.zupy=true: unknown key fusion.zupy (did you mean zupt?"),
     ("fusion.range_sigma_m=0,2", "--set fusion.range_sigma_m=0,2: not a TOML value (Expected "

@@ -199,9 +199,7 @@ def check_fusion(r: Report, fusion: Mapping[str, Any], anchors: Mapping[int, Vec
 def check_ros2(r: Report, ros2: Mapping[str, Any], zenoh: Mapping[str, Any]) -> None:
     """The ROS 2 topics go out on the Zenoh session: not without one; two roles on one topic
     name would mix two types there."""
-    if not ros2.get("enabled", False):
-        return
-    if not zenoh.get("enabled", True):
+    if ros2.get("enabled", False) and not zenoh.get("enabled", True):
         r.error("ros2.enabled", "the ROS 2 topics go out over Zenoh, and zenoh.enabled is "
                 "false: enable Zenoh, or turn ros2.enabled off")
     settings = settings_of(ros2, env={})
