@@ -16,7 +16,8 @@
   log, the replay), as a user runs it.
 
 Each figure is taken twice in the same run, on the C core and on the pure-Python reference
-(``UWBD_PURE_PYTHON=1``), and their ratio printed.
+(``UWBD_PURE_PYTHON=1``), and their ratio printed; the live one a third time with the
+ROS 2 topics on (``[ros2] enabled``, a subscriber taking every sample), and what they add.
 Everything stays on this machine: Zenoh on a unix socket, no scouting.
 """
 
@@ -90,8 +91,11 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def live(seconds: float, run: int, pure: bool) -> tuple[float, float, float, float]:
-    """One live measurement; prints it and returns (p50 ms, p99 ms, CPU %, RSS MB)."""
+def live(seconds: float, run: int, pure: bool, ros2: bool = False
+         ) -> tuple[float, float, float, float]:
+    """One live measurement; prints it and returns (p50 ms, p99 ms, CPU %, RSS MB).
+    ``ros2``: the daemon also publishes its ROS 2 topics, which a subscriber here takes as a
+    ROS 2 node would (so that they are sent, not dropped for want of one)."""
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         sock = tmp / "z.sock"
@@ -108,7 +112,8 @@ def live(seconds: float, run: int, pure: bool) -> tuple[float, float, float, flo
             while not (tmp / "imu").exists() or not (tmp / "uwb").exists():
                 time.sleep(0.05)
             cfg = tmp / "cfg.toml"
-            cfg.write_text(config_text(str(tmp / "imu"), str(tmp / "uwb"), sock))
+            cfg.write_text(config_text(str(tmp / "imu"), str(tmp / "uwb"), sock)
+                           + ("\n[ros2]\nenabled = true\n" if ros2 else ""))
             env = {k: v for k, v in os.environ.items() if k != native.PURE_PYTHON_ENV}
             if pure:
                 env[native.PURE_PYTHON_ENV] = "1"
@@ -131,6 +136,12 @@ def live(seconds: float, run: int, pure: bool) -> tuple[float, float, float, flo
                 phase[0] = pose["health"]["phase"]
 
             sub = session.declare_subscriber("uwbd/bench/pose", on_pose)
+            ros_samples = [0]
+
+            def on_ros(_sample: zenoh.Sample) -> None:
+                ros_samples[0] += 1
+
+            ros_sub = session.declare_subscriber("0/**", on_ros) if ros2 else None
             # start-up (imports, first fix, the heading told by the drive off) is not the
             # steady state: measured once tracking
             deadline = time.monotonic() + REST_S + 20.0
@@ -143,11 +154,15 @@ def live(seconds: float, run: int, pure: bool) -> tuple[float, float, float, flo
             latencies.clear()
             cpu0, t0 = cpu_seconds(daemon.pid), time.monotonic()
             threads0 = thread_cpu_seconds(daemon.pid)
+            ros0 = ros_samples[0]
             time.sleep(seconds)
             cpu1, t1 = cpu_seconds(daemon.pid), time.monotonic()
             threads1 = thread_cpu_seconds(daemon.pid)
+            ros_rate = (ros_samples[0] - ros0) / (t1 - t0)
             rss = rss_mb(daemon.pid)
             sub.undeclare()
+            if ros_sub is not None:
+                ros_sub.undeclare()
         finally:
             if session is not None:
                 session.close()
@@ -158,10 +173,12 @@ def live(seconds: float, run: int, pure: bool) -> tuple[float, float, float, flo
         lat_ms = np.array(latencies) / 1e6
         p50, p99 = np.percentile(lat_ms, 50), np.percentile(lat_ms, 99)
         cpu = 100 * (cpu1 - cpu0) / (t1 - t0)
-        print(f"live run {run} ({'pure Python' if pure else 'C core'}), {seconds:.0f} s: "
+        name = ("pure Python" if pure else "C core") + (" + ROS 2 topics" if ros2 else "")
+        print(f"live run {run} ({name}), {seconds:.0f} s: "
               "serial read -> Zenoh receive "
               f"p50 {p50:.2f} ms, p99 {p99:.2f} ms, max {lat_ms.max():.2f} ms over "
-              f"{len(lat_ms)} poses; daemon CPU {cpu:.1f} % of one core, RSS {rss:.0f} MB")
+              f"{len(lat_ms)} poses; daemon CPU {cpu:.2f} % of one core, RSS {rss:.0f} MB"
+              + (f"; ROS 2 samples received {ros_rate:.0f}/s" if ros2 else ""))
         shares = sorted(((100 * (c - threads0.get(name, 0.0)) / (t1 - t0), name)
                          for name, c in threads1.items()), reverse=True)
         print("  by thread (% of one core): " + ", ".join(
@@ -245,29 +262,43 @@ def main() -> None:
     ap.add_argument("--replay-s", type=float, default=586.0,
                     help="length of the replayed log (the default path repeated)")
     ap.add_argument("--replay-only", action="store_true", help="skip the live runs")
+    ap.add_argument("--ros2-only", action="store_true",
+                    help="only the live runs with and without the ROS 2 topics (C core)")
     args = ap.parse_args()
     if not args.replay_only:
         print("the floor: an empty asyncio loop woken by another process, "
               + ", ".join(f"{hz} times a second {wakeup_floor(hz):.2f} % CPU"
                           for hz in (60, 200)))
-        live_runs(args.runs, args.seconds)
-    replay_speed(args.replay_s)
+        live_runs(args.runs, args.seconds, args.ros2_only)
+    if not args.ros2_only:
+        replay_speed(args.replay_s)
 
 
-def live_runs(count: int, seconds: float) -> None:
+def live_runs(count: int, seconds: float, only_ros2: bool = False) -> None:
     print("live: 200 Hz WitMotion IMU + 10 Hz Nooploop tag (6 anchors) on ptys")
-    medians = {}
-    # alternated run by run, so that drifts of a shared VM hit both alike
-    runs: dict[bool, list[tuple[float, float, float, float]]] = {False: [], True: []}
+    # (pure Python, ROS 2 topics) of each variant; alternated run by run, so that drifts of a
+    # shared VM hit all alike
+    variants = [(False, False), (False, True)] if only_ros2 else [
+        (False, False), (True, False), (False, True)]
+    runs: dict[tuple[bool, bool], list[tuple[float, float, float, float]]] = {
+        v: [] for v in variants}
     for k in range(count):
-        for pure in (False, True):
-            runs[pure].append(live(seconds, k + 1, pure))
-    for pure in (False, True):
-        medians[pure] = np.median(np.array(runs[pure]), axis=0)
-        p50, p99, cpu, rss = medians[pure]
-        print(f"live, {'pure Python' if pure else 'C core'}, median of {count}: "
-              f"p50 {p50:.2f} ms, p99 {p99:.2f} ms, CPU {cpu:.1f} %, RSS {rss:.0f} MB")
-    print(f"  CPU, C core / pure Python: {medians[False][2] / medians[True][2]:.2f}")
+        for pure, ros2 in variants:
+            runs[(pure, ros2)].append(live(seconds, k + 1, pure, ros2))
+    medians = {}
+    for (pure, ros2), results in runs.items():
+        medians[(pure, ros2)] = np.median(np.array(results), axis=0)
+        p50, p99, cpu, rss = medians[(pure, ros2)]
+        name = ("pure Python" if pure else "C core") + (" + ROS 2 topics" if ros2 else "")
+        print(f"live, {name}, median of {count}: "
+              f"p50 {p50:.2f} ms, p99 {p99:.2f} ms, CPU {cpu:.2f} %, RSS {rss:.0f} MB")
+    if (True, False) in medians:
+        print(f"  CPU, C core / pure Python: "
+              f"{medians[(False, False)][2] / medians[(True, False)][2]:.2f}")
+    added = [with_ros[2] - plain[2] for plain, with_ros in zip(
+        runs[(False, False)], runs[(False, True)], strict=True)]
+    print(f"  CPU the ROS 2 topics add (run by run, % of one core): "
+          f"{', '.join(f'{a:+.2f}' for a in added)}; median {np.median(added):+.2f}")
 
 
 if __name__ == "__main__":

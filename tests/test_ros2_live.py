@@ -21,14 +21,28 @@ import pytest
 import xxhash
 import zenoh
 import zenoh.ext
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from procs import one_line, uwbd
 from rosbags.typesys import Stores, get_typestore
 
 from drivers.emulator import DeviceSpec, Emulator, Faults
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
+from drivers.frames import ImuSample
 from uwbd.config import ConfigError, parse
+from uwbd.fusion.types import Pose
 from uwbd.ros2 import rmw_zenoh as rz
 from uwbd.ros2.bag import write_bag
+from uwbd.ros2.messages import (
+    TYPESTORE,
+    FrameIds,
+    imu_msg,
+    imu_values,
+    odometry_msg,
+    pose_msg,
+    tf_msg,
+)
+from uwbd.ros2.publisher import imu_layout, pose_layouts
 from uwbd.ros2.settings import settings_of
 
 # a store of its own (Jazzy's), not uwbd's: the hashes and the decoding are checked against it
@@ -82,8 +96,9 @@ def test_gid_and_attachment_are_laid_out_as_rmw_zenoh_lays_them() -> None:
     """The GID: XXH3-128 of the token, low 64 bits then high, little-endian (xxHash's
     reference value of the empty input); the attachment: 33 bytes ("Publishers")."""
     assert rz.gid("") == bytes.fromhex("7f498d4624c30160d8984701d306aa99")
-    gid = rz.gid("@ros2_lv/0/x/0/1/MP/%/%/uwbd/%uwbd%pose/t/h/::,10:,:,:,,")
-    assert len(gid) == 16 and gid == rz.gid("@ros2_lv/0/x/0/1/MP/%/%/uwbd/%uwbd%pose/t/h/::,10:,:,:,,")
+    token = "@ros2_lv/0/x/0/1/MP/%/%/uwbd/%uwbd%pose/t/h/::,10:,:,:,,"
+    gid = rz.gid(token)
+    assert len(gid) == 16 and gid == rz.gid(token)
     data = rz.attachment(1, 1_700_000_000_123_456_789, gid)
     assert len(data) == 33
     assert data[:8] == (1).to_bytes(8, "little") and data[16] == 16 and data[17:] == gid
@@ -122,8 +137,6 @@ def test_domain_comes_from_the_section_then_ros_domain_id() -> None:
 
 def test_the_bag_takes_the_sections_names(tmp_path: Path) -> None:
     from rosbags.rosbag2 import Reader  # noqa: PLC0415
-
-    from drivers.frames import ImuSample  # noqa: PLC0415
 
     config = parse('[ros2]\nnamespace = "/r1"\npose_topic = "pose"\nimu_topic = ""\n'
                    'diagnostics_topic = "~/health"\n')
@@ -395,3 +408,32 @@ def test_echo_ros2_decodes_what_the_daemon_publishes(live: dict[str, Any]) -> No
     static = live["echo_static"]
     assert static.returncode == 0, static.stderr
     assert static.stdout.startswith("/tf_static #1 ") and "base_link→base_link_imu" in static.stdout
+
+
+# -- the packed CDR, against rosbags ---------------------------------------------------------
+
+FLOATS = st.floats(allow_nan=True, allow_infinity=True)
+FRAME = st.from_regex(r"[a-z_][a-z0-9_/]{0,12}", fullmatch=True)
+
+
+@settings(max_examples=150, deadline=None)
+@given(nav=FRAME, body=FRAME, t_ns=st.integers(0, 2**31 * 1_000_000_000 - 1),  # ROS's int32 seconds
+       position=st.tuples(*[FLOATS] * 3), velocity=st.tuples(*[FLOATS] * 3),
+       quat=st.tuples(*[st.floats(-1, 1)] * 4), cov=st.lists(FLOATS, min_size=36, max_size=36),
+       gyro=st.tuples(*[FLOATS] * 3), acc=st.tuples(*[FLOATS] * 3),
+       variances=st.tuples(st.floats(0, 1), st.floats(0, 1)))
+def test_packed_messages_are_rosbags_bytes(nav: str, body: str, t_ns: int, position: Any,
+                                           velocity: Any, quat: Any, cov: list[float],
+                                           gyro: Any, acc: Any, variances: Any) -> None:
+    """What the live topics send is what rosbags serialises, byte for byte, for any numbers
+    and frame names (their lengths move the padding)."""
+    frames = FrameIds(nav, body)
+    pose = Pose(t_ns, position, velocity, quat, tuple(cov), "", True)
+    with np.errstate(all="ignore"):  # infinite velocities make NaN body velocities: as rosbags
+        for role, (layout, values) in pose_layouts(frames).items():
+            msg = {"pose": pose_msg, "odom": odometry_msg, "tf": tf_msg}[role](pose, frames)
+            assert layout.pack(t_ns, values(pose)) == bytes(
+                TYPESTORE.serialize_cdr(msg, msg.__msgtype__)), role
+    sample = ImuSample(t_ns, acc, gyro)
+    assert imu_layout(frames).pack(t_ns, imu_values(sample, *variances)) == bytes(
+        TYPESTORE.serialize_cdr(imu_msg(sample, frames, *variances), "sensor_msgs/msg/Imu"))

@@ -26,7 +26,10 @@ def cmd_check_config(args: argparse.Namespace) -> int:
     if problems:
         raise UsageError("\n".join(problems))
     ports = ", ".join(f"{s.name}={s.driver}@{s.port}" for s in config.sources) or "no sources"
-    mode = config.filter_config().mode.value
-    print(f"{args.config}: ok ({ports}; {len(config.anchors_m)} anchors; {mode} fusion"
+    what = f"{config.filter_config().mode.value} fusion"
+    ros2 = config.ros2_settings
+    if ros2.enabled:
+        what += f"; ROS 2 topics on domain {ros2.domain_id} ({ros2.domain_from})"
+    print(f"{args.config}: ok ({ports}; {len(config.anchors_m)} anchors; {what}"
           + (f"; {len(config.warnings)} warning(s) above)" if config.warnings else ")"))
     return 0

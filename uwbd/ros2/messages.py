@@ -40,7 +40,7 @@ from rosbags.typesys.stores import ros2_humble as msgs
 
 from drivers.frames import ImuSample
 from uwbd.config import Config
-from uwbd.fusion.core.rotation import quat_from_matrix, quat_to_matrix
+from uwbd.fusion.core.rotation import quat_from_matrix
 from uwbd.fusion.policy.health import Health, Phase
 from uwbd.fusion.types import Pose
 
@@ -73,6 +73,10 @@ TYPES = {"pose": PoseWithCovarianceStamped.__msgtype__, "odom": Odometry.__msgty
          "imu": Imu.__msgtype__, "tf": TFMessage.__msgtype__,
          "tf_static": TFMessage.__msgtype__, "diagnostics": DiagnosticArray.__msgtype__,
          "truth": PoseStamped.__msgtype__}
+# unknown, as ROS marks it: uwbd's poses carry no velocity covariance, its IMU no orientation
+TWIST_COVARIANCE = (-1.0,) + (0.0,) * 35
+NO_ORIENTATION = (0.0, 0.0, 0.0, 1.0)
+NO_ORIENTATION_COVARIANCE = (-1.0,) + (0.0,) * 8
 IMU_SUFFIX = "_imu"  # the IMU's frame: <body_frame_id>_imu, the sensor's own axes
 ANTENNA_SUFFIX = "_uwb"  # the UWB antenna's frame: <body_frame_id>_uwb
 
@@ -131,10 +135,15 @@ def _pose_with_covariance(pose: Pose) -> PoseWithCovariance:
 
 
 def body_velocity(pose: Pose) -> tuple[float, float, float]:
-    """The pose's ENU velocity in the body frame: ``R(q)ᵀ v_n``."""
+    """The pose's ENU velocity in the body frame: ``R(q)ᵀ v_n``, the columns of
+    :func:`~uwbd.fusion.core.rotation.quat_to_matrix` dotted with ``v_n`` (in plain floats:
+    made at every pose, where numpy's arrays cost more than the sums)."""
     x, y, z, w = pose.orientation_xyzw
-    v = quat_to_matrix(np.array([w, x, y, z])).T @ np.array(pose.velocity_mps)
-    return (float(v[0]), float(v[1]), float(v[2]))
+    a, b, c = pose.velocity_mps
+    xx, yy, zz = 1 - 2 * (y * y + z * z), 1 - 2 * (x * x + z * z), 1 - 2 * (x * x + y * y)
+    return (float(xx * a + 2 * (x * y + w * z) * b + 2 * (x * z - w * y) * c),
+            float(2 * (x * y - w * z) * a + yy * b + 2 * (y * z + w * x) * c),
+            float(2 * (x * z + w * y) * a + 2 * (y * z - w * x) * b + zz * c))
 
 
 def pose_msg(pose: Pose, frames: FrameIds) -> PoseWithCovarianceStamped:
@@ -143,14 +152,12 @@ def pose_msg(pose: Pose, frames: FrameIds) -> PoseWithCovarianceStamped:
 
 
 def odometry_msg(pose: Pose, frames: FrameIds) -> Odometry:
-    twist_cov = np.zeros(36)
-    twist_cov[0] = -1.0  # unknown: uwbd's poses carry no velocity covariance
     return Odometry(
         header=_header(pose.t_ns, frames.nav), child_frame_id=frames.body,
         pose=_pose_with_covariance(pose),
         twist=TwistWithCovariance(twist=Twist(linear=_vector(body_velocity(pose)),
                                               angular=_vector((0.0, 0.0, 0.0))),
-                                  covariance=twist_cov))
+                                  covariance=np.array(TWIST_COVARIANCE)))
 
 
 def tf_msg(pose: Pose, frames: FrameIds) -> TFMessage:
@@ -189,14 +196,36 @@ def imu_variances(config: Config, sample_times_ns: Sequence[int]) -> tuple[float
 
 def imu_msg(sample: ImuSample, frames: FrameIds, gyro_var: float = 0.0,
             acc_var: float = 0.0) -> Imu:
-    orientation_cov = np.zeros(9)
-    orientation_cov[0] = -1.0  # no orientation
-    return Imu(header=_header(sample.t_ns, frames.imu), orientation=_quat((0.0, 0.0, 0.0, 1.0)),
-               orientation_covariance=orientation_cov,
+    return Imu(header=_header(sample.t_ns, frames.imu), orientation=_quat(NO_ORIENTATION),
+               orientation_covariance=np.array(NO_ORIENTATION_COVARIANCE),
                angular_velocity=_vector(sample.gyro_rps),
-               angular_velocity_covariance=np.diag([gyro_var] * 3).ravel(),
+               angular_velocity_covariance=np.array(_diagonal(gyro_var)),
                linear_acceleration=_vector(sample.acc_mps2),
-               linear_acceleration_covariance=np.diag([acc_var] * 3).ravel())
+               linear_acceleration_covariance=np.array(_diagonal(acc_var)))
+
+
+def _diagonal(variance: float) -> tuple[float, ...]:
+    return (variance, 0.0, 0.0, 0.0, variance, 0.0, 0.0, 0.0, variance)
+
+
+# -- the numbers of each message, in its order (uwbd.ros2.cdr packs them) ---------------------
+
+
+def pose_values(pose: Pose) -> tuple[float, ...]:
+    return (*pose.position_m, *pose.orientation_xyzw, *pose.covariance)
+
+
+def odometry_values(pose: Pose) -> tuple[float, ...]:
+    return (*pose_values(pose), *body_velocity(pose), 0.0, 0.0, 0.0, *TWIST_COVARIANCE)
+
+
+def tf_values(pose: Pose) -> tuple[float, ...]:
+    return (*pose.position_m, *pose.orientation_xyzw)
+
+
+def imu_values(sample: ImuSample, gyro_var: float, acc_var: float) -> tuple[float, ...]:
+    return (*NO_ORIENTATION, *NO_ORIENTATION_COVARIANCE, *sample.gyro_rps,
+            *_diagonal(gyro_var), *sample.acc_mps2, *_diagonal(acc_var))
 
 
 def diagnostics_msg(t_ns: int, h: Health, hardware_id: str) -> DiagnosticArray:

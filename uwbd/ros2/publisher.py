@@ -22,8 +22,9 @@ subscriber cannot stall fusion. The messages are :mod:`uwbd.ros2.messages`, the 
 
 from __future__ import annotations
 
+import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import zenoh
@@ -34,17 +35,22 @@ from uwbd.config import Config
 from uwbd.fusion.policy.health import health_from_dict
 from uwbd.fusion.types import Pose
 from uwbd.ros2 import rmw_zenoh as rz
+from uwbd.ros2.cdr import FixedLayout, layout_of
 from uwbd.ros2.messages import (
     TYPES,
     TYPESTORE,
     FrameIds,
     diagnostics_msg,
     imu_msg,
+    imu_values,
     imu_variances,
     odometry_msg,
+    odometry_values,
     pose_msg,
+    pose_values,
     static_tf_msg,
     tf_msg,
+    tf_values,
 )
 from uwbd.ros2.settings import NO_TYPE_HASH
 
@@ -80,14 +86,51 @@ class Topic:
         # as rmw_zenoh: the publisher first, then the token that announces it
         self.liveliness: Any = session.liveliness().declare_token(token)
 
-    def put(self, msg: object) -> None:
+    def put(self, payload: bytes) -> None:
         self.sent += 1
-        self.publisher.put(bytes(TYPESTORE.serialize_cdr(msg, self.msgtype)),
-                           attachment=rz.attachment(self.sent, self._clock_ns(), self.gid))
+        self.publisher.put(payload, attachment=rz.attachment(self.sent, self._clock_ns(),
+                                                             self.gid))
+
+    def put_message(self, msg: object) -> None:
+        self.put(bytes(TYPESTORE.serialize_cdr(msg, self.msgtype)))
 
     def close(self) -> None:
         self.liveliness.undeclare()
         self.publisher.undeclare()
+
+
+Values = Callable[[Pose], Sequence[float]]
+
+
+def _serializer(msgtype: str, msg_of: Callable[[Any], object]) -> Callable[[Any], bytes]:
+    return lambda obj: bytes(TYPESTORE.serialize_cdr(msg_of(obj), msgtype))
+
+
+def _probe_pose(t_ns: int) -> Pose:
+    """A pose of distinct numbers, for learning the layouts (a unit quaternion, since the
+    odometry rotates its velocity by it)."""
+    w = math.sqrt(1 - 0.1 ** 2 - 0.2 ** 2 - 0.3 ** 2)
+    return Pose(t_ns, (1.5, -2.25, 0.125), (0.5, 0.25, -0.125), (0.1, 0.2, 0.3, w),
+                tuple(0.01 * (k + 1) for k in range(36)), "", True)
+
+
+def pose_layouts(frames: FrameIds) -> dict[str, tuple[FixedLayout, Values]]:
+    """The layouts of the messages made at each pose, by role, with their numbers."""
+    makers: dict[str, tuple[Callable[[Pose, FrameIds], object], Values]] = {
+        "pose": (pose_msg, pose_values), "odom": (odometry_msg, odometry_values),
+        "tf": (tf_msg, tf_values)}
+    def serializer(role: str) -> Callable[[Any], bytes]:
+        msg_of = makers[role][0]
+        return _serializer(TYPES[role], lambda pose: msg_of(pose, frames))
+    return {role: (layout_of(serializer(role), values, _probe_pose), values)
+            for role, (_, values) in makers.items()}
+
+
+def imu_layout(frames: FrameIds) -> FixedLayout:
+    def probe(t_ns: int) -> ImuSample:
+        return ImuSample(t_ns, (0.1, -0.2, 9.8), (0.01, -0.02, 0.03))
+    return layout_of(_serializer(TYPES["imu"], lambda s: imu_msg(s, frames, 1e-4, 2e-3)),
+                     lambda s: imu_values(s, 1e-4, 2e-3), probe)
 
 
 class Ros2Sink:
@@ -123,9 +166,12 @@ class Ros2Sink:
             raise
         self._imu_times: list[int] = []
         self._imu_var = (0.0, 0.0)  # unknown until the IMU's rate is
-        self._pose_roles = [r for r in ("pose", "odom", "tf") if r in self.topics]
+        self._imu = imu_layout(self.frames)
+        layouts = pose_layouts(self.frames)
+        self._pose_topics = [(self.topics[role], layouts[role]) for role in layouts
+                             if role in self.topics]
         if "tf_static" in self.topics:
-            self.topics["tf_static"].put(static_tf_msg(clock_ns(), config, self.frames))
+            self.topics["tf_static"].put_message(static_tf_msg(clock_ns(), config, self.frames))
 
     def raw(self, source: str, t_ns: int, data: bytes) -> None:
         """Raw bytes stay in the log."""
@@ -137,18 +183,18 @@ class Ros2Sink:
             self._imu_times.append(frame.t_ns)
             if len(self._imu_times) == RATE_SAMPLES:
                 self._imu_var = imu_variances(self.config, self._imu_times)
-        self.topics["imu"].put(imu_msg(frame, self.frames, *self._imu_var))
+        self.topics["imu"].put(self._imu.pack(frame.t_ns, imu_values(frame, *self._imu_var)))
 
     def pose(self, pose: Pose) -> None:
-        make = {"pose": pose_msg, "odom": odometry_msg, "tf": tf_msg}
-        for role in self._pose_roles:
-            self.topics[role].put(make[role](pose, self.frames))
+        for topic, (layout, values) in self._pose_topics:
+            topic.put(layout.pack(pose.t_ns, values(pose)))
 
     def status(self, t_ns: int, status: dict[str, Any]) -> None:
         """The diagnostics: the filter's health now (which the status holds)."""
         if "diagnostics" in self.topics:
             health = health_from_dict(status.get("health") or {})
-            self.topics["diagnostics"].put(diagnostics_msg(t_ns, health, self.hardware_id))
+            self.topics["diagnostics"].put_message(
+                diagnostics_msg(t_ns, health, self.hardware_id))
 
     def counts(self) -> dict[str, int]:
         """Samples published, by fully qualified topic name."""

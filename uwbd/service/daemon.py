@@ -194,9 +194,9 @@ class ZenohLink:
                           ZENOH_RETRY_S)
             self.pipeline.extra_status["zenoh"] = {"state": "not started", "error": reason}
             return
+        self.pipeline.add_sink(self.sink)  # first: the JSON pose leaves before the ROS 2 ones
         if c.ros2_settings.enabled:
             self._start_ros2()
-        self.pipeline.add_sink(self.sink)  # after the ROS 2 sink: closed after it
         self.pipeline.extra_status["zenoh"] = {"state": "up", "error": ""}
         if self._said:
             LOG.info("zenoh started: publishing on %s/pose", self.sink.prefix)
@@ -219,6 +219,7 @@ class ZenohLink:
             self.pipeline.extra_status["ros2"] = {"state": "not started", "error": reason}
             return
         self.pipeline.add_sink(self.ros2)
+        self.sink.close_first.append(self.ros2.close)  # its declarations, then the session
         LOG.info("ROS 2 over rmw_zenoh (%s): domain %d (%s), node %s, topics %s", s.distro,
                  s.domain_id, s.domain_from, s.node_path, ", ".join(s.published.values()))
         self._ros2_status()

@@ -12,6 +12,7 @@ queryable runs on a Zenoh thread and only reads the last status bytes, swapped a
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import zenoh
@@ -37,6 +38,8 @@ class ZenohSink:
         self._token = self.session.liveliness().declare_token(f"{self.prefix}/alive")
         self._status_bytes = b"{}"
         self._queryable = self.session.declare_queryable(f"{self.prefix}/status", self._on_query)
+        # what else declared on this session (the ROS 2 topics), closed before it
+        self.close_first: list[Callable[[], None]] = []
 
     def _on_query(self, query: zenoh.Query) -> None:
         with query:  # finalises the query promptly
@@ -57,6 +60,8 @@ class ZenohSink:
         self._status.put(self._status_bytes)
 
     def close(self) -> None:
+        for close in self.close_first:
+            close()
         for entity in (self._queryable, self._token, self._status, self._pose):
             entity.undeclare()
         self.session.close()  # a session left open hangs the interpreter at exit
