@@ -91,11 +91,17 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def live(seconds: float, run: int, pure: bool, ros2: bool = False
+ROS2_SECTIONS = {"": "", "all": "\n[ros2]\nenabled = true\n",
+                 "no IMU": '\n[ros2]\nenabled = true\nimu_topic = ""\n'}
+
+
+def live(seconds: float, run: int, pure: bool, ros2: str = ""
          ) -> tuple[float, float, float, float]:
     """One live measurement; prints it and returns (p50 ms, p99 ms, CPU %, RSS MB).
-    ``ros2``: the daemon also publishes its ROS 2 topics, which a subscriber here takes as a
-    ROS 2 node would (so that they are sent, not dropped for want of one)."""
+    ``ros2``: the daemon also publishes its ROS 2 topics (``"all"``, or ``"no IMU"``), which
+    a subscriber here takes as a ROS 2 node would, so that they are sent, not dropped for
+    want of one (into a ring in Zenoh's own threads: no Python here competes for the cores
+    per sample)."""
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         sock = tmp / "z.sock"
@@ -113,7 +119,7 @@ def live(seconds: float, run: int, pure: bool, ros2: bool = False
                 time.sleep(0.05)
             cfg = tmp / "cfg.toml"
             cfg.write_text(config_text(str(tmp / "imu"), str(tmp / "uwb"), sock)
-                           + ("\n[ros2]\nenabled = true\n" if ros2 else ""))
+                           + ROS2_SECTIONS[ros2])
             env = {k: v for k, v in os.environ.items() if k != native.PURE_PYTHON_ENV}
             if pure:
                 env[native.PURE_PYTHON_ENV] = "1"
@@ -136,12 +142,8 @@ def live(seconds: float, run: int, pure: bool, ros2: bool = False
                 phase[0] = pose["health"]["phase"]
 
             sub = session.declare_subscriber("uwbd/bench/pose", on_pose)
-            ros_samples = [0]
-
-            def on_ros(_sample: zenoh.Sample) -> None:
-                ros_samples[0] += 1
-
-            ros_sub = session.declare_subscriber("0/**", on_ros) if ros2 else None
+            ros_sub = (session.declare_subscriber("0/**", zenoh.handlers.RingChannel(1))
+                       if ros2 else None)
             # start-up (imports, first fix, the heading told by the drive off) is not the
             # steady state: measured once tracking
             deadline = time.monotonic() + REST_S + 20.0
@@ -154,11 +156,11 @@ def live(seconds: float, run: int, pure: bool, ros2: bool = False
             latencies.clear()
             cpu0, t0 = cpu_seconds(daemon.pid), time.monotonic()
             threads0 = thread_cpu_seconds(daemon.pid)
-            ros0 = ros_samples[0]
+            ros0 = published(session)
             time.sleep(seconds)
             cpu1, t1 = cpu_seconds(daemon.pid), time.monotonic()
             threads1 = thread_cpu_seconds(daemon.pid)
-            ros_rate = (ros_samples[0] - ros0) / (t1 - t0)
+            ros_rate = (published(session) - ros0) / (t1 - t0)
             rss = rss_mb(daemon.pid)
             sub.undeclare()
             if ros_sub is not None:
@@ -173,17 +175,31 @@ def live(seconds: float, run: int, pure: bool, ros2: bool = False
         lat_ms = np.array(latencies) / 1e6
         p50, p99 = np.percentile(lat_ms, 50), np.percentile(lat_ms, 99)
         cpu = 100 * (cpu1 - cpu0) / (t1 - t0)
-        name = ("pure Python" if pure else "C core") + (" + ROS 2 topics" if ros2 else "")
+        name = variant_name(pure, ros2)
         print(f"live run {run} ({name}), {seconds:.0f} s: "
               "serial read -> Zenoh receive "
               f"p50 {p50:.2f} ms, p99 {p99:.2f} ms, max {lat_ms.max():.2f} ms over "
               f"{len(lat_ms)} poses; daemon CPU {cpu:.2f} % of one core, RSS {rss:.0f} MB"
-              + (f"; ROS 2 samples received {ros_rate:.0f}/s" if ros2 else ""))
+              + (f"; ROS 2 samples published {ros_rate:.0f}/s" if ros2 else ""))
         shares = sorted(((100 * (c - threads0.get(name, 0.0)) / (t1 - t0), name)
                          for name, c in threads1.items()), reverse=True)
         print("  by thread (% of one core): " + ", ".join(
             f"{name} {share:.1f}" for share, name in shares if share >= 0.05))
         return float(p50), float(p99), cpu, rss
+
+
+def published(session: zenoh.Session) -> int:
+    """The ROS 2 samples the daemon says it published so far (its status)."""
+    for reply in session.get("uwbd/bench/status", timeout=2.0):
+        if reply.ok is not None:
+            return sum(json.loads(reply.ok.payload.to_bytes()).get("ros2", {})
+                       .get("published", {}).values())
+    return 0
+
+
+def variant_name(pure: bool, ros2: str) -> str:
+    return (("pure Python" if pure else "C core")
+            + {"": "", "all": " + ROS 2 topics", "no IMU": " + ROS 2 topics but the IMU's"}[ros2])
 
 
 def replay_speed(replay_s: float) -> None:
@@ -278,27 +294,28 @@ def live_runs(count: int, seconds: float, only_ros2: bool = False) -> None:
     print("live: 200 Hz WitMotion IMU + 10 Hz Nooploop tag (6 anchors) on ptys")
     # (pure Python, ROS 2 topics) of each variant; alternated run by run, so that drifts of a
     # shared VM hit all alike
-    variants = [(False, False), (False, True)] if only_ros2 else [
-        (False, False), (True, False), (False, True)]
-    runs: dict[tuple[bool, bool], list[tuple[float, float, float, float]]] = {
+    ros2 = [(False, "all"), (False, "no IMU")]
+    variants = [(False, ""), *ros2] if only_ros2 else [(False, ""), (True, ""), *ros2]
+    runs: dict[tuple[bool, str], list[tuple[float, float, float, float]]] = {
         v: [] for v in variants}
     for k in range(count):
-        for pure, ros2 in variants:
-            runs[(pure, ros2)].append(live(seconds, k + 1, pure, ros2))
+        for pure, topics in variants:
+            runs[(pure, topics)].append(live(seconds, k + 1, pure, topics))
     medians = {}
-    for (pure, ros2), results in runs.items():
-        medians[(pure, ros2)] = np.median(np.array(results), axis=0)
-        p50, p99, cpu, rss = medians[(pure, ros2)]
-        name = ("pure Python" if pure else "C core") + (" + ROS 2 topics" if ros2 else "")
-        print(f"live, {name}, median of {count}: "
+    for (pure, topics), results in runs.items():
+        medians[(pure, topics)] = np.median(np.array(results), axis=0)
+        p50, p99, cpu, rss = medians[(pure, topics)]
+        print(f"live, {variant_name(pure, topics)}, median of {count}: "
               f"p50 {p50:.2f} ms, p99 {p99:.2f} ms, CPU {cpu:.2f} %, RSS {rss:.0f} MB")
-    if (True, False) in medians:
+    if (True, "") in medians:
         print(f"  CPU, C core / pure Python: "
-              f"{medians[(False, False)][2] / medians[(True, False)][2]:.2f}")
-    added = [with_ros[2] - plain[2] for plain, with_ros in zip(
-        runs[(False, False)], runs[(False, True)], strict=True)]
-    print(f"  CPU the ROS 2 topics add (run by run, % of one core): "
-          f"{', '.join(f'{a:+.2f}' for a in added)}; median {np.median(added):+.2f}")
+              f"{medians[(False, '')][2] / medians[(True, '')][2]:.2f}")
+    for variant in ros2:
+        added = [with_ros[2] - plain[2] for plain, with_ros in zip(
+            runs[(False, "")], runs[variant], strict=True)]
+        print(f"  CPU {variant_name(*variant).removeprefix('C core + ')} add (run by run, % of "
+              f"one core): {', '.join(f'{a:+.2f}' for a in added)}; median "
+              f"{np.median(added):+.2f}")
 
 
 if __name__ == "__main__":

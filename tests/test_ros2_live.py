@@ -309,6 +309,10 @@ def test_each_topic_is_on_its_key_with_its_type_and_hash(live: dict[str, Any]) -
         for payload, _ in samples[:5]:
             assert payload[:4] == b"\x00\x01\x00\x00"  # CDR, little-endian
             JAZZY.deserialize_cdr(payload, msgtype)
+    imu = [JAZZY.deserialize_cdr(p, TYPES["/uwbd/imu"]).header.stamp
+           for p, _ in topics["/uwbd/imu"][1]]
+    stamps = [s.sec * 1_000_000_000 + s.nanosec for s in imu]
+    assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)  # held, in order
     n = {t: len(s) for t, (_, s) in topics.items()}
     assert n["/tf_static"] == 1 and n["/uwbd/pose"] == n["/uwbd/odom"] == n["/tf"] > 150
     assert n["/uwbd/imu"] > 3 * n["/uwbd/pose"] and n["/diagnostics"] >= 3

@@ -12,8 +12,10 @@ the daemon's own Zenoh session, what a ROS 2 node running rmw_zenoh subscribes t
   local, depth 1, as tf2's static broadcaster: rmw_zenoh's advanced publisher with a
   one-sample cache, publisher detection and sporadic heartbeats (``rmw_publisher_data.cpp``),
   so a late subscriber still gets the transforms;
-- the pose, odometry and transform at every pose, each IMU sample as it is read, the
-  diagnostics with every status (once a second), the static transforms once at start.
+- the pose, odometry and transform at every pose; each IMU sample right after the pose its
+  read brings out (so the pose is not kept waiting, and a read's messages leave together),
+  within 50 ms; the diagnostics with every status (once a second); the static transforms
+  once at start.
 
 Puts never block (congestion control DROP, as rmw_zenoh's volatile publishers): a slow
 subscriber cannot stall fusion. The messages are :mod:`uwbd.ros2.messages`, the names
@@ -22,6 +24,7 @@ subscriber cannot stall fusion. The messages are :mod:`uwbd.ros2.messages`, the 
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -59,6 +62,8 @@ STREAM_QOS = rz.Qos(depth=10)
 STATIC_QOS = rz.Qos(durability=rz.TRANSIENT_LOCAL, depth=1)
 HEARTBEAT_S = 0.5  # rmw_zenoh's SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD (ms → s)
 RATE_SAMPLES = 64  # IMU samples timed before their covariances are filled in
+# IMU samples wait for the pose they bring out at most this long (poses come at 50 Hz)
+IMU_HOLD_MAX_NS = 50_000_000
 
 
 class Topic:
@@ -145,6 +150,7 @@ class Ros2Sink:
         self.frames = FrameIds.of(config)
         self.hardware_id = config.robot_name
         self.error = ""
+        self._imu_held: list[tuple[int, tuple[float, ...]]] = []  # (t_ns, numbers)
         zid = str(session.info.zid())
         self.node_token = rz.node_token(s.domain_id, zid, NODE_ID, s.namespace, s.node_name)
         self._node: Any = session.liveliness().declare_token(self.node_token)
@@ -183,14 +189,29 @@ class Ros2Sink:
             self._imu_times.append(frame.t_ns)
             if len(self._imu_times) == RATE_SAMPLES:
                 self._imu_var = imu_variances(self.config, self._imu_times)
-        self.topics["imu"].put(self._imu.pack(frame.t_ns, imu_values(frame, *self._imu_var)))
+        # held until the pose these samples bring (the uwbd/…/pose JSON and the ROS 2 pose
+        # leave first, and all of a read's samples in one burst), or until they would be
+        # late: no pose (the filter waiting), or the IMU read alone
+        if self._imu_held and frame.t_ns - self._imu_held[0][0] > IMU_HOLD_MAX_NS:
+            self._flush_imu()
+        self._imu_held.append((frame.t_ns, imu_values(frame, *self._imu_var)))
+
+    def _flush_imu(self) -> None:
+        held, self._imu_held = self._imu_held, []
+        topic, layout = self.topics["imu"], self._imu
+        for t_ns, values in held:
+            topic.put(layout.pack(t_ns, values))
 
     def pose(self, pose: Pose) -> None:
         for topic, (layout, values) in self._pose_topics:
             topic.put(layout.pack(pose.t_ns, values(pose)))
+        if self._imu_held:
+            self._flush_imu()
 
     def status(self, t_ns: int, status: dict[str, Any]) -> None:
         """The diagnostics: the filter's health now (which the status holds)."""
+        if self._imu_held:
+            self._flush_imu()
         if "diagnostics" in self.topics:
             health = health_from_dict(status.get("health") or {})
             self.topics["diagnostics"].put_message(
@@ -202,6 +223,9 @@ class Ros2Sink:
         return {names[role]: topic.sent for role, topic in self.topics.items()}
 
     def close(self) -> None:
+        if self._imu_held and "imu" in self.topics:
+            with contextlib.suppress(zenoh.ZError):  # what is held, unless the session is gone
+                self._flush_imu()
         topics, self.topics = self.topics, {}
         for topic in topics.values():
             topic.close()
