@@ -33,6 +33,7 @@ from uwbd.config import ConfigError, parse
 from uwbd.fusion.types import Pose
 from uwbd.ros2 import rmw_zenoh as rz
 from uwbd.ros2.bag import write_bag
+from uwbd.ros2.cdr import imu_layout, pose_layouts
 from uwbd.ros2.messages import (
     TYPESTORE,
     FrameIds,
@@ -42,7 +43,6 @@ from uwbd.ros2.messages import (
     pose_msg,
     tf_msg,
 )
-from uwbd.ros2.publisher import imu_layout, pose_layouts
 from uwbd.ros2.settings import settings_of
 
 # a store of its own (Jazzy's), not uwbd's: the hashes and the decoding are checked against it

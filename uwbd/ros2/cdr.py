@@ -12,9 +12,26 @@ messages.
 
 from __future__ import annotations
 
+import math
 import struct
 from collections.abc import Callable, Sequence
 from typing import Any
+
+from drivers.frames import ImuSample
+from uwbd.fusion.types import Pose
+from uwbd.ros2.messages import (
+    TYPES,
+    TYPESTORE,
+    FrameIds,
+    imu_msg,
+    imu_values,
+    odometry_msg,
+    odometry_values,
+    pose_msg,
+    pose_values,
+    tf_msg,
+    tf_values,
+)
 
 STAMP = struct.Struct("<iI")
 # a probe's stamp whose eight bytes all differ from a zero stamp's: 0x01010101 s and ns
@@ -52,3 +69,40 @@ def layout_of(serialize: Callable[[Any], bytes], values: Callable[[Any], Sequenc
     if layout.pack(PROBE_T_NS, values(other)) != serialize(other):
         raise ValueError("packing the numbers does not give the serialised message")
     return layout
+
+
+# -- the live topics' layouts ------------------------------------------------------------
+
+
+Values = Callable[[Pose], Sequence[float]]
+
+
+def _serializer(msgtype: str, msg_of: Callable[[Any], object]) -> Callable[[Any], bytes]:
+    return lambda obj: bytes(TYPESTORE.serialize_cdr(msg_of(obj), msgtype))
+
+
+def _probe_pose(t_ns: int) -> Pose:
+    """A pose of distinct numbers, for learning the layouts (a unit quaternion, since the
+    odometry rotates its velocity by it)."""
+    w = math.sqrt(1 - 0.1 ** 2 - 0.2 ** 2 - 0.3 ** 2)
+    return Pose(t_ns, (1.5, -2.25, 0.125), (0.5, 0.25, -0.125), (0.1, 0.2, 0.3, w),
+                tuple(0.01 * (k + 1) for k in range(36)), "", True)
+
+
+def pose_layouts(frames: FrameIds) -> dict[str, tuple[FixedLayout, Values]]:
+    """The layouts of the messages made at each pose, by role, with their numbers."""
+    makers: dict[str, tuple[Callable[[Pose, FrameIds], object], Values]] = {
+        "pose": (pose_msg, pose_values), "odom": (odometry_msg, odometry_values),
+        "tf": (tf_msg, tf_values)}
+    def serializer(role: str) -> Callable[[Any], bytes]:
+        msg_of = makers[role][0]
+        return _serializer(TYPES[role], lambda pose: msg_of(pose, frames))
+    return {role: (layout_of(serializer(role), values, _probe_pose), values)
+            for role, (_, values) in makers.items()}
+
+
+def imu_layout(frames: FrameIds) -> FixedLayout:
+    def probe(t_ns: int) -> ImuSample:
+        return ImuSample(t_ns, (0.1, -0.2, 9.8), (0.01, -0.02, 0.03))
+    return layout_of(_serializer(TYPES["imu"], lambda s: imu_msg(s, frames, 1e-4, 2e-3)),
+                     lambda s: imu_values(s, 1e-4, 2e-3), probe)

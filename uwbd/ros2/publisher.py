@@ -25,9 +25,8 @@ subscriber cannot stall fusion. The messages are :mod:`uwbd.ros2.messages`, the 
 from __future__ import annotations
 
 import contextlib
-import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any
 
 import zenoh
@@ -38,22 +37,15 @@ from uwbd.config import Config
 from uwbd.fusion.policy.health import health_from_dict
 from uwbd.fusion.types import Pose
 from uwbd.ros2 import rmw_zenoh as rz
-from uwbd.ros2.cdr import FixedLayout, layout_of
+from uwbd.ros2.cdr import imu_layout, pose_layouts
 from uwbd.ros2.messages import (
     TYPES,
     TYPESTORE,
     FrameIds,
     diagnostics_msg,
-    imu_msg,
     imu_values,
     imu_variances,
-    odometry_msg,
-    odometry_values,
-    pose_msg,
-    pose_values,
     static_tf_msg,
-    tf_msg,
-    tf_values,
 )
 from uwbd.ros2.settings import NO_TYPE_HASH
 
@@ -102,40 +94,6 @@ class Topic:
     def close(self) -> None:
         self.liveliness.undeclare()
         self.publisher.undeclare()
-
-
-Values = Callable[[Pose], Sequence[float]]
-
-
-def _serializer(msgtype: str, msg_of: Callable[[Any], object]) -> Callable[[Any], bytes]:
-    return lambda obj: bytes(TYPESTORE.serialize_cdr(msg_of(obj), msgtype))
-
-
-def _probe_pose(t_ns: int) -> Pose:
-    """A pose of distinct numbers, for learning the layouts (a unit quaternion, since the
-    odometry rotates its velocity by it)."""
-    w = math.sqrt(1 - 0.1 ** 2 - 0.2 ** 2 - 0.3 ** 2)
-    return Pose(t_ns, (1.5, -2.25, 0.125), (0.5, 0.25, -0.125), (0.1, 0.2, 0.3, w),
-                tuple(0.01 * (k + 1) for k in range(36)), "", True)
-
-
-def pose_layouts(frames: FrameIds) -> dict[str, tuple[FixedLayout, Values]]:
-    """The layouts of the messages made at each pose, by role, with their numbers."""
-    makers: dict[str, tuple[Callable[[Pose, FrameIds], object], Values]] = {
-        "pose": (pose_msg, pose_values), "odom": (odometry_msg, odometry_values),
-        "tf": (tf_msg, tf_values)}
-    def serializer(role: str) -> Callable[[Any], bytes]:
-        msg_of = makers[role][0]
-        return _serializer(TYPES[role], lambda pose: msg_of(pose, frames))
-    return {role: (layout_of(serializer(role), values, _probe_pose), values)
-            for role, (_, values) in makers.items()}
-
-
-def imu_layout(frames: FrameIds) -> FixedLayout:
-    def probe(t_ns: int) -> ImuSample:
-        return ImuSample(t_ns, (0.1, -0.2, 9.8), (0.01, -0.02, 0.03))
-    return layout_of(_serializer(TYPES["imu"], lambda s: imu_msg(s, frames, 1e-4, 2e-3)),
-                     lambda s: imu_values(s, 1e-4, 2e-3), probe)
 
 
 class Ros2Sink:
