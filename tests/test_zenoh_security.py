@@ -21,7 +21,7 @@ from procs import UNBUFFERED, UWBD, one_line, read_until, uwbd
 
 from drivers.emulator import DeviceSpec, Emulator, Faults
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
-from uwbd.config import load
+from uwbd.config import load, parse
 from uwbd.config.zenoh_session import effective, session_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -250,3 +250,21 @@ config = "robot.json5"
     assert refused == ["none", "outsider"]
     one_line(subprocess.CompletedProcess(plain.args, plain.returncode, plain.stdout,
                                          plain.stderr), 1, "cannot reach")
+
+
+@pytest.mark.parametrize(("listen", "warned"), [
+    ("tcp/0.0.0.0:7447", True), ("tcp/192.168.1.10:7447", True), ("udp/[::]:7447", True),
+    ("tcp/robot.local:7447", True), ("tcp/127.0.0.1:7447", False), ("tcp/[::1]:7447", False),
+    ("tcp/localhost:7447", False), ("unixsock-stream//run/uwbd/z.sock", False),
+    ("tls/0.0.0.0:7447", False),
+])
+def test_a_plaintext_listener_beyond_this_host_is_warned_of(listen: str, warned: bool) -> None:
+    """#28: a daemon anyone on the LAN can read and spoof is said at check-config and run."""
+    text = ('[[sources]]\nname = "imu"\ndriver = "wit"\nport = "/dev/ttyUSB0"\n'
+            '[[sources]]\nname = "uwb"\ndriver = "dwm1001"\nport = "/dev/ttyACM0"\n'
+            f'[zenoh]\nlisten = ["{listen}"]\nmulticast_scouting = false\n')
+    config = parse(text)
+    said = [w for w in config.warnings if "zenoh.listen[0]" in w]
+    assert bool(said) == warned, config.warnings
+    if warned:
+        assert "publish false ones" in said[0] and "Securing Zenoh" in said[0]

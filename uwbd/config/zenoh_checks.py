@@ -32,6 +32,13 @@ def check_zenoh(r: Report, zenoh: Mapping[str, Any]) -> None:
                 r.warn(f"zenoh.{key}[{k}]", f"{show(endpoint)} is listed twice")
             seen.add(endpoint)
             good[key].append((k, endpoint))
+    if "config" not in zenoh:  # (a Zenoh file may hold authentication or access control)
+        for k, endpoint in good["listen"]:
+            if _plaintext_beyond_this_host(endpoint):
+                r.warn(f"zenoh.listen[{k}]", f"{show(endpoint)} is reachable from the network "
+                       "without encryption or authentication: anyone there can read the "
+                       "poses and publish false ones; listen on 127.0.0.1 (a router reaches "
+                       "it), or secure it (README, \"Securing Zenoh\")")
     if zenoh.get("mode") == "client" and not zenoh.get("connect"):
         r.error("zenoh.mode", "\"client\" needs a zenoh.connect endpoint (a router or peer)")
     prefix = zenoh.get("prefix", "").strip("/")
@@ -80,6 +87,20 @@ def endpoint_problem(endpoint: str) -> str | None:
     if protocol == "unixsock-stream" and not address.startswith("/"):
         return "expected an absolute socket path (unixsock-stream//run/uwbd/zenoh.sock)"
     return None
+
+
+def _plaintext_beyond_this_host(endpoint: str) -> bool:
+    """A well-formed tcp/udp/ws endpoint whose host is not a loopback address."""
+    protocol, _, address = endpoint.partition("#")[0].partition("?")[0].partition("/")
+    if protocol not in ("tcp", "udp", "ws"):
+        return False
+    host = address[1:].partition("]")[0] if address.startswith("[") else address.rpartition(":")[0]
+    if host == "localhost":
+        return False
+    try:
+        return not ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return True  # a host name: whichever interface it names
 
 
 def _host_port_problem(address: str) -> str | None:
