@@ -14,10 +14,11 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from emulated import emulated_sources
 from procs import UNBUFFERED, read_until
 
 from drivers.emulator import DeviceSpec, Emulator, Faults, Window
-from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
+from drivers.emulator.scenario import CircleScenario
 from uwbd.config import parse
 from uwbd.fusion.core import native
 from uwbd.logs.reading import read_log
@@ -33,23 +34,8 @@ UWBD = [sys.executable, "-m", "uwbd"]
 
 
 def write_config(tmp: Path, ports: dict[str, str]) -> Path:
-    anchors = "\n".join(f'"{i}" = [{x}, {y}, {z}]' for i, (x, y, z) in enumerate(DEFAULT_ANCHORS_M))
     text = f"""
-[[sources]]
-name = "imu"
-driver = "wit"
-port = "{ports['imu']}"
-baud = 921600
-
-[[sources]]
-name = "uwb"
-driver = "nlink"
-port = "{ports['uwb']}"
-baud = 921600
-
-[anchors]
-{anchors}
-
+{emulated_sources(ports)}
 [zenoh]
 prefix = "uwbd/test"
 listen = ["unixsock-stream/{tmp / 'z.sock'}"]

@@ -7,13 +7,12 @@ import signal
 import subprocess
 from pathlib import Path
 
+from emulated import emulated_sources
 from procs import UNBUFFERED, UWBD, read_until, uwbd
 
 from drivers.emulator import DeviceSpec, Emulator, Faults
-from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
+from drivers.emulator.scenario import CircleScenario
 from uwbd.logs.reading import read_log
-
-ANCHORS = "\n".join(f'"{i}" = [{x}, {y}, {z}]' for i, (x, y, z) in enumerate(DEFAULT_ANCHORS_M))
 
 
 def robot_config(tmp: Path, name: str, ports: dict[str, str], router: str) -> Path:
@@ -22,21 +21,7 @@ def robot_config(tmp: Path, name: str, ports: dict[str, str], router: str) -> Pa
 [robot]
 name = "{name}"
 
-[[sources]]
-name = "imu"
-driver = "wit"
-port = "{ports['imu']}"
-baud = 921600
-
-[[sources]]
-name = "uwb"
-driver = "nlink"
-port = "{ports['uwb']}"
-baud = 921600
-
-[anchors]
-{ANCHORS}
-
+{emulated_sources(ports)}
 [zenoh]
 mode = "client"
 connect = ["{router}"]

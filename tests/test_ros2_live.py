@@ -21,13 +21,14 @@ import pytest
 import xxhash
 import zenoh
 import zenoh.ext
+from emulated import emulated_sources
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from procs import one_line, uwbd
 from rosbags.typesys import Stores, get_typestore
 
 from drivers.emulator import DeviceSpec, Emulator, Faults
-from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
+from drivers.emulator.scenario import CircleScenario
 from drivers.frames import ImuSample
 from uwbd.config import ConfigError, parse
 from uwbd.fusion.types import Pose
@@ -186,24 +187,9 @@ def _router(sock: Path) -> zenoh.Session:
 
 
 def _config(tmp: Path, ports: dict[str, str], sock: Path) -> Path:
-    anchors = "\n".join(f'"{i}" = [{x}, {y}, {z}]' for i, (x, y, z) in enumerate(DEFAULT_ANCHORS_M))
     path = tmp / "cfg.toml"
     path.write_text(f"""
-[[sources]]
-name = "imu"
-driver = "wit"
-port = "{ports['imu']}"
-baud = 921600
-
-[[sources]]
-name = "uwb"
-driver = "nlink"
-port = "{ports['uwb']}"
-baud = 921600
-
-[anchors]
-{anchors}
-
+{emulated_sources(ports)}
 [zenoh]
 prefix = "uwbd/test"
 connect = ["unixsock-stream/{sock}"]

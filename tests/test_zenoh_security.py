@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 import zenoh
 from certs import make_certificates
+from emulated import emulated_sources
 from procs import UNBUFFERED, UWBD, one_line, read_until, uwbd
 
 from drivers.emulator import DeviceSpec, Emulator, Faults
@@ -160,21 +161,7 @@ def test_fleet_over_mutual_tls_admits_the_robot_and_refuses_a_forger(tmp_path: P
         cfg.write_text(f"""[robot]
 name = "robot1"
 
-[[sources]]
-name = "imu"
-driver = "wit"
-port = "{ports['imu']}"
-baud = 921600
-
-[[sources]]
-name = "uwb"
-driver = "nlink"
-port = "{ports['uwb']}"
-baud = 921600
-
-[anchors]
-{ANCHORS}
-
+{emulated_sources(ports)}
 [zenoh]
 mode = "client"
 connect = ["tls/127.0.0.1:{port}"]
