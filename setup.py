@@ -12,7 +12,8 @@ setup(ext_modules=[
         "uwbd.fusion.core._core", ["uwbd/fusion/core/_core.c", "uwbd/fusion/core/_state.c",
                               "uwbd/fusion/core/_update.c", "uwbd/fusion/core/mm_range.c",
                               "uwbd/fusion/core/_lsq.c", "uwbd/fusion/core/_rest.c",
-                              "uwbd/fusion/core/_imu.c"],
+                              "uwbd/fusion/core/_imu.c",
+                              "uwbd/fusion/core/_checks.c"],
         depends=["uwbd/fusion/core/_core.h"],
         # a * b + c rounded as Python rounds it (no fused multiply-add): the same bits; -O3
         # vectorises the element-wise loops (sums are never reassociated: the same bits)

@@ -21,12 +21,13 @@ from hypothesis import strategies as st
 from uwbd.config import parse
 from uwbd.fusion.checks.imu_check import ImuCheck, ImuLimits, new_imu_check
 from uwbd.fusion.checks.intrinsics import ImuIntrinsics, body_maps, to_body
+from uwbd.fusion.checks.window_raim import solve_snapshot
 from uwbd.fusion.core import native
 from uwbd.fusion.core.eskf import N_CORE, TH_, V_, Eskf, ImuNoise, Row
 from uwbd.fusion.core.lsq import multilaterate
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.core.state import CoreEskf, new_eskf
-from uwbd.fusion.models.measurements import range_rows
+from uwbd.fusion.models.measurements import range_check, range_rows
 from uwbd.fusion.policy.outputs import MAX_OBSERVABLE_YAW_SIGMA
 from uwbd.fusion.policy.rest import ImuWindow, RestLimits
 from uwbd.fusion.policy.robust import RobustPolicy, RowPolicy
@@ -338,6 +339,70 @@ def test_a_tight_epoch_with_an_antenna_on_an_anchor_is_left_to_the_reference() -
                             ((), ()), (np.zeros((0, fast.n)), np.zeros(0), np.zeros(0)),
                             RowPolicy.of(b"rr", 6.63, RobustPolicy(), True), None)
     assert rows is None and np.array_equal(fast.P, P) and np.array_equal(nominal(fast), x)
+
+
+@needs_core
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31), st.integers(1, 8), st.booleans())
+def test_the_checks_innovations_and_single_fault_estimates_match_the_reference(
+        seed: int, k: int, with_var: bool) -> None:
+    """State.range_check (the anchor test's b̂ = (S⁻¹ν)_j/(S⁻¹)_jj and its weight, the
+    snapshot's U and y, in one C call) against range_check's reference; nothing of the
+    state changes."""
+    fast, slow = twin(2 * 8, seed)
+    rng = np.random.default_rng(seed)
+    ids = [int(a) for a in rng.choice(8, size=k, replace=False)]
+    anchors = rng.uniform(-10, 10, size=(k, 3))
+    ranges = np.linalg.norm(anchors - fast.p, axis=1) + rng.normal(size=k) * 0.3
+    var = rng.uniform(0.001, 0.1, size=k) if with_var else None
+    lever = rng.normal(size=3) * 0.2
+    columns = {a: (N_CORE + a, N_CORE + 8 + a) for a in range(8)}
+    before = nominal(fast), fast.P.copy()
+    got = range_check(fast, lever, ids, anchors, ranges, var, columns)
+    want = range_check(slow, lever, ids, anchors, ranges, var, columns)
+    assert got is not None and want is not None
+    for a, b in zip(got, want, strict=True):
+        assert (a is None) == (b is None)
+        if a is not None:
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+    assert (got.b is not None) == with_var
+    assert np.array_equal(nominal(fast), before[0]) and np.array_equal(fast.P, before[1])
+
+
+@needs_core
+def test_the_checks_leave_an_antenna_on_an_anchor_and_a_singular_s_alone() -> None:
+    fast, slow = twin(0, 5)
+    for f in (fast, slow):  # the first anchor at the antenna: no line to test
+        assert range_check(f, np.zeros(3), [0, 1], np.array([f.p, [5.0, 0.0, 0.0]]),
+                           np.array([0.0, 5.0]), np.full(2, 0.01), {}) is None
+    anchors = np.array([[5.0, 0.0, 0.0], [5.0, 0.0, 0.0]])  # one line twice, no noise
+    for f in (fast, slow):
+        f.set_covariance(np.zeros((f.n, f.n)))
+        checked = range_check(f, np.zeros(3), [0, 1], anchors + f.p, np.array([5.0, 5.0]),
+                              np.zeros(2), {})
+        assert checked is not None and checked.b is None and checked.d is None
+
+
+@needs_core
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**31), st.integers(5, 12), st.booleans())
+def test_the_snapshot_solve_matches_the_reference(seed: int, k: int, flat: bool) -> None:
+    """raim_snapshot (C) against window_raim.solve_snapshot (five rows at least, as the test
+    takes them): the offset, its gain, the SSE,
+    1 − leverage and the reductions; a snapshot whose rays all lie in one plane (``flat``)
+    is nearly singular and still agrees."""
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=(k, 3))
+    if flat:
+        u[:, 2] = 0.0
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    rows = [(0, float(y), float(w), *map(float, uk)) for y, w, uk in
+            zip(rng.normal(size=k) * 0.3, rng.uniform(10, 1000, size=k), u, strict=True)]
+    got, want = native.core.raim_snapshot(rows), solve_snapshot(rows)  # type: ignore[union-attr]
+    assert (got is None) == (want is None)
+    if got is not None and want is not None:
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-7, atol=1e-9)
 
 
 def compare_runs(cfg: FilterConfig, frames: list[object]) -> list[Pose]:

@@ -84,18 +84,19 @@ class AnchorConsistency:
 
     def add(self, t_ns: int, ids: list[int], nu: Array, S: Array) -> None:
         """One epoch: its anchors, their innovations and the innovations' covariance."""
-        try:
-            Si = np.linalg.inv(S)
-        except np.linalg.LinAlgError:
-            return
-        g = (Si @ nu).tolist()
-        d = np.diag(Si).tolist()
-        for k, anchor in enumerate(ids):
-            if d[k] > 0 and math.isfinite(g[k]):
+        estimates = single_fault_estimates(nu, S)
+        if estimates is not None:
+            self.add_estimates(t_ns, ids, *estimates)
+
+    def add_estimates(self, t_ns: int, ids: list[int], b: Array, d: Array) -> None:
+        """One epoch as :func:`single_fault_estimates` gives it (or the C core's
+        ``State.range_check``): each range's ``b̂`` and its weight ``(S⁻¹)_jj``."""
+        for anchor, bk, dk in zip(ids, b.tolist(), d.tolist(), strict=True):
+            if dk > 0 and math.isfinite(bk):
                 window = self._windows.get(anchor)
                 if window is None:
                     window = self._windows[anchor] = _Window()
-                window.add(t_ns, g[k] / d[k], d[k])  # b̂ and its weight 1/var = (S⁻¹)_jj
+                window.add(t_ns, bk, dk)  # b̂ and its weight 1/var = (S⁻¹)_jj
         self._judge(t_ns)
 
     def clear(self) -> None:
@@ -131,6 +132,19 @@ class AnchorConsistency:
         for anchor, found_ns in list(self._found_ns.items()):  # held, then gone
             if t_ns - found_ns > lim.hold_s * NS:
                 del self._found_ns[anchor], self.findings[anchor]
+
+
+def single_fault_estimates(nu: Array, S: Array) -> tuple[Array, Array] | None:
+    """Baarda's single-fault estimate of each innovation, ``b̂_j = (S⁻¹ν)_j / (S⁻¹)_jj``,
+    and its weight ``(S⁻¹)_jj``; None when ``S`` is singular. (The reference of the C
+    core's, in ``State.range_check``.)"""
+    try:
+        Si = np.linalg.inv(S)
+    except np.linalg.LinAlgError:
+        return None
+    d = np.diag(Si)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (Si @ nu) / d, d
 
 
 class _Window:

@@ -34,7 +34,10 @@ from statistics import NormalDist
 
 import numpy as np
 
+from uwbd.fusion.core import native
 from uwbd.fusion.core.rotation import Array
+
+Vec3 = tuple[float, float, float]
 
 NS = 1_000_000_000
 SNAPSHOT_EVERY_NS = 95_000_000  # epochs
@@ -63,14 +66,15 @@ class WindowRaim:
 
     def __init__(self, limits: RaimLimits) -> None:
         self.limits = limits
-        self._latest: dict[int, tuple[int, float, float, list[float]]] = {}  # t, y, 1/var, u
+        self._latest: dict[int, tuple[int, float, float, float, float, float]] = {}  # t, y,
+        # 1/var, u
         self._snapshot_ns = -(2**63)
         self._judged_ns = -(2**63)
         # per snapshot: its time, SSE, degrees of freedom, and each anchor's SSE reduction
         self._entries: collections.deque[
-            tuple[int, float, int, bool, Array, Array, dict[int, float]]] = collections.deque()
-        self._offset_sum = np.zeros(3)
-        self._gain_sum = np.zeros(3)
+            tuple[int, float, int, bool, Vec3, Vec3, dict[int, float]]] = collections.deque()
+        self._offset_sum: Vec3 = (0.0, 0.0, 0.0)
+        self._gain_sum: Vec3 = (0.0, 0.0, 0.0)
         # the window's mean horizontal and vertical position error per metre of a bias on
         # every range (signs the worst): what the ranges' unmodelled biases can do
         self.bias_gain = (0.0, 0.0)
@@ -102,15 +106,18 @@ class WindowRaim:
         latest = self._latest
         ok = np.isfinite(y) & (var_m2 > 0) & np.isfinite(var_m2) & np.isfinite(u).all(axis=1)
         clip = CLIP_SIGMAS * np.sqrt(np.abs(var_m2))
-        for anchor, good, yk, uk, vk in zip(ids, ok.tolist(), np.clip(y, -clip, clip).tolist(),
-                                            u.tolist(), var_m2.tolist(), strict=True):
+        for anchor, good, yk, (ux, uy, uz), vk in zip(
+                ids, ok.tolist(), np.clip(y, -clip, clip).tolist(), u.tolist(),
+                var_m2.tolist(), strict=True):
             if good:
-                latest[anchor] = (t_ns, yk, 1.0 / vk, uk)
+                latest[anchor] = (t_ns, yk, 1.0 / vk, ux, uy, uz)
         period = SINGLE_EVERY_NS if len(ids) < MIN_ANCHORS else SNAPSHOT_EVERY_NS
         if t_ns - self._snapshot_ns < period:
             return
         self._snapshot_ns = t_ns
-        self._snapshot(t_ns, [r for r in latest.items() if r[1][0] >= t_ns - 2 * period])
+        recent = t_ns - 2 * period
+        self._snapshot(t_ns, [a for a, r in latest.items() if r[0] >= recent],
+                       [r for r in latest.values() if r[0] >= recent])
         if t_ns - self._judged_ns >= JUDGE_EVERY_NS:
             self._judged_ns = t_ns
             self._forget_before(t_ns - int(self.limits.window_s * NS))
@@ -123,49 +130,38 @@ class WindowRaim:
         self._reduction.clear()
         self._count.clear()
         self._sse, self._dof, self._high = 0.0, 0, 0
-        self._offset_sum, self._gain_sum = np.zeros(3), np.zeros(3)
+        self._offset_sum = self._gain_sum = (0.0, 0.0, 0.0)
         self.inconsistent, self.ratio, self.offset_m = (), 1.0, (0.0, 0.0, 0.0)
         self.bias_gain = (0.0, 0.0)
 
-    def _snapshot(self, t_ns: int,
-                  rows: list[tuple[int, tuple[int, float, float, list[float]]]]) -> None:
+    def _snapshot(self, t_ns: int, anchors: list[int],
+                  rows: list[tuple[int, float, float, float, float, float]]) -> None:
         if len(rows) < MIN_ANCHORS:
             return
-        table = np.array([(r[1], r[2], *r[3]) for _, r in rows])  # y, w, u
-        y, w, U = table[:, 0], table[:, 1], table[:, 2:]
-        N = U.T @ (U * w[:, None])
-        try:
-            Ni = np.linalg.inv(N + 1e-9 * np.trace(N) * np.eye(3))
-        except np.linalg.LinAlgError:
+        core = native.core
+        solved = (core.raim_snapshot(rows) if core is not None else solve_snapshot(rows))
+        if solved is None:
             return
-        S = Ni @ (U.T * w)  # δp per metre of each range
-        dp = S @ y
-        r = y - U @ dp
-        gain = np.abs(S).sum(axis=1)  # the most δp a bias of 1 m on every range can make
-        free = 1.0 - w * ((U @ Ni) * U).sum(axis=1)  # 1 − leverage
-        sse = float(w @ (r * r))
-        # removing range k lowers the SSE by w r² / (1 − h): Baarda's w-test squared
-        red = w * r * r / np.maximum(free, 1e-3)
-        reduction = {a: x for (a, _), x, f in zip(rows, red.tolist(), free.tolist(), strict=True)
-                     if f > 1e-3}
+        dp, gain, sse, free, red = solved
+        reduction = {a: x for a, x, f in zip(anchors, red, free, strict=True) if f > 1e-3}
         dof = len(rows) - 3
         high = sse / dof > _ratio_quantile(HIGH_Z, dof)
         self._entries.append((t_ns, sse, dof, high, dp, gain, reduction))
-        self._offset_sum += dp
-        self._gain_sum += gain
+        self._offset_sum = _plus(self._offset_sum, dp)
+        self._gain_sum = _plus(self._gain_sum, gain)
         self._sse += sse
         self._dof += dof
         self._high += high
-        for a, red in reduction.items():
-            self._reduction[a] = self._reduction.get(a, 0.0) + red
+        for a, x in reduction.items():
+            self._reduction[a] = self._reduction.get(a, 0.0) + x
             self._count[a] += 1
 
     def _forget_before(self, oldest_ns: int) -> None:
         entries, count, reduction = self._entries, self._count, self._reduction
         while entries and entries[0][0] < oldest_ns:
             _, sse, dof, high, dp, gain, per = entries.popleft()
-            self._offset_sum -= dp
-            self._gain_sum -= gain
+            self._offset_sum = _plus(self._offset_sum, dp, -1.0)
+            self._gain_sum = _plus(self._gain_sum, gain, -1.0)
             self._sse -= sse
             self._dof -= dof
             self._high -= high
@@ -177,16 +173,16 @@ class WindowRaim:
                     reduction[a] -= red
         if not entries:
             self._sse, self._dof, self._high = 0.0, 0, 0
-            self._offset_sum, self._gain_sum = np.zeros(3), np.zeros(3)
+            self._offset_sum = self._gain_sum = (0.0, 0.0, 0.0)
 
     def _judge(self) -> None:
         dof = self._dof
         t = max(self._sse, 0.0) / dof if dof > 0 else 0.0
         self.ratio = max(1.0, t)
         n = len(self._entries)
-        x, y, z = (self._offset_sum / n).tolist() if n else (0, 0, 0)
-        self.offset_m = (x, y, z)
-        gx, gy, gz = (self._gain_sum / n).tolist() if n else (0, 0, 0)
+        x, y, z = self._offset_sum
+        self.offset_m = (x / n, y / n, z / n) if n else (0.0, 0.0, 0.0)
+        gx, gy, gz = (c / n for c in self._gain_sum) if n else (0.0, 0.0, 0.0)
         self.bias_gain = (math.hypot(gx, gy), gz)
         if (dof <= 0 or t <= _ratio_quantile(self._z, dof / CORRELATED)
                 or self._high <= HIGH_SHARE * len(self._entries)):
@@ -200,6 +196,35 @@ class WindowRaim:
                 if t_rest <= _ratio_quantile(self._z, rest / CORRELATED):
                     passing.append(anchor)
         self.inconsistent = tuple(sorted(passing or self._count))
+
+
+def solve_snapshot(rows: list[tuple[int, float, float, float, float, float]]
+                   ) -> tuple[Vec3, Vec3, float, list[float], list[float]] | None:
+    """One snapshot's rows ``(t_ns, y, w, ux, uy, uz)`` solved by weighted least squares for
+    one offset ``δp = S y``, ``S = (UᵀWU + εI)⁻¹UᵀW`` (ε 1e-9 of the trace): δp, the gain
+    ``Σ_j |S_ij|``, the SSE ``Σ w r²``, each row's ``1 − leverage`` and the SSE's reduction
+    without it, ``w r² / (1 − h)`` (Baarda's w-test squared); None when singular. The
+    reference of the C core's ``raim_snapshot``."""
+    table = np.array(rows)[:, 1:]
+    y, w, U = table[:, 0], table[:, 1], table[:, 2:]
+    N = U.T @ (U * w[:, None])
+    try:
+        Ni = np.linalg.inv(N + 1e-9 * np.trace(N) * np.eye(3))
+    except np.linalg.LinAlgError:
+        return None
+    S = Ni @ (U.T * w)  # δp per metre of each range
+    dp = S @ y
+    r = y - U @ dp
+    gain = np.abs(S).sum(axis=1)
+    free = 1.0 - w * ((U @ Ni) * U).sum(axis=1)  # 1 − leverage
+    red = w * r * r / np.maximum(free, 1e-3)
+    px, py, pz = dp.tolist()
+    gx, gy, gz = gain.tolist()
+    return (px, py, pz), (gx, gy, gz), float(w @ (r * r)), free.tolist(), red.tolist()
+
+
+def _plus(a: Vec3, b: Vec3, sign: float = 1.0) -> Vec3:
+    return (a[0] + sign * b[0], a[1] + sign * b[1], a[2] + sign * b[2])
 
 
 def _ratio_quantile(z: float, dof: float) -> float:

@@ -1,7 +1,8 @@
 /* What the C core's files share. _core.c: the module and its helpers; _state.c: the State
  * type, which owns the filter's numbers (docs/ekf.md §2, §3, §5); _update.c: the scalar
  * updates and the robust weights (§5); mm_range.c: the range rows (§4); _lsq.c: the UWB-only
- * multilateration; _rest.c: the rest test's moments; _imu.c: the IMU front (screen, body
+ * multilateration; _rest.c: the rest test's moments; _checks.c: the installation checks'
+ * numbers; _imu.c: the IMU front (screen, body
  * maps, the common sample integrated). No function here reads a Python
  * object's attributes: numbers come in as arguments, buffers or tuples of floats. */
 #ifndef UWBD_CORE_H
@@ -54,11 +55,18 @@ int uwbd_range_rows(const double p[3], const double q[4], const double lever[3],
                     const double *b_r, Py_ssize_t n, PyObject *columns, double *H, double *y,
                     double *closest);
 
+/* -- the installation checks' numbers (_checks.c) ---------------------------------------- */
+/* Baarda's single-fault estimates of k innovations nu with covariance S (k×k, destroyed):
+ * b_j = (S⁻¹ν)_j / (S⁻¹)_jj, d_j = (S⁻¹)_jj; work: k×k. 0, or -1 when S is singular. */
+int uwbd_single_faults(double *S, const double *nu, Py_ssize_t k, double *b, double *d,
+                       double *work);
+
 /* -- stateless functions of the module -------------------------------------------------- */
 PyObject *uwbd_gauss_newton(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 PyObject *uwbd_leverages(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 PyObject *uwbd_multilaterate(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 PyObject *uwbd_window_moments(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
+PyObject *uwbd_raim_snapshot(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 
 /* -- the State type (_state.c) ---------------------------------------------------------- */
 extern PyTypeObject UwbdStateType;

@@ -6,6 +6,7 @@
  *   coast          §3   constant velocity without the IMU
  *   update         §5   rows fused one scalar at a time, then injected and reset
  *   fuse_ranges    §4+5 an epoch's range rows (mm_range.c) and extra rows, fused
+ *   range_check    §6   an epoch's innovations and single-fault estimates, for the checks
  *   rotate_heading §6   the coarse heading alignment's turn
  *   clamp, widen, add_variances, set_covariance, move_to: §6's covariance and state repairs
  *   pose_numbers        the pose's numbers
@@ -593,6 +594,89 @@ done:
     return out;
 }
 
+/* range_check(lever, anchors (k×3), ranges (k), var (k) or None, columns, out (6k))
+ *     -> None, or whether the single-fault estimates were made
+ * The epoch's ranges before their update, for the installation checks (§6): into out, the
+ * unit vectors anchor → antenna U (k×3), the innovations y (k) and, with var, Baarda's
+ * single-fault estimate of each range b (k) and its weight d (k) from S = H P Hᵀ + diag(var)
+ * (_checks.c; False when S is singular). None, out untouched, when an antenna is within
+ * 1 mm of an anchor or a distance is not a number (the reference, measurements.range_check,
+ * has no line to linearise there either). Nothing of the state changes. */
+static PyObject *state_range_check(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_ssize_t n = self->n;
+    double lever[3];
+    if (check_args(nargs, 6, "range_check") || uwbd_get_vec(args[0], lever, 3, "lever"))
+        return NULL;
+    Py_buffer view[4]; /* ranges, anchors, out, var */
+    int got = 0, with_var = args[3] != Py_None;
+    PyObject *result = NULL;
+    if (uwbd_get_doubles(args[2], &view[0], -1, 0, "ranges") < 0)
+        return NULL;
+    got = 1;
+    Py_ssize_t k = view[0].len / 8;
+    if (uwbd_get_doubles(args[1], &view[1], 3 * k, 0, "anchors") < 0)
+        goto done;
+    got = 2;
+    if (uwbd_get_doubles(args[5], &view[2], 6 * k, 1, "out") < 0)
+        goto done;
+    got = 3;
+    if (with_var) {
+        if (uwbd_get_doubles(args[3], &view[3], k, 0, "var") < 0)
+            goto done;
+        got = 4;
+    }
+    /* H (k×n), y (k), H P (k×n), S (k×k) and the inverse's k×k */
+    Py_ssize_t need = 2 * k * n + k + 2 * k * k;
+    if (need > self->rows_cap) {
+        double *grown = PyMem_Realloc(self->rows, sizeof(double) * (size_t)need);
+        if (grown == NULL) {
+            PyErr_NoMemory();
+            goto done;
+        }
+        self->rows = grown;
+        self->rows_cap = need;
+    }
+    double *H = self->rows, *y = H + k * n, *HP = y + k, *S = HP + k * n, *Si = S + k * k;
+    double closest, *out = view[2].buf;
+    memset(H, 0, sizeof(double) * (size_t)(k * n));
+    if (uwbd_range_rows(self->p, self->q, lever, view[1].buf, view[0].buf, k, self->br, n,
+                        args[4], H, y, &closest) < 0)
+        goto done;
+    if (!(closest >= 1e-3)) {
+        result = Py_NewRef(Py_None);
+        goto done;
+    }
+    for (Py_ssize_t a = 0; a < k; a++) {
+        memcpy(out + 3 * a, H + a * n, sizeof(double) * 3);
+        out[3 * k + a] = y[a];
+    }
+    int made = 0;
+    if (with_var) {
+        const double *var = view[3].buf, *P = self->P;
+        for (Py_ssize_t a = 0; a < k; a++)
+            for (Py_ssize_t j = 0; j < n; j++) {
+                double s = 0.0;
+                for (Py_ssize_t i = 0; i < n; i++)
+                    s += H[a * n + i] * P[i * n + j];
+                HP[a * n + j] = s;
+            }
+        for (Py_ssize_t a = 0; a < k; a++)
+            for (Py_ssize_t c = 0; c < k; c++) {
+                double s = 0.0;
+                for (Py_ssize_t j = 0; j < n; j++)
+                    s += HP[a * n + j] * H[c * n + j];
+                S[a * k + c] = s + (a == c ? var[a] : 0.0);
+            }
+        made = uwbd_single_faults(S, y, k, out + 4 * k, out + 5 * k, Si) == 0;
+    }
+    result = PyBool_FromLong(made);
+done:
+    for (int i = 0; i < got; i++)
+        PyBuffer_Release(&view[i]);
+    return result;
+}
+
 /* -- §6: the heading's turn, the covariance's repairs ----------------------------------- */
 
 /* rotate_heading(dpsi, yaw_sigma): q turned by dpsi about the navigation z axis; the
@@ -826,6 +910,8 @@ static PyMethodDef state_methods[] = {
     METHOD(update, "update(H, y, R, decide, c0, c1) -> rows: fused, injected, reset, §5."),
     METHOD(fuse_ranges, "fuse_ranges(lever, anchors, ranges, var, columns, H, y, R, decide, "
                         "c0, c1) -> rows or None: a tight epoch, §4-5."),
+    METHOD(range_check, "range_check(lever, anchors, ranges, var, columns, out) -> None or "
+                        "bool: U, y and single-fault estimates for the checks, §6."),
     METHOD(rotate_heading, "rotate_heading(dpsi, yaw_sigma): the coarse heading's turn."),
     METHOD(clamp, "clamp(limit) -> bool: every variance within its limit."),
     METHOD(widen, "widen(start, stop, factor): those states' sigma times factor."),

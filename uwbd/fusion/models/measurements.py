@@ -8,10 +8,11 @@ use which is the filter's policy, not theirs.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
+from uwbd.fusion.checks.anchor_consistency import single_fault_estimates
 from uwbd.fusion.core.eskf import N_CORE, P_, TH_, V_, Eskf
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.core.rotation import Array, skew
@@ -81,6 +82,44 @@ def range_innovations(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array,
         for k in columns.get(anchor_id, ()):
             h[i] += b_r[k - N_CORE]
     return U, ranges - h, keep
+
+
+class RangeCheck(NamedTuple):
+    """An epoch's ranges before their update, as the installation checks take them: unit
+    vectors anchor → antenna (k×3), innovations (k), and, when asked, Baarda's single-fault
+    estimate of each range and its weight (None when not asked or ``S`` is singular)."""
+
+    U: Array
+    y: Array
+    b: Array | None
+    d: Array | None
+
+
+def range_check(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array, ranges: Array,
+                var: Array | None, columns: Mapping[int, tuple[int, ...]]) -> RangeCheck | None:
+    """:func:`range_innovations` and, with ``var``, the single-fault estimates from
+    ``S = H P Hᵀ + diag(var)`` (:func:`~uwbd.fusion.checks.anchor_consistency.single_fault_
+    estimates`); None when an antenna is within 1 mm of an anchor. On the C core, one call
+    (``State.range_check``); this is its reference."""
+    core: Any = ekf.core_state
+    if core is not None:
+        out = np.empty(6 * len(ids))
+        made = core.range_check(lever_m, anchors, ranges, var,
+                                tuple([columns.get(a, ()) for a in ids]), out)
+        if made is None:
+            return None
+        k = len(ids)
+        U, y = out[:3 * k].reshape(k, 3), out[3 * k:4 * k]
+        return RangeCheck(U, y, out[4 * k:5 * k], out[5 * k:]) if made else \
+            RangeCheck(U, y, None, None)
+    U, y, keep = range_innovations(ekf, lever_m, ids, anchors, ranges, columns)
+    if not keep.all():
+        return None
+    if var is None:
+        return RangeCheck(U, y, None, None)
+    H = range_rows(ekf, lever_m, ids, anchors, ranges, var, columns).H
+    estimates = single_fault_estimates(y, H @ ekf.P @ H.T + np.diag(var))
+    return RangeCheck(U, y, *(estimates or (None, None)))
 
 
 RANGE_KEYS: dict[int, tuple[str, str]] = {}  # anchor id -> its rows' (kind, key)

@@ -28,7 +28,7 @@ from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.models.measurements import (
     Rows,
     position_rows,
-    range_innovations,
+    range_check,
     range_keys,
     range_rows,
 )
@@ -176,20 +176,18 @@ class EpochFusion:
             return
         var = cfg.range_sigma_m**2 * r_scale
         monitor = self.monitor
+        # (the single-fault estimates only for the anchor test: single ranges come 100+ a
+        # second)
+        checked = range_check(ekf, self.lever, ids, anchors, ranges,
+                              var if anchor_test else None, self._range_columns)
+        if checked is None:  # an antenna on an anchor: no line to test
+            return
+        U, y, b, d = checked
         if anchor_test:
-            H, y, R, _ = range_rows(ekf, self.lever, ids, anchors, ranges, var,
-                                    self._range_columns)
-            if len(y) != len(ids):  # (no antenna on an anchor: one row per range)
-                return
-            U = H[:, P_]
             consistency.last_ns = t_ns
-            consistency.add(t_ns, ids, y, H @ ekf.P @ H.T + np.diag(R))
+            if b is not None and d is not None:
+                consistency.add_estimates(t_ns, ids, b, d)
             monitor.anchor_suspects = tuple(sorted(consistency.findings))
-        else:  # (the rows are not needed: single ranges come 100+ a second)
-            U, y, keep = range_innovations(ekf, self.lever, ids, anchors, ranges,
-                                           self._range_columns)
-            if not keep.all():
-                return
         if snapshot:
             raim.add(t_ns, ids, y, U,
                      var + cfg.multipath_sigma_m**2 if cfg.multipath_states else var)
