@@ -30,9 +30,10 @@ def merge(imu: Iterable[ImuSample], uwb: Iterable[UwbRanges]) -> Iterator[Frame]
 def run_filter(config: FilterConfig, frames: Iterable[Frame], record: bool = False,
                pose_period_ns: int | None = None
                ) -> tuple[list[Pose], list[FusionReport], Filter]:
-    """The filter over ``frames``; a pose after every UWB message and, with
-    ``pose_period_ns``, between them from the IMU as the daemon does (``record``: for
-    smoothing)."""
+    """The filter over ``frames``; a pose after every UWB message, or with
+    ``pose_period_ns`` as the daemon brings them out (:mod:`uwbd.service.pipeline`): after
+    every epoch of several ranges, and from the IMU samples and single ranges once a period
+    has passed (``record``: for smoothing)."""
     flt = Filter(config, record)
     poses: list[Pose] = []
     reports: list[FusionReport] = []
@@ -44,6 +45,9 @@ def run_filter(config: FilterConfig, frames: Iterable[Frame], record: bool = Fal
                 continue
         else:
             reports += flt.update(frame)
+            if pose_period_ns is not None and isinstance(frame, UwbRanges) and \
+                    len(frame.ranges) < 2 and frame.t_ns - last_ns < pose_period_ns:
+                continue  # a single range: the next pose is due later
         pose = flt.pose()
         if pose is not None:
             poses.append(pose)
