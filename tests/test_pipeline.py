@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from drivers.emulator import ENCODERS
 from drivers.frames import ImuSample
 from uwbd.config import apply_overrides, parse
 from uwbd.service.aligner import Aligner
+from uwbd.fusion.types import Pose
 from uwbd.service.pipeline import Pipeline, PoseList
 from uwbd.tools.evaluate import merge
 from uwbd.tools.logtools import simulation_toml
@@ -96,3 +98,42 @@ def test_the_status_on_the_wall_clock_notices_silent_ports() -> None:
         assert health["phase"] == phase and faults <= set(health["faults"]), health
         assert health["since_range_s"] >= after_s - 0.2
     assert pipeline.filter.pose() is not None  # the estimate itself is the data's, unchanged
+
+
+def poses_read_in(sim_cfg: SimConfig, samples_a_read: int) -> tuple[list[Pose], Pipeline]:
+    """The run's IMU as a WitMotion sends it (every packet type, ENCODERS["wit"]), read
+    ``samples_a_read`` cycles at a time (a batched port: ports.SerialSource.batch_reads),
+    each read stamped with its last sample's time; the ranges as frames."""
+    sim = simulate(sim_cfg)
+    sink = PoseList()
+    pipeline = Pipeline(parse(simulation_toml(sim)), [sink])
+    held: list[ImuSample] = []
+    for frame in merge(sim.imu, sim.uwb):
+        if not isinstance(frame, ImuSample):
+            pipeline.on_frame(frame)
+            continue
+        held.append(frame)
+        if len(held) == samples_a_read:
+            pipeline.on_bytes("imu", frame.t_ns, b"".join(ENCODERS["wit"](s) for s in held))
+            held = []
+    pipeline.finish()
+    return sink.poses, pipeline
+
+
+def test_batched_reads_give_every_sample_its_own_time_from_the_second_read_on() -> None:
+    """Four samples a read from the first read on: the period is learned from the second
+    read (the time since the first's last sample over the four), every later sample is
+    fused (none out of order) at its own time, and the poses are those of a sample a read."""
+    cfg = SimConfig(seed=4, segments=((10.0, 0.5, 0.0, 0.0),))
+    batched, pipeline = poses_read_in(cfg, 4)
+    single, reference = poses_read_in(cfg, 1)
+    counters = pipeline.filter.counters
+    assert counters["imu_out_of_order"] <= 3  # the first read's: no period to spread by yet
+    assert reference.filter.counters["imu_out_of_order"] == 0
+    assert pipeline._period_ns["imu"] == reference._period_ns["imu"]  # noqa: SLF001
+    by_time = {p.t_ns: p.position_m for p in single}
+    common = [p for p in batched if p.t_ns in by_time and p.t_ns > batched[0].t_ns + 3e9]
+    assert len(common) > 0.5 * len(batched)
+    worst_m = max(float(np.linalg.norm(np.subtract(p.position_m, by_time[p.t_ns])))
+                  for p in common)
+    assert worst_m < 0.01

@@ -214,3 +214,79 @@ def test_a_port_lost_twice_at_once_is_lost_once(tmp_path: Path) -> None:
     source = asyncio.run(unplug())
     os.close(ours)
     assert source.info.losses == 1
+
+
+class RawReads:
+    """A sink that keeps each read's size (the pipeline's raw records)."""
+
+    def __init__(self) -> None:
+        self.sizes: list[int] = []
+
+    def raw(self, source: str, t_ns: int, data: bytes) -> None:
+        self.sizes.append(len(data))
+
+    def frame(self, frame: object) -> None:
+        """Frames are not kept."""
+
+    def pose(self, pose: object) -> None:
+        """Poses are not kept."""
+
+    def status(self, t_ns: int, status: object) -> None:
+        """Statuses are not kept."""
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+def test_an_imu_port_is_read_about_once_a_pose_and_its_tail_is_not_held() -> None:
+    """A WitMotion's port (here a pty, 22 bytes every 5 ms): once its byte rate is known,
+    VMIN makes a read wait for most of a pose period's bytes (80 % of 4.4 samples), so the
+    port is read ~60 times a second, not ~200; when the device goes quiet with a tail below
+    VMIN, the tail is read all the same (VMIN back to 0) within a tick or two."""
+    assert READER is not None
+    device, ours = pty.openpty()
+    tty.setraw(device)
+    config = parse(f'[[sources]]\nname = "imu"\ndriver = "wit"\nport = "{os.ttyname(ours)}"\n'
+                   'baud = 921600\n[[sources]]\nname = "uwb"\ndriver = "nlink"\n'
+                   'port = "/dev/not-started"\nbaud = 921600\n[anchors]\n"0" = [0, 0, 2]\n'
+                   '"1" = [5, 0, 2]\n"2" = [0, 5, 2]\n"3" = [5, 5, 0.5]\n', "test")
+    sink = RawReads()
+    period_ns = config.pose_period_ns
+
+    async def run() -> tuple[SerialSource, list[int], int]:
+        loop = asyncio.get_running_loop()
+        queue = ReadQueue(Pipeline(config, [sink]))
+        clock = EpochClock()
+        reads = ThreadReads(loop, clock, queue, READER)
+        source = SerialSource(config.sources[0], queue, loop, clock, reads)
+        source.start()
+        writer = send(device, 600)  # 3 s
+        batch = []
+        while writer.is_alive():
+            await asyncio.sleep(0.25)  # the daemon's tick
+            reads.drain()
+            source.batch_reads(clock.now_ns(), period_ns)
+            batch.append(source.info.read_batch_bytes)
+        writer.join()
+        reads.drain()
+        before_tail = sum(sink.sizes)
+        os.write(device, b"\x55" * 40)  # a tail below VMIN, then nothing
+        for _ in range(4):
+            await asyncio.sleep(0.25)
+            reads.drain()
+            source.batch_reads(clock.now_ns(), period_ns)
+        reads.drain()
+        tail = sum(sink.sizes) - before_tail
+        source.close()
+        reads.close()
+        return source, batch, tail
+
+    source, batch, tail = asyncio.run(run())
+    os.close(device)
+    learned = [b for b in batch if b]
+    assert learned and abs(learned[-1] - 0.8 * 22 * 200 * 0.02) <= 10
+    late = sink.sizes[-40:]  # reads once batched: most of a pose period's bytes each
+    assert sum(late) / len(late) >= 60
+    # every byte read in the end: the stream's last bytes below VMIN and the tail after them
+    assert tail >= 40 and sum(sink.sizes) == 600 * 22 + 40
+    assert source.info.read_batch_bytes == 0

@@ -104,10 +104,12 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
             now_ns = clock.now_ns()
             for source in sources:
                 source.check_stall(now_ns, stall_after_ns)
+                source.batch_reads(now_ns, config.pose_period_ns)
             pipeline.extra_status["sources"] = {
                 s.cfg.name: {"port": s.cfg.port, "state": s.info.state, "opens": s.info.opens,
                              "losses": s.info.losses, "stalls": s.info.stalls,
                              "bytes": s.info.bytes_read,
+                             "read_batch_bytes": s.info.read_batch_bytes,
                              "last_error": s.info.last_error} for s in sources}
             pipeline.extra_status["log"] = {
                 "files": [str(f) for f in mcap.files], "error": mcap.error,

@@ -109,39 +109,44 @@ class Pipeline:
         """Give the samples of one read their own times.
 
         A read's receive time is exact only for its last frame; when one read holds several
-        frames of a source (the port was read late), the earlier ones arrived about one
-        sample period apart before it. Without this they share one time and the filter
-        must drop all but one. The period is learned per source from successive reads that
-        hold one frame each; spread times never fall back to or before the source's previous
-        frame. Deterministic: replay spreads the logged reads the same way.
+        frames of a source (the port was read late, or batched: ``read_batch_bytes``), the
+        earlier ones arrived about one sample period apart before it. Without this they
+        share one time and the filter must drop all but one. The period is learned per
+        source from successive reads, the time between their last frames over the frames
+        the later one holds; spread times never fall back to or before the source's
+        previous frame. Deterministic: replay spreads the logged reads the same way.
         """
         if len(frames) < 2:  # most reads: no frame, or one (what the branches below do)
             if frames and frames[0].__class__ is not AnchorRanges:
-                self._learn_period(source, frames[0].t_ns)
+                self._learn_period(source, frames[0].t_ns, 1)
             return frames
         survey = [f for f in frames if isinstance(f, AnchorRanges)]
         if survey:  # anchor-to-anchor reports are not samples of the source: keep their times
             frames = [f for f in frames if not isinstance(f, AnchorRanges)]
             return [*self._spread(source, frames), *survey] if frames else survey
-        if source in self._period_ns:  # several frames: spread back from the last
-            period, n, floor = self._period_ns[source], len(frames), self._last_frame_ns.get(source)
-            spread = []
-            for k, f in enumerate(frames):
-                t = f.t_ns - (n - 1 - k) * period
-                if floor is not None and t <= floor:
-                    t = floor + 1
-                floor = t
-                spread.append(dataclasses.replace(f, t_ns=min(t, f.t_ns)))
-            frames = spread
-        self._last_frame_ns[source] = frames[-1].t_ns
-        return frames
+        n, last_ns, floor = len(frames), frames[-1].t_ns, self._last_frame_ns.get(source)
+        period = self._period_ns.get(source)  # from the reads before this one
+        self._learn_period(source, last_ns, n)
+        if period is None:  # not known yet: this read's own estimate (none for the first)
+            period = self._period_ns.get(source)
+        if period is None:
+            return frames
+        spread = []  # several frames: spread back from the last
+        for k, f in enumerate(frames):
+            t = f.t_ns - (n - 1 - k) * period
+            if floor is not None and t <= floor:
+                t = floor + 1
+            floor = t
+            spread.append(dataclasses.replace(f, t_ns=min(t, f.t_ns)))
+        return spread
 
-    def _learn_period(self, source: str, t: int) -> None:
-        """A read that held one frame of ``source``, at ``t``: the period learned from it."""
+    def _learn_period(self, source: str, t: int, count: int) -> None:
+        """A read that held ``count`` frames of ``source``, the last at ``t``: the period
+        learned from it."""
         previous = self._last_frame_ns.get(source)
         if previous is not None and t > previous:
             old = self._period_ns.get(source)
-            delta = t - previous
+            delta = (t - previous) // count
             self._period_ns[source] = delta if old is None else (7 * old + delta) // 8
         self._last_frame_ns[source] = t
 

@@ -21,6 +21,7 @@ import asyncio
 import contextlib
 import errno
 import os
+import termios
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -42,6 +43,14 @@ BACKOFF_MAX_S = 2.0
 STABLE_OPEN_S = 5.0  # open this long before a loss: the backoff starts again from the start
 IMU_ONLY_DRIVERS = {"wit"}  # their reads may wait for the next pose (ReadQueue)
 MAX_QUEUE_NS = 100_000_000
+# Batched reads (IMU-only ports): the port's VMIN is set so that a read returns about once
+# per pose period: BATCH_SHARE of the bytes a period brings, at the byte rate measured over
+# BATCH_LEARN_NS; VMIN 0 again (a read for every byte) once no read has come for
+# TAIL_AFTER_PERIODS periods, so that what a device sent last is not held below VMIN
+BATCH_LEARN_NS = 1_000_000_000
+BATCH_SHARE = 0.8
+TAIL_AFTER_PERIODS = 3
+MAX_VMIN = 255  # termios' c_cc is one byte
 LOG = journal.get("daemon")
 
 
@@ -54,6 +63,7 @@ class SourceState:
     bytes_read: int = 0
     last_read_ns: int | None = None  # when the last read returned (EpochClock)
     stalls: int = 0
+    read_batch_bytes: int = 0  # the port's VMIN: a read waits for this many bytes (0: any)
 
 
 class EpochClock:
@@ -149,6 +159,7 @@ class SerialSource:
         self._retry: asyncio.TimerHandle | None = None
         self._poller: asyncio.TimerHandle | None = None
         self._closed = False
+        self._rate_mark: tuple[int, int] | None = None  # (t_ns, bytes read) to measure from
 
     def start(self) -> None:
         self._open()
@@ -248,6 +259,46 @@ class SerialSource:
             self.info.state = "open"
             LOG.info("%s: bytes again from %s", self.cfg.name, self.cfg.port)
 
+    def batch_reads(self, now_ns: int, pose_period_ns: int) -> None:
+        """An IMU-only port, open and sending: its VMIN set from the measured byte rate so
+        that a read returns about once per pose period (a few samples a read, spread by
+        the pipeline over the learned sample period) instead of once per sample; back to
+        0 once the device has gone quiet for a few periods (the tail below VMIN is read).
+        Called on the daemon's tick; a port that takes no termios (not a tty) is left be."""
+        info = self.info
+        if self.cfg.driver not in IMU_ONLY_DRIVERS or self.fd < 0 or info.state != "open":
+            self._rate_mark = None
+            return
+        last = info.last_read_ns
+        if info.read_batch_bytes and (
+                last is None or now_ns - last > TAIL_AFTER_PERIODS * pose_period_ns):
+            self._set_vmin(0)
+            self._rate_mark = None
+            return
+        mark = self._rate_mark
+        if mark is None or now_ns <= mark[0]:
+            self._rate_mark = (now_ns, info.bytes_read)
+            return
+        if now_ns - mark[0] < BATCH_LEARN_NS:
+            return
+        rate_bps = (info.bytes_read - mark[1]) * 1e9 / (now_ns - mark[0])
+        self._rate_mark = (now_ns, info.bytes_read)
+        vmin = min(MAX_VMIN, int(rate_bps * pose_period_ns / 1e9 * BATCH_SHARE))
+        vmin = vmin if vmin >= 2 else 0  # (1 is what 0 already does: a read for any byte)
+        old = info.read_batch_bytes
+        if abs(vmin - old) > 0.1 * max(vmin, old):  # (the rate's jitter changes nothing)
+            self._set_vmin(vmin)
+
+    def _set_vmin(self, vmin: int) -> None:
+        try:
+            attrs = termios.tcgetattr(self.fd)
+            attrs[6][termios.VMIN] = vmin
+            attrs[6][termios.VTIME] = 0
+            termios.tcsetattr(self.fd, termios.TCSANOW, attrs)
+        except (termios.error, OSError):
+            return  # not a terminal (or gone: the read says so): reads stay as they are
+        self.info.read_batch_bytes = vmin
+
     def lost(self, err: OSError) -> None:
         self.info.losses += 1
         if self.loop.time() - self._opened_at >= STABLE_OPEN_S:
@@ -265,6 +316,8 @@ class SerialSource:
             with contextlib.suppress(OSError):  # the device is gone: nothing left to release
                 self._port.close()
             self._port, self.fd = None, -1
+        self.info.read_batch_bytes = 0  # a port opened again starts with a read per byte
+        self._rate_mark = None
 
     def close(self) -> None:
         self._closed = True
