@@ -6,8 +6,9 @@ Speed: the filter alone (frames built beforehand and frozen out of the garbage c
 walks, as ``uwbd replay`` freezes its log) on a 200 Hz IMU and 8 anchors at 10 Hz,
 per mode, and on a 100 Hz IMU with 170 single ranges a second (tight), poses brought out at
 50 Hz as the daemon does (after every epoch of several ranges; a single range only when a
-pose is due), as a multiple of real time, on the C core and on the pure-Python reference; and the cost of the range model
-(``[range_model]``, degrees 1 and 2 with anchor delays) against none on the single ranges.
+pose is due), as a multiple of real time, on the C core and on the pure-Python reference;
+and the cost of the range model (``[range_model]``, degrees 1 and 2 with anchor delays)
+against none on the single ranges.
 Accuracy: position RMSE against ground truth for the baselines (pure INS, UWB least
 squares, the same with static-point filtering at rest, the thesis's 4-state KF with its
 dual-gain complementary attitude filter and static points, and that KF with the two gains
