@@ -218,7 +218,7 @@ class Seen:
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    """`uwbd run` with [ros2] on, the emulator feeding it for 6 s, a router subscribed to
+    """`uwbd run` with [ros2] on, the emulator feeding it for 12 s (past the echoes), a router subscribed to
     everything; `uwbd echo --ros2` and a late transient-local subscriber beside it."""
     tmp = tmp_path_factory.mktemp("ros2live")
     sock = tmp / "router.sock"
@@ -228,7 +228,7 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
             router.declare_subscriber("uwbd/test/pose", seen.pose)]
     devices = [DeviceSpec("imu", "wit", Faults(split=True)), DeviceSpec("uwb", "nlink")]
     out: dict[str, Any] = {"seen": seen}
-    with Emulator(devices, CircleScenario(seed=4), duration_s=6.0, link_dir=tmp) as emu:
+    with Emulator(devices, CircleScenario(seed=4), duration_s=12.0, link_dir=tmp) as emu:
         cfg = _config(tmp, {n: p.path for n, p in emu.ports.items()}, sock)
         daemon = subprocess.Popen([*UWBD, "run", "-c", str(cfg), "--log-dir", str(tmp / "logs")],
                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE)
