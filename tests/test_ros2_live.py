@@ -218,8 +218,9 @@ class Seen:
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    """`uwbd run` with [ros2] on, the emulator feeding it for 12 s (past the echoes), a router subscribed to
-    everything; `uwbd echo --ros2` and a late transient-local subscriber beside it."""
+    """`uwbd run` with [ros2] on, the emulator feeding it for 12 s (past the echoes), a
+    router subscribed to everything; `uwbd echo --ros2` and a late transient-local
+    subscriber beside it."""
     tmp = tmp_path_factory.mktemp("ros2live")
     sock = tmp / "router.sock"
     router = _router(sock)
