@@ -286,7 +286,7 @@ def test_an_imu_port_is_read_about_once_a_pose_and_its_tail_is_not_held() -> Non
     learned = [b for b in batch if b]
     assert learned and abs(learned[-1] - 0.8 * 22 * 200 * 0.02) <= 10
     late = sink.sizes[-40:]  # reads once batched: most of a pose period's bytes each
-    assert sum(late) / len(late) >= 60
+    assert sum(late) / len(late) >= learned[-1]  # (a tty gives 64 bytes a read: all taken)
     # every byte read in the end: the stream's last bytes below VMIN and the tail after them
     assert tail >= 40 and sum(sink.sizes) == 600 * 22 + 40
     assert source.info.read_batch_bytes == 0

@@ -136,6 +136,15 @@ static void *run(void *arg)
                 continue; /* removed since epoll_wait returned */
             ssize_t got = read(s->fd, buf, sizeof buf);
             int error = got < 0 ? errno : 0;
+            /* a terminal whose VMIN is set (a batched port: ports.SerialSource.batch_reads)
+             * gives at most 64 bytes a read (the kernel's chunk): what else is there now is
+             * read too, as one read; an error or the end after it is the next round's */
+            while (got > 0 && (size_t)got < sizeof buf) {
+                ssize_t more = read(s->fd, buf + got, sizeof buf - (size_t)got);
+                if (more <= 0)
+                    break;
+                got += more;
+            }
             int64_t t_ns = now_ns(r);
             if (got > 0) {
                 if (r->n_bytes + (size_t)got > MAX_HELD_BYTES ||

@@ -226,6 +226,16 @@ class SerialSource:
         except OSError as err:
             self.lost(err)
             return
+        # a terminal whose VMIN is set (batch_reads) gives at most 64 bytes a read (the
+        # kernel's chunk): what else is there now is read too, as one read (as _reader.c)
+        while 0 < len(data) < READ_BYTES:
+            try:
+                more = os.read(self.fd, READ_BYTES - len(data))
+            except OSError:  # nothing more (or a loss: the next callback says so)
+                break
+            if not more:
+                break
+            data += more
         self.take(self.clock.now_ns(), data)
 
     def take(self, t_ns: int, data: bytes) -> None:
