@@ -36,6 +36,7 @@ from drivers import (
     wit,
 )
 from drivers.base import _mask, _scan_loop, _scan_numpy
+from drivers.frames import retimed
 from drivers.layout import sum8
 
 # garbage rich in the bytes that start or look like frames of the formats under test
@@ -363,3 +364,27 @@ def test_the_c_wit_parser_is_the_python_one(pieces: list[tuple[str, int, int]],
     c, python = wit.CWitParser(), wit.WitParser()  # all at once (a capture: numpy's scan)
     assert c.feed(bytes(stream * 3), 7) == python.feed(bytes(stream * 3), 7)
     assert c.stats.as_dict() == python.stats.as_dict()
+
+
+@pytest.mark.skipif(accel.frames is None, reason="the drivers' C accelerator is not built")
+@settings(max_examples=60, deadline=None)
+@given(frame=st.one_of(wit_streams(1).map(lambda s: s[0]), nlink_epochs(), node2_epochs(),
+                       trek_anchor_ranges()),
+       t_ns=st.integers(-(2**63), 2**63 - 1))
+def test_a_frame_retimed_in_c_is_the_dataclass_replaced(frame: object, t_ns: int) -> None:
+    """drivers.frames.retimed (C: each slot taken over, t_ns set) against its reference,
+    dataclasses.replace, for every kind of frame; equal, hashing alike, the original kept."""
+    fast = retimed(frame, t_ns)  # type: ignore[arg-type]
+    want = dataclasses.replace(frame, t_ns=t_ns)  # type: ignore[type-var]
+    assert type(fast) is type(want) and fast == want and hash(fast) == hash(want)
+    assert fast is not frame and frame == dataclasses.replace(want, t_ns=frame.t_ns)  # type: ignore[attr-defined]
+
+
+def test_retimed_refuses_what_is_not_a_frame() -> None:
+    if accel.frames is None:
+        pytest.skip("the drivers' C accelerator is not built")
+    for thing, t_ns in ((object(), 1), (AnchorRange(1, 2.0), 1), (1.5, 1)):
+        with pytest.raises(TypeError):
+            accel.frames.retimed(thing, t_ns)
+    with pytest.raises(TypeError):
+        accel.frames.retimed(ImuSample(0, (0.0,) * 3, (0.0,) * 3), 1.5)

@@ -25,6 +25,7 @@ from collections.abc import Sequence
 from typing import Any, Protocol
 
 from drivers import PARSERS, AnchorRanges, Frame, ImuSample, Parser, UwbRanges
+from drivers.frames import retimed
 from uwbd import __version__, journal
 from uwbd.config import Config
 from uwbd.fusion.filter import Filter
@@ -129,7 +130,7 @@ class Pipeline:
                 self._learn_period(source, t_ns, 1)
                 if floor is not None and t_ns <= floor:  # stamped with an earlier read's time
                     self._last_frame_ns[source] = floor + 1
-                    return [dataclasses.replace(frames[0], t_ns=floor + 1)]
+                    return [retimed(frames[0], floor + 1)]
             return frames
         survey = [f for f in frames if isinstance(f, AnchorRanges)]
         if survey:  # anchor-to-anchor reports are not samples of the source: keep their times
@@ -146,7 +147,7 @@ class Pipeline:
             if floor is not None and t <= floor:  # but after the frame before it (a frame
                 t = floor + 1  # a cycle's wrap let go a read late has an earlier read's time)
             floor = t
-            spread.append(dataclasses.replace(f, t_ns=t))
+            spread.append(retimed(f, t))
         self._last_frame_ns[source] = spread[-1].t_ns
         return spread
 
