@@ -148,7 +148,7 @@ def test_batched_reads_give_every_sample_its_own_time_from_the_second_read_on() 
     counters = pipeline.filter.counters
     assert counters["imu_out_of_order"] <= 3  # the first read's: no period to spread by yet
     assert reference.filter.counters["imu_out_of_order"] == 0
-    assert pipeline._period_ns["imu"] == reference._period_ns["imu"]
+    assert pipeline.sample_times.period_ns["imu"] == reference.sample_times.period_ns["imu"]
     by_time = {p.t_ns: p.position_m for p in single}
     common = [p for p in batched if p.t_ns in by_time and p.t_ns > batched[0].t_ns + 3e9]
     assert len(common) >= 50

@@ -5,10 +5,10 @@ replay`` for every ``/raw/<source>`` message of a log, in log order with its log
 the same code in the same order, so a replay reproduces the live poses bit for bit. Logs
 that carry only decoded frames go in through :meth:`Pipeline.on_frame`.
 
-Poses leave at the configured rate (``pose_period_ns`` of data time apart at most, from
-the IMU samples between updates: after the read that brings the sample it is due at, at
-the read's last sample, so a read of several samples gives the newest state) and after
-every UWB epoch of several ranges, whose
+Poses leave at the configured rate (one a ``pose_period_ns`` of data time, from the IMU
+samples between updates: after the read that brings the sample a pose falls due at, at
+the read's last sample, so that a read of several samples gives its newest state; the next
+falls due a period after that sample) and after every UWB epoch of several ranges, whose
 correction should not wait; a single range (a DW1000-class tag ranges one anchor at a
 time, ~170 a second) updates the state at once but brings a pose out only when one is due;
 status every ``status_period_ns``. Sinks receive
@@ -24,13 +24,13 @@ import time
 from collections.abc import Sequence
 from typing import Any, Protocol
 
-from drivers import PARSERS, AnchorRanges, Frame, ImuSample, Parser, UwbRanges
-from drivers.frames import retimed
+from drivers import PARSERS, Frame, ImuSample, Parser, UwbRanges
 from uwbd import __version__, journal
 from uwbd.config import Config
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.types import Pose
 from uwbd.service.aligner import Aligner
+from uwbd.service.sample_times import SampleTimes
 
 
 class Sink(Protocol):
@@ -48,7 +48,6 @@ class Sink(Protocol):
 
 
 LOG = journal.get("pipeline")
-FADE = 0.875  # of the sample period's sums, a read
 
 
 @dataclasses.dataclass
@@ -80,12 +79,11 @@ class Pipeline:
         self.bad_records = 0  # decoded log records that are not frames (replay)
         self.extra_status: dict[str, Any] = {}  # e.g. port states, set by the runner
         self._last_pose_ns = -(2**63)
-        self._pose_wanted = False  # an IMU sample of this read is past the pose's due time
+        # the IMU sample of this read at which a pose fell due (it leaves after the read)
+        self._due_ns: int | None = None
         self._pose_period_ns = config.pose_period_ns  # a property: read once, not per sample
         self._status_period_ns = config.status_period_ns
-        self._period_ns: dict[str, int] = {}  # per source, learned sample period
-        self._period_sums: dict[str, tuple[float, float]] = {}  # its time spanned, frames
-        self._last_frame_ns: dict[str, int] = {}
+        self.sample_times = SampleTimes()  # each read's frames a time of their own
         self._last_status_ns: int | None = None
         self._latest_ns = -(2**63)  # the latest data (or wall-clock tick) time seen
 
@@ -101,9 +99,9 @@ class Pipeline:
             self.unknown_sources += 1
             return
         self._raw_to_sinks(source, t_ns, data)
-        self._frames(self._spread(source, parser.feed(data, t_ns)))
-        if self._pose_wanted:
-            self._emit_pose()
+        self._frames(self.sample_times.spread(source, parser.feed(data, t_ns)))
+        if self._due_ns is not None:
+            self._emit_pose(self._due_ns)
         self._tick(t_ns)
 
     def _raw_to_sinks(self, source: str, t_ns: int, data: bytes) -> None:
@@ -113,73 +111,21 @@ class Pipeline:
             except Exception as err:
                 self._sink_failed(call, err)
 
-    def _spread(self, source: str, frames: Sequence[Frame]) -> Sequence[Frame]:
-        """Give the samples of one read their own times.
-
-        A read's receive time is exact only for its last frame; when one read holds several
-        frames of a source (the port was read late, or batched: ``read_batch_bytes``), the
-        earlier ones arrived about one sample period apart before it. Without this they
-        share one time and the filter must drop all but one. The period is learned per
-        source from successive reads, the time between their last frames over the frames
-        the later one holds; spread times never fall back to or before the source's
-        previous frame. Deterministic: replay spreads the logged reads the same way.
-        """
-        if len(frames) < 2:  # most reads: no frame, or one (what the branches below do)
-            if frames and frames[0].__class__ is not AnchorRanges:
-                t_ns, floor = frames[0].t_ns, self._last_frame_ns.get(source)
-                self._learn_period(source, t_ns, 1)
-                if floor is not None and t_ns <= floor:  # stamped with an earlier read's time
-                    self._last_frame_ns[source] = floor + 1
-                    return [retimed(frames[0], floor + 1)]
-            return frames
-        survey = [f for f in frames if isinstance(f, AnchorRanges)]
-        if survey:  # anchor-to-anchor reports are not samples of the source: keep their times
-            frames = [f for f in frames if not isinstance(f, AnchorRanges)]
-            return [*self._spread(source, frames), *survey] if frames else survey
-        n, last_ns, floor = len(frames), frames[-1].t_ns, self._last_frame_ns.get(source)
-        period = self._period_ns.get(source)  # from the reads before this one
-        self._learn_period(source, last_ns, n)
-        if period is None:  # not known yet: this read's own estimate, or for the first read
-            period = self._period_ns.get(source, 0)  # (a backlog) 1 ns apart, in order
-        spread = []  # several frames: spread back from the last
-        for k, f in enumerate(frames):
-            t = min(f.t_ns - (n - 1 - k) * period, f.t_ns)  # never later than its own stamp,
-            if floor is not None and t <= floor:  # but after the frame before it (a frame
-                t = floor + 1  # a cycle's wrap let go a read late has an earlier read's time)
-            floor = t
-            spread.append(retimed(f, t))
-        self._last_frame_ns[source] = spread[-1].t_ns
-        return spread
-
-    def _learn_period(self, source: str, t: int, count: int) -> None:
-        """A read that held ``count`` frames of ``source``, the last at ``t``: the period
-        learned from it, as the time its reads span over the frames they brought, each sum
-        fading by 1/8 a read (the ratio of sums: a read holding a cycle and a part of the
-        next is stamped up to a period late, and a mean of per-read ratios would be biased
-        by the reads that complete one frame where two periods passed)."""
-        previous = self._last_frame_ns.get(source)
-        if previous is not None and t > previous:
-            span_ns, frames = self._period_sums.get(source, (0.0, 0.0))
-            span_ns, frames = FADE * span_ns + (t - previous), FADE * frames + count
-            self._period_sums[source] = span_ns, frames
-            self._period_ns[source] = int(span_ns / frames)
-        self._last_frame_ns[source] = t
-
     def on_frame(self, frame: Frame) -> None:
         """A decoded frame (logs without raw channels)."""
         self._frames([frame])
-        if self._pose_wanted:
-            self._emit_pose()
+        if self._due_ns is not None:
+            self._emit_pose(self._due_ns)
         self._tick(frame.t_ns)
 
     def finish(self) -> None:
         """End of input: parsers and aligner give up what they hold; a last status."""
         for source, parser in self.parsers.items():  # (a cycle held for its wrap: after the last)
-            self._frames(self._spread(source, parser.flush()))
+            self._frames(self.sample_times.spread(source, parser.flush()))
         for frame in self.aligner.flush():
             self._fuse(frame)
-        if self._pose_wanted:
-            self._emit_pose()
+        if self._due_ns is not None:
+            self._emit_pose(self._due_ns)
         if self._last_status_ns is not None:  # at the latest data time: it counts all
             self._emit_status(self._latest_ns)
 
@@ -227,8 +173,8 @@ class Pipeline:
         flt = self.filter
         if isinstance(frame, ImuSample):
             flt.predict(frame)
-            if frame.t_ns - self._last_pose_ns >= self._pose_period_ns:
-                self._pose_wanted = True  # at the end of the read: its newest state
+            if self._due_ns is None and frame.t_ns - self._last_pose_ns >= self._pose_period_ns:
+                self._due_ns = frame.t_ns  # the pose leaves at the end of the read
             return
         if isinstance(frame, UwbRanges):
             flt.update(frame)
@@ -238,11 +184,15 @@ class Pipeline:
             return  # anchor-to-anchor ranges: logged for surveying, never fused
         self._emit_pose()
 
-    def _emit_pose(self) -> None:
-        self._pose_wanted = False
+    def _emit_pose(self, due_ns: int | None = None) -> None:
+        """The pose now; the next falls due a period after this one, or after ``due_ns``
+        (the sample at which this one fell due, inside the read it leaves after: so that
+        reads of a few samples, whose ends seldom meet the period, still give poses at the
+        configured rate)."""
+        self._due_ns = None
         pose = self.filter.pose()
         if pose is not None:
-            self._last_pose_ns = pose.t_ns
+            self._last_pose_ns = pose.t_ns if due_ns is None else due_ns
             self.poses += 1
             for call in self._pose:
                 try:

@@ -28,6 +28,8 @@ from uwbd.codec import frame_from_dict
 from uwbd.fusion.core.rotation import Array, quat_from_euler, quat_from_matrix, quat_to_matrix
 from uwbd.logs.mcaplog import LogWriter, SourceInfo, pose_message
 from uwbd.logs.reading import LogContents
+from uwbd.service.ports import BATCH_LEARN_NS, BATCH_SHARE, MAX_VMIN, TAIL_AFTER_PERIODS
+from uwbd.service.sample_times import SampleTimes
 from uwbd.tools.evaluate import merge
 from uwbd.tools.importer import Dataset
 from uwbd.tools.simulator import Simulation, sensor_settings
@@ -81,14 +83,65 @@ class SerialReads:
         return [(t_ns, report)]
 
 
+class BatchedReads(SerialReads):
+    """An IMU's port as the daemon reads it (:meth:`uwbd.service.ports.SerialSource.
+    batch_reads`): a read a report (:class:`SerialReads`) until its byte rate is known
+    (``BATCH_LEARN_NS``), then a read each time VMIN bytes have arrived (``BATCH_SHARE`` of
+    a pose period's): a few reports, ending anywhere inside one; after a pause of
+    ``TAIL_AFTER_PERIODS`` pose periods what waited is read, and the rate is learned anew."""
+
+    def __init__(self, seed: int, pose_period_ns: int) -> None:
+        super().__init__(seed)
+        self.pose_period_ns = pose_period_ns
+        self.vmin = 0
+        self._learning: tuple[int, int] | None = None  # since when, bytes since
+        self._last_ns: int | None = None
+        self._pending = b""
+
+    def cut(self, t_ns: int, report: bytes) -> list[tuple[int, bytes]]:
+        out: list[tuple[int, bytes]] = []
+        last = self._last_ns
+        self._last_ns = t_ns
+        if last is not None and t_ns - last > TAIL_AFTER_PERIODS * self.pose_period_ns:
+            if self._pending:  # the tail, read once the port went quiet
+                out.append((last + TAIL_AFTER_PERIODS * self.pose_period_ns, self._pending))
+            self._pending, self.vmin, self._learning = b"", 0, None
+        if not self.vmin:
+            since_ns, count = self._learning or (t_ns, 0)
+            if t_ns - since_ns >= BATCH_LEARN_NS:
+                rate_bps = count * 1e9 / (t_ns - since_ns)
+                self.vmin = min(MAX_VMIN, int(rate_bps * self.pose_period_ns / 1e9 * BATCH_SHARE))
+            self._learning = (since_ns, count + len(report))
+            if self.vmin < 2:
+                self.vmin = 0
+                return out + super().cut(t_ns, report)
+        data = self._pending + report
+        start = 0
+        while len(data) - start >= self.vmin:  # a read returns as its VMIN-th byte arrives
+            end = start + self.vmin
+            out.append((t_ns - (len(data) - end) * BYTE_NS, data[start:end]))
+            start = end
+        self._pending = data[start:]
+        return out
+
+    def tail(self) -> list[tuple[int, bytes]]:
+        """What waited below VMIN when the device stopped, read then."""
+        pending, self._pending = self._pending, b""
+        if not pending or self._last_ns is None:
+            return []
+        return [(self._last_ns + TAIL_AFTER_PERIODS * self.pose_period_ns, pending)]
+
+
 def write_simulation(sim: Simulation, path: Path, uwb_driver: str = "nlink") -> None:
     """The simulated run as its devices would send it (every packet type a WitMotion sends
-    by default, reads split where a serial port splits them) and its truth."""
+    by default, reads split where a serial port splits them, the IMU's batched as the
+    daemon reads it) and its truth."""
     sources = simulation_sources(uwb_driver)
     toml = simulation_toml(sim, uwb_driver)
     infos = tuple(SourceInfo(s.name, s.driver, s.port) for s in sources)
     encode = {"imu": ENCODERS["wit"], "uwb": ENCODERS[uwb_driver]}
-    reads = {name: SerialReads(sim.config.seed * 2 + k) for k, name in enumerate(encode)}
+    imu_reads = BatchedReads(sim.config.seed * 2, cfgmod.parse(toml, "simulation").pose_period_ns)
+    reads = {"imu": imu_reads, "uwb": SerialReads(sim.config.seed * 2 + 1)}
     with LogWriter(path, toml, infos) as log:
         next_flush = sim.truth_t_ns[0] + FLUSH_EVERY_NS
         truth_k = 0
@@ -112,6 +165,8 @@ def write_simulation(sim: Simulation, path: Path, uwb_driver: str = "nlink") -> 
             if frame.t_ns >= next_flush:
                 log.flush()
                 next_flush += FLUSH_EVERY_NS
+        for t_ns, data in imu_reads.tail():
+            log.raw("imu", max(last_ns, t_ns), data)
 
 
 def write_dataset(ds: Dataset, path: Path, mounting: Sequence[Sequence[float]],
@@ -157,12 +212,13 @@ def load_recording(contents: LogContents, where: str,
     stats: dict[str, dict[str, object]] = {}
     if any(m.topic in raw_topics for m in contents.messages):
         parsers = {topic: PARSERS[s["driver"]]() for topic, s in raw_topics.items()}
+        times = SampleTimes()  # a read's frames spread as the daemon spreads them
         for m in contents.messages:
             parser = parsers.get(m.topic)
             if parser is not None:
-                _sort(parser.feed(m.data, m.log_time_ns), imu, uwb)
+                _sort(times.spread(m.topic, parser.feed(m.data, m.log_time_ns)), imu, uwb)
         for topic, parser in parsers.items():
-            _sort(parser.flush(), imu, uwb)
+            _sort(times.spread(topic, parser.flush()), imu, uwb)
             stats[topic] = parser.stats.as_dict()
     else:
         _sort(decoded_frames(contents, ("/imu", "/uwb"), where), imu, uwb)
