@@ -104,13 +104,12 @@ class WindowRaim:
         """Ranges before their update: anchors, innovations (m), unit vectors anchor → tag
         (rows of ``u``), the ranges' variances (m²)."""
         latest = self._latest
-        ok = np.isfinite(y) & (var_m2 > 0) & np.isfinite(var_m2) & np.isfinite(u).all(axis=1)
-        clip = CLIP_SIGMAS * np.sqrt(np.abs(var_m2))
-        for anchor, good, yk, (ux, uy, uz), vk in zip(
-                ids, ok.tolist(), np.clip(y, -clip, clip).tolist(), u.tolist(),
-                var_m2.tolist(), strict=True):
-            if good:
-                latest[anchor] = (t_ns, yk, 1.0 / vk, ux, uy, uz)
+        # (in floats: numpy's calls cost more than the work on a few ranges)
+        for anchor, yk, (ux, uy, uz), vk in zip(ids, y.tolist(), u.tolist(), var_m2.tolist(),
+                                                 strict=True):
+            if 0.0 < vk < math.inf and math.isfinite(yk + ux + uy + uz):
+                clip = CLIP_SIGMAS * math.sqrt(vk)
+                latest[anchor] = (t_ns, min(max(yk, -clip), clip), 1.0 / vk, ux, uy, uz)
         period = SINGLE_EVERY_NS if len(ids) < MIN_ANCHORS else SNAPSHOT_EVERY_NS
         if t_ns - self._snapshot_ns < period:
             return
