@@ -6,6 +6,7 @@ datasets) pose by pose, within tolerances."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import subprocess
@@ -18,6 +19,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from drivers.frames import ImuSample
 from uwbd.config import parse
 from uwbd.fusion.checks.imu_check import ImuCheck, ImuLimits, new_imu_check
 from uwbd.fusion.checks.intrinsics import ImuIntrinsics, body_maps, to_body
@@ -27,6 +29,7 @@ from uwbd.fusion.core.eskf import N_CORE, TH_, V_, Eskf, ImuNoise, Row
 from uwbd.fusion.core.lsq import multilaterate
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.core.state import CoreEskf, new_eskf
+from uwbd.fusion.filter import Filter
 from uwbd.fusion.models.measurements import range_check, range_rows
 from uwbd.fusion.policy.outputs import MAX_OBSERVABLE_YAW_SIGMA
 from uwbd.fusion.policy.rest import ImuWindow, RestLimits
@@ -146,6 +149,83 @@ def test_the_imu_front_step_is_judge_map_predict_propagate(seed: int, n_aux: int
         np.testing.assert_allclose(nominal(fast), nominal(slow), rtol=1e-13, atol=1e-16)
         assert fast.interval_s == slow.interval_s
     np.testing.assert_allclose(fast.P, slow.P, rtol=1e-12, atol=1e-15)
+
+
+@needs_core
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31), st.integers(2, 40), st.sampled_from(["none", "reject", "gap",
+                                                                  "order"]))
+def test_the_imu_fronts_step_over_a_read_is_step_on_each_sample(seed: int, count: int,
+                                                                 odd: str) -> None:
+    """ImuFront.step_many over a read's samples: the same rows, screen and state, bit for
+    bit, as step() sample by sample, up to the first sample that is not the common one
+    (rejected: judged, its reason said; a gap or out of order: not judged, no reason)."""
+    rng = np.random.default_rng(seed)
+    C = tuple(tuple(r) for r in Z_DOWN)
+    maps = body_maps(C, ImuIntrinsics(gyro_offset_rps=(0.01, 0.0, -0.02)))
+    fronts = new_imu_check(ImuLimits(), maps), new_imu_check(ImuLimits(), maps)
+    (fast, _), (slow, _) = twin(2, seed), twin(2, seed)
+    stream = imu_stream(seed, count)
+    times = [1_000_000_000 + 5_000_000 * (k + 1) for k in range(count)]
+    at = int(rng.integers(1, count))
+    if odd == "reject":
+        stream[at] = ((math.nan, 0.0, 9.8), stream[at][1])
+    elif odd == "gap":
+        times[at:] = [t + 400_000_000 for t in times[at:]]
+    elif odd == "order":
+        times[at] = times[at - 1]
+    samples = list(zip(times, *zip(*stream, strict=True), strict=True))
+    rows, reason = fronts[0].step_many(fast.core_state, samples, 1_000_000_000,
+                                       1_000_000_000, 0.25, 0.1)
+    want, why, last = [], None, 1_000_000_000
+    for t_ns, acc, gyro in samples:
+        if t_ns <= last or (t_ns - last) / 1e9 > 0.25:
+            break
+        judged = fronts[1].step(slow.core_state, t_ns, acc, gyro, (t_ns - last) / 1e9, 0.1)
+        if judged.__class__ is not tuple:
+            why = judged
+            break
+        want.append((t_ns, *judged[0], *judged[1]))
+        last = t_ns
+    assert rows == want and reason == why
+    assert (len(rows) == count) == (odd == "none")
+    assert np.array_equal(nominal(fast), nominal(slow)) and np.array_equal(fast.P, slow.P)
+    assert fronts[0].last_good == fronts[1].last_good
+
+
+def test_a_filter_fed_whole_reads_gives_the_poses_of_one_sample_at_a_time() -> None:
+    """Filter.predict_many (the pipeline's call per read) against predict per sample, with
+    an IMU burst and a gap in the run: the same poses, bit for bit."""
+    sim = simulate(SimConfig(seed=3, segments=((8.0, 0.0, 0.0, 0.0), (10.0, 0.6, 0.1, 0.0))))
+    imu = list(sim.imu)
+    for k in range(900, 905):  # bursts the screen rejects: not finite, and jumps
+        imu[k] = dataclasses.replace(imu[k], acc_mps2=(math.nan, 0.0, 9.8))
+    for k in range(1201, 1206):  # (the screen takes a jump as real after three)
+        imu[k] = dataclasses.replace(imu[k], acc_mps2=(100.0, 0.0, 9.8))
+    del imu[1500:1560]  # a 0.3 s gap
+    cfg = parse(simulation_toml(sim)).filter_config()
+    one, whole = Filter(cfg), Filter(cfg)
+    poses = {}
+    for flt, size in ((one, 1), (whole, 4)):
+        out: list[Pose] = []
+        read: list[ImuSample] = []  # up to `size` samples, none across a UWB epoch
+        for f in merge(imu, sim.uwb):
+            if isinstance(f, ImuSample):
+                read.append(f)
+                if len(read) == size:
+                    flt.predict_many(read)
+                    read = []
+                continue
+            if read:
+                flt.predict_many(read)
+                read = []
+            flt.update(f)
+            pose = flt.pose()
+            if pose is not None:
+                out.append(pose)
+        poses[flt is one] = out
+    assert len(poses[True]) > 50 and poses[True] == poses[False]
+    assert whole.counters == one.counters
 
 
 @needs_core

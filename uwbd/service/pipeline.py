@@ -160,6 +160,9 @@ class Pipeline:
         trouble.last_error = text
 
     def _frames(self, frames: Sequence[Frame]) -> None:
+        """Frames to the sinks and, in time order through the aligner, to the filter: the
+        IMU samples that come in a row (a read's) in one call (``Filter.predict_many``)."""
+        samples: list[ImuSample] = []
         for frame in frames:
             for call in self._frame:
                 try:
@@ -167,14 +170,30 @@ class Pipeline:
                 except Exception as err:
                     self._sink_failed(call, err)
             for ready in self.aligner.push(frame):
+                if ready.__class__ is ImuSample:
+                    samples.append(ready)
+                    continue
+                if samples:
+                    self._predict(samples)
+                    samples = []
                 self._fuse(ready)
+        if samples:
+            self._predict(samples)
+
+    def _predict(self, samples: list[ImuSample]) -> None:
+        """IMU samples in a row; a pose falls due at the first a period after the last."""
+        self.filter.predict_many(samples)
+        if self._due_ns is None:
+            last_ns, period_ns = self._last_pose_ns, self._pose_period_ns
+            for sample in samples:
+                if sample.t_ns - last_ns >= period_ns:
+                    self._due_ns = sample.t_ns  # the pose leaves at the end of the read
+                    break
 
     def _fuse(self, frame: Frame) -> None:
         flt = self.filter
         if isinstance(frame, ImuSample):
-            flt.predict(frame)
-            if self._due_ns is None and frame.t_ns - self._last_pose_ns >= self._pose_period_ns:
-                self._due_ns = frame.t_ns  # the pose leaves at the end of the read
+            self._predict([frame])
             return
         if isinstance(frame, UwbRanges):
             flt.update(frame)

@@ -14,6 +14,8 @@
  *   .step(state, t_ns, acc, gyro, dt, propagate_every_s) -> (acc_b, gyro_b) or the reason:
  *     judged; when good, mapped, State.predict over dt and State.propagate when the interval
  *     reaches propagate_every_s; a rejected sample changes nothing but the screen.
+ *   .step_many(state, samples, last_ns, state_ns, max_gap_s, propagate_every_s)
+ *     -> (rows, reason): step over a read's samples while each is the common one.
  *
  * The jump test's distance is sqrt of the sum of squares where ImuCheck has math.dist (more
  * careful rounding): the two can differ at one rounding exactly at the limit, never else. */
@@ -159,6 +161,65 @@ static PyObject *front_step(ImuFront *s, PyObject *const *args, Py_ssize_t nargs
     return out;
 }
 
+/* step_many(state, samples, last_ns, state_ns, max_gap_s, propagate_every_s)
+ *     -> (rows, reason): step() over a read's samples, (t_ns, acc, gyro) tuples in time
+ * order, while each is the common sample: later than the last (last_ns, then the one
+ * before it) by at most max_gap_s and later than the state (state_ns). rows: the samples
+ * integrated, (t_ns, acc_b..., gyro_b...) each, as the rest window keeps them; it stops at
+ * the first sample that is not the common one (not judged: Python's policy takes it, and
+ * reason is None) or that the screen rejects (judged: reason says why, the policy takes it
+ * from there). */
+static PyObject *front_step_many(ImuFront *s, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (nargs != 6 || !PyObject_TypeCheck(args[0], &UwbdStateType) || !PyList_Check(args[1])) {
+        PyErr_SetString(PyExc_TypeError, "step_many(state, samples: list, last_ns, state_ns, "
+                                         "max_gap_s, propagate_every_s): a State first");
+        return NULL;
+    }
+    long long last = PyLong_AsLongLong(args[2]), state_ns = PyLong_AsLongLong(args[3]);
+    double max_gap = PyFloat_AsDouble(args[4]), every = PyFloat_AsDouble(args[5]);
+    if (PyErr_Occurred())
+        return NULL;
+    PyObject *rows = PyList_New(0), *reason = Py_None;
+    if (rows == NULL)
+        return NULL;
+    for (Py_ssize_t k = 0; k < PyList_GET_SIZE(args[1]); k++) {
+        PyObject *sample = PyList_GET_ITEM(args[1], k);
+        long long t_ns;
+        double a[3], g[3];
+        if (!PyTuple_Check(sample) || PyTuple_GET_SIZE(sample) != 3) {
+            PyErr_SetString(PyExc_TypeError, "step_many: samples are (t_ns, acc, gyro)");
+            goto fail;
+        }
+        if (sample_args(&PyTuple_GET_ITEM(sample, 0), &t_ns, a, g) < 0)
+            goto fail;
+        if (t_ns <= last || (double)(t_ns - last) / 1e9 > max_gap || t_ns <= state_ns)
+            break; /* not the common sample: the policy's */
+        int r = judge(s, t_ns, a, g);
+        if (r >= 0) {
+            reason = reasons[r];
+            break;
+        }
+        double ab[3], gb[3];
+        to_body(s, a, g, ab, gb);
+        uwbd_state_predict(args[0], ab, gb, (double)(t_ns - state_ns) / 1e9);
+        if (uwbd_state_interval(args[0]) >= every)
+            uwbd_state_propagate(args[0]);
+        PyObject *row = Py_BuildValue("(Ldddddd)", t_ns, ab[0], ab[1], ab[2], gb[0], gb[1],
+                                      gb[2]);
+        if (row == NULL || PyList_Append(rows, row) < 0) {
+            Py_XDECREF(row);
+            goto fail;
+        }
+        Py_DECREF(row);
+        last = state_ns = t_ns;
+    }
+    return Py_BuildValue("(NO)", rows, reason);
+fail:
+    Py_DECREF(rows);
+    return NULL;
+}
+
 static PyObject *front_burst_s(ImuFront *s, PyObject *const *args, Py_ssize_t nargs)
 {
     if (nargs != 1) {
@@ -225,6 +286,8 @@ static PyMethodDef front_methods[] = {
     METHOD(burst_s, "burst_s(t_ns): how long samples have been rejected without a break."),
     METHOD(step, "step(state, t_ns, acc, gyro, dt, propagate_every_s) -> (acc_b, gyro_b) "
                  "when judged good and integrated, else the reason."),
+    METHOD(step_many, "step_many(state, samples, last_ns, state_ns, max_gap_s, "
+                      "propagate_every_s) -> (rows, reason): step over a read's samples."),
     {NULL, NULL, 0, NULL},
 };
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import collections
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -71,6 +72,47 @@ class ImuPropagation(Recovery):
             reason = judged
         else:
             reason = self.imu_check.judge(t_ns, imu.acc_mps2, imu.gyro_rps)
+        self._judged(imu, reason)
+
+    def predict_many(self, samples: Sequence[ImuSample]) -> None:
+        """A read's samples, in time order: what :meth:`predict` does to each, the common
+        ones (good, no gap, tracking) stepped by the C IMU front in one call
+        (``ImuFront.step_many``), the others one by one."""
+        k, n = 0, len(samples)
+        while k < n:
+            ekf, prev, t_state = self.ekf, self._imu_t_ns, self.t_ns
+            if not (self._front_steps and n - k > 1 and ekf is not None
+                    and ekf.core_state is not None and self._relevel is None
+                    and prev is not None and t_state is not None):
+                self.predict(samples[k])
+                k += 1
+                continue
+            rows, reason = self.imu_check.step_many(
+                ekf.core_state, [(s.t_ns, s.acc_mps2, s.gyro_rps) for s in samples[k:]],
+                prev, t_state, self.cfg.max_imu_gap_s, PROPAGATE_EVERY_S)
+            if rows:
+                last = rows[-1]
+                self._imu_t_ns = self._good_imu_ns = self.t_ns = last[0]
+                self.window.add_rows(rows)
+                self._last_imu = (last[1:4], last[4:7])
+                k += len(rows)
+            if k == n:
+                return
+            if reason is None:  # not the common sample: the whole policy takes it
+                self.predict(samples[k])
+            else:  # judged and rejected: the policy takes it from there
+                try:
+                    self._judged(samples[k], reason)
+                except NUMERICAL_ERRORS as err:
+                    self._internal_error(samples[k].t_ns, err)
+            k += 1
+
+    def _judged(self, imu: ImuSample, reason: str) -> None:
+        """A sample after the IMU check (``reason``: why it is rejected, or ""): counted,
+        kept in the rest window, integrated (over a rejected one with the last good one),
+        coasted over a gap."""
+        t_ns, prev = imu.t_ns, self._imu_t_ns
+        ekf = self.ekf
         if reason:
             self.counters[reason] += 1
             self.monitor.imu_rejected(t_ns)

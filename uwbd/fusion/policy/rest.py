@@ -59,6 +59,15 @@ class ImuWindow:
         while samples[0][0] < oldest_ns:
             samples.popleft()
 
+    def add_rows(self, rows: list[tuple[float, ...]]) -> None:
+        """Rows ``(t_ns, *acc, *gyro)`` in time order, as :meth:`add` takes them one by one."""
+        samples = self._samples
+        samples.extend(rows)
+        self._added += len(rows)
+        oldest_ns = rows[-1][0] - self.length_ns
+        while samples[0][0] < oldest_ns:
+            samples.popleft()
+
     def clear(self) -> None:
         self._samples.clear()
         self._array, self._array_added = np.zeros((0, 7)), self._added
