@@ -217,14 +217,15 @@ def test_imu_is_the_logs_frames_in_the_sensor_axes(logs: tuple[Path, Path],
         assert xyz(msg.angular_velocity) == d["gyro_rps"]
         assert xyz(msg.linear_acceleration) == d["acc_mps2"]
         assert msg.orientation_covariance[0] == -1.0
-    # the covariances the filter assumes: density² × rate (200 Hz), on the diagonal
+    # the covariances the filter assumes: density² × rate (200 Hz: the rate as the sample
+    # times say it, which a batched read's spread makes good to a percent), on the diagonal
     config = parse(read_log(logs[1]).metadata["config_toml"])
     noise = config.filter_config().imu_noise
     first = imu[0][1]
-    assert close(np.reshape(first.angular_velocity_covariance, (3, 3)),
-                 np.eye(3) * noise.gyro ** 2 * 200.0, 1e-12)
-    assert close(np.reshape(first.linear_acceleration_covariance, (3, 3)),
-                 np.eye(3) * noise.acc ** 2 * 200.0, 1e-12)
+    np.testing.assert_allclose(np.reshape(first.angular_velocity_covariance, (3, 3)),
+                               np.eye(3) * noise.gyro ** 2 * 200.0, rtol=1e-2, atol=0.0)
+    np.testing.assert_allclose(np.reshape(first.linear_acceleration_covariance, (3, 3)),
+                               np.eye(3) * noise.acc ** 2 * 200.0, rtol=1e-2, atol=0.0)
     # the static transform is the mounting (sensor -> body) and the lever arm
     (static,) = bag.msgs("/tf_static")
     by_child = {t.child_frame_id: t for t in static.transforms}
