@@ -532,6 +532,21 @@ static PyObject *state_update(State *self, PyObject *const *args, Py_ssize_t nar
     return out;
 }
 
+/* The range rows' scratch grown to `need` doubles: 0, or -1 with MemoryError. */
+static int rows_room(State *self, Py_ssize_t need)
+{
+    if (need <= self->rows_cap)
+        return 0;
+    double *grown = PyMem_Realloc(self->rows, sizeof(double) * (size_t)need);
+    if (grown == NULL) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    self->rows = grown;
+    self->rows_cap = need;
+    return 0;
+}
+
 /* fuse_ranges(lever, anchors (k×3), ranges (k), var (k), columns, H_extra, y_extra,
  *             R_extra, decide, c0, c1) -> rows, or None
  * A tight epoch: the range rows (mm_range.c), then the extra rows (ZUPT, NHC, height), as
@@ -562,16 +577,8 @@ static PyObject *state_fuse_ranges(State *self, PyObject *const *args, Py_ssize_
         goto done;
     rows = 1;
     Py_ssize_t m = k + e;
-    Py_ssize_t need = m * n + 2 * m;
-    if (need > self->rows_cap) {
-        double *grown = PyMem_Realloc(self->rows, sizeof(double) * (size_t)need);
-        if (grown == NULL) {
-            PyErr_NoMemory();
-            goto done;
-        }
-        self->rows = grown;
-        self->rows_cap = need;
-    }
+    if (rows_room(self, m * n + 2 * m) < 0)
+        goto done;
     double *H = self->rows, *y = H + m * n, *R = y + m, closest;
     memset(H, 0, sizeof(double) * (size_t)(k * n));
     if (uwbd_range_rows(self->p, self->q, lever, view[1].buf, view[0].buf, k, self->br, n,
@@ -627,16 +634,8 @@ static PyObject *state_range_check(State *self, PyObject *const *args, Py_ssize_
         got = 4;
     }
     /* H (k×n), y (k), H P (k×n), S (k×k) and the inverse's k×k */
-    Py_ssize_t need = 2 * k * n + k + 2 * k * k;
-    if (need > self->rows_cap) {
-        double *grown = PyMem_Realloc(self->rows, sizeof(double) * (size_t)need);
-        if (grown == NULL) {
-            PyErr_NoMemory();
-            goto done;
-        }
-        self->rows = grown;
-        self->rows_cap = need;
-    }
+    if (rows_room(self, 2 * k * n + k + 2 * k * k) < 0)
+        goto done;
     double *H = self->rows, *y = H + k * n, *HP = y + k, *S = HP + k * n, *Si = S + k * k;
     double closest, *out = view[2].buf;
     memset(H, 0, sizeof(double) * (size_t)(k * n));
