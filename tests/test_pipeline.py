@@ -30,15 +30,16 @@ def poses_of(sim_cfg: SimConfig, rate_hz: float) -> tuple[list[int], list[int]]:
 
 
 def test_single_ranges_update_at_once_but_poses_leave_at_the_configured_rate() -> None:
-    """~170 single ranges a second, poses at 50 Hz: no pose per range, none closer than the
-    period, and the filter tracks (the ranges were all fused)."""
+    """~170 single ranges a second, poses at 50 Hz: no pose per range, 50 a second, and the
+    filter tracks (the ranges were all fused)."""
     cfg = handheld_async(2)
     cfg = SimConfig(**{**cfg.__dict__, "segments": cfg.segments[:3]})
     times, ranges = poses_of(cfg, 50.0)
     gaps_s = np.diff(times) / 1e9
     duration_s = (times[-1] - times[0]) / 1e9
     assert len(ranges) > 3 * len(times)  # the ranges far outnumber the poses
-    assert gaps_s.min() >= 0.02 - 1e-6 and len(times) >= 0.8 * 50 * duration_s
+    # on the 50 Hz grid (a pose may come a little early in its slot after a late one)
+    assert gaps_s.min() >= 0.01 and 0.8 * 50 * duration_s <= len(times) <= 50 * duration_s + 2
 
 
 def test_a_pose_due_within_a_read_leaves_after_the_reads_last_sample() -> None:

@@ -8,7 +8,8 @@ that carry only decoded frames go in through :meth:`Pipeline.on_frame`.
 Poses leave at the configured rate (one a ``pose_period_ns`` of data time, from the IMU
 samples between updates: after the read that brings the sample a pose falls due at, at
 the read's last sample, so that a read of several samples gives its newest state; the next
-falls due a period after that sample) and after every UWB epoch of several ranges, whose
+falls due a period after the slot this one was due in) and after every UWB epoch of several
+ranges, whose
 correction should not wait; a single range (a DW1000-class tag ranges one anchor at a
 time, ~170 a second) updates the state at once but brings a pose out only when one is due;
 status every ``status_period_ns``. Sinks receive
@@ -30,7 +31,7 @@ from uwbd.config import Config
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.types import Pose
 from uwbd.service.aligner import Aligner
-from uwbd.service.sample_times import SampleTimes
+from uwbd.service.sample_times import SampleTimes, batched_bauds
 
 
 class Sink(Protocol):
@@ -83,7 +84,8 @@ class Pipeline:
         self._due_ns: int | None = None
         self._pose_period_ns = config.pose_period_ns  # a property: read once, not per sample
         self._status_period_ns = config.status_period_ns
-        self.sample_times = SampleTimes()  # each read's frames a time of their own
+        # each read's frames a time of their own
+        self.sample_times = SampleTimes(batched_bauds(config.sources))
         self._last_status_ns: int | None = None
         self._latest_ns = -(2**63)  # the latest data (or wall-clock tick) time seen
 
@@ -99,7 +101,7 @@ class Pipeline:
             self.unknown_sources += 1
             return
         self._raw_to_sinks(source, t_ns, data)
-        self._frames(self.sample_times.spread(source, parser.feed(data, t_ns)))
+        self._frames(self.sample_times.spread(source, parser.feed(data, t_ns), len(data)))
         if self._due_ns is not None:
             self._emit_pose(self._due_ns)
         self._tick(t_ns)
@@ -204,14 +206,20 @@ class Pipeline:
         self._emit_pose()
 
     def _emit_pose(self, due_ns: int | None = None) -> None:
-        """The pose now; the next falls due a period after this one, or after ``due_ns``
-        (the sample at which this one fell due, inside the read it leaves after: so that
-        reads of a few samples, whose ends seldom meet the period, still give poses at the
-        configured rate)."""
+        """The pose now; the next falls due a period after this one or, for a pose the IMU
+        brought (``due_ns``: the sample at which it fell due, inside the read it leaves
+        after), a period after the slot it was due in (unless that sample is a period or
+        more past it: a gap): on a grid, so that neither reads of a few samples nor
+        samples a hair short of the period apart make fewer poses than configured."""
         self._due_ns = None
         pose = self.filter.pose()
         if pose is not None:
-            self._last_pose_ns = pose.t_ns if due_ns is None else due_ns
+            if due_ns is None:
+                self._last_pose_ns = pose.t_ns
+            else:
+                slot_ns = self._last_pose_ns + self._pose_period_ns
+                self._last_pose_ns = slot_ns if due_ns - slot_ns < self._pose_period_ns \
+                    else due_ns
             self.poses += 1
             for call in self._pose:
                 try:

@@ -34,6 +34,7 @@ from uwbd import journal
 from uwbd.config import SourceConfig
 from uwbd.fusion.core import native
 from uwbd.service.pipeline import Pipeline
+from uwbd.service.sample_times import BATCHED_DRIVERS
 
 READ_BYTES = 4096  # as _reader.c's
 # drivers whose device speaks only when asked: (request bytes, period s)
@@ -41,7 +42,7 @@ POLLED = {"dwm1001-tlv": (LOC_GET_REQUEST, 0.1)}
 BACKOFF_START_S = 0.1
 BACKOFF_MAX_S = 2.0
 STABLE_OPEN_S = 5.0  # open this long before a loss: the backoff starts again from the start
-IMU_ONLY_DRIVERS = {"wit"}  # their reads may wait for the next pose (ReadQueue)
+IMU_ONLY_DRIVERS = BATCHED_DRIVERS  # their reads may wait for the next pose (ReadQueue)
 MAX_QUEUE_NS = 100_000_000
 # Batched reads (IMU-only ports): the port's VMIN is set so that a read returns about once
 # per pose period: BATCH_SHARE of the bytes a period brings, at the byte rate measured over

@@ -29,7 +29,7 @@ from uwbd.fusion.core.rotation import Array, quat_from_euler, quat_from_matrix, 
 from uwbd.logs.mcaplog import LogWriter, SourceInfo, pose_message
 from uwbd.logs.reading import LogContents
 from uwbd.service.ports import BATCH_LEARN_NS, BATCH_SHARE, MAX_VMIN, TAIL_AFTER_PERIODS
-from uwbd.service.sample_times import SampleTimes
+from uwbd.service.sample_times import SampleTimes, batched_bauds
 from uwbd.tools.evaluate import merge
 from uwbd.tools.importer import Dataset
 from uwbd.tools.simulator import Simulation, sensor_settings
@@ -212,11 +212,13 @@ def load_recording(contents: LogContents, where: str,
     stats: dict[str, dict[str, object]] = {}
     if any(m.topic in raw_topics for m in contents.messages):
         parsers = {topic: PARSERS[s["driver"]]() for topic, s in raw_topics.items()}
-        times = SampleTimes()  # a read's frames spread as the daemon spreads them
+        # a read's frames spread as the daemon spreads them
+        times = SampleTimes(batched_bauds(config.sources, "/raw/"))
         for m in contents.messages:
             parser = parsers.get(m.topic)
             if parser is not None:
-                _sort(times.spread(m.topic, parser.feed(m.data, m.log_time_ns)), imu, uwb)
+                _sort(times.spread(m.topic, parser.feed(m.data, m.log_time_ns), len(m.data)),
+                      imu, uwb)
         for topic, parser in parsers.items():
             _sort(times.spread(topic, parser.flush()), imu, uwb)
             stats[topic] = parser.stats.as_dict()
