@@ -2,16 +2,20 @@
 
     python benchmarks/bench_daemon.py [--seconds 15] [--runs 3] [--replay-s 586] [--replay-only]
 
-* latency: serial read → Zenoh receive. A pose's ``t_ns`` is the receive time of the read
-  that produced it (``time.time_ns()`` in the daemon), so a subscriber on the same host takes
-  ``time.time_ns() − t_ns`` on arrival: percentiles over every pose;
+* latency: serial read → Zenoh receive. A pose's ``t_ns`` is the time of the newest
+  sample of the read that produced it (the read's receive time, ``time.time_ns()`` in the
+  daemon; for a batched IMU read, put back by the bytes it carries past that sample:
+  ``uwbd.service.sample_times``), so a subscriber on the same host takes
+  ``time.time_ns() − t_ns`` on arrival: percentiles over every pose (from the sample, which
+  is at most an IMU period older than the read);
 * the floor under the CPU figure: what an asyncio loop that only wakes (60 and 200 times a
   second) costs on this machine;
 * CPU (% of one core) and RSS of the ``uwbd run`` process, with the emulator (a process of
   its own, ``uwbd emulate``) feeding a 200 Hz WitMotion IMU and a 10 Hz Nooploop tag over
   pseudo-terminals, from ``/proc``; each run and the median of the runs;
-* replay speed: a simulated log (about 10 minutes of a 200 Hz IMU and 6 anchors at 10 Hz)
-  through ``uwbd replay``'s pipeline, as a multiple of real time, without and with writing
+* replay speed: a simulated log (about 10 minutes of a 200 Hz IMU and 6 anchors at 10 Hz,
+  its reads as the daemon reads the devices: ``uwbd simulate``) through ``uwbd replay``'s
+  pipeline, as a multiple of real time, without and with writing
   the output log; then the whole ``uwbd replay`` process (start-up, imports, reading the
   log, the replay), as a user runs it.
 
