@@ -139,6 +139,13 @@ class ReadQueue:
                   doing, type(err).__name__, err, exc_info=True)
 
 
+def batch_vmin(rate_bps: float, pose_period_ns: int) -> int:
+    """A batched port's VMIN at a byte rate: ``BATCH_SHARE`` of a pose period's bytes, at
+    most ``MAX_VMIN``; 0 under 2 (1 is what 0 already does: a read for any byte)."""
+    vmin = min(MAX_VMIN, int(rate_bps * pose_period_ns / 1e9 * BATCH_SHARE))
+    return vmin if vmin >= 2 else 0
+
+
 class SerialSource:
     """One port: opened, handed to ``reads`` (:func:`make_reads`), reopened when lost."""
 
@@ -294,8 +301,7 @@ class SerialSource:
             return
         rate_bps = (info.bytes_read - mark[1]) * 1e9 / (now_ns - mark[0])
         self._rate_mark = (now_ns, info.bytes_read)
-        vmin = min(MAX_VMIN, int(rate_bps * pose_period_ns / 1e9 * BATCH_SHARE))
-        vmin = vmin if vmin >= 2 else 0  # (1 is what 0 already does: a read for any byte)
+        vmin = batch_vmin(rate_bps, pose_period_ns)
         old = info.read_batch_bytes
         if abs(vmin - old) > 0.1 * max(vmin, old):  # (the rate's jitter changes nothing)
             self._set_vmin(vmin)

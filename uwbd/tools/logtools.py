@@ -28,7 +28,7 @@ from uwbd.codec import frame_from_dict
 from uwbd.fusion.core.rotation import Array, quat_from_euler, quat_from_matrix, quat_to_matrix
 from uwbd.logs.mcaplog import LogWriter, SourceInfo, pose_message
 from uwbd.logs.reading import LogContents
-from uwbd.service.ports import BATCH_LEARN_NS, BATCH_SHARE, MAX_VMIN, TAIL_AFTER_PERIODS
+from uwbd.service.ports import BATCH_LEARN_NS, TAIL_AFTER_PERIODS, batch_vmin
 from uwbd.service.sample_times import SampleTimes, batched_bauds
 from uwbd.tools.evaluate import merge
 from uwbd.tools.importer import Dataset
@@ -110,10 +110,9 @@ class BatchedReads(SerialReads):
             since_ns, count = self._learning or (t_ns, 0)
             if t_ns - since_ns >= BATCH_LEARN_NS:
                 rate_bps = count * 1e9 / (t_ns - since_ns)
-                self.vmin = min(MAX_VMIN, int(rate_bps * self.pose_period_ns / 1e9 * BATCH_SHARE))
+                self.vmin = batch_vmin(rate_bps, self.pose_period_ns)
             self._learning = (since_ns, count + len(report))
-            if self.vmin < 2:
-                self.vmin = 0
+            if not self.vmin:
                 return out + super().cut(t_ns, report)
         data = self._pending + report
         start = 0
