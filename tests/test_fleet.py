@@ -53,7 +53,8 @@ def test_two_robots_behind_one_router_one_subscriber(tmp_path: Path) -> None:
             procs.append(daemon)
             read_until(daemon, b"uwb: opened", 20, "stderr")
             emu.start()
-        echo = uwbd("echo", "--prefix", "uwbd/*", "--connect", router_at, "--count", "40",
+        # (enough poses that the robot started second has begun: 50 a second from each)
+        echo = uwbd("echo", "--prefix", "uwbd/*", "--connect", router_at, "--count", "300",
                     "--timeout", "20")
         assert echo.returncode == 0, echo.stderr
         robots = {line.split("/pose  ")[0] for line in echo.stdout.splitlines()}
