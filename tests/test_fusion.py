@@ -9,6 +9,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 from scipy.stats import chi2
+from truth import position_errors
 
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
 from uwbd.fusion.checks.gating import chi2_quantile
@@ -268,8 +269,7 @@ def test_imu_gap_is_survived(sim: Simulation) -> None:
 def _errors_xy(poses: list[Pose], sim: Simulation) -> tuple[Array, Array]:
     """Seconds into the run and the horizontal error of each pose."""
     t = np.array([p.t_ns for p in poses])
-    truth = np.column_stack([np.interp(t, sim.truth_t_ns, sim.truth_p_m[:, i]) for i in range(2)])
-    err = np.linalg.norm(np.array([p.position_m[:2] for p in poses]) - truth, axis=1)
+    err = np.linalg.norm(position_errors(poses, sim)[:, :2], axis=1)
     return (t - sim.truth_t_ns[0]) / 1e9, err
 
 

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from truth import position_errors
 
 from drivers import nlink, wit
 from drivers.emulator.scenario import CircleScenario
@@ -61,8 +62,7 @@ def datasheet(sim: Simulation, **kw: object) -> FilterConfig:
 def errors(poses: list[Pose], sim: Simulation) -> tuple[Array, Array, Array]:
     """Seconds into the run, horizontal error and horizontal σ of each pose."""
     t = np.array([p.t_ns for p in poses])
-    truth = np.column_stack([np.interp(t, sim.truth_t_ns, sim.truth_p_m[:, i]) for i in range(2)])
-    err = np.linalg.norm(np.array([p.position_m[:2] for p in poses]) - truth, axis=1)
+    err = np.linalg.norm(position_errors(poses, sim)[:, :2], axis=1)
     sigma = np.array([math.sqrt(p.covariance[0] + p.covariance[7]) for p in poses])
     return (t - sim.truth_t_ns[0]) / NS, err, sigma
 
@@ -554,9 +554,7 @@ def test_an_anchor_surveyed_off_is_named_and_the_estimate_is_not_healthy() -> No
         assert any(text.startswith("anchor 3: its ranges are ~") and "uwbd survey" in text
                    for text in said)
         t = np.array([p.t_ns for p in poses])
-        truth = np.column_stack([np.interp(t, sim.truth_t_ns, sim.truth_p_m[:, i])
-                                 for i in range(3)])
-        err = np.linalg.norm(np.array([p.position_m for p in poses]) - truth, axis=1)
+        err = np.linalg.norm(position_errors(poses, sim), axis=1)
         off = err > 0.5
         healthy_off = sum(p.health.healthy for p, o in zip(poses, off, strict=True) if o)
         # what the health said without the tests: healthy but for their faults (and the
@@ -602,10 +600,7 @@ def test_nlos_on_every_anchor_moves_the_state_to_no_fix_it_then_trusts(seed: int
     while over 1 m off (this was 42 and 20 poses on these two runs)."""
     sim = simulate(SimConfig(seed=seed, nlos_all_s=((30.0, 10.0),)))
     poses, _, flt = run_filter(datasheet(sim), merge(sim.imu, sim.uwb))
-    t = np.array([p.t_ns for p in poses])
-    truth = np.column_stack([np.interp(t, sim.truth_t_ns, sim.truth_p_m[:, i])
-                             for i in range(3)])
-    err = np.linalg.norm(np.array([p.position_m for p in poses]) - truth, axis=1)
+    err = np.linalg.norm(position_errors(poses, sim), axis=1)
     never_tracking_when_far(poses, err)
     assert flt.counters["fix_height_implausible"] > 0
 
@@ -648,10 +643,7 @@ def test_a_lever_arm_typed_wrong_is_estimated_when_asked_and_nothing_changes_whe
     def run(cfg: FilterConfig) -> tuple[float, Filter, list[Pose]]:
         poses, _, flt = run_filter(cfg, merge(sim.imu, sim.uwb))
         poses = [p for p in poses if p.t_ns > sim.truth_t_ns[0] + 8 * NS]
-        t = np.array([p.t_ns for p in poses])
-        truth = np.column_stack([np.interp(t, sim.truth_t_ns, sim.truth_p_m[:, i])
-                                 for i in range(3)])
-        err = np.linalg.norm(np.array([p.position_m for p in poses]) - truth, axis=1)
+        err = np.linalg.norm(position_errors(poses, sim), axis=1)
         return math.sqrt(float(np.mean(err**2))), flt, poses
 
     plain, _, plain_poses = run(wrong)

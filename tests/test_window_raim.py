@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 import pytest
+from truth import position_errors
 
 from drivers.frames import ImuSample
 from uwbd.config import parse
@@ -92,10 +93,7 @@ def _run(sim_cfg: SimConfig, move_anchor: tuple[float, float, float] | None,
         pose = flt.pose()
         if pose is not None and pose.t_ns > sim.truth_t_ns[0] + 8 * NS:
             poses.append(pose)
-    t = np.array([p.t_ns for p in poses])
-    truth = np.column_stack([np.interp(t, sim.truth_t_ns, sim.truth_p_m[:, i])
-                             for i in range(3)])
-    return poses, np.array([p.position_m for p in poses]) - truth
+    return poses, position_errors(poses, sim)
 
 
 def test_protection_levels_bound_the_error_of_a_right_installation() -> None:
