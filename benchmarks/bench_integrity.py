@@ -13,7 +13,8 @@ simulated sensors' specs; imported runs carry anchors, mounting and lever arm on
 * the real flight ``iasl-s1`` and the real handheld run ``inrol-env1`` (first 10 s out),
   with UWB least squares beside it for reference; on ``inrol-env1`` also with the range
   model ``uwbd calibrate-ranges`` fits on ``inrol-calib`` (another room, same hardware;
-  degrees 1 and 2 of the tag's term, the anchors' delays, delay states off as it writes).
+  degrees 1 and 2 of the tag's term, the anchors' delays, delay states off and the NLOS
+  tail's onset as it writes).
 
 Faults on the seed layout: the IMU pinned at full scale for 0.5 s, one corrupted sample,
 a 30 s IMU gap, a 20 s UWB outage, every anchor NLOS (+0.5-2 m each) for 10 s (3 seeds).
@@ -47,6 +48,7 @@ import numpy as np
 from drivers.frames import UwbRanges
 from uwbd.config import parse
 from uwbd.fusion.models.range_model import RangeModel
+from uwbd.fusion.policy.robust import RobustPolicy
 from uwbd.fusion.settings import IDENTITY3, Z_DOWN, FilterConfig
 from uwbd.fusion.types import Pose
 from uwbd.tools.baselines import UwbLeastSquares
@@ -155,13 +157,16 @@ def accuracy_real(data: Path, only: str | None) -> None:
             + findings(poses, tt, tp, skip))
         if name == "inrol-env1":
             for degree in (1, 2):
-                model = calibrated_model(data / "inrol-calib", degree)
-                if model is None:
+                calibrated = calibrated_model(data / "inrol-calib", degree)
+                if calibrated is None:
                     print("  range model: skipped (inrol-calib not found)")
                     break
+                model, onset_m = calibrated
                 t0 = time.perf_counter()
                 poses, _, flt = run_filter(dataclasses.replace(
-                    cfg, range_model=model, range_bias_states=False), merge(ds.imu, ds.uwb))
+                    cfg, range_model=model, range_bias_states=False,
+                    robust=RobustPolicy.of_onset(True, onset_m, cfg.range_sigma_m)),
+                    merge(ds.imu, ds.uwb))
                 t, p, c = tracks(poses)
                 row(f"range model from inrol-calib, deg {degree}", score(t, p, tt, tp, c, skip),
                     f"filter {time.perf_counter() - t0:.1f} s, " + findings(poses, tt, tp, skip))
@@ -169,18 +174,21 @@ def accuracy_real(data: Path, only: str | None) -> None:
         row("UWB least squares", score(tl, pl, tt, tp, None, skip))
 
 
-def calibrated_model(directory: Path, degree: int) -> RangeModel | None:
+def calibrated_model(directory: Path, degree: int) -> tuple[RangeModel, float | None] | None:
     """What ``uwbd calibrate-ranges`` fits on the calibration recording: the tag's term of
-    ``degree`` and the anchors' delays (the config then turns the delay states off)."""
+    ``degree`` and the anchors' delays (the config then turns the delay states off), and
+    the NLOS tail's onset (``fusion.nlos_onset_m``)."""
     if not directory.is_dir():
         return None
     ds = load_inrol(directory)
     samples = range_samples(ds.uwb, ds.anchors_m, ds.truth_t_ns, ds.truth_p_m,
                             ds.truth_rotation, ds.lever_arm_m, IDENTITY3)
-    fit = calibrate(samples, degree).fit
+    calibration = calibrate(samples, degree)
+    fit = calibration.fit
     return RangeModel(degree, tuple(float(c) for c in fit.coefficients_m),
                       anchor_delays_m=tuple((a, float(o)) for a, o in
-                                            zip(fit.anchor_ids, fit.offsets_m, strict=True)))
+                                            zip(fit.anchor_ids, fit.offsets_m, strict=True))
+                      ), calibration.noise.nlos.onset_m
 
 
 def fault_case(name: str, cfg: SimConfig, start_s: float, end_s: float) -> None:

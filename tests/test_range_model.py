@@ -18,9 +18,11 @@ from uwbd.config import ConfigError, parse
 from uwbd.fusion.core.rotation import quat_from_euler, quat_to_matrix
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.models.range_model import RangeModel, basis, n_coefficients
+from uwbd.fusion.policy.robust import RobustPolicy
 from uwbd.fusion.settings import FilterConfig
 from uwbd.tools.evaluate import merge, run_filter, score_poses
 from uwbd.tools.logtools import simulation_toml
+from uwbd.tools.range_calibration import nlos_tail
 from uwbd.tools.simulator import handheld_async, simulate
 
 S3 = math.sqrt(3.0)
@@ -249,6 +251,11 @@ def test_calibrate_ranges_recovers_the_term_and_the_delays(tmp_path: Path) -> No
     model = written.filter_config().range_model
     assert model == snippet.filter_config().range_model
     assert written.filter_config().range_bias_states is False  # the delays are known
+    # the recording's 4 % of NLOS ranges (0.3-1 m long, noise 0.03 m): the long side's
+    # scale is where they become likelier than noise, between 2 and 4 σ
+    onset = written.fusion["nlos_onset_m"]
+    assert 0.06 < onset < 0.12 and "likelier NLOS than noise" in out, (onset, out)
+    assert written.filter_config().robust.c_long == pytest.approx(onset / 0.1)
     assert written.anchors_m == parse(base.read_text()).anchors_m
     assert model.phase_centre_m() == pytest.approx(PHASE_CENTRE_M, abs=0.01)
     delays = dict(model.anchor_delays_m)
@@ -263,6 +270,33 @@ def test_calibrate_ranges_recovers_the_term_and_the_delays(tmp_path: Path) -> No
     tag_only = parse(BASE + (tmp_path / "tag.toml").read_text()).filter_config()
     assert tag_only.range_model.degree == 2 and tag_only.range_model.anchor_delays_m == ()
     assert tag_only.range_bias_states is True
+
+
+def test_the_nlos_tail_is_fitted_and_a_thin_one_sets_nothing() -> None:
+    """Standardised residuals, a Gaussian core with an exponential long tail (share ε,
+    scale 3 σ): the fit finds both, and the onset where ``(1 − ε) φ(t) = ε e^(−t/3)/3``;
+    Gaussian residuals, or a tail of 0.5 %, set no onset (the default stays)."""
+    rng = np.random.default_rng(1)
+    for share, onset_sigma in ((0.1, 2.54), (0.2, 2.10)):
+        k = int(share * 20000)
+        z = np.concatenate([rng.normal(0, 1, 20000 - k), rng.exponential(3.0, k)])
+        tail = nlos_tail(z, 0.1)
+        assert tail.fraction == pytest.approx(share, abs=0.02)
+        assert tail.scale_m == pytest.approx(0.3, abs=0.05)
+        assert tail.onset_m == pytest.approx(onset_sigma * 0.1, abs=0.02)
+    for share in (0.0, 0.005):
+        k = int(share * 20000)
+        z = np.concatenate([rng.normal(0, 1, 20000 - k), rng.exponential(3.0, k)])
+        assert nlos_tail(z, 0.1).onset_m is None
+
+
+def test_the_nlos_onset_sets_the_long_side_scale_and_is_checked() -> None:
+    assert parse(BASE).filter_config().robust == RobustPolicy()
+    cfg = parse(BASE + "[fusion]\nrange_sigma_m = 0.08\nnlos_onset_m = 0.12\n").filter_config()
+    assert cfg.robust.c_long == pytest.approx(1.5) and cfg.robust.c_short == 4.0
+    with pytest.raises(ConfigError) as err:
+        parse(BASE + "[fusion]\nnlos_onset_m = -0.1\n", "robot.toml")
+    assert "robot.toml: fusion.nlos_onset_m:" in str(err.value), str(err.value)
 
 
 def test_calibrate_ranges_errors_are_one_line(tmp_path: Path) -> None:

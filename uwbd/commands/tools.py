@@ -192,15 +192,13 @@ def cmd_calibrate_ranges(args: argparse.Namespace) -> int:
                else "tag axes by range_model.tag_mounting")
     print(cal.summary(str(path), mounted))
     delays = not args.no_anchor_delays
+    fusion = [f"fusion.{k}" for k in cal.keys(delays).get("fusion", {})]
+    also = f" and {', '.join(fusion)}" if fusion else ""
     if snippet is not None:
         write_atomically(snippet, cal.snippet(str(path), delays))
-        print(f"wrote {snippet}: the [range_model] keys"
-              + (" and fusion.range_bias_states" if delays else "")
-              + " (merge them into the config)")
+        print(f"wrote {snippet}: the [range_model] keys{also} (merge them into the config)")
     if rewrite is not None:
-        rewrite.write(cal.overrides(str(path), delays), "its [range_model] set"
-                      + (" and fusion.range_bias_states = false (the delays are known)"
-                         if delays else ""))
+        rewrite.write(cal.overrides(str(path), delays), f"its [range_model] set{also}")
     return 0
 
 

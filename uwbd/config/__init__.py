@@ -29,7 +29,10 @@ Sections::
     [fusion]             mode, range_sigma_m, range_bias_states, range_bias_sigma_m (0.1:
                          each anchor's antenna delay), tag_delay_sigma_m (0.2: the tag's),
                          zupt, nhc, known_height_m, gate_probability, min_anchors, max_range_m,
-                         robust (true: NLOS de-weighted), multipath_sigma_m (0.07; 0: off) and
+                         robust (true: NLOS de-weighted), nlos_onset_m (unset: 2.5
+                         range_sigma_m; ``uwbd calibrate-ranges`` writes it: a range this much
+                         longer than predicted is de-weighted as likely NLOS),
+                         multipath_sigma_m (0.07; 0: off) and
                          multipath_tau_s (1): time-correlated range error per anchor,
                          tag_side ("auto", "below", "above" a plane of anchors),
                          height_range_m ([lo, hi]: where the tag can be, a mirror hint)

@@ -139,11 +139,12 @@ class Config:
 
     def filter_config(self) -> FilterConfig:
         f = self.fusion
+        range_sigma_m = f.get("range_sigma_m", 0.10)
         return FilterConfig(
             mode=Mode(f.get("mode", "tight")), anchors_m=self.anchors_m,
             mounting_rotation=self.mounting, lever_arm_m=self.lever_arm_m,
             lever_arm_sigma_m=f.get("lever_arm_sigma_m", 0.0),
-            range_sigma_m=f.get("range_sigma_m", 0.10),
+            range_sigma_m=range_sigma_m,
             range_bias_states=f.get("range_bias_states", True),
             range_bias_sigma_m=f.get("range_bias_sigma_m", 0.1),
             tag_delay_sigma_m=f.get("tag_delay_sigma_m", 0.2),
@@ -155,7 +156,8 @@ class Config:
                                                         ImuLimits.gyro_full_scale_rps)),
             imu_intrinsics=self.intrinsics(),
             gravity_mps2=self.imu_intrinsics.get("gravity_mps2", GRAVITY_MPS2),
-            robust=RobustPolicy(enabled=f.get("robust", True)),
+            robust=RobustPolicy.of_onset(f.get("robust", True), f.get("nlos_onset_m"),
+                                         range_sigma_m),
             multipath_states=f.get("multipath_sigma_m", MULTIPATH_SIGMA_M) > 0,
             multipath_sigma_m=f.get("multipath_sigma_m", MULTIPATH_SIGMA_M) or MULTIPATH_SIGMA_M,
             multipath_tau_s=f.get("multipath_tau_s", 1.0),

@@ -126,6 +126,7 @@ _FUSION_SPEC = {
     "range_bias_sigma_m": Key(NUMBER, _ZERO_OR_MORE),
     "tag_delay_sigma_m": Key(NUMBER, _ZERO_OR_MORE),
     "zupt": Key(BOOL), "nhc": Key(BOOL), "robust": Key(BOOL),
+    "nlos_onset_m": Key(NUMBER, _POSITIVE_RANGE),
     "known_height_m": Key(NUMBER, Range(-MAX_ANCHOR_COORD_M, MAX_ANCHOR_COORD_M, True)),
     "gate_probability": Key(NUMBER, Range(0.5, 1.0, hi_closed=False)),
     "min_anchors": Key(INTEGER, Range(1, lo_closed=True)),

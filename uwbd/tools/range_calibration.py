@@ -28,6 +28,13 @@ and lever arm take it to the antenna).
    one (what constant delays would miss). Printed, to compare with the config's
    ``range_sigma_m``, ``multipath_sigma_m`` and ``multipath_tau_s``; not written (on the
    recordings measured, the defaults did as well as the measured values).
+5. **The NLOS tail**: the standardised residuals fitted by maximum likelihood as a Gaussian
+   core with an exponential tail on each side; where the long tail's density overtakes the
+   core's, a longer range is likelier NLOS than noise. That length is written as
+   ``fusion.nlos_onset_m``: the robust update's long-side scale (docs/ekf.md §5, weights);
+   not when the tail is too thin to say (under 1 % of the ranges, or overtaking only
+   beyond 4 σ: the default stays). The short side's tail is no NLOS (a delay cannot be
+   negative) and is not used.
 """
 
 from __future__ import annotations
@@ -38,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import least_squares
+from scipy.optimize import brentq, least_squares, minimize
 from scipy.spatial.transform import Rotation, Slerp
 
 from drivers.frames import Frame, UwbRanges
@@ -55,6 +62,11 @@ HOLDOUT_FRACTION = 0.3
 MIN_RANGES = 500
 MIN_SPAN_S = 30.0
 TAIL_SIGMA = 3.0
+# a long tail thinner than this, or overtaking the core only beyond MAX_ONSET_SIGMA, says
+# too little of NLOS to set the update's scale (a Gaussian's own fit finds a trace of one)
+MIN_TAIL_FRACTION = 0.01
+MAX_ONSET_SIGMA = 4.0
+SQRT_2PI = math.sqrt(2 * math.pi)
 MAX_LAG_S = 20.0
 LAG_BIN_S = 0.1
 
@@ -193,6 +205,18 @@ def fit(s: RangeSamples, degree: int, jackknife: bool = True) -> ModelFit:
     return ModelFit(degree, ids, x[:n_off], x[n_off:], sigma)
 
 
+@dataclass(frozen=True)
+class NlosTail:
+    """The long side's exponential tail (step 5): its share of the ranges, its scale, and
+    the length beyond which a range is likelier in it than in the core (None: a tail too
+    thin to say, under ``MIN_TAIL_FRACTION`` or overtaking only beyond ``MAX_ONSET_SIGMA``
+    σ)."""
+
+    fraction: float
+    scale_m: float
+    onset_m: float | None
+
+
 @dataclass
 class NoiseShape:
     core_sigma_m: float
@@ -203,6 +227,7 @@ class NoiseShape:
     fast_tau_s: float
     slow_sigma_m: float
     slow_tau_s: float
+    nlos: NlosTail
 
 
 def _autocovariance(s: RangeSamples, e: Array) -> tuple[Array, Array, float]:
@@ -244,7 +269,8 @@ def _split_covariance(lags: Array, cov: Array, var0: float) -> tuple[float, floa
 
 
 def noise_shape(s: RangeSamples, e: Array) -> NoiseShape:
-    """The noise of the residuals ``e`` left by the model (see the module doc, step 4)."""
+    """The noise of the residuals ``e`` left by the model (see the module doc, steps 4
+    and 5)."""
     sigma = robust_sigma(e)
     centred = e - np.median(e)
     z = centred / sigma
@@ -252,7 +278,40 @@ def noise_shape(s: RangeSamples, e: Array) -> NoiseShape:
     lags, cov, var0 = _autocovariance(s.take(core), centred[core])
     white, fast, tau_f, slow, tau_s = _split_covariance(lags, cov, var0)
     return NoiseShape(sigma, float(np.mean(z > TAIL_SIGMA)), float(np.mean(z < -TAIL_SIGMA)),
-                      white, fast, tau_f, slow, tau_s)
+                      white, fast, tau_f, slow, tau_s, nlos_tail(z, sigma))
+
+
+def nlos_tail(z: Array, sigma_m: float) -> NlosTail:
+    """Step 5 on standardised residuals ``z`` (σ ``sigma_m``): the maximum-likelihood
+    mixture ``(1 − ε₊ − ε₋) φ(z) + ε₊ e^(−z/λ₊)/λ₊ [z > 0] + ε₋ e^(z/λ₋)/λ₋ [z < 0]``, and
+    where its long tail overtakes its core."""
+    z = np.asarray(z, dtype=float)
+    z = z[np.isfinite(z)]
+    positive = z > 0
+
+    def parts(x: Array) -> tuple[float, float, float, float, float]:
+        a, b, log_lp, log_lm = x
+        ep, em = 0.5 / (1 + math.exp(-a)), 0.5 / (1 + math.exp(-b))  # each below one half
+        return 1 - ep - em, ep, em, math.exp(log_lp), math.exp(log_lm)
+
+    def nll(x: Array) -> float:
+        core, ep, em, lp, lm = parts(x)
+        tail = np.where(positive, ep / lp * np.exp(-np.abs(z) / lp),
+                        em / lm * np.exp(-np.abs(z) / lm))
+        return float(-np.log(core * np.exp(-0.5 * z * z) / SQRT_2PI + tail).sum())
+
+    x = minimize(nll, np.array([-2.0, -2.0, 0.5, 0.5]), method="Nelder-Mead",
+                 options={"maxiter": 4000, "xatol": 1e-5, "fatol": 1e-5}).x
+    core, ep, _, lp, _ = parts(x)
+
+    def gap(t: float) -> float:  # log core − log long tail, at t σ
+        return (math.log(core / SQRT_2PI) - 0.5 * t * t) - (math.log(ep / lp) - t / lp)
+
+    grid = np.linspace(0.0, MAX_ONSET_SIGMA, 200)
+    over = [k for k in range(1, len(grid)) if gap(grid[k - 1]) > 0 >= gap(grid[k])]
+    onset = (float(brentq(gap, grid[over[0] - 1], grid[over[0]])) * sigma_m
+             if over and ep >= MIN_TAIL_FRACTION else None)
+    return NlosTail(ep, lp * sigma_m, onset)
 
 
 @dataclass
@@ -273,11 +332,14 @@ class RangeCalibration:
         f = self.fit
         model: dict[str, object] = {"tag_degree": f.degree, "tag_coefficients_m": [
             round(float(c), 5) for c in f.coefficients_m]}
-        if not anchor_delays:
-            return {"range_model": model}
-        model["anchor_delays_m"] = {str(a): round(float(o), 4)
-                                    for a, o in zip(f.anchor_ids, f.offsets_m, strict=True)}
-        return {"range_model": model, "fusion": {"range_bias_states": False}}
+        fusion: dict[str, object] = {}
+        if self.noise.nlos.onset_m is not None:
+            fusion["nlos_onset_m"] = round(self.noise.nlos.onset_m, 3)
+        if anchor_delays:
+            model["anchor_delays_m"] = {str(a): round(float(o), 4)
+                                        for a, o in zip(f.anchor_ids, f.offsets_m, strict=True)}
+            fusion["range_bias_states"] = False
+        return {"range_model": model, **({"fusion": fusion} if fusion else {})}
 
     def overrides(self, source: str, anchor_delays: bool = True) -> list[str]:
         """The keys as ``--set`` items."""
@@ -328,6 +390,12 @@ class RangeCalibration:
         lines.append(f"  white {n.white_sigma_m:.4f} m, correlated {n.fast_sigma_m:.4f} m over "
                      f"{n.fast_tau_s:.2f} s, slow {n.slow_sigma_m:.4f} m over "
                      f"{n.slow_tau_s:.0f} s")
+        tail = n.nlos
+        lines.append(f"  NLOS tail: {100 * tail.fraction:.1f} % of the ranges, exponential over "
+                     f"{tail.scale_m:.3f} m; " + (
+                         f"a range {tail.onset_m:.3f} m longer than predicted is likelier NLOS "
+                         "than noise (fusion.nlos_onset_m)" if tail.onset_m is not None else
+                         "nowhere likelier than noise: fusion.nlos_onset_m left to its default"))
         return "\n".join(lines)
 
 

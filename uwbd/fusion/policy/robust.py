@@ -7,7 +7,9 @@ Each range's standardised innovation ``e = ν/√S`` decides its weight ``w`` (t
 * otherwise the Geman–McClure weight ``w = (c² / (c² + e²))²``, with ``c`` the scale in σ
   (Bitcraze's robust distance update uses the same ρ function). NLOS only ever adds delay,
   so a range *longer* than predicted (``e > 0``) is judged with ``c_long``, a shorter one
-  with the gentler ``c_short``.
+  with the gentler ``c_short``. ``c_long`` is 2.5 unless ``[fusion] nlos_onset_m`` (which
+  ``uwbd calibrate-ranges`` fits: the length beyond which a long range is likelier NLOS
+  than noise) sets it to that length over ``range_sigma_m``.
 
 A device's own signal quality (0-100, where it sends one) scales ``R`` by
 ``100/quality`` (at most 10×).
@@ -29,6 +31,16 @@ class RobustPolicy:
     enabled: bool = True
     c_long: float = 2.5
     c_short: float = 4.0
+
+    @staticmethod
+    def of_onset(enabled: bool, nlos_onset_m: float | None, range_sigma_m: float
+                 ) -> RobustPolicy:
+        """The policy of a config: ``[fusion] nlos_onset_m`` (``uwbd calibrate-ranges``
+        fits it: where a longer range becomes likelier NLOS than noise) as the long side's
+        scale in the ranges' σ; without it, the default 2.5 σ."""
+        if nlos_onset_m is None:
+            return RobustPolicy(enabled)
+        return RobustPolicy(enabled, c_long=nlos_onset_m / range_sigma_m)
 
 
 class RowPolicy(NamedTuple):
