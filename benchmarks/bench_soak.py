@@ -10,7 +10,9 @@ with rotation, Zenoh on a unix socket, no scouting. Every ``--every-s`` seconds:
 (``/proc/self/statm``), the Python heap (``tracemalloc``, ``--trace-frames`` deep; 0: off)
 and glibc's heap (held from the OS and in use, ``mallinfo2``). Printed after the warm-up: both
 slopes (MB/min, least squares over the samples after it), and the ten allocation sites that
-grew most between the first sample after the warm-up and the last. Target: RSS slope
+grew most between the first sample after the warm-up and the last (that snapshot is taken
+before the sample: its own memory, several MB that malloc keeps, was the RSS step
+earlier soaks saw at the end of the warm-up). Target: RSS slope
 ≤ 0.01 MB/min over two hours. At each of ``--smaps-minutes`` the resident size of every
 mapping (``/proc/self/smaps``, grouped by file, anonymous ones as ``[anon]``, the heap
 as ``[heap]``) is taken, and the mappings that grew most between the first and the last
@@ -118,10 +120,12 @@ def main() -> None:
             def sample() -> None:
                 while not stop.wait(args.every_s):
                     t = time.monotonic() - started
+                    if t >= warm_s and not snapshots and tracemalloc.is_tracing():
+                        # before the sample: a snapshot's own memory (several MB of traces,
+                        # freed but kept by malloc) is a step of the RSS, not the daemon's
+                        snapshots.append(tracemalloc.take_snapshot())
                     heap = tracemalloc.get_traced_memory()[0] / 1e6
                     samples.append((t, rss_mb(), heap))
-                    if t >= warm_s and not snapshots and tracemalloc.is_tracing():
-                        snapshots.append(tracemalloc.take_snapshot())
                     while due and t >= due[0] * 60:
                         due.pop(0)
                         maps.append((t / 60, mapped_kb()))
