@@ -25,12 +25,8 @@ from uwbd.logs.reading import read_log
 from uwbd.tools.evaluate import merge, run_filter, score_poses
 from uwbd.tools.imu_calibration import Calibration, calibrate, write_capture
 from uwbd.tools.logtools import load_recording, simulation_toml
-from uwbd.tools.simulator import (
-    DEFAULT_SEGMENTS,
-    SimConfig,
-    simulate,
-    six_position_capture,
-)
+from uwbd.tools.simulator import DEFAULT_SEGMENTS, SimConfig, simulate
+from uwbd.tools.six_position import six_position_capture
 
 ROOT = Path(__file__).resolve().parents[1]
 UWBD = [sys.executable, "-m", "uwbd"]

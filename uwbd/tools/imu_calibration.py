@@ -42,7 +42,8 @@ from uwbd.fusion.core.eskf import GRAVITY_MPS2
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.settings import Z_DOWN
 from uwbd.logs.mcaplog import LogWriter, SourceInfo
-from uwbd.tools.simulator import DEFAULT_ANCHORS_M, SixPositionCapture
+from uwbd.tools.simulator import DEFAULT_ANCHORS_M
+from uwbd.tools.six_position import SixPositionCapture
 
 ORIENTATIONS = ("+x", "-x", "+y", "-y", "+z", "-z")
 SAID = {o: f"{o[1]} {'up' if o[0] == '+' else 'down'}" for o in ORIENTATIONS}
