@@ -13,8 +13,8 @@ simulated sensors' specs; imported runs carry anchors, mounting and lever arm on
 * the real flight ``iasl-s1`` and the real handheld run ``inrol-env1`` (first 10 s out),
   with UWB least squares beside it for reference; on ``inrol-env1`` also with the range
   model ``uwbd calibrate-ranges`` fits on ``inrol-calib`` (another room, same hardware;
-  degrees 1 and 2 of the tag's term, the anchors' delays, delay states off and the NLOS
-  tail's onset as it writes).
+  degrees 1 and 2 of the tag's term, the anchors' delays and the noise's keys, delay states
+  off, all as it writes them).
 
 Faults on the seed layout: the IMU pinned at full scale for 0.5 s, one corrupted sample,
 a 30 s IMU gap, a 20 s UWB outage, every anchor NLOS (+0.5-2 m each) for 10 s (3 seeds).
@@ -47,8 +47,7 @@ import numpy as np
 
 from drivers.frames import UwbRanges
 from uwbd.config import parse
-from uwbd.fusion.models.range_model import RangeModel
-from uwbd.fusion.policy.robust import RobustPolicy
+from uwbd.config.overrides import to_toml, write_toml
 from uwbd.fusion.settings import IDENTITY3, Z_DOWN, FilterConfig
 from uwbd.fusion.types import Pose
 from uwbd.tools.baselines import UwbLeastSquares
@@ -157,16 +156,13 @@ def accuracy_real(data: Path, only: str | None) -> None:
             + findings(poses, tt, tp, skip))
         if name == "inrol-env1":
             for degree in (1, 2):
-                calibrated = calibrated_model(data / "inrol-calib", degree)
+                calibrated = calibrated_config(data / "inrol-calib", degree, ds.anchors_m,
+                                               mounting, lever)
                 if calibrated is None:
                     print("  range model: skipped (inrol-calib not found)")
                     break
-                model, onset_m = calibrated
                 t0 = time.perf_counter()
-                poses, _, flt = run_filter(dataclasses.replace(
-                    cfg, range_model=model, range_bias_states=False,
-                    robust=RobustPolicy.of_onset(True, onset_m, cfg.range_sigma_m)),
-                    merge(ds.imu, ds.uwb))
+                poses, _, flt = run_filter(calibrated, merge(ds.imu, ds.uwb))
                 t, p, c = tracks(poses)
                 row(f"range model from inrol-calib, deg {degree}", score(t, p, tt, tp, c, skip),
                     f"filter {time.perf_counter() - t0:.1f} s, " + findings(poses, tt, tp, skip))
@@ -174,21 +170,19 @@ def accuracy_real(data: Path, only: str | None) -> None:
         row("UWB least squares", score(tl, pl, tt, tp, None, skip))
 
 
-def calibrated_model(directory: Path, degree: int) -> tuple[RangeModel, float | None] | None:
-    """What ``uwbd calibrate-ranges`` fits on the calibration recording: the tag's term of
-    ``degree`` and the anchors' delays (the config then turns the delay states off), and
-    the NLOS tail's onset (``fusion.nlos_onset_m``)."""
+def calibrated_config(directory: Path, degree: int, anchors_m: dict[int, Vec3],
+                      mounting: Rotation, lever_arm_m: Vec3) -> FilterConfig | None:
+    """The config ``uwbd calibrate-ranges`` writes from the calibration recording (the tag's
+    term of ``degree``, the anchors' delays, the noise's keys), merged into the dataset's."""
     if not directory.is_dir():
         return None
     ds = load_inrol(directory)
     samples = range_samples(ds.uwb, ds.anchors_m, ds.truth_t_ns, ds.truth_p_m,
                             ds.truth_rotation, ds.lever_arm_m, IDENTITY3)
-    calibration = calibrate(samples, degree)
-    fit = calibration.fit
-    return RangeModel(degree, tuple(float(c) for c in fit.coefficients_m),
-                      anchor_delays_m=tuple((a, float(o)) for a, o in
-                                            zip(fit.anchor_ids, fit.offsets_m, strict=True))
-                      ), calibration.noise.nlos.onset_m
+    keys = calibrate(samples, degree).keys()
+    text = (to_toml([], anchors_m, mounting, lever_arm_m, fusion=keys.get("fusion"))
+            + write_toml({"range_model": keys["range_model"]}))
+    return parse(text, f"calibrate-ranges {directory}").filter_config()
 
 
 def fault_case(name: str, cfg: SimConfig, start_s: float, end_s: float) -> None:

@@ -19,10 +19,11 @@ from uwbd.fusion.core.rotation import quat_from_euler, quat_to_matrix
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.models.range_model import RangeModel, basis, n_coefficients
 from uwbd.fusion.policy.robust import RobustPolicy
-from uwbd.fusion.settings import FilterConfig
+from uwbd.fusion.settings import IDENTITY3, FilterConfig
 from uwbd.tools.evaluate import merge, run_filter, score_poses
+from uwbd.tools.importer import load_inrol
 from uwbd.tools.logtools import simulation_toml
-from uwbd.tools.range_calibration import nlos_tail
+from uwbd.tools.range_calibration import calibrate, nlos_tail, range_samples
 from uwbd.tools.simulator import handheld_async, simulate
 
 S3 = math.sqrt(3.0)
@@ -195,11 +196,13 @@ def test_calibrated_anchor_delays_do_what_the_delay_states_would() -> None:
 
 
 def calibration_recording(root: Path, seconds: float = 80.0, seed: int = 0,
-                          attitude: bool = True) -> Path:
+                          attitude: bool = True,
+                          correlated: tuple[float, float] = (0.0, 1.0)) -> Path:
     """A range-model calibration recording in the inrol layout (``anchor.txt``,
     ``tag_pose.txt``, ``uwb.txt``): the tag walked round the room turning through every
-    heading, each range with its anchor's delay, the tag's phase-centre term, noise and a
-    few one-sided NLOS ranges."""
+    heading, each range with its anchor's delay, the tag's phase-centre term, noise (white,
+    and ``correlated`` = (σ m, τ s) of a Gauss–Markov error per anchor) and a few
+    one-sided NLOS ranges."""
     rng = np.random.default_rng(seed)
     root.mkdir()
     lines = ["# anchor_id tx ty tz qx qy qz qw"]
@@ -218,14 +221,19 @@ def calibration_recording(root: Path, seconds: float = 80.0, seed: int = 0,
     (root / "tag_pose.txt").write_text("\n".join(lines) + "\n")
     lines = ["# index timestamp anchor_id r"]
     ids = list(ANCHORS)
+    sigma_c, tau_c = correlated
+    slow = {a: (0.0, rng.normal(0, sigma_c)) for a in ids}  # each anchor's (t, error)
     for k, tr in enumerate(np.arange(0.05, seconds - 0.05, 1 / 160)):
         a = ids[k % len(ids)]
         i = int(tr / 0.01)
         f = tr / 0.01 - i
         pos = p[i] * (1 - f) + p[i + 1] * f
         R = quat_to_matrix(q[i])
+        fade = math.exp(-(tr - slow[a][0]) / tau_c)
+        slow[a] = (tr, fade * slow[a][1] + rng.normal(0, sigma_c * math.sqrt(1 - fade**2)))
         r = (np.linalg.norm(pos + R @ PHASE_CENTRE_M - np.array(ANCHORS[a])) + DELAYS[a]
-             + rng.normal(0, 0.03) + (rng.uniform(0.3, 1.0) if rng.random() < 0.04 else 0.0))
+             + slow[a][1] + rng.normal(0, 0.03)
+             + (rng.uniform(0.3, 1.0) if rng.random() < 0.04 else 0.0))
         lines.append(f"{k} {tr:.6f} {a} {r:.6f}")
     (root / "uwb.txt").write_text("\n".join(lines) + "\n")
     return root
@@ -256,6 +264,8 @@ def test_calibrate_ranges_recovers_the_term_and_the_delays(tmp_path: Path) -> No
     onset = written.fusion["nlos_onset_m"]
     assert 0.06 < onset < 0.12 and "likelier NLOS than noise" in out, (onset, out)
     assert written.filter_config().robust.c_long == pytest.approx(onset / 0.1)
+    # white noise only: no correlated part worth the multipath states is written
+    assert "multipath_sigma_m" not in written.fusion and "(too small to write)" in out
     assert written.anchors_m == parse(base.read_text()).anchors_m
     assert model.phase_centre_m() == pytest.approx(PHASE_CENTRE_M, abs=0.01)
     delays = dict(model.anchor_delays_m)
@@ -270,6 +280,21 @@ def test_calibrate_ranges_recovers_the_term_and_the_delays(tmp_path: Path) -> No
     tag_only = parse(BASE + (tmp_path / "tag.toml").read_text()).filter_config()
     assert tag_only.range_model.degree == 2 and tag_only.range_model.anchor_delays_m == ()
     assert tag_only.range_bias_states is True
+
+
+def test_a_correlated_range_error_is_measured_and_written_for_the_multipath_states(
+        tmp_path: Path) -> None:
+    """A recording whose ranges carry a Gauss–Markov error per anchor (0.06 m over 1.5 s)
+    beside the white noise: calibrate-ranges writes it as fusion.multipath_sigma_m and
+    multipath_tau_s, which the config then gives the filter."""
+    ds = load_inrol(calibration_recording(tmp_path / "calib", correlated=(0.06, 1.5)))
+    cal = calibrate(range_samples(ds.uwb, ds.anchors_m, ds.truth_t_ns, ds.truth_p_m,
+                                  ds.truth_rotation, ds.lever_arm_m, IDENTITY3), 1)
+    fusion = cal.keys()["fusion"]
+    assert 0.04 < fusion["multipath_sigma_m"] < 0.08, cal.noise
+    assert 1.0 < fusion["multipath_tau_s"] < 2.2, cal.noise
+    cfg = parse(BASE + cal.snippet("calib")).filter_config()
+    assert cfg.multipath_states and cfg.multipath_tau_s == fusion["multipath_tau_s"]
 
 
 def test_the_nlos_tail_is_fitted_and_a_thin_one_sets_nothing() -> None:

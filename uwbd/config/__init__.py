@@ -33,7 +33,8 @@ Sections::
                          range_sigma_m; ``uwbd calibrate-ranges`` writes it: a range this much
                          longer than predicted is de-weighted as likely NLOS),
                          multipath_sigma_m (0.07; 0: off) and
-                         multipath_tau_s (1): time-correlated range error per anchor,
+                         multipath_tau_s (1): time-correlated range error per anchor
+                         (``uwbd calibrate-ranges`` writes both),
                          tag_side ("auto", "below", "above" a plane of anchors),
                          height_range_m ([lo, hi]: where the tag can be, a mirror hint)
     [range_model]        (``uwbd calibrate-ranges`` writes it; all off by default)

@@ -25,9 +25,11 @@ and lever arm take it to the antenna).
 4. **Noise** of what is left: a robust σ of the core, the share of long and short ranges
    beyond 3 σ (NLOS only ever lengthens a range), the residuals' autocovariance split into
    white noise, a fast correlated part (what the filter's multipath states model) and a slow
-   one (what constant delays would miss). Printed, to compare with the config's
-   ``range_sigma_m``, ``multipath_sigma_m`` and ``multipath_tau_s``; not written (on the
-   recordings measured, the defaults did as well as the measured values).
+   one (what constant delays would miss). The fast part is what the filter's multipath
+   states are: written as ``fusion.multipath_sigma_m`` and ``multipath_tau_s`` (when over
+   ``MIN_CORRELATED_M``). The white part is printed, not written: ``range_sigma_m`` also
+   sets the update's gate and robust scales, and the white σ alone in it measured worse
+   (docs/ekf.md §4).
 5. **The NLOS tail**: the standardised residuals fitted by maximum likelihood as a Gaussian
    core with an exponential tail on each side; where the long tail's density overtakes the
    core's, a longer range is likelier NLOS than noise. That length is written as
@@ -65,6 +67,7 @@ TAIL_SIGMA = 3.0
 # a long tail thinner than this, or overtaking the core only beyond MAX_ONSET_SIGMA, says
 # too little of NLOS to set the update's scale (a Gaussian's own fit finds a trace of one)
 MIN_TAIL_FRACTION = 0.01
+MIN_CORRELATED_M = 0.01  # a correlated part smaller than this is not worth the states
 MAX_ONSET_SIGMA = 4.0
 SQRT_2PI = math.sqrt(2 * math.pi)
 MAX_LAG_S = 20.0
@@ -332,9 +335,13 @@ class RangeCalibration:
         f = self.fit
         model: dict[str, object] = {"tag_degree": f.degree, "tag_coefficients_m": [
             round(float(c), 5) for c in f.coefficients_m]}
+        n = self.noise
         fusion: dict[str, object] = {}
-        if self.noise.nlos.onset_m is not None:
-            fusion["nlos_onset_m"] = round(self.noise.nlos.onset_m, 3)
+        if n.nlos.onset_m is not None:
+            fusion["nlos_onset_m"] = round(n.nlos.onset_m, 3)
+        if n.fast_sigma_m >= MIN_CORRELATED_M:
+            fusion["multipath_sigma_m"] = round(n.fast_sigma_m, 3)
+            fusion["multipath_tau_s"] = round(n.fast_tau_s, 2)
         if anchor_delays:
             model["anchor_delays_m"] = {str(a): round(float(o), 4)
                                         for a, o in zip(f.anchor_ids, f.offsets_m, strict=True)}
@@ -388,8 +395,10 @@ class RangeCalibration:
         lines.append(f"noise left: robust σ {n.core_sigma_m:.4f} m; beyond {TAIL_SIGMA:g} σ "
                      f"{100 * n.long_fraction:.1f} % long, {100 * n.short_fraction:.1f} % short")
         lines.append(f"  white {n.white_sigma_m:.4f} m, correlated {n.fast_sigma_m:.4f} m over "
-                     f"{n.fast_tau_s:.2f} s, slow {n.slow_sigma_m:.4f} m over "
-                     f"{n.slow_tau_s:.0f} s")
+                     f"{n.fast_tau_s:.2f} s" + (
+                         " (fusion.multipath_sigma_m, multipath_tau_s)"
+                         if n.fast_sigma_m >= MIN_CORRELATED_M else " (too small to write)")
+                     + f", slow {n.slow_sigma_m:.4f} m over {n.slow_tau_s:.0f} s")
         tail = n.nlos
         lines.append(f"  NLOS tail: {100 * tail.fraction:.1f} % of the ranges, exponential over "
                      f"{tail.scale_m:.3f} m; " + (
