@@ -329,9 +329,10 @@ class RangeCalibration:
 
     def keys(self, anchor_delays: bool = True) -> dict[str, dict[str, object]]:
         """The config keys: ``[range_model]`` (the tag's term; with ``anchor_delays`` each
-        anchor's delay too), and with the delays ``fusion.range_bias_states = false``: the
-        delays are known, and on the recordings measured estimating them again costs
-        accuracy (docs/ekf.md §4, range model)."""
+        anchor's delay too); the noise's ``fusion.nlos_onset_m``, ``multipath_sigma_m`` and
+        ``multipath_tau_s`` (steps 4 and 5, each where measured); and with the delays
+        ``fusion.range_bias_states = false``: the delays are known, and on the recordings
+        measured estimating them again costs accuracy (docs/ekf.md §4, range model)."""
         f = self.fit
         model: dict[str, object] = {"tag_degree": f.degree, "tag_coefficients_m": [
             round(float(c), 5) for c in f.coefficients_m]}
