@@ -9,7 +9,9 @@ import numpy as np
 
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.policy.alignment import HeadingAligner
+from uwbd.fusion.policy.fixes import RangeWindow
 from uwbd.fusion.policy.health import HealthLimits, HealthMonitor, Phase
+from uwbd.fusion.policy.mirror import MirrorSide
 from uwbd.fusion.policy.rest import STILL_EVERY_NS, UwbStillness
 
 NS = 1_000_000_000
@@ -157,3 +159,38 @@ def test_the_phase_returns_to_tracking_only_after_the_faults_have_been_gone_a_wh
     assert held.phase is Phase.DEGRADED and not held.faults and "faults_clearing" in held.notes
     monitor.uwb_outcome(T0 + 6 * NS // 10, True, 1.0)
     assert tracking(monitor, T0 + 6 * NS // 10 + 1) is Phase.TRACKING
+
+
+def test_a_start_at_rest_solves_its_epochs_together_and_leaves_out_the_one_anchor_off() -> None:
+    """Forty epochs at rest (σ 0.1 m per range, an offset of up to 3 cm each, as a datasheet
+    config claims): consistent, nothing left out and the fix within 5 cm; anchor 3 placed
+    1 m off in the config: the set fails, it alone is left out with its excess, the fix
+    within 25 cm (one epoch's fix is over a metre off in height); two anchors 0.4 m long
+    where the config allows uncalibrated offsets: nothing is left out."""
+    rng = np.random.default_rng(4)
+    anchors = {0: (-5.0, 30.0, 0.0), 1: (-5.0, -30.0, 0.0), 2: (10.0, 10.0, 5.0),
+               3: (10.0, -10.0, 5.0), 4: (20.0, 30.0, 0.0), 5: (20.0, -30.0, 0.0)}
+    tag = np.array([0.0, -12.0, 0.6])
+    offset = rng.uniform(-0.03, 0.03, 6)
+    true = np.array([np.linalg.norm(tag - np.array(a)) for a in anchors.values()]) + offset
+
+    def epochs(extra: np.ndarray) -> list[tuple[list[int], np.ndarray]]:
+        return [(list(anchors), true + extra + rng.normal(0, 0.1, 6)) for _ in range(40)]
+
+    window = RangeWindow(1.0, 0.2, 0.1, MirrorSide(np.array(list(anchors.values()))), None)
+    solved = window.rest_fix(epochs(np.zeros(6)), anchors, 0.03)
+    assert solved is not None and solved[1] is None
+    assert np.linalg.norm(solved[0].position_m - tag) < 0.05
+    wrong = dict(anchors)
+    wrong[3] = (11.0, -10.0, 5.0)
+    solved = window.rest_fix(epochs(np.zeros(6)), wrong, 0.03)
+    assert solved is not None and solved[1] is not None and solved[1][0] == 3, solved
+    assert np.linalg.norm(solved[0].position_m - tag) < 0.25 and solved[1][1] < -0.3
+    one = window.fix(0, list(wrong), np.array(list(wrong.values())), epochs(np.zeros(6))[0][1],
+                     None)
+    assert one is not None and abs(one.position_m[2] - tag[2]) > 1.0
+    # uncalibrated units, as the defaults claim (0.1 m each, 0.2 m the tag's): two anchors
+    # 0.4 m long are within the claim, and nothing is left out
+    solved = window.rest_fix(epochs(np.array([0.4, 0.0, 0.0, 0.0, 0.4, 0.0])), anchors,
+                             math.hypot(0.1, 0.2))
+    assert solved is not None and solved[1] is None

@@ -113,14 +113,13 @@ def test_protection_levels_bound_the_error_of_a_right_installation() -> None:
 
 
 def test_an_anchor_surveyed_off_makes_the_ranges_inconsistent() -> None:
-    """Anchor 3 1 m off sideways in the config: the snapshot test says the ranges disagree
-    on a good share of the poses more than 0.5 m off (the status names the candidates);
-    fed nothing, it says nothing."""
-    poses, err = _run(SimConfig(seed=1), (1.0, 0.0, 0.0))
-    off = np.linalg.norm(err, axis=1) > 0.5
-    flagged = [p for p, o in zip(poses, off, strict=True)
-               if o and "ranges_inconsistent" in p.health.faults]
-    assert off.sum() > 100 and len(flagged) > off.sum() // 4
+    """Anchor 3 1 m off sideways in the config: its ranges are in every snapshot (left out
+    of the update or not), and the snapshot test says the ranges disagree on a good share
+    of the poses (the status names the candidates), none of them healthy; fed nothing, it
+    says nothing."""
+    poses, _ = _run(SimConfig(seed=1), (1.0, 0.0, 0.0))
+    flagged = [p for p in poses if "ranges_inconsistent" in p.health.faults]
+    assert len(flagged) > len(poses) // 4, (len(flagged), len(poses))
     assert not any(p.health.healthy for p in flagged)
     quiet, _ = _run(SimConfig(seed=1), (1.0, 0.0, 0.0), raim=False)
     assert not any("ranges_inconsistent" in p.health.faults for p in quiet)

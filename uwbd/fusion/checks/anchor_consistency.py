@@ -99,6 +99,12 @@ class AnchorConsistency:
                 window.add(t_ns, bk, dk)  # b̂ and its weight 1/var = (S⁻¹)_jj
         self._judge(t_ns)
 
+    def found(self, t_ns: int, anchor: int, bias_m: float, sigma_m: float) -> None:
+        """A finding made elsewhere (a start at rest that left the anchor out): it stands
+        as this test's own do, for ``hold_s`` unless the test confirms it."""
+        self.findings[anchor] = Finding(anchor, bias_m, sigma_m)
+        self._found_ns[anchor] = t_ns
+
     def clear(self) -> None:
         """A restart: the evidence was about the old estimate."""
         self._windows.clear()

@@ -144,7 +144,7 @@ class WindowRaim:
         dp, gain, sse, free, red = solved
         reduction = {a: x for a, x, f in zip(anchors, red, free, strict=True) if f > 1e-3}
         dof = len(rows) - 3
-        high = sse / dof > _ratio_quantile(HIGH_Z, dof)
+        high = sse / dof > ratio_quantile(HIGH_Z, dof)
         self._entries.append((t_ns, sse, dof, high, dp, gain, reduction))
         self._offset_sum = _plus(self._offset_sum, dp)
         self._gain_sum = _plus(self._gain_sum, gain)
@@ -183,7 +183,7 @@ class WindowRaim:
         self.offset_m = (x / n, y / n, z / n) if n else (0.0, 0.0, 0.0)
         gx, gy, gz = (c / n for c in self._gain_sum) if n else (0.0, 0.0, 0.0)
         self.bias_gain = (math.hypot(gx, gy), gz)
-        if (dof <= 0 or t <= _ratio_quantile(self._z, dof / CORRELATED)
+        if (dof <= 0 or t <= ratio_quantile(self._z, dof / CORRELATED)
                 or self._high <= HIGH_SHARE * len(self._entries)):
             self.inconsistent = ()
             return
@@ -192,7 +192,7 @@ class WindowRaim:
             rest = dof - n
             if n >= MIN_SNAPSHOTS and rest > 0:
                 t_rest = max(self._sse - self._reduction[anchor], 0.0) / rest
-                if t_rest <= _ratio_quantile(self._z, rest / CORRELATED):
+                if t_rest <= ratio_quantile(self._z, rest / CORRELATED):
                     passing.append(anchor)
         self.inconsistent = tuple(sorted(passing or self._count))
 
@@ -226,7 +226,7 @@ def _plus(a: Vec3, b: Vec3, sign: float = 1.0) -> Vec3:
     return (a[0] + sign * b[0], a[1] + sign * b[1], a[2] + sign * b[2])
 
 
-def _ratio_quantile(z: float, dof: float) -> float:
+def ratio_quantile(z: float, dof: float) -> float:
     """The quantile of χ²(dof)/dof at the standard normal's ``z`` (Wilson–Hilferty: within
     1 % from dof 3)."""
     dof = max(dof, 1.0)

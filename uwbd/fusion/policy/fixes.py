@@ -7,19 +7,40 @@ them together. An epoch that alone holds enough anchors is solved alone (no olde
 mixed in). Fixes serve to start the filter, to align the heading, to check a reset and,
 in loose mode, as the measurements; they are made at most every ``min_interval_s`` from
 a window (consecutive window fixes share most of their ranges).
+
+A start at rest takes :meth:`RangeWindow.rest_fix`: each anchor's ranges of the rest's
+epochs averaged, solved once, and tested against their noise (σ/√n each, plus the
+offsets the config allows, ``fusion.range_bias_sigma_m`` and ``tag_delay_sigma_m``, which
+no state has learnt yet) at a risk of 10⁻³. The test is only as sharp as the config's
+claim: with the defaults (0.1 and 0.2 m, uncalibrated units) it sees little, with a
+datasheet's or a calibration's few centimetres it sees an anchor surveyed off. One
+epoch hides an anchor surveyed 1 m off sideways in the tag's height (its fix is 1-2 m
+off with residuals of a few decimetres); a few seconds of them do not. When the set fails,
+each anchor is left out in turn, and the one whose removal makes the rest pass is
+left out of the start (fault detection and exclusion, as in RAIM), provided it disagrees
+with the others' solution by more than that solution's own uncertainty allows (leaving out
+the only anchor that sees the height lets the rest pass by losing the height, not by being
+right); when none does (several anchors' offsets, as on the i-ASL flight, which the
+range-offset states then learn), the plain solution stands.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
+from statistics import NormalDist
 
 import numpy as np
 
+from uwbd.fusion.checks.window_raim import ratio_quantile
 from uwbd.fusion.core.lsq import LsqFix, common_offset, multilaterate
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.policy.mirror import MirrorSide
 
 NS = 1_000_000_000
+REST_Z = NormalDist().inv_cdf(1.0 - 1e-3)  # the rest's test fails a right installation
+# once in a thousand starts
+REST_MIN_RANGES = 5  # an anchor's ranges the rest's average needs
 
 
 class RangeWindow:
@@ -64,6 +85,61 @@ class RangeWindow:
         self._last_fix_ns = t_ns
         return self._solve(np.array([p for p, _ in recent]), np.array([r for _, r in recent]),
                            x0, weigh)
+
+    def rest_fix(self, epochs: list[tuple[list[int], Array]],
+                 anchors_m: Mapping[int, Sequence[float]], offset_sigma_m: float
+                 ) -> tuple[LsqFix, tuple[int, float] | None] | None:
+        """The rest's epochs (anchor ids, ranges) as one fix, and the anchor left out of it
+        with its mean range's excess over the fix's distance (None: none); None when too few
+        anchors have enough ranges. ``offset_sigma_m``: what a range's offset may be, 1 σ
+        (see the module doc)."""
+        sums: dict[int, list[float]] = {}
+        for ids, ranges in epochs:
+            for a, r in zip(ids, ranges.tolist(), strict=True):
+                if a in anchors_m:
+                    sums.setdefault(a, []).append(r)
+        ids = sorted(a for a, rs in sums.items() if len(rs) >= REST_MIN_RANGES)
+        if len(ids) < self.needed:
+            return None
+        anchors = np.array([anchors_m[a] for a in ids], dtype=float)
+        ranges = np.array([float(np.mean(sums[a])) for a in ids])
+        sigma = np.sqrt(np.array([self.sigma_m**2 / len(sums[a]) for a in ids])
+                        + offset_sigma_m**2)
+        dims = 2 if self.fixed_z is not None else 3
+
+        def solved(keep: Array) -> tuple[LsqFix, bool] | None:
+            x0 = self.side.start_point() if self.side.ambiguous and self.fixed_z is None \
+                else None
+            fix = multilaterate(anchors[keep], ranges[keep], float(np.max(sigma)), x0,
+                                self.fixed_z, outlier_sigma=math.inf, side=self.side.sign)
+            if fix is None:
+                return None
+            dof = int(keep.sum()) - dims
+            sse = float(np.sum((fix.residuals_m / sigma[keep]) ** 2))
+            return fix, dof <= 0 or sse <= dof * ratio_quantile(REST_Z, dof)
+
+        every = np.ones(len(ids), dtype=bool)
+        whole = solved(every)
+        if whole is None or whole[1] or len(ids) <= self.needed:
+            return (whole[0], None) if whole is not None else None
+        best: tuple[float, int, LsqFix, float] | None = None
+        for k in range(len(ids)):
+            without = solved(every & (np.arange(len(ids)) != k))
+            if without is None or not without[1]:
+                continue
+            # the anchor against the others' solution and its uncertainty: an anchor whose
+            # removal only takes away what the others' error needed to be seen (the height,
+            # say) leaves a solution too loose to disagree with it
+            fix = without[0]
+            diff = fix.position_m - anchors[k]
+            u = diff / np.linalg.norm(diff)
+            excess = float(ranges[k] - np.linalg.norm(diff))
+            w = abs(excess) / math.sqrt(sigma[k] ** 2 + float(u @ fix.covariance @ u))
+            if w > REST_Z and (best is None or w > best[0]):
+                best = (w, ids[k], fix, excess)
+        if best is None:  # no single anchor explains it
+            return whole[0], None
+        return best[2], (best[1], best[3])
 
     def _solve(self, anchors: Array, ranges: Array, x0: Array | None,
                weigh: bool) -> LsqFix | None:

@@ -2,7 +2,9 @@
 
 * **At rest** (the IMU still for ``init_static_s`` and at least 3 fixes over that time):
   gyro bias = mean rate, roll and pitch from the mean specific force, the vertical excess
-  of ``|f|`` over ``g`` as an accelerometer bias, position = mean fix, velocity 0.
+  of ``|f|`` over ``g`` as an accelerometer bias, position = the rest's epochs solved
+  together, an anchor that disagrees left out (:mod:`.fixes`; single ranges: the mean
+  fix), velocity 0.
 * **While moving** (no rest within ``init_max_wait_s``, or at once after a restart):
   roll and pitch from the mean specific force, position from the latest fix, velocity
   from a line fit through the last second of fixes, wider σ for velocity and gyro bias.
@@ -53,11 +55,13 @@ class Start(NamedTuple):
 def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
                 recent: list[tuple[int, Array]], fixes: list[tuple[int, Array]],
                 waited_long: bool, carry: Start | None, n_bias: int,
-                lever_m: Array, n_multipath: int = 0, n_lever: int = 0
-                ) -> tuple[Eskf, str] | None:
+                lever_m: Array, n_multipath: int = 0, n_lever: int = 0,
+                rest_m: Array | None = None) -> tuple[Eskf, str] | None:
     """The new filter state and how it started (``rest``, ``moving``, ``carried``), or
     ``None`` while the evidence is not enough yet. ``recent``: fixes of the last
-    ``init_static_s``; ``fixes``: all kept ones (time-ordered)."""
+    ``init_static_s``; ``fixes``: all kept ones (time-ordered); ``rest_m``: their epochs
+    solved together (:meth:`~uwbd.fusion.policy.fixes.RangeWindow.rest_fix`), the position
+    at rest where given, else the fixes' mean."""
     means = window.means()
     if means is None:
         return None
@@ -80,7 +84,8 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
         p, v, bg = carry.p_m, carry.v_mps, carry.b_g_rps
         sig_p, sig_v, sig_bg, how = max(carry.sigma_p_m, sig_fix), 1.0, 0.01, "carried"
     elif window.static(cfg.init_static_s) and len(recent) >= 3:
-        p = np.mean([x for _, x in recent], axis=0) - R0 @ lever_m
+        p = (np.mean([x for _, x in recent], axis=0) if rest_m is None else rest_m) \
+            - R0 @ lever_m
         v, bg = np.zeros(3), np.asarray(gyro)
         # at rest |f| = g: what is left over lies along the vertical, as an accel bias
         ba = (f_norm - cfg.gravity_mps2) * np.asarray(acc) / f_norm

@@ -71,6 +71,7 @@ class Recovery:
     _start_started_ns: int | None
     _first_t_ns: int | None
     _fixes: collections.deque[tuple[int, Array]]
+    _rest_epochs: collections.deque[tuple[int, list[int], Array]]
     stillness: UwbStillness
     _anchors: dict[int, tuple[float, float, float]]
     _last_good_P: Array | None  # noqa: N815 - P as in docs/ekf.md
@@ -81,6 +82,10 @@ class Recovery:
     records: list[Any] | None  # the smoother's epochs (Filter's ``record``)
     mounting_finding: str  # what the start at rest said of the mounting ("": nothing)
     _C: tuple[tuple[float, ...], ...]  # imu.mounting, sensor -> body
+    def _offset_sigma(self) -> float:
+        """What a range's offset may be by the config, 1 σ: its anchor's and the tag's."""
+        return math.hypot(self.cfg.range_bias_sigma_m, self.cfg.tag_delay_sigma_m)
+
     def _try_start(self, t_ns: int, fix: LsqFix | None) -> None:
         cfg = self.cfg
         if fix is None or self.window.means() is None:
@@ -91,17 +96,29 @@ class Recovery:
             waited_long = True
         else:
             waited_long = (t_ns - (self._first_t_ns or t_ns)) / NS >= cfg.init_max_wait_s
-        recent = [(t, p) for t, p in self._fixes if t >= t_ns - cfg.init_static_s * NS]
+        since = t_ns - cfg.init_static_s * NS
+        recent = [(t, p) for t, p in self._fixes if t >= since]
         if self._start_started_ns is not None and not self._plausible_height(fix):
             self.counters["fix_height_implausible"] += 1  # a restart waits for a fix that can be
             return
+        rest = None
+        if self._carry is None and self.window.static(cfg.init_static_s):
+            rest = self.ranges.rest_fix([(ids, r) for t, ids, r in self._rest_epochs
+                                         if t >= since], self._anchors, self._offset_sigma())
         start = start_state(cfg, self.window, fix, recent, list(self._fixes), waited_long,
                             self._carry, len(self._bias_index), self.lever, len(self._mp_index),
-                            len(self._lever_index))
+                            len(self._lever_index),
+                            rest_m=rest[0].position_m if rest is not None else None)
         if start is None:
             return
         self._begin(start, t_ns)
         self.monitor.last_range_ns = t_ns  # the start is a UWB fix
+        if rest is not None and rest[1] is not None and start[1] == "rest":
+            # the anchor test's finding from the start: its ranges are left out, and the
+            # test, once the heading is known, confirms it or lets it go after its hold
+            anchor, excess_m = rest[1]
+            self.consistency.found(t_ns, anchor, excess_m, self._offset_sigma())
+            self.counters["start_anchor_left_out"] += 1
 
     def _restart(self, t_ns: int, reason: str, keep_biases: bool = True) -> None:
         """Drop the estimate and start again from UWB and fresh IMU samples, keeping only
