@@ -566,6 +566,40 @@ def test_an_anchor_surveyed_off_is_named_and_the_estimate_is_not_healthy() -> No
         assert math.sqrt(np.mean(err[late] ** 2)) < 0.3
 
 
+def test_a_start_that_cannot_tell_which_anchor_is_wrong_leaves_none_out() -> None:
+    """Anchor 3's ranges 0.5 m long on the seed layout: at one place, "anchor 3 long" and
+    "anchor 2 short" explain the rest's epochs about as well (the only two anchors that see
+    the height), so the start leaves neither out; the other anchor was named here before
+    the rule that only one candidate may be singled out."""
+    sim = simulate(SimConfig(seed=1))
+    uwb = [dataclasses.replace(e, ranges=tuple(
+        dataclasses.replace(r, range_m=r.range_m + 0.5) if r.anchor_id == 3 else r
+        for r in e.ranges)) for e in sim.uwb if isinstance(e, UwbRanges)]
+    _, _, flt = run_filter(datasheet(sim), merge(sim.imu, uwb))
+    assert flt.counters["start_anchor_left_out"] == 0
+
+
+def test_a_finding_from_elsewhere_stands_until_the_anchor_test_has_judged_its_anchor() -> None:
+    """The start's finding for anchor 2: while the test has too few of its epochs (the
+    heading not yet known, say), it stands however long; once it has them and they agree,
+    it goes after hold_s."""
+    rng = np.random.default_rng(2)
+    limits = ConsistencyLimits(window_s=4.0, hold_s=2.0, persist_s=6.0)
+    check = AnchorConsistency(limits)
+    check.found(EPOCH_NS, 2, 0.6, 0.05)
+    S = 0.1**2 * np.eye(5) + 0.05**2
+    check.add(EPOCH_NS + 20 * NS, [0, 1, 3, 4], rng.multivariate_normal(np.zeros(4), S[:4, :4]),
+              S[:4, :4])  # 20 s on, anchor 2 never judged: it stands
+    assert set(check.findings) == {2}
+    gone = None
+    for k in range(100):  # then 10 s of epochs where it agrees
+        t_ns = EPOCH_NS + 21 * NS + k * NS // 10
+        check.add(t_ns, [0, 1, 2, 3, 4], rng.multivariate_normal(np.zeros(5), S), S)
+        if not check.findings and gone is None:
+            gone = k
+    assert gone is not None and MIN_ENTRIES <= gone <= MIN_ENTRIES + 25, gone
+
+
 @pytest.mark.parametrize(("mounting", "says"), [
     (((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)), "the body's -z"),  # as identity
     (((1.0, 0.0, 0.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0)), "the body's +y"),  # 90° about x

@@ -14,7 +14,8 @@ An anchor is a *suspect* when its average is larger than ``alarm_m`` and than ``
 its σ, and is the largest such of the epoch's anchors (one fault at a time: the others'
 averages are partly its image). A suspect tested so for ``persist_s`` (no gap over
 ``gap_s``) is a finding: an NLOS burst makes one anchor's ranges long for seconds, a wrong
-survey for good. It stands until ``hold_s`` without such a test.
+survey for good. It stands until ``hold_s`` without such a test (and, while the test has
+too few epochs of its anchor to judge it, until it has).
 Whether its position or its range offset is wrong is not told: the filter's state has
 moved to meet the anchor part of the way (and its range-model state has taken some of an
 offset), so what is left of the error does not follow the direction to the tag closely
@@ -101,7 +102,8 @@ class AnchorConsistency:
 
     def found(self, t_ns: int, anchor: int, bias_m: float, sigma_m: float) -> None:
         """A finding made elsewhere (a start at rest that left the anchor out): it stands
-        as this test's own do, for ``hold_s`` unless the test confirms it."""
+        until this test has judged the anchor (``MIN_ENTRIES`` epochs), then as the test's
+        own do, ``hold_s`` unless the test confirms it."""
         self.findings[anchor] = Finding(anchor, bias_m, sigma_m)
         self._found_ns[anchor] = t_ns
 
@@ -136,7 +138,10 @@ class AnchorConsistency:
                 self.findings[anchor] = Finding(anchor, mean, sigma)
                 self._found_ns[anchor] = t_ns
         for anchor, found_ns in list(self._found_ns.items()):  # held, then gone
-            if t_ns - found_ns > lim.hold_s * NS:
+            judged = self._windows.get(anchor)
+            if judged is None or len(judged.entries) < MIN_ENTRIES:
+                self._found_ns[anchor] = t_ns  # not judged here yet: it stands until it is
+            elif t_ns - found_ns > lim.hold_s * NS:
                 del self._found_ns[anchor], self.findings[anchor]
 
 

@@ -16,12 +16,13 @@ claim: with the defaults (0.1 and 0.2 m, uncalibrated units) it sees little, wit
 datasheet's or a calibration's few centimetres it sees an anchor surveyed off. One
 epoch hides an anchor surveyed 1 m off sideways in the tag's height (its fix is 1-2 m
 off with residuals of a few decimetres); a few seconds of them do not. When the set fails,
-each anchor is left out in turn, and the one whose removal makes the rest pass is
-left out of the start (fault detection and exclusion, as in RAIM), provided it disagrees
+each anchor is left out in turn; one whose removal makes the rest pass and that disagrees
 with the others' solution by more than that solution's own uncertainty allows (leaving out
 the only anchor that sees the height lets the rest pass by losing the height, not by being
-right); when none does (several anchors' offsets, as on the i-ASL flight, which the
-range-offset states then learn), the plain solution stands.
+right) is a candidate, and exactly one candidate is left out of the start (fault
+detection and exclusion, as in RAIM). With none (several anchors' offsets, which the
+range-offset states then learn) or several (one anchor long, or another short, explain
+the place alike) the plain solution stands.
 """
 
 from __future__ import annotations
@@ -122,7 +123,7 @@ class RangeWindow:
         whole = solved(every)
         if whole is None or whole[1] or len(ids) <= self.needed:
             return (whole[0], None) if whole is not None else None
-        best: tuple[float, int, LsqFix, float] | None = None
+        candidates: list[tuple[float, int, LsqFix, float]] = []
         for k in range(len(ids)):
             without = solved(every & (np.arange(len(ids)) != k))
             if without is None or not without[1]:
@@ -135,11 +136,12 @@ class RangeWindow:
             u = diff / np.linalg.norm(diff)
             excess = float(ranges[k] - np.linalg.norm(diff))
             w = abs(excess) / math.sqrt(sigma[k] ** 2 + float(u @ fix.covariance @ u))
-            if w > REST_Z and (best is None or w > best[0]):
-                best = (w, ids[k], fix, excess)
-        if best is None:  # no single anchor explains it
+            if w > REST_Z:
+                candidates.append((w, ids[k], fix, excess))
+        if len(candidates) != 1:  # none explains it, or more than one could: not told
             return whole[0], None
-        return best[2], (best[1], best[3])
+        _, anchor, fix, excess = candidates[0]
+        return fix, (anchor, excess)
 
     def _solve(self, anchors: Array, ranges: Array, x0: Array | None,
                weigh: bool) -> LsqFix | None:
