@@ -155,10 +155,6 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         self._imu_t_ns: int | None = None
         self._last_imu: tuple[Vec3, Vec3] | None = None  # body axes, the last one used
         self._fixes: collections.deque[tuple[int, Array]] = collections.deque(maxlen=100)
-        # the epochs those fixes were solved from alone (anchor ids, ranges): a start at
-        # rest solves them together (policy.fixes.RangeWindow.rest_fix)
-        self._rest_epochs: collections.deque[tuple[int, list[int], Array]] = \
-            collections.deque(maxlen=100)
         self._first_t_ns: int | None = None
         self._start_started_ns: int | None = None  # a restart waits for fresh IMU data
         self._carry: Start | None = None  # what a restart keeps of the estimate before it
@@ -252,8 +248,6 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         fix = self.ranges.fix(t_ns, ids, anchors, ranges, self._antenna())
         if fix is not None:
             self._fixes.append((t_ns, fix.position_m))
-            if len(ids) >= self.ranges.needed:  # solved from this epoch alone
-                self._rest_epochs.append((t_ns, ids, ranges))
         return fix
 
     def _fuse_message(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
@@ -360,7 +354,7 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
                 if self.ekf is None:
                     self._layout()
                     self._fixes.clear()  # solved without this anchor's plane, perhaps
-                    self._rest_epochs.clear()
+                    self.ranges.epochs.clear()
                 else:  # the state's shape is fixed once started: at the next start
                     self._new_anchors = True
             ids.append(r.anchor_id)

@@ -27,6 +27,7 @@ the place alike) the plain solution stands.
 
 from __future__ import annotations
 
+import collections
 import math
 from collections.abc import Mapping, Sequence
 from statistics import NormalDist
@@ -55,6 +56,9 @@ class RangeWindow:
         self._latest: dict[int, tuple[int, list[float], float]] = {}
         self._last_fix_ns: int | None = None
         self.last_inputs: tuple[Array, Array] = (np.zeros((0, 3)), np.zeros(0))  # of the last fix
+        # the epochs solved alone (time, anchor ids, ranges), for a start at rest
+        self.epochs: collections.deque[tuple[int, list[int], Array]] = \
+            collections.deque(maxlen=100)
 
     @property
     def needed(self) -> int:
@@ -75,6 +79,7 @@ class RangeWindow:
         (once per message: checks that solve again say False)."""
         if len(ids) >= self.needed:
             self._last_fix_ns = t_ns
+            self.epochs.append((t_ns, ids, ranges))
             return self._solve(anchors, ranges, x0, weigh)
         if not force and self._last_fix_ns is not None and \
                 t_ns - self._last_fix_ns < self.min_interval_ns:
@@ -86,6 +91,10 @@ class RangeWindow:
         self._last_fix_ns = t_ns
         return self._solve(np.array([p for p, _ in recent]), np.array([r for _, r in recent]),
                            x0, weigh)
+
+    def recent_epochs(self, since_ns: float) -> list[tuple[list[int], Array]]:
+        """The epochs solved alone since ``since_ns``, as :meth:`rest_fix` takes them."""
+        return [(ids, ranges) for t, ids, ranges in self.epochs if t >= since_ns]
 
     def rest_fix(self, epochs: list[tuple[list[int], Array]],
                  anchors_m: Mapping[int, Sequence[float]], offset_sigma_m: float

@@ -71,7 +71,6 @@ class Recovery:
     _start_started_ns: int | None
     _first_t_ns: int | None
     _fixes: collections.deque[tuple[int, Array]]
-    _rest_epochs: collections.deque[tuple[int, list[int], Array]]
     stillness: UwbStillness
     _anchors: dict[int, tuple[float, float, float]]
     _last_good_P: Array | None  # noqa: N815 - P as in docs/ekf.md
@@ -103,8 +102,8 @@ class Recovery:
             return
         rest = None
         if self._carry is None and self.window.static(cfg.init_static_s):
-            rest = self.ranges.rest_fix([(ids, r) for t, ids, r in self._rest_epochs
-                                         if t >= since], self._anchors, self._offset_sigma())
+            rest = self.ranges.rest_fix(self.ranges.recent_epochs(since), self._anchors,
+                                        self._offset_sigma())
         start = start_state(cfg, self.window, fix, recent, list(self._fixes), waited_long,
                             self._carry, len(self._bias_index), self.lever, len(self._mp_index),
                             len(self._lever_index),
