@@ -31,6 +31,7 @@ ANCHORS = {1: (0.0, 0.0, 0.3), 2: (5.0, 0.0, 0.3), 3: (5.0, 4.0, 0.3), 4: (0.0, 
            5: (0.0, 0.0, 2.4), 6: (5.0, 0.0, 2.4), 7: (5.0, 4.0, 2.4), 8: (0.0, 4.0, 2.4)}
 DELAYS = {1: -0.12, 2: 0.02, 3: -0.08, 4: 0.03, 5: 0.0, 6: 0.01, 7: -0.02, 8: -0.04}
 PHASE_CENTRE_M = np.array([0.05, 0.01, 0.09])  # tag axes
+LOG_DISTANCE_M = 0.1  # the ranges' distance term: 0.1 ln(d / 1 m)
 
 
 def sphere(n: int) -> np.ndarray:
@@ -84,9 +85,11 @@ tag_degree = 1
 tag_coefficients_m = [0.001, 0.05, 0.03]
 tag_mounting = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
 anchor_delays_m = { 1 = -0.12, 0x1151 = 0.02 }
+log_distance_m = 0.12
 calibrated_from = "calib.mcap"
 """).filter_config().range_model
     assert got.degree == 1 and got.coefficients_m == (0.001, 0.05, 0.03)
+    assert got.log_distance_m == 0.12
     assert got.anchor_delays_m == ((1, -0.12), (0x1151, 0.02))
     # the tag's x axis is the body's y: the phase centre turns with it
     assert got.phase_centre_m() == pytest.approx(S3 * np.array([-0.001, 0.03, 0.05]))
@@ -105,6 +108,8 @@ calibrated_from = "calib.mcap"
     ("tag_degree = 1\ntag_coefficients_m = [0.0, 0.0, 0.0]\ntag_mounting = [[1, 0, 0], "
      "[0, 1, 0], [0, 0, -1]]", "range_model.tag_mounting: rows must be orthonormal"),
     ("tag_degre = 1", "range_model.tag_degre: unknown key"),
+    ("log_distance_m = 12.0", "range_model.log_distance_m: must be at least -0.5 and at most "
+     "0.5, got 12"),
 ])
 def test_config_mistakes_are_errors_naming_the_key(section: str, message: str) -> None:
     with pytest.raises(ConfigError) as err:
@@ -197,12 +202,13 @@ def test_calibrated_anchor_delays_do_what_the_delay_states_would() -> None:
 
 def calibration_recording(root: Path, seconds: float = 80.0, seed: int = 0,
                           attitude: bool = True,
-                          correlated: tuple[float, float] = (0.0, 1.0)) -> Path:
+                          correlated: tuple[float, float] = (0.0, 1.0),
+                          log_distance_m: float = LOG_DISTANCE_M) -> Path:
     """A range-model calibration recording in the inrol layout (``anchor.txt``,
     ``tag_pose.txt``, ``uwb.txt``): the tag walked round the room turning through every
-    heading, each range with its anchor's delay, the tag's phase-centre term, noise (white,
-    and ``correlated`` = (σ m, τ s) of a Gauss–Markov error per anchor) and a few
-    one-sided NLOS ranges."""
+    heading, each range with its anchor's delay, the tag's phase-centre term, the distance
+    term ``log_distance_m`` ln(d / 1 m), noise (white, and ``correlated`` = (σ m, τ s) of a
+    Gauss–Markov error per anchor) and a few one-sided NLOS ranges."""
     rng = np.random.default_rng(seed)
     root.mkdir()
     lines = ["# anchor_id tx ty tz qx qy qz qw"]
@@ -231,8 +237,8 @@ def calibration_recording(root: Path, seconds: float = 80.0, seed: int = 0,
         R = quat_to_matrix(q[i])
         fade = math.exp(-(tr - slow[a][0]) / tau_c)
         slow[a] = (tr, fade * slow[a][1] + rng.normal(0, sigma_c * math.sqrt(1 - fade**2)))
-        r = (np.linalg.norm(pos + R @ PHASE_CENTRE_M - np.array(ANCHORS[a])) + DELAYS[a]
-             + slow[a][1] + rng.normal(0, 0.03)
+        d = float(np.linalg.norm(pos + R @ PHASE_CENTRE_M - np.array(ANCHORS[a])))
+        r = (d + log_distance_m * math.log(d) + DELAYS[a] + slow[a][1] + rng.normal(0, 0.03)
              + (rng.uniform(0.3, 1.0) if rng.random() < 0.04 else 0.0))
         lines.append(f"{k} {tr:.6f} {a} {r:.6f}")
     (root / "uwb.txt").write_text("\n".join(lines) + "\n")
@@ -268,6 +274,8 @@ def test_calibrate_ranges_recovers_the_term_and_the_delays(tmp_path: Path) -> No
     assert "multipath_sigma_m" not in written.fusion and "(too small to write)" in out
     assert written.anchors_m == parse(base.read_text()).anchors_m
     assert model.phase_centre_m() == pytest.approx(PHASE_CENTRE_M, abs=0.01)
+    assert model.log_distance_m == pytest.approx(LOG_DISTANCE_M, abs=0.015)
+    assert "(range_model.log_distance_m)" in out
     delays = dict(model.anchor_delays_m)
     assert sorted(delays) == sorted(DELAYS)
     assert all(abs(delays[a] - DELAYS[a]) < 0.01 for a in DELAYS), delays
@@ -280,6 +288,48 @@ def test_calibrate_ranges_recovers_the_term_and_the_delays(tmp_path: Path) -> No
     tag_only = parse(BASE + (tmp_path / "tag.toml").read_text()).filter_config()
     assert tag_only.range_model.degree == 2 and tag_only.range_model.anchor_delays_m == ()
     assert tag_only.range_bias_states is True
+
+
+def test_a_distance_term_is_written_only_where_the_ranges_have_one(tmp_path: Path) -> None:
+    """Ranges without a distance term: the fit's k is within its σ of zero and nothing is
+    written; ranges with one of -0.1 m: found and written with its sign."""
+    for k, root in ((0.0, "none"), (-0.1, "negative")):
+        ds = load_inrol(calibration_recording(tmp_path / root, log_distance_m=k, seed=3))
+        cal = calibrate(range_samples(ds.uwb, ds.anchors_m, ds.truth_t_ns, ds.truth_p_m,
+                                      ds.truth_rotation, ds.lever_arm_m, IDENTITY3), 1)
+        written = cal.keys()["range_model"].get("log_distance_m")
+        if k == 0.0:
+            assert written is None and "distance term: not written" in cal.summary("x", ""), (
+                cal.fit)
+        else:
+            assert written == pytest.approx(k, abs=0.015)
+
+
+def test_the_distance_term_comes_off_every_range_from_the_first() -> None:
+    """Simulated ranges that read ``0.15 ln(r / 1 m)`` long, as a DW1000's grow with the
+    distance: without the term the filter is three times as far off and overconfident;
+    with ``log_distance_m`` configured it is as good as on the clean ranges. The inversion
+    itself is within a millimetre from 0.5 m to 50 m."""
+    d = np.geomspace(0.5, 50.0, 200)
+    for k in (-0.3, 0.15, 0.3):
+        assert RangeModel(log_distance_m=k).without_distance_term(d + k * np.log(d)) == \
+            pytest.approx(d, abs=1e-3)
+    sim = simulate(handheld_async(3))
+    cfg = parse(simulation_toml(sim)).filter_config()
+    longer = [dataclasses.replace(f, ranges=tuple(
+        dataclasses.replace(r, range_m=r.range_m + 0.15 * math.log(r.range_m))
+        for r in f.ranges)) for f in sim.uwb]
+
+    def accuracy(c: FilterConfig, uwb: list) -> object:
+        poses, _, _ = run_filter(c, merge(sim.imu, uwb))
+        return score_poses(poses, sim.truth_t_ns, sim.truth_p_m, 10.0)
+
+    clean, left_in = accuracy(cfg, sim.uwb), accuracy(cfg, longer)
+    taken_off = accuracy(dataclasses.replace(cfg, range_model=RangeModel(log_distance_m=0.15)),
+                         longer)
+    assert left_in.rmse_xy_m > 2.5 * clean.rmse_xy_m and left_in.nees_mean > 4, left_in
+    assert taken_off.rmse_3d_m == pytest.approx(clean.rmse_3d_m, rel=0.02), (taken_off, clean)
+    assert taken_off.nees_mean < 1.5, taken_off
 
 
 def test_a_correlated_range_error_is_measured_and_written_for_the_multipath_states(

@@ -135,7 +135,8 @@ class Config:
                               for k, v in m.get("anchor_delays_m", {}).items()))
         return RangeModel(degree, tuple(float(c) for c in m["tag_coefficients_m"])
                           if degree else (),
-                          tuple(vec3(row) for row in m.get("tag_mounting", IDENTITY3)), delays)
+                          tuple(vec3(row) for row in m.get("tag_mounting", IDENTITY3)), delays,
+                          float(m.get("log_distance_m", 0.0)))
 
     def filter_config(self) -> FilterConfig:
         f = self.fusion

@@ -235,6 +235,8 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
             return reports
         if self._delays:  # the anchors' calibrated antenna delays (models.range_model)
             ranges = ranges - np.array([self._delays.get(a, 0.0) for a in ids])
+        if self.cfg.range_model.log_distance_m:  # and the distance term
+            ranges = self.cfg.range_model.without_distance_term(ranges)
         self.ranges.add(uwb.t_ns, ids, anchors, ranges)
         fix = self._epoch_fix(uwb.t_ns, ids, anchors, ranges)
         return self._fuse_message(uwb.t_ns, ids, anchors, ranges, r_scale, fix, reports)

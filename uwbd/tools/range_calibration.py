@@ -12,16 +12,19 @@ and lever arm take it to the antenna).
    motion-capture glitches (a jump and back faster than 5 m/s, or an attitude spike: turned
    and back faster than 20 rad/s). The residual ``e = r − |p_antenna − a|`` and the ray's
    direction ``u`` in the tag's axes.
-2. **Fit** of ``e = o_anchor + Σ c_lm Y_lm(u)`` by robust maximum likelihood: iteratively
-   reweighted least squares with a Cauchy loss (scale 2.385 × the residuals' robust σ).
-   The per-anchor offsets ``o`` are each anchor's antenna delay (plus the tag's, common
-   to all): a constant of the unit, which carries to another room with it (measured 1.6 cm
-   RMS between the two INRoL rooms). Each coefficient's σ
-   is a delete-one-block jackknife over 10 s blocks (the residuals are correlated over
-   seconds: the textbook σ of independent samples would be several times too small).
+2. **Fit** of ``e = o_anchor + Σ c_lm Y_lm(u) + k ln(d / 1 m)`` by robust maximum
+   likelihood: iteratively reweighted least squares with a Cauchy loss (scale 2.385 × the
+   residuals' robust σ). The per-anchor offsets ``o`` are each anchor's antenna delay (plus
+   the tag's, common to all): a constant of the unit, which carries to another room with it
+   (measured 1.6 cm RMS between the two INRoL rooms). Each coefficient's σ is a
+   delete-one-block jackknife over 10 s blocks (the residuals are correlated over seconds:
+   the textbook σ of independent samples would be several times too small).
+   The distance term ``k`` (:mod:`uwbd.fusion.models.range_model`: a DW1000's timing
+   depends on the received power) is written only where it lowers the held-out spread
+   (step 3) and is at least 3 of its σ from zero.
 3. **Held-out check**: the same fit on the first 70 % of the recording, scored on the last
-   30 %, for every degree: the robust spread of the ranges with the offsets only, then with
-   the model. A degree that does not lower the held-out spread is not worth configuring.
+   30 %, for every degree, without and with the distance term: the robust spread of the
+   ranges. A degree that does not lower the held-out spread is not worth configuring.
 4. **Noise** of what is left: a robust σ of the core, the share of long and short ranges
    beyond 3 σ (NLOS only ever lengthens a range), the residuals' autocovariance split into
    white noise, a fast correlated part (what the filter's multipath states model) and a slow
@@ -53,7 +56,12 @@ from scipy.spatial.transform import Rotation, Slerp
 from drivers.frames import Frame, UwbRanges
 from uwbd.config.overrides import write_toml
 from uwbd.fusion.core.rotation import Array
-from uwbd.fusion.models.range_model import MAX_DEGREE, basis, n_coefficients
+from uwbd.fusion.models.range_model import (
+    MAX_DEGREE,
+    MIN_LOG_DISTANCE_M,
+    basis,
+    n_coefficients,
+)
 from uwbd.tools.evaluate import truth_spikes
 
 MAX_TRUTH_GAP_NS = 50_000_000
@@ -69,6 +77,7 @@ TAIL_SIGMA = 3.0
 MIN_TAIL_FRACTION = 0.01
 MIN_CORRELATED_M = 0.01  # a correlated part smaller than this is not worth the states
 MAX_ONSET_SIGMA = 4.0
+MIN_DISTANCE_SIGMAS = 3.0  # the distance term is written when this many σ from zero
 SQRT_2PI = math.sqrt(2 * math.pi)
 MAX_LAG_S = 20.0
 LAG_BIN_S = 0.1
@@ -157,9 +166,11 @@ def robust_sigma(e: Array) -> float:
     return float(1.4826 * np.median(np.abs(e - np.median(e)))) if len(e) else math.nan
 
 
-def _design(s: RangeSamples, degree: int, anchor_ids: Sequence[int]) -> Array:
+def _design(s: RangeSamples, degree: int, anchor_ids: Sequence[int], distance: bool) -> Array:
+    """Columns: each anchor's offset, the tag's harmonics, and (``distance``) ln(d / 1 m)."""
     offsets = (s.anchor[:, None] == np.asarray(anchor_ids)[None, :]).astype(float)
-    return np.hstack([offsets, basis(s.u_tag, degree)])
+    log_d = np.log(np.maximum(s.distance_m, MIN_LOG_DISTANCE_M))[:, None]
+    return np.hstack([offsets, basis(s.u_tag, degree)] + ([log_d] if distance else []))
 
 
 def _irls(A: Array, e: Array, iterations: int = 30) -> Array:
@@ -184,28 +195,35 @@ class ModelFit:
     offsets_m: Array
     coefficients_m: Array
     coefficient_sigma_m: Array
+    log_distance_m: float | None = None  # k of k ln(d / 1 m); None: not fitted
+    log_distance_sigma_m: float = math.nan
 
     def delay_m(self, s: RangeSamples) -> Array:
-        """The model's delay of each sample (offsets and the direction term)."""
-        x = np.concatenate([self.offsets_m, self.coefficients_m])
-        return np.asarray(_design(s, self.degree, self.anchor_ids) @ x, dtype=float)
+        """The model's delay of each sample (offsets, direction and distance terms)."""
+        distance = self.log_distance_m is not None
+        x = np.concatenate([self.offsets_m, self.coefficients_m]
+                           + ([[self.log_distance_m]] if distance else []))
+        return np.asarray(_design(s, self.degree, self.anchor_ids, distance) @ x, dtype=float)
 
 
-def fit(s: RangeSamples, degree: int, jackknife: bool = True) -> ModelFit:
+def fit(s: RangeSamples, degree: int, distance: bool, jackknife: bool = True) -> ModelFit:
+    """The offsets, the tag's term of ``degree`` and (``distance``) the distance term."""
     ids = tuple(int(a) for a in np.unique(s.anchor))
     e = s.residual_m
-    A = _design(s, degree, ids)
+    A = _design(s, degree, ids, distance)
     x = _irls(A, e)
-    n_off = len(ids)
-    sigma = np.full(n_coefficients(degree), math.nan)
-    if jackknife and degree > 0:
+    n_off, n_tag = len(ids), n_coefficients(degree)
+    sigma = np.full(A.shape[1] - n_off, math.nan)
+    if jackknife and A.shape[1] > n_off:
         block = (s.t_ns - s.t_ns[0]) // int(BLOCK_S * 1e9)
         blocks = np.unique(block)
         if len(blocks) >= 3:
             xs = np.array([_irls(A[block != b], e[block != b], 10)[n_off:] for b in blocks])
             m = len(blocks)
             sigma = np.sqrt((m - 1) / m * ((xs - xs.mean(axis=0)) ** 2).sum(axis=0))
-    return ModelFit(degree, ids, x[:n_off], x[n_off:], sigma)
+    return ModelFit(degree, ids, x[:n_off], x[n_off:n_off + n_tag], sigma[:n_tag],
+                    float(x[-1]) if distance else None,
+                    float(sigma[-1]) if distance else math.nan)
 
 
 @dataclass(frozen=True)
@@ -324,7 +342,8 @@ class RangeCalibration:
     n_ranges: int
     span_s: float
     anchors: int
-    held_out: dict[int, tuple[float, float]]  # degree -> (σ offsets only, σ with the model)
+    # degree -> held-out σ with the model of that degree, without and with the distance term
+    held_out: dict[int, tuple[float, float]]
     before_sigma_m: float  # the robust σ of the ranges with the offsets only
 
     def keys(self, anchor_delays: bool = True) -> dict[str, dict[str, object]]:
@@ -336,6 +355,8 @@ class RangeCalibration:
         f = self.fit
         model: dict[str, object] = {"tag_degree": f.degree, "tag_coefficients_m": [
             round(float(c), 5) for c in f.coefficients_m]}
+        if f.log_distance_m is not None:
+            model["log_distance_m"] = round(f.log_distance_m, 4)
         n = self.noise
         fusion: dict[str, object] = {}
         if n.nlos.onset_m is not None:
@@ -369,10 +390,12 @@ class RangeCalibration:
         lines = [f"{where}: {self.n_ranges} ranges to {self.anchors} anchors over "
                  f"{self.span_s:.0f} s against the truth"]
         lines.append("held out (fitted on the first 70 %, scored on the last 30 %), robust σ "
-                     "of the ranges:")
-        for degree, (plain, model) in sorted(self.held_out.items()):
-            lines.append(f"  degree {degree}: {plain:.4f} m with the offsets only -> "
-                         f"{model:.4f} m with the model ({100 * (model / plain - 1):+.0f} %)"
+                     "of the ranges, without -> with the distance term:")
+        plain = self.held_out[0][0]
+        for degree, (without, distanced) in sorted(self.held_out.items()):
+            lines.append(f"  {f'degree {degree}' if degree else 'offsets only'}: "
+                         + " -> ".join(f"{v:.4f} m ({100 * (v / plain - 1):+.0f} %)"
+                                       for v in (without, distanced))
                          + ("   <- fitted" if degree == f.degree else ""))
         if f.degree:
             lines.append(f"tag term, degree {f.degree} ({tag_mounting_said}), coefficients "
@@ -388,9 +411,16 @@ class RangeCalibration:
             c = f.coefficients_m
             lines.append(f"  degree 1 as a phase centre (tag axes): ({math.sqrt(3) * c[2]:+.3f}, "
                          f"{math.sqrt(3) * c[0]:+.3f}, {math.sqrt(3) * c[1]:+.3f}) m")
+        distance = f.log_distance_m
+        lines.append(
+            f"distance term k ln(d / 1 m): k {distance:+.4f} ± {f.log_distance_sigma_m:.4f} m "
+            "(range_model.log_distance_m)" if distance is not None else
+            "distance term: not written (it does not lower the held-out spread, or is within "
+            f"{MIN_DISTANCE_SIGMAS:g} σ of zero)")
         lines.append("anchor antenna delays (each unit's own; with the tag's delay, common to "
-                     "all): " + ", ".join(f"{a} {o:+.3f}" for a, o in
-                                          zip(f.anchor_ids, f.offsets_m, strict=True)) + " m")
+                     "all" + (", at 1 m" if distance is not None else "") + "): " + ", ".join(
+                         f"{a} {o:+.3f}" for a, o in zip(f.anchor_ids, f.offsets_m,
+                                                         strict=True)) + " m")
         lines.append(f"robust σ of the ranges: {self.before_sigma_m:.4f} m with the offsets "
                      f"only, {n.core_sigma_m:.4f} m with the model")
         lines.append(f"noise left: robust σ {n.core_sigma_m:.4f} m; beyond {TAIL_SIGMA:g} σ "
@@ -433,14 +463,17 @@ def calibrate(s: RangeSamples, degree: int, oriented: bool = True) -> RangeCalib
     train, test = s.take(s.t_ns < cut), s.take(s.t_ns >= cut)
     train = train.take(np.isin(train.anchor, np.unique(test.anchor)))
     test = test.take(np.isin(test.anchor, np.unique(train.anchor)))
-    held_out = {}
-    plain_fit = fit(train, 0, jackknife=False)
-    plain = robust_sigma(test.residual_m - plain_fit.delay_m(test))
-    for d in range(1, MAX_DEGREE + 1):
-        m = fit(train, d, jackknife=False)
-        held_out[d] = (plain, robust_sigma(test.residual_m - m.delay_m(test)))
-    model = fit(s, degree)
-    before = fit(s, 0, jackknife=False)
+    def held_out_sigma(d: int, distance: bool) -> float:
+        return robust_sigma(test.residual_m - fit(train, d, distance, False).delay_m(test))
+
+    held_out = {d: (held_out_sigma(d, False), held_out_sigma(d, True))
+                for d in range(MAX_DEGREE + 1)}
+    plain, distanced = held_out[degree]
+    model = fit(s, degree, distance=True)
+    k, k_sigma = model.log_distance_m or 0.0, model.log_distance_sigma_m
+    if not (distanced < plain and abs(k) >= MIN_DISTANCE_SIGMAS * k_sigma):
+        model = fit(s, degree, distance=False)
+    before = fit(s, 0, distance=False, jackknife=False)
     return RangeCalibration(model, noise_shape(s, s.residual_m - model.delay_m(s)),
                             len(s.t_ns), span_s, len(model.anchor_ids), held_out,
                             robust_sigma(s.residual_m - before.delay_m(s)))

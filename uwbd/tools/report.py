@@ -11,8 +11,8 @@ accelerating gain, the share of fixes averaged at rest), and, where the truth ha
 motion-capture spikes, the same table without them; where the log has truth and ranges,
 the ranges' residuals against it (robust σ, median per anchor), raw and with the config's
 range model taken off. Written: ``trajectory.png`` (XY paths), ``error.png`` (horizontal
-error over time) and ``ranges.png`` (the range residuals by anchor and by the ray's
-direction in the tag's axes, raw and with the range model).
+error over time) and ``ranges.png`` (the range residuals by anchor, by the ray's direction in
+the tag's axes and by distance, raw and with the range model).
 """
 
 from __future__ import annotations
@@ -29,7 +29,6 @@ import numpy as np
 from tqdm import tqdm
 
 from uwbd.fusion.core.rotation import Array
-from uwbd.fusion.models.range_model import basis
 from uwbd.fusion.settings import Mode
 from uwbd.tools.baselines import Baseline, Kf4, StaticPoints, comparison_methods
 from uwbd.tools.evaluate import (
@@ -171,7 +170,8 @@ def _plots(rec: Recording, tracks: dict[str, Track], out_dir: Path) -> list[Path
 @dataclasses.dataclass
 class RangeResiduals:
     """Each range against the truth: raw (``r − |p_antenna − a|``), and with the config's
-    range model taken off (the anchors' delays and the tag's direction term)."""
+    range model taken off (the anchors' delays, the distance term and the tag's direction
+    term)."""
 
     samples: RangeSamples
     raw_m: Array
@@ -196,7 +196,7 @@ class RangeResiduals:
         s = self.samples
         cases = [("raw", self.raw_m)] + ([("range model taken off", self.modelled_m)]
                                           if self.modelled_m is not None else [])
-        fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+        fig, axes = plt.subplots(1, 4, figsize=(20, 4.2))
         ids = np.unique(s.anchor)
         width = 0.8 / len(cases)
         for k, (label, e) in enumerate(cases):
@@ -205,13 +205,14 @@ class RangeResiduals:
                             showfliers=False, patch_artist=True,
                             boxprops={"facecolor": f"C{k}", "alpha": 0.6})
             axes[0].plot([], [], color=f"C{k}", lw=6, alpha=0.6, label=label)
-            for ax, angle, name in ((axes[1], np.degrees(np.arctan2(s.u_tag[:, 1],
-                                                                    s.u_tag[:, 0])), "azimuth"),
-                                    (axes[2], np.degrees(np.arcsin(np.clip(s.u_tag[:, 2], -1,
-                                                                           1))), "elevation")):
-                edges = np.linspace(-180, 180, 37) if name == "azimuth" else \
-                    np.linspace(-90, 90, 19)
-                where = np.digitize(angle, edges) - 1
+            far_m = max(float(np.max(s.distance_m)), 1.0)
+            for ax, value, edges in (
+                    (axes[1], np.degrees(np.arctan2(s.u_tag[:, 1], s.u_tag[:, 0])),
+                     np.linspace(-180, 180, 37)),
+                    (axes[2], np.degrees(np.arcsin(np.clip(s.u_tag[:, 2], -1, 1))),
+                     np.linspace(-90, 90, 19)),
+                    (axes[3], s.distance_m, np.linspace(0.0, far_m, 21))):
+                where = np.digitize(value, edges) - 1
                 mid = (edges[:-1] + edges[1:]) / 2
                 med = np.array([np.median(e[where == i]) if (where == i).sum() >= 20
                                 else np.nan for i in range(len(mid))])
@@ -223,6 +224,8 @@ class RangeResiduals:
                     ylabel="median residual (m)", title="by direction: azimuth")
         axes[2].set(xlabel="elevation of the anchor→tag ray, tag axes (°)",
                     ylabel="median residual (m)", title="by direction: elevation")
+        axes[3].set(xlabel="distance tag–anchor (m)", ylabel="median residual (m)",
+                    title="by distance")
         for ax in axes:
             ax.axhline(0.0, color="k", lw=0.5)
             ax.legend(fontsize=8)
@@ -246,10 +249,6 @@ def range_residuals(rec: Recording) -> RangeResiduals | None:
     if len(s.t_ns) < 20:
         return None
     raw = s.residual_m
-    if not model.enabled and not model.anchor_delays_m:
+    if not model.enabled and not model.anchor_delays_m and not model.log_distance_m:
         return RangeResiduals(s, raw, None)
-    delays = dict(model.anchor_delays_m)
-    modelled = raw - np.array([delays.get(int(a), 0.0) for a in s.anchor])
-    if model.enabled:
-        modelled = modelled - basis(s.u_tag, model.degree) @ np.array(model.coefficients_m)
-    return RangeResiduals(s, raw, modelled)
+    return RangeResiduals(s, raw, raw - model.delay_m(s.anchor, s.u_tag, s.distance_m))
