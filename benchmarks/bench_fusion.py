@@ -8,8 +8,8 @@ per mode, and on a 100 Hz IMU with 170 single ranges a second (tight), driven as
 drives it (``run_reads``: the IMU in reads of a pose period's samples, poses at 50 Hz, after
 every epoch of several ranges, after a single range when one is due), as a multiple of real
 time, on the C core and on the pure-Python reference;
-and the cost of the range model (``[range_model]``, degrees 1 and 2 with anchor delays)
-against none on the single ranges.
+and the cost of the range model (``[range_model]``, degrees 1 and 2 with anchor delays and
+the distance term) against none on the single ranges.
 Accuracy: position RMSE against ground truth for the baselines (pure INS, UWB least
 squares, the same with static-point filtering at rest, the thesis's 4-state KF with its
 dual-gain complementary attitude filter and static points, and that KF with the two gains
@@ -37,7 +37,7 @@ from uwbd.config import parse
 from uwbd.fusion.core import native
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.filter import Filter
-from uwbd.fusion.models.range_model import RangeModel
+from uwbd.fusion.models.range_model import RangeModel, n_coefficients
 from uwbd.fusion.settings import Z_DOWN, FilterConfig, Mode
 from uwbd.tools.baselines import comparison_methods
 from uwbd.tools.evaluate import (
@@ -101,16 +101,16 @@ def speed(modes: list[Mode]) -> None:
 
 def range_model_cost() -> None:
     """The filter with the range model on (degree 1: a phase centre; degree 2: the rest
-    taken off the ranges each epoch) and off, side by side, on single ranges at 170/s."""
+    taken off the ranges each epoch; both with the anchors' delays and the distance term,
+    as ``calibrate-ranges`` writes them) and off, side by side, on single ranges at 170/s."""
     hand = simulate(handheld_async(1))
     base = parse(simulation_toml(hand)).filter_config()
     c2 = (0.003, 0.081, 0.029, -0.011, -0.009, 0.018, 0.010, 0.001)
     delays = tuple((a, 0.01 * a) for a in range(len(hand.config.anchors_m)))
-    loads = {"off": base,
-             "degree 1 + anchor delays": dataclasses.replace(
-                 base, range_model=RangeModel(1, c2[:3], anchor_delays_m=delays)),
-             "degree 2 + anchor delays": dataclasses.replace(
-                 base, range_model=RangeModel(2, c2, anchor_delays_m=delays))}
+    loads = {"off": base, **{
+        f"degree {d} + anchor delays + distance term": dataclasses.replace(
+            base, range_model=RangeModel(d, c2[:n_coefficients(d)], anchor_delays_m=delays,
+                                         log_distance_m=0.12)) for d in (1, 2)}}
     frames = list(merge(hand.imu, hand.uwb))
     gc.freeze()
     best = dict.fromkeys(loads, math.inf)

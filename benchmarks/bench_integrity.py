@@ -13,8 +13,8 @@ simulated sensors' specs; imported runs carry anchors, mounting and lever arm on
 * the real flight ``iasl-s1`` and the real handheld run ``inrol-env1`` (first 10 s out),
   with UWB least squares beside it for reference; on ``inrol-env1`` also with the range
   model ``uwbd calibrate-ranges`` fits on ``inrol-calib`` (another room, same hardware;
-  degrees 1 and 2 of the tag's term, the anchors' delays and the noise's keys, delay states
-  off, all as it writes them).
+  degrees 1 and 2 of the tag's term, the distance term, the anchors' delays and the
+  noise's keys, delay states off, all as it writes them).
 
 Faults on the seed layout: the IMU pinned at full scale for 0.5 s, one corrupted sample,
 a 30 s IMU gap, a 20 s UWB outage, every anchor NLOS (+0.5-2 m each) for 10 s (3 seeds).

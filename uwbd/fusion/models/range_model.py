@@ -104,13 +104,17 @@ class RangeModel:
     def without_distance_term(self, ranges_m: Array) -> Array:
         """``ranges_m`` (their anchors' delays already off) less the distance term: the
         distance ``d`` that solves ``d + k ln d = r``, by three Newton steps from ``r``
-        (within a millimetre for |k| ≤ 0.3 m from 0.5 m out)."""
+        (within a millimetre for |k| ≤ 0.3 m from 0.5 m out). In floats: a message holds
+        one range or a few."""
         k = self.log_distance_m
-        r = np.maximum(ranges_m, MIN_LOG_DISTANCE_M)
-        d = r
-        for _ in range(3):
-            d = np.maximum(d - (d + k * np.log(d) - r) / (1.0 + k / d), MIN_LOG_DISTANCE_M)
-        return np.asarray(ranges_m - (r - d), dtype=float)
+        out = []
+        for r in ranges_m.tolist():
+            floor = max(r, MIN_LOG_DISTANCE_M)
+            d = floor
+            for _ in range(3):
+                d = max(d - (d + k * math.log(d) - floor) / (1.0 + k / d), MIN_LOG_DISTANCE_M)
+            out.append(r - (floor - d))
+        return np.array(out)
 
     def delay_m(self, anchor: Sequence[int] | npt.NDArray[np.int64], u_tag: Array,
                 distance_m: Array) -> Array:
