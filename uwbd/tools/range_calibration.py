@@ -381,7 +381,9 @@ class RangeCalibration:
         """The keys as TOML, for a config."""
         keys = self.keys(anchor_delays)
         keys["range_model"] = {**keys["range_model"], "calibrated_from": source}
+        distance = self.fit.log_distance_m is not None
         return (f"# uwbd calibrate-ranges {source}: the tag antenna's direction term"
+                + (", the distance term" if distance else "")
                 + (" and the anchors' antenna delays" if anchor_delays else "")
                 + "\n# merge these sections' keys into the config\n" + write_toml(keys))
 

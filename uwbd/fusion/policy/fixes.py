@@ -74,12 +74,15 @@ class RangeWindow:
             x0: Array | None, force: bool = False, weigh: bool = True) -> LsqFix | None:
         """The fix at ``t_ns`` (after :meth:`add` of this message): from the message alone
         when it holds enough anchors, else from the window; ``None`` when there are too few
-        anchors, it is not yet time for another window fix (unless ``force``), or the
-        solution does not converge. ``weigh``: count the fix as evidence for the mirror side
-        (once per message: checks that solve again say False)."""
+        anchors, it is not yet time for another window fix, or the solution does not
+        converge. ``force``: a check's own fix, made at any time, which neither keeps the
+        epoch nor delays the next fix (a check made every message would starve loose mode
+        of its fixes). ``weigh``: count the fix as evidence for the mirror side (once per
+        message: checks that solve again say False)."""
         if len(ids) >= self.needed:
-            self._last_fix_ns = t_ns
-            self.epochs.append((t_ns, ids, ranges))
+            if not force:
+                self._last_fix_ns = t_ns
+                self.epochs.append((t_ns, ids, ranges))
             return self._solve(anchors, ranges, x0, weigh)
         if not force and self._last_fix_ns is not None and \
                 t_ns - self._last_fix_ns < self.min_interval_ns:
@@ -88,7 +91,8 @@ class RangeWindow:
         recent = [(pos, r) for t, pos, r in self._latest.values() if t >= oldest]
         if len(recent) < self.needed:
             return None
-        self._last_fix_ns = t_ns
+        if not force:
+            self._last_fix_ns = t_ns
         return self._solve(np.array([p for p, _ in recent]), np.array([r for _, r in recent]),
                            x0, weigh)
 
