@@ -135,15 +135,20 @@ def _range_key(anchor_id: int) -> tuple[str, str]:
     return key
 
 
-def position_rows(ekf: Eskf, lever_m: Array, fix: LsqFix, axes: int) -> Rows:
+def position_rows(ekf: Eskf, lever_m: Array, fix: LsqFix, axes: int, sigma_m: float) -> Rows:
     """A least-squares fix of the antenna (loose mode), ``axes`` 3, or 2 with the height
-    held; its own covariance, at least 2 cm per axis."""
+    held; its own covariance (ranges of σ ``sigma_m``), at least 2 cm per axis, widened by
+    the fix's own variance factor where its residuals say the ranges were worse than σ
+    (a window's ranges of a moving tag are up to 0.2 s apart; multipath)."""
     R = ekf.R
     p_ant = np.array(ekf.p) + R @ lever_m
     H = np.zeros((axes, ekf.n))
     H[:, P_] = np.eye(3)[:axes]
     H[:, TH_] = (-R @ skew(lever_m))[:axes]
-    var = np.maximum(np.diag(fix.covariance)[:axes], 0.02**2)
+    used = int(fix.used.sum())
+    factor = max(1.0, used * fix.rms_m**2 / ((used - axes) * sigma_m**2)) if used > axes \
+        else 1.0
+    var = np.maximum(factor * np.diag(fix.covariance)[:axes], 0.02**2)
     return Rows(H, fix.position_m[:axes] - p_ant[:axes], var,
                 [("position", "xyz"[axis]) for axis in range(axes)])
 

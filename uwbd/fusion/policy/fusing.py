@@ -111,7 +111,8 @@ class EpochFusion:
                               self._range_columns, self._lever_index)
         if fix is None:
             return Rows.empty(ekf.n)
-        return position_rows(ekf, self.lever, fix, 3 if self._fixed_z is None else 2)
+        return position_rows(ekf, self.lever, fix, 3 if self._fixed_z is None else 2,
+                             self.cfg.range_sigma_m)
 
     def _fuse_epoch(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                     r_scale: Array, fix: LsqFix | None,
