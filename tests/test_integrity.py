@@ -239,7 +239,8 @@ def test_single_asynchronous_ranges_start_the_filter_and_beat_least_squares() ->
 
 
 def test_loose_mode_on_single_ranges_keeps_its_fixes_coming() -> None:
-    """Loose mode fuses a window fix ten times a second. The checks' own fixes (the
+    """Loose mode fuses a window fix ten times a second, each as uncertain as its residuals
+    say. The checks' own fixes (the
     stillness test's, five a second; the fading and divergence checks', every message while
     the innovations disagree) must not count as those: once they did, loose mode got half
     its fixes, then none at the first disagreement, and coasted away (21 m XY on this run,
@@ -250,7 +251,10 @@ def test_loose_mode_on_single_ranges_keeps_its_fixes_coming() -> None:
     span_s = (sim.uwb[-1].t_ns - sim.uwb[0].t_ns) / NS
     fixes = (flt.counters["position_accepted"] + flt.counters["position_rejected"]) / 3
     assert fixes > 8 * span_s, dict(flt.counters)
-    assert score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=10).rmse_xy_m < 0.1
+    acc = score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=10)
+    # a window's ranges are up to 0.2 s apart: each fix's own variance factor says so
+    # (NEES/3 3.4 without it)
+    assert acc.rmse_xy_m < 0.1 and acc.nees_mean < 2.5, acc
 
 
 # -- robust range updates --------------------------------------------------------------------
