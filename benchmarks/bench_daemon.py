@@ -47,7 +47,8 @@ from uwbd.fusion.core import native
 from uwbd.logs.reading import read_log
 from uwbd.logs.replay import replay
 from uwbd.tools.logtools import write_simulation
-from uwbd.tools.simulator import SimConfig, segments_for, simulate
+from uwbd.tools.sim_presets import segments_for
+from uwbd.tools.simulator import SimConfig, simulate
 
 TICKS = os.sysconf("SC_CLK_TCK")
 # the emulated vehicle stands this long before it drives off: the daemon starts meanwhile,

@@ -54,7 +54,8 @@ from uwbd.tools.evaluate import (
 )
 from uwbd.tools.importer import load_iasl
 from uwbd.tools.logtools import simulation_toml
-from uwbd.tools.simulator import SimConfig, Simulation, handheld_async, simulate
+from uwbd.tools.sim_presets import handheld_async
+from uwbd.tools.simulator import SimConfig, Simulation, simulate
 
 ANCHORS_8 = ((-5.0, 30.0, 0.0), (-5.0, -30.0, 0.0), (10.0, 10.0, 5.0), (10.0, -10.0, 5.0),
              (20.0, 30.0, 0.0), (20.0, -30.0, 0.0), (0.0, 0.0, 3.0), (15.0, 0.0, 3.0))

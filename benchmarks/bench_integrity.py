@@ -55,7 +55,8 @@ from uwbd.tools.evaluate import merge, run_filter, run_method, score, truth_spik
 from uwbd.tools.importer import INROL_LEVER_ARM_M, INROL_MOUNTING, Dataset, load_iasl, load_inrol
 from uwbd.tools.logtools import simulation_toml
 from uwbd.tools.range_calibration import calibrate, range_samples
-from uwbd.tools.simulator import PRESETS, SimConfig, Simulation, simulate
+from uwbd.tools.sim_presets import PRESETS
+from uwbd.tools.simulator import SimConfig, Simulation, simulate
 
 Vec3 = tuple[float, float, float]
 Rotation = tuple[Vec3, Vec3, Vec3]

@@ -52,7 +52,8 @@ from uwbd.fusion.settings import FilterConfig
 from uwbd.logs.reading import read_log
 from uwbd.tools.evaluate import run_filter, score_poses
 from uwbd.tools.logtools import load_recording, write_simulation
-from uwbd.tools.simulator import PRESETS, Simulation, simulate
+from uwbd.tools.sim_presets import PRESETS
+from uwbd.tools.simulator import Simulation, simulate
 from uwbd.tools.survey import Gauge, Settings, Survey, log_ranges, survey
 
 Array = np.ndarray

@@ -19,7 +19,8 @@ from uwbd.config import ConfigError, SourceConfig, apply_overrides, load, parse,
 from uwbd.config import checks as cfgchecks
 from uwbd.fusion.filter import Filter
 from uwbd.tools.logtools import simulation_toml
-from uwbd.tools.simulator import SimConfig, ceiling_room, handheld_async
+from uwbd.tools.sim_presets import ceiling_room, handheld_async
+from uwbd.tools.simulator import SimConfig
 
 if sys.version_info >= (3, 11):
     import tomllib

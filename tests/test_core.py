@@ -39,7 +39,8 @@ from uwbd.fusion.types import Pose
 from uwbd.tools.evaluate import merge, run_filter, run_smoother
 from uwbd.tools.importer import INROL_LEVER_ARM_M, INROL_MOUNTING, load_iasl, load_inrol
 from uwbd.tools.logtools import simulation_toml
-from uwbd.tools.simulator import SimConfig, ceiling_room, handheld_async, simulate
+from uwbd.tools.sim_presets import ceiling_room, handheld_async
+from uwbd.tools.simulator import SimConfig, simulate
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 needs_core = pytest.mark.skipif(native.core is None, reason=f"C core: {native.implementation}")

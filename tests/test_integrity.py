@@ -41,7 +41,8 @@ from uwbd.service.pipeline import Pipeline, PoseList
 from uwbd.tools.baselines import UwbLeastSquares
 from uwbd.tools.evaluate import merge, run_filter, run_method, score, score_poses
 from uwbd.tools.logtools import simulation_toml
-from uwbd.tools.simulator import SimConfig, Simulation, ceiling_room, handheld_async, simulate
+from uwbd.tools.sim_presets import ceiling_room, handheld_async
+from uwbd.tools.simulator import SimConfig, Simulation, simulate
 
 SHORT = ((4.0, 0.0, 0.0, 0.0), (5.0, 1.5, 0.0, 0.0), (5.2, 1.5, 0.3, 0.0),
          (5.0, 1.2, 0.0, 0.2), (3.0, 0.0, 0.0, 0.0))

@@ -15,7 +15,8 @@ from uwbd.service.aligner import Aligner
 from uwbd.service.pipeline import Pipeline, PoseList
 from uwbd.tools.evaluate import merge
 from uwbd.tools.logtools import simulation_toml
-from uwbd.tools.simulator import SimConfig, handheld_async, simulate
+from uwbd.tools.sim_presets import handheld_async
+from uwbd.tools.simulator import SimConfig, simulate
 
 
 def poses_of(sim_cfg: SimConfig, rate_hz: float) -> tuple[list[int], list[int]]:

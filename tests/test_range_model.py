@@ -24,7 +24,8 @@ from uwbd.tools.evaluate import merge, run_filter, score_poses
 from uwbd.tools.importer import load_inrol
 from uwbd.tools.logtools import simulation_toml
 from uwbd.tools.range_calibration import calibrate, nlos_tail, range_samples
-from uwbd.tools.simulator import handheld_async, simulate
+from uwbd.tools.sim_presets import handheld_async
+from uwbd.tools.simulator import simulate
 
 S3 = math.sqrt(3.0)
 ANCHORS = {1: (0.0, 0.0, 0.3), 2: (5.0, 0.0, 0.3), 3: (5.0, 4.0, 0.3), 4: (0.0, 4.0, 0.3),

@@ -13,16 +13,8 @@ import pytest
 
 from uwbd.config import parse
 from uwbd.tools.logtools import simulation_toml
-from uwbd.tools.simulator import (
-    EPOCH_NS,
-    PRESETS,
-    SimConfig,
-    Simulation,
-    ceiling_room,
-    handheld_async,
-    seed_layout,
-    simulate,
-)
+from uwbd.tools.sim_presets import PRESETS, ceiling_room, handheld_async, seed_layout
+from uwbd.tools.simulator import EPOCH_NS, SimConfig, Simulation, simulate
 
 SHORT = ((3.0, 0.0, 0.0, 0.0), (5.0, 1.0, 0.2, 0.0), (2.0, 0.0, 0.0, 0.0))  # 10 s
 

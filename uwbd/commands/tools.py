@@ -27,7 +27,8 @@ from uwbd.commands.common import (
 from uwbd.config import ConfigError
 from uwbd.tools.importer import Dataset, DatasetError, load_iasl, load_inrol
 from uwbd.tools.logtools import load_recording, write_dataset, write_simulation
-from uwbd.tools.simulator import SimConfig, segments_for, simulate
+from uwbd.tools.sim_presets import segments_for
+from uwbd.tools.simulator import SimConfig, simulate
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
