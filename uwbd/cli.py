@@ -178,7 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("calibrate-ranges", help="the range model from a log with ground truth",
             description="Fit the tag antenna's direction-dependent delay (real spherical "
-            "harmonics of the ray in the tag's axes) and each anchor's antenna delay to a "
+            "harmonics of the ray in the tag's axes), the delay that grows with the "
+            "distance (k ln(d / 1 m)) and each anchor's antenna delay to a "
             "log with ground truth (/truth: the tag's pose, or the IMU's with the config's "
             "lever arm), by robust maximum likelihood; print each coefficient with its "
             "sigma, every degree's held-out check (fitted on the first 70 %%, scored on the "
@@ -188,11 +189,11 @@ def build_parser() -> argparse.ArgumentParser:
     _config_outputs(p, "the [range_model] keys found as a TOML snippet",
                     "with the [range_model] keys set")
     p.add_argument("--degree", type=int, default=1, choices=range(0, 4),
-                   help="of the tag's term: 1 (default: a phase centre) to 3; 0 for the "
-                   "anchors' delays alone")
+                   help="of the tag's term: 1 (default: a phase centre) to 3; 0 for none "
+                   "(the anchors' delays and the distance term alone)")
     p.add_argument("--no-anchor-delays", action="store_true",
-                   help="write the tag's term only (the robot's anchors are other units than "
-                   "the calibration's: the filter estimates their delays)")
+                   help="write no anchor delays (the robot's anchors are other units than "
+                   "the calibration's: the filter's delay states estimate theirs)")
     _tuning(p)
     p.set_defaults(func="tools:cmd_calibrate_ranges")
 

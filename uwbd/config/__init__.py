@@ -42,8 +42,8 @@ Sections::
                          tag antenna's direction-dependent delay: real spherical harmonics
                          of degrees 1..tag_degree, m = -l..l each, tag axes), tag_mounting
                          (3x3 rows, tag axes -> body; identity), anchor_delays_m ({ "<id>" =
-                         delay }: taken off each anchor's ranges), log_distance_m (k of
-                         the delay k ln(d / 1 m) that grows with distance; 0),
+                         delay }: taken off each anchor's ranges), log_distance_m (k ≥ 0
+                         of the delay k ln(d / 1 m) that grows with distance; 0),
                          calibrated_from (a note)
     [pipeline]           aligner_wait_ms (0), pose_rate_hz (50), status_period_s (1),
                          stall_after_s (1: a port silent this long is "stalled")

@@ -178,8 +178,9 @@ _ROS2_SPEC = {"enabled": Key(BOOL),
 _RANGE_MODEL_SPEC = {"tag_degree": Key(INTEGER, Range(0.0, MAX_DEGREE, lo_closed=True)),
                      "tag_coefficients_m": Key(NUMBERS), "tag_mounting": Key(ROWS),
                      "anchor_delays_m": Key(DELAYS), "calibrated_from": Key(STRING),
-                     # k of k ln(d / 1 m): ~0.12 m measured; beyond 0.5 m it is no antenna's
-                     "log_distance_m": Key(NUMBER, Range(-0.5, 0.5, lo_closed=True))}
+                     # k of k ln(d / 1 m): ~0.12 m measured; the delay grows with the
+                     # distance (k ≥ 0), and beyond 0.5 m it is no antenna's
+                     "log_distance_m": Key(NUMBER, Range(0.0, 0.5, lo_closed=True))}
 TABLES: dict[str, dict[str, Key]] = {
     "imu": _IMU_SPEC, "fusion": _FUSION_SPEC, "range_model": _RANGE_MODEL_SPEC,
     "pipeline": _PIPELINE_SPEC, "log": _LOG_SPEC, "zenoh": _ZENOH_SPEC, "robot": _ROBOT_SPEC,

@@ -111,7 +111,7 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         self.intrinsics_applied = not config.imu_intrinsics.is_identity
         # range rows' lever arm: the antenna's, or, with the range model applied, its phase
         # centre's (EpochFusion._apply_range_model)
-        self._delays = dict(config.range_model.anchor_delays_m)
+        self._corrects = config.range_model.corrects_ranges
         self._plain_lever = np.array(config.lever_arm_m, dtype=float)
         self._model_lever = self._plain_lever + config.range_model.phase_centre_m()
         self.lever = self._plain_lever
@@ -233,10 +233,8 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         ids, anchors, ranges, r_scale = self._resolve(result.epoch, reports)
         if len(ids) == 0:
             return reports
-        if self._delays:  # the anchors' calibrated antenna delays (models.range_model)
-            ranges = ranges - np.array([self._delays.get(a, 0.0) for a in ids])
-        if self.cfg.range_model.log_distance_m:  # and the distance term
-            ranges = self.cfg.range_model.without_distance_term(ranges)
+        if self._corrects:  # the anchors' calibrated delays, the distance term
+            ranges = self.cfg.range_model.corrected_m(ids, ranges)
         self.ranges.add(uwb.t_ns, ids, anchors, ranges)
         fix = self._epoch_fix(uwb.t_ns, ids, anchors, ranges)
         return self._fuse_message(uwb.t_ns, ids, anchors, ranges, r_scale, fix, reports)

@@ -111,7 +111,10 @@ class PureIns:
 
 class UwbLeastSquares:
     """Multilateration per epoch, or over a 0.1 s window of single ranges (one fix each
-    0.1 s); anchors from the config, else as the device sends them."""
+    0.1 s); anchors from the config, else as the device sends them. The raw ranges: a
+    ``[range_model]`` is fitted as a whole, and its part that needs no attitude (the
+    anchors' delays, the distance term) alone biases the height (inrol-env1: Z 0.158 →
+    0.205 m), since the anchors' delays were fitted beside the tag's term."""
 
     def __init__(self, config: FilterConfig) -> None:
         self.anchors = dict(config.anchors_m)

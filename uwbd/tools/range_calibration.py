@@ -345,18 +345,21 @@ class RangeCalibration:
     # degree -> held-out σ with the model of that degree, without and with the distance term
     held_out: dict[int, tuple[float, float]]
     before_sigma_m: float  # the robust σ of the ranges with the offsets only
+    distance_fit: tuple[float, float]  # k and its σ as fitted, written or not
 
     def keys(self, anchor_delays: bool = True) -> dict[str, dict[str, object]]:
-        """The config keys: ``[range_model]`` (the tag's term; with ``anchor_delays`` each
-        anchor's delay too); the noise's ``fusion.nlos_onset_m``, ``multipath_sigma_m`` and
-        ``multipath_tau_s`` (steps 4 and 5, each where measured); and with the delays
-        ``fusion.range_bias_states = false``: the delays are known, and on the recordings
-        measured estimating them again costs accuracy (docs/ekf.md §4, range model)."""
+        """The config keys: ``[range_model]`` (the tag's term, the distance term, 0 where
+        not fitted; with ``anchor_delays`` each anchor's delay too); the noise's
+        ``fusion.nlos_onset_m``, ``multipath_sigma_m`` and ``multipath_tau_s`` (steps 4 and
+        5, each where measured); and ``fusion.range_bias_states``: false with the delays,
+        which are known (on the recordings measured estimating them again costs accuracy,
+        docs/ekf.md §4, range model), true without them (the robot's anchors are other
+        units: the states estimate their delays)."""
         f = self.fit
         model: dict[str, object] = {"tag_degree": f.degree, "tag_coefficients_m": [
             round(float(c), 5) for c in f.coefficients_m]}
-        if f.log_distance_m is not None:
-            model["log_distance_m"] = round(f.log_distance_m, 4)
+        # always written: 0 clears a term that an earlier calibration left in the config
+        model["log_distance_m"] = round(f.log_distance_m or 0.0, 4)
         n = self.noise
         fusion: dict[str, object] = {}
         if n.nlos.onset_m is not None:
@@ -367,7 +370,8 @@ class RangeCalibration:
         if anchor_delays:
             model["anchor_delays_m"] = {str(a): round(float(o), 4)
                                         for a, o in zip(f.anchor_ids, f.offsets_m, strict=True)}
-            fusion["range_bias_states"] = False
+        # the delays known, or the states to estimate the robot's own (other units')
+        fusion["range_bias_states"] = not anchor_delays
         return {"range_model": model, **({"fusion": fusion} if fusion else {})}
 
     def overrides(self, source: str, anchor_delays: bool = True) -> list[str]:
@@ -414,11 +418,12 @@ class RangeCalibration:
             lines.append(f"  degree 1 as a phase centre (tag axes): ({math.sqrt(3) * c[2]:+.3f}, "
                          f"{math.sqrt(3) * c[0]:+.3f}, {math.sqrt(3) * c[1]:+.3f}) m")
         distance = f.log_distance_m
-        lines.append(
-            f"distance term k ln(d / 1 m): k {distance:+.4f} ± {f.log_distance_sigma_m:.4f} m "
+        fitted, fitted_sigma = self.distance_fit
+        lines.append(f"distance term k ln(d / 1 m): k {fitted:+.4f} ± {fitted_sigma:.4f} m " + (
             "(range_model.log_distance_m)" if distance is not None else
-            "distance term: not written (it does not lower the held-out spread, or is within "
-            f"{MIN_DISTANCE_SIGMAS:g} σ of zero)")
+            "not written (0: it does not lower the held-out spread, or is not "
+            f"{MIN_DISTANCE_SIGMAS:g} σ above zero; a delay that shrinks with distance is no "
+            "DW1000's: is the truth's scale the anchors'?)"))
         lines.append("anchor antenna delays (each unit's own; with the tag's delay, common to "
                      "all" + (", at 1 m" if distance is not None else "") + "): " + ", ".join(
                          f"{a} {o:+.3f}" for a, o in zip(f.anchor_ids, f.offsets_m,
@@ -473,9 +478,10 @@ def calibrate(s: RangeSamples, degree: int, oriented: bool = True) -> RangeCalib
     plain, distanced = held_out[degree]
     model = fit(s, degree, distance=True)
     k, k_sigma = model.log_distance_m or 0.0, model.log_distance_sigma_m
-    if not (distanced < plain and abs(k) >= MIN_DISTANCE_SIGMAS * k_sigma):
+    distance = (k, k_sigma)
+    if not (distanced < plain and k >= MIN_DISTANCE_SIGMAS * k_sigma):
         model = fit(s, degree, distance=False)
     before = fit(s, 0, distance=False, jackknife=False)
     return RangeCalibration(model, noise_shape(s, s.residual_m - model.delay_m(s)),
                             len(s.t_ns), span_s, len(model.anchor_ids), held_out,
-                            robust_sigma(s.residual_m - before.delay_m(s)))
+                            robust_sigma(s.residual_m - before.delay_m(s)), distance)
