@@ -22,13 +22,8 @@ from uwbd.config.model import SourceConfig
 from uwbd.logs.mcaplog import LogWriter, SourceInfo
 from uwbd.logs.reading import read_log
 from uwbd.tools.logtools import write_simulation
-from uwbd.tools.simulator import (
-    EPOCH_NS,
-    HANDHELD_SEGMENTS,
-    ROOM_ANCHORS_M,
-    handheld_async,
-    simulate,
-)
+from uwbd.tools.sim_presets import HANDHELD_SEGMENTS, ROOM_ANCHORS_M, handheld_async
+from uwbd.tools.simulator import EPOCH_NS, simulate
 from uwbd.tools.survey import Gauge, Settings, SurveyError, log_ranges, survey, with_anchors
 
 PAIR_NOISE_M = 0.05
