@@ -51,6 +51,7 @@ Vector = Sequence[float] | Array
 MAX_DEGREE = 3
 MIN_LOG_DISTANCE_M = 0.1  # the distance term's log is taken of no less (a range near 0)
 MAX_NEWTON_STEPS = 8
+LOG_FLOOR = math.log(MIN_LOG_DISTANCE_M)
 SQRT3 = math.sqrt(3.0)
 IDENTITY3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
@@ -118,36 +119,38 @@ class RangeModel:
 
     def corrected_m(self, ids: Sequence[int], ranges_m: Array) -> Array:
         """The ranges less what needs no attitude, before anything else: each anchor's
-        delay, then the distance term."""
-        if self.anchor_delays_m:
-            delays = self._delays
-            ranges_m = ranges_m - np.array([delays.get(a, 0.0) for a in ids])
-        return self.without_distance_term(ranges_m) if self.log_distance_m else ranges_m
+        delay, then the distance term (:meth:`without_distance_term`). In floats: a
+        message holds one range or a few."""
+        delays = self._delays
+        if not self.log_distance_m:
+            return np.array([r - delays.get(a, 0.0)
+                             for a, r in zip(ids, ranges_m.tolist(), strict=True)])
+        distance = self._distance
+        return np.array([distance(r - delays.get(a, 0.0))
+                         for a, r in zip(ids, ranges_m.tolist(), strict=True)])
 
     def without_distance_term(self, ranges_m: Array) -> Array:
         """``ranges_m`` (their anchors' delays already off) less the distance term: the
         ``d`` whose ``d + k ln max(d, D)`` is the range (``D`` = ``MIN_LOG_DISTANCE_M``).
         With k ≥ 0 that is increasing, so each range has one: below ``D + k ln D`` the
-        constant ``k ln D`` comes off; above it, Newton's steps from ``max(r, D)`` (the
-        function is concave: after the first step they climb to the root from below), two
-        or three at k ≈ 0.1 m, up to six for k = 0.5 m near D. In floats: a message holds one
-        range or a few."""
-        k = self.log_distance_m
-        log_floor = math.log(MIN_LOG_DISTANCE_M)
-        low = MIN_LOG_DISTANCE_M + k * log_floor
-        out = []
-        for r in ranges_m.tolist():
-            if not r > low:  # (NaN too: it stays NaN)
-                out.append(r - k * log_floor)
-                continue
-            d = max(r, MIN_LOG_DISTANCE_M)
-            for _ in range(MAX_NEWTON_STEPS):
-                step = (d + k * math.log(d) - r) / (1.0 + k / d)
-                d = max(d - step, MIN_LOG_DISTANCE_M)
-                if abs(step) < 1e-7:
-                    break
-            out.append(d)
-        return np.array(out)
+        constant ``k ln D`` comes off; above it, one fixed-point step from ``r``, then
+        Newton's (the function is concave: they climb to the root from below), one or two
+        at k ≈ 0.1 m, up to six for k = 0.5 m near D."""
+        return np.array([self._distance(r) for r in ranges_m.tolist()])
+
+    def _distance(self, r: float) -> float:
+        k, floor, log = self.log_distance_m, MIN_LOG_DISTANCE_M, math.log
+        if not r > floor + k * LOG_FLOOR:  # (NaN too: it stays NaN)
+            return r - k * LOG_FLOOR
+        d = r - k * log(r) if r > floor else floor
+        d = max(d, floor)
+        for _ in range(MAX_NEWTON_STEPS):
+            step = (d + k * log(d) - r) / (1.0 + k / d)
+            d -= step
+            d = max(d, floor)
+            if -1e-6 < step < 1e-6:
+                break
+        return d
 
     def delay_m(self, anchor: Sequence[int] | npt.NDArray[np.int64], u_tag: Array,
                 distance_m: Array) -> Array:
