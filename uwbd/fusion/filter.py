@@ -233,8 +233,6 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
         ids, anchors, ranges, r_scale = self._resolve(result.epoch, reports)
         if len(ids) == 0:
             return reports
-        if self._corrects:  # the anchors' calibrated delays, the distance term
-            ranges = self.cfg.range_model.corrected_m(ids, ranges)
         self.ranges.add(uwb.t_ns, ids, anchors, ranges)
         fix = self._epoch_fix(uwb.t_ns, ids, anchors, ranges)
         return self._fuse_message(uwb.t_ns, ids, anchors, ranges, r_scale, fix, reports)
@@ -328,7 +326,8 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
     def _resolve(self, epoch: UwbRanges, reports: list[FusionReport]
                  ) -> tuple[list[int], Array, Array, Array]:
         """Anchor positions for each range (configured first, else as the device sends),
-        and the factor on each range's variance from the device's quality."""
+        the ranges less the range model's attitude-free part, and the factor on each range's
+        variance from the device's quality."""
         ids, anchors, ranges, scale = [], [], [], []
         configured = self._configured
         common = True  # every range to a configured anchor, with no quality
@@ -361,6 +360,8 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
             anchors.append(pos)
             ranges.append(r.range_m)
             scale.append(quality_scale(r.quality))
+        if self._corrects:  # the anchors' calibrated delays, the distance term (range_model)
+            ranges = self.cfg.range_model.corrected_m(ids, ranges)
         if common:  # the same anchors recur: their arrays made once (read only downstream)
             key = tuple(ids)
             arrays = self._resolved.get(key)

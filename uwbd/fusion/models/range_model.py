@@ -117,38 +117,35 @@ class RangeModel:
         """Whether :meth:`corrected_m` changes a range."""
         return bool(self.anchor_delays_m) or self.log_distance_m != 0.0
 
-    def corrected_m(self, ids: Sequence[int], ranges_m: Array) -> Array:
+    def corrected_m(self, ids: Sequence[int], ranges_m: Sequence[float]) -> list[float]:
         """The ranges less what needs no attitude, before anything else: each anchor's
         delay, then the distance term (:meth:`without_distance_term`). In floats: a
         message holds one range or a few."""
         delays = self._delays
         if not self.log_distance_m:
-            return np.array([r - delays.get(a, 0.0)
-                             for a, r in zip(ids, ranges_m.tolist(), strict=True)])
+            return [r - delays.get(a, 0.0) for a, r in zip(ids, ranges_m, strict=True)]
         distance = self._distance
-        return np.array([distance(r - delays.get(a, 0.0))
-                         for a, r in zip(ids, ranges_m.tolist(), strict=True)])
+        return [distance(r - delays.get(a, 0.0)) for a, r in zip(ids, ranges_m, strict=True)]
 
     def without_distance_term(self, ranges_m: Array) -> Array:
         """``ranges_m`` (their anchors' delays already off) less the distance term: the
         ``d`` whose ``d + k ln max(d, D)`` is the range (``D`` = ``MIN_LOG_DISTANCE_M``).
         With k ≥ 0 that is increasing, so each range has one: below ``D + k ln D`` the
         constant ``k ln D`` comes off; above it, one fixed-point step from ``r``, then
-        Newton's (the function is concave: they climb to the root from below), one or two
-        at k ≈ 0.1 m, up to six for k = 0.5 m near D."""
+        Newton's (the function is concave: they climb to the root from below) until the
+        next would move it less than a micrometre: one at k ≈ 0.1 m beyond 1 m, up to six
+        for k = 0.5 m near D."""
         return np.array([self._distance(r) for r in ranges_m.tolist()])
 
     def _distance(self, r: float) -> float:
         k, floor, log = self.log_distance_m, MIN_LOG_DISTANCE_M, math.log
         if not r > floor + k * LOG_FLOOR:  # (NaN too: it stays NaN)
             return r - k * LOG_FLOOR
-        d = r - k * log(r) if r > floor else floor
-        d = max(d, floor)
+        d = max(r - k * log(r), floor) if r > floor else floor  # a fixed-point step
         for _ in range(MAX_NEWTON_STEPS):
             step = (d + k * log(d) - r) / (1.0 + k / d)
-            d -= step
-            d = max(d, floor)
-            if -1e-6 < step < 1e-6:
+            d = max(d - step, floor)
+            if k * step * step < 2e-6 * d * d:  # the next step's error, k s²/2d², under 1 µm
                 break
         return d
 
