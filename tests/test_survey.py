@@ -16,15 +16,24 @@ from procs import one_line, uwbd
 from test_install import BLOCKER
 
 from drivers import trek1000
-from drivers.frames import AnchorPair, AnchorRanges, ImuSample
+from drivers.frames import AnchorPair, AnchorRanges, ImuSample, UwbRanges
 from uwbd.config import parse, to_toml
 from uwbd.config.model import SourceConfig
+from uwbd.fusion.models.range_model import RangeModel
 from uwbd.logs.mcaplog import LogWriter, SourceInfo
 from uwbd.logs.reading import read_log
 from uwbd.tools.logtools import write_simulation
 from uwbd.tools.sim_presets import HANDHELD_SEGMENTS, ROOM_ANCHORS_M, handheld_async
 from uwbd.tools.simulator import EPOCH_NS, simulate
-from uwbd.tools.survey import Gauge, Settings, SurveyError, log_ranges, survey, with_anchors
+from uwbd.tools.survey import (
+    Gauge,
+    Settings,
+    SurveyError,
+    log_ranges,
+    survey,
+    with_anchors,
+    without_distance_term,
+)
 
 PAIR_NOISE_M = 0.05
 NS = 1_000_000_000
@@ -169,6 +178,37 @@ def test_tag_log_refinement_halves_a_tape_measure_error(handheld_log: Path) -> N
         assert rms(got - want) < before / 2, (seed, before, rms(got - want))
         assert result.tag_positions > 150 and 0.5 < result.sigma0 < 1.5
         assert np.all(got[:, 2] == true[:, 2])
+
+
+def test_the_distance_term_comes_off_the_ranges_before_the_survey(handheld_log: Path,
+                                                                   tmp_path: Path) -> None:
+    """Ranges that read ``0.15 ln(d / 1 m)`` long, as a DW1000's grow with the distance:
+    surveyed as they are, the layout stretches; with the config's distance term taken off
+    first (as ``uwbd survey`` does when ``[range_model] log_distance_m`` is set, and says
+    so), it comes out as from clean ranges."""
+    contents = read_log(handheld_log)
+    uwb, _ = log_ranges(contents)
+    configured = parse(contents.metadata["config_toml"]).anchors_m  # the true ones
+    true = np.array([configured[a] for a in range(8)])
+    want = in_frame(true, 0, 1)
+    tape = perturbed(true, 0.15, 0)
+    tape[:, 2] = true[:, 2]
+    settings = Settings(gauge=Gauge(0, 1, 3), heights_m=dict(enumerate(true[:, 2])))
+    longer = [dataclasses.replace(m, ranges=tuple(
+        dataclasses.replace(r, range_m=r.range_m + 0.15 * math.log(r.range_m))
+        for r in m.ranges)) for m in uwb]
+
+    def error(ranges: list[UwbRanges]) -> float:
+        result = survey(dict(enumerate(tape)), ranges, [], settings)
+        return rms(np.array([result.anchors[a].position_m for a in range(8)]) - want)
+
+    clean, left_in = error(uwb), error(longer)
+    taken_off = error(without_distance_term(RangeModel(log_distance_m=0.15), longer, [])[0])
+    assert left_in > 2 * clean and taken_off < 1.1 * clean, (clean, left_in, taken_off)
+    said = uwbd("survey", str(handheld_log), "--set", "range_model.log_distance_m=0.1",
+                cwd=tmp_path)
+    assert said.returncode == 0, said.stderr
+    assert "distance term taken off first (range_model.log_distance_m = 0.1)" in said.stdout
 
 
 def test_with_anchors_keeps_the_configs_spelling_and_the_rest() -> None:

@@ -251,6 +251,7 @@ def cmd_survey(args: argparse.Namespace) -> int:
             survey,
             table,
             with_anchors,
+            without_distance_term,
         )
     except ImportError as err:
         raise UsageError(f"survey needs the tools extra ({err.name} is missing): pip install "
@@ -267,6 +268,9 @@ def cmd_survey(args: argparse.Namespace) -> int:
                          "anchor-to-anchor ranges; topics: "
                          f"{', '.join(sorted(contents.topics())) or 'none'})")
     fc = config.filter_config()
+    k = fc.range_model.log_distance_m
+    if k:
+        uwb, pairs = without_distance_term(fc.range_model, uwb, pairs)
     settings = Settings(
         gauge=Gauge(anchor("--origin", args.origin), anchor("--x-axis", args.x_axis),
                     anchor("--y-side", args.y_side)),
@@ -279,6 +283,8 @@ def cmd_survey(args: argparse.Namespace) -> int:
     except SurveyError as err:
         raise UsageError(f"{path}: {err}") from err
     print(_survey_summary(str(path), result, fc.range_sigma_m))
+    if k:
+        print(f"the ranges' distance term taken off first (range_model.log_distance_m = {k:g})")
     print(table(result))
     for note in result.notes:
         print(f"note: {note}")

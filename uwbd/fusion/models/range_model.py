@@ -124,7 +124,7 @@ class RangeModel:
         delays = self._delays
         if not self.log_distance_m:
             return [r - delays.get(a, 0.0) for a, r in zip(ids, ranges_m, strict=True)]
-        distance = self._distance
+        distance = self.distance_m
         return [distance(r - delays.get(a, 0.0)) for a, r in zip(ids, ranges_m, strict=True)]
 
     def without_distance_term(self, ranges_m: Array) -> Array:
@@ -135,9 +135,11 @@ class RangeModel:
         Newton's (the function is concave: they climb to the root from below) until the
         next would move it less than a micrometre: one at k ≈ 0.1 m beyond 1 m, up to six
         for k = 0.5 m near D."""
-        return np.array([self._distance(r) for r in ranges_m.tolist()])
+        return np.array([self.distance_m(r) for r in ranges_m.tolist()])
 
-    def _distance(self, r: float) -> float:
+    def distance_m(self, r: float) -> float:
+        """The distance a range ``r`` (its anchor's delay off) stands for: see
+        :meth:`without_distance_term`."""
         k, floor, log = self.log_distance_m, MIN_LOG_DISTANCE_M, math.log
         if not r > floor + k * LOG_FLOOR:  # (NaN too: it stays NaN)
             return r - k * LOG_FLOOR

@@ -4,6 +4,7 @@ adjustment (:mod:`uwbd.tools.survey` says how) combined into one :class:`Survey`
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -16,6 +17,7 @@ from drivers.frames import AnchorRanges, Frame, UwbRanges
 from uwbd.codec import frame_from_dict
 from uwbd.fusion.core.lsq import coplanar
 from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.models.range_model import RangeModel
 from uwbd.logs.reading import LogContents
 from uwbd.tools.survey.adjustment import (
     Confined,
@@ -94,6 +96,23 @@ def _check_ids(settings: Settings, known: set[int]) -> None:
     chosen = [v for v in (g.origin, g.x_axis, g.y_side) if v is not None]
     if len(set(chosen)) != len(chosen):
         raise SurveyError("--origin, --x-axis and --y-side must be three different anchors")
+
+
+def without_distance_term(model: RangeModel, uwb: Sequence[UwbRanges],
+                          pairs: Sequence[AnchorRanges]
+                          ) -> tuple[list[UwbRanges], list[AnchorRanges]]:
+    """The tag's and the anchors' ranges less the config's distance term (``[range_model]
+    log_distance_m``: a DW1000's range grows ``k ln(d / 1 m)`` beyond the distance, which
+    would stretch the layout). The anchors' delays are not taken off: calibrated beside the
+    tag's direction term, they would bias the heights without it; the survey estimates its
+    own (``range_offsets``)."""
+    def off(r: float) -> float:
+        return model.distance_m(r) if math.isfinite(r) else r
+
+    return ([dataclasses.replace(m, ranges=tuple(dataclasses.replace(r, range_m=off(r.range_m))
+                                                 for r in m.ranges)) for m in uwb],
+            [dataclasses.replace(m, pairs=tuple(dataclasses.replace(p, range_m=off(p.range_m))
+                                                for p in m.pairs)) for m in pairs])
 
 
 def survey(configured: Mapping[int, Sequence[float]], uwb: Sequence[UwbRanges],
