@@ -156,32 +156,37 @@ def accuracy_real(data: Path, only: str | None) -> None:
             f"restarts {flt.counters['restarts']}, resets {flt.counters['position_resets']}, "
             + findings(poses, tt, tp, skip))
         if name == "inrol-env1":
-            for degree in (1, 2):
-                calibrated = calibrated_config(data / "inrol-calib", degree, ds.anchors_m,
-                                               mounting, lever)
+            for degree, anchor_degree in ((1, 0), (2, 0), (1, 1)):
+                calibrated = calibrated_config(data / "inrol-calib", degree, ds, mounting,
+                                               lever, anchor_degree)
                 if calibrated is None:
                     print("  range model: skipped (inrol-calib not found)")
                     break
                 t0 = time.perf_counter()
                 poses, _, flt = run_filter(calibrated, merge(ds.imu, ds.uwb))
                 t, p, c = tracks(poses)
-                row(f"range model from inrol-calib, deg {degree}", score(t, p, tt, tp, c, skip),
+                row(f"range model from inrol-calib, deg {degree}"
+                    + (f", anchors' {anchor_degree}" if anchor_degree else ""),
+                    score(t, p, tt, tp, c, skip),
                     f"filter {time.perf_counter() - t0:.1f} s, " + findings(poses, tt, tp, skip))
         tl, pl = run_method(UwbLeastSquares(cfg), merge(ds.imu, ds.uwb))
         row("UWB least squares", score(tl, pl, tt, tp, None, skip))
 
 
-def calibrated_config(directory: Path, degree: int, anchors_m: dict[int, Vec3],
-                      mounting: Rotation, lever_arm_m: Vec3) -> FilterConfig | None:
+def calibrated_config(directory: Path, degree: int, scored: Dataset, mounting: Rotation,
+                      lever_arm_m: Vec3, anchor_degree: int = 0) -> FilterConfig | None:
     """The config ``uwbd calibrate-ranges`` writes from the calibration recording (the tag's
-    term of ``degree``, the anchors' delays, the noise's keys), merged into the dataset's."""
+    term of ``degree``, the anchors' of ``anchor_degree``, the distance term, the anchors'
+    delays, the noise's keys), merged into the scored dataset's (its anchors with their
+    orientations, as ``uwbd import`` writes them)."""
     if not directory.is_dir():
         return None
     ds = load_inrol(directory)
     samples = range_samples(ds.uwb, ds.anchors_m, ds.truth_t_ns, ds.truth_p_m,
-                            ds.truth_rotation, ds.lever_arm_m, IDENTITY3)
-    keys = calibrate(samples, degree).keys()
-    text = (to_toml([], anchors_m, mounting, lever_arm_m, fusion=keys.get("fusion"))
+                            ds.truth_rotation, ds.lever_arm_m, IDENTITY3, ds.anchor_axes)
+    keys = calibrate(samples, degree, anchor_degree=anchor_degree).keys()
+    text = (to_toml([], scored.anchors_m, mounting, lever_arm_m, fusion=keys.get("fusion"),
+                    anchor_orientations_xyzw=scored.anchor_orientations_xyzw)
             + write_toml({"range_model": keys["range_model"]}))
     return parse(text, f"calibrate-ranges {directory}").filter_config()
 

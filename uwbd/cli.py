@@ -191,6 +191,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--degree", type=int, default=1, choices=range(0, 4),
                    help="of the tag's term: 1 (default: a phase centre) to 3; 0 for none "
                    "(the anchors' delays and the distance term alone)")
+    p.add_argument("--anchor-degree", type=int, default=0, choices=range(0, 4),
+                   help="of the anchors' own direction term (the ray in each anchor's axes: "
+                   "[anchors] entries with orientation_xyzw); 0 (default): none")
     p.add_argument("--no-anchor-delays", action="store_true",
                    help="write no anchor delays (the robot's anchors are other units than "
                    "the calibration's: the filter's delay states estimate theirs)")

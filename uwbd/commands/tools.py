@@ -184,9 +184,11 @@ def cmd_calibrate_ranges(args: argparse.Namespace) -> int:
     c, model = rec.config, rec.config.range_model_settings()
     try:
         samples = range_samples(rec.frames, c.anchors_m, rec.truth_t_ns, rec.truth_p_m,
-                                rec.truth_rotation, c.lever_arm_m, model.tag_mounting)
+                                rec.truth_rotation, c.lever_arm_m, model.tag_mounting,
+                                c.anchor_axes)
         cal = calibrate(samples, args.degree,
-                        oriented=not np.allclose(rec.truth_rotation, np.eye(3)))
+                        oriented=not np.allclose(rec.truth_rotation, np.eye(3)),
+                        anchor_degree=args.anchor_degree)
     except RangeCalibrationError as err:
         raise UsageError(f"{path}: {err}") from err
     mounted = ("tag axes = body axes" if np.allclose(model.tag_mounting, np.eye(3))

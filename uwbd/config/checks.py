@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -217,7 +217,7 @@ MAX_ANCHOR_DELAY_M = 1.0  # a DW1000's uncalibrated antenna delay is ~0.3 m of r
 
 
 def check_range_model(r: Report, model: dict[str, Any], fusion: Mapping[str, Any],
-                      anchors: Mapping[int, Vec3]) -> None:
+                      anchors: Mapping[int, Vec3], oriented: Collection[int] = ()) -> None:
     """``[range_model]``: as many coefficients as the degree takes, each plausible for an
     antenna; the tag's mounting a rotation (kept orthonormalised in the table); with the
     delay states off, every configured anchor's delay given."""
@@ -235,6 +235,7 @@ def check_range_model(r: Report, model: dict[str, Any], fusion: Mapping[str, Any
                + ", ".join(map(str, without)) + " and fusion.range_bias_states = false: "
                "their ranges are taken with their antenna delay in them (calibrate-ranges "
                "on a recording that sees them, or the delay states back on)")
+    _check_anchor_term(r, model, anchors, oriented)
     degree = model.get("tag_degree", 0)
     coefficients = model.get("tag_coefficients_m")
     if degree >= 2 and fusion.get("mode") == "loose":
@@ -317,3 +318,33 @@ def check_filter(r: Report, config: Config) -> None:
         r.error(_FILTER_NAMES[found.group()] if found else "fusion",
                 "the filter cannot use it: "
                 + _FILTER_WORDS.sub(lambda m: _FILTER_NAMES[m.group()], text))
+
+
+def _check_anchor_term(r: Report, model: Mapping[str, Any], anchors: Mapping[int, Vec3],
+                       oriented: Collection[int]) -> None:
+    """``anchor_degree`` and its coefficients as the tag's; the anchors it cannot apply to
+    (no orientation in ``[anchors]``) said."""
+    degree = model.get("anchor_degree", 0)
+    coefficients = model.get("anchor_coefficients_m")
+    if degree == 0:
+        if coefficients:
+            r.error("range_model.anchor_coefficients_m", "given without "
+                    "range_model.anchor_degree: set the degree they were fitted for (uwbd "
+                    "calibrate-ranges writes both)")
+        return
+    n = n_coefficients(degree)
+    if coefficients is None or len(coefficients) != n:
+        r.error("range_model.anchor_coefficients_m", f"anchor degree {degree} takes {n} "
+                "coefficients, got " + ("none" if coefficients is None else
+                                        str(len(coefficients))))
+        return
+    big = [i for i, c in enumerate(coefficients) if abs(c) > MAX_TAG_TERM_M]
+    if big:
+        r.error("range_model.anchor_coefficients_m", f"element {big[0]} is "
+                f"{coefficients[big[0]]:g} m: an antenna's direction term is at most "
+                f"{MAX_TAG_TERM_M:g} m (are they in metres?)")
+    without = sorted(set(anchors) - set(oriented))
+    if without:
+        r.warn("range_model.anchor_degree", "no orientation for anchor(s) "
+               + ", ".join(map(str, without)) + ": their ranges take no anchor term (give "
+               "them as { position_m = [x, y, z], orientation_xyzw = [qx, qy, qz, qw] })")

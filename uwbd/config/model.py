@@ -69,6 +69,8 @@ class SourceConfig:
 class Config:
     sources: tuple[SourceConfig, ...] = ()
     anchors_m: dict[int, Vec3] = field(default_factory=dict)
+    # the anchors given with an orientation: their axes -> navigation frame, as rows
+    anchor_axes: dict[int, tuple[Vec3, Vec3, Vec3]] = field(default_factory=dict)
     mounting: tuple[Vec3, Vec3, Vec3] = IDENTITY3
     lever_arm_m: Vec3 = (0.0, 0.0, 0.0)
     imu_noise: dict[str, float] = field(default_factory=dict)  # [imu] noise keys given
@@ -133,10 +135,14 @@ class Config:
         degree = int(m.get("tag_degree", 0))
         delays = tuple(sorted((int(k, 0), float(v))
                               for k, v in m.get("anchor_delays_m", {}).items()))
+        anchor_degree = int(m.get("anchor_degree", 0))
         return RangeModel(degree, tuple(float(c) for c in m["tag_coefficients_m"])
                           if degree else (),
                           tuple(vec3(row) for row in m.get("tag_mounting", IDENTITY3)), delays,
-                          float(m.get("log_distance_m", 0.0)))
+                          float(m.get("log_distance_m", 0.0)), anchor_degree,
+                          tuple(float(c) for c in m["anchor_coefficients_m"])
+                          if anchor_degree else (),
+                          tuple(sorted(self.anchor_axes.items())))
 
     def filter_config(self) -> FilterConfig:
         f = self.fusion

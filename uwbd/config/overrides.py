@@ -141,14 +141,19 @@ def _rotation_problem(rows: list[list[float]]) -> str | None:
 def to_toml(sources: Sequence[SourceConfig], anchors_m: Mapping[int, Sequence[float]],
             mounting: Sequence[Sequence[float]], lever_arm_m: Sequence[float],
             fusion: Mapping[str, Any] | None = None,
-            imu: Mapping[str, float] | None = None) -> str:
+            imu: Mapping[str, float] | None = None,
+            anchor_orientations_xyzw: Mapping[int, Sequence[float]] | None = None) -> str:
     """A config file for these settings (what ``uwbd simulate`` and ``import`` store), its
-    ``[fusion]`` table last."""
+    ``[fusion]`` table last; an anchor with an orientation in the table form."""
     def vec(v: Sequence[float]) -> list[float]:
         return [float(x) for x in v]
 
+    def anchor(k: int, v: Sequence[float]) -> Any:
+        q = (anchor_orientations_xyzw or {}).get(k)
+        return vec(v) if q is None else {"position_m": vec(v), "orientation_xyzw": vec(q)}
+
     doc: dict[str, Any] = {"sources": [dataclasses.asdict(s) for s in sources]} if sources else {}
-    doc["anchors"] = {str(k): vec(v) for k, v in sorted(anchors_m.items())}
+    doc["anchors"] = {str(k): anchor(k, v) for k, v in sorted(anchors_m.items())}
     doc["imu"] = {"mounting": [vec(r) for r in mounting], "lever_arm_m": vec(lever_arm_m),
                   **{k: float(v) for k, v in (imu or {}).items()}}
     doc["fusion"] = dict(fusion or {})

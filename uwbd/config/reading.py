@@ -4,10 +4,13 @@ checks of the file as a whole."""
 
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from drivers import PARSERS
 from uwbd.config.checks import (
@@ -33,9 +36,21 @@ from uwbd.config.model import (
     vec3,
 )
 from uwbd.config.overrides import apply_overrides
-from uwbd.config.schema import SECTIONS, SOURCE_SPEC, TABLES, VEC3, Key, anchor_id
+from uwbd.config.schema import (
+    SECTIONS,
+    SOURCE_SPEC,
+    TABLES,
+    VEC3,
+    XYZW,
+    Key,
+    anchor_id,
+)
 from uwbd.config.spelling import known, show, toml_key, type_name
 from uwbd.config.zenoh_checks import check_zenoh
+from uwbd.fusion.core.rotation import quat_to_matrix
+
+Rotation = tuple[Vec3, Vec3, Vec3]
+QUATERNION_TOLERANCE = 1e-3  # a quaternion typed to 4 digits is this close to unit norm
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -78,7 +93,7 @@ def parse(text: str, where: str = "<config>") -> Config:
     r = Report(where)
     _unknown_keys(r, doc, SECTIONS, "")
     sources, sources_complete = _sources(r, doc)
-    anchors, anchor_keys, anchors_complete = _anchors(r, doc)
+    anchors, anchor_keys, anchors_complete, anchor_axes = _anchors(r, doc)
     tables = {name: _table(r, doc, name, spec) for name, spec in TABLES.items()}
     imu, fusion, zenoh = tables["imu"], tables["fusion"], tables["zenoh"]
     if "config" in zenoh and Path(where).is_file():  # a Zenoh config file beside this one
@@ -88,14 +103,15 @@ def parse(text: str, where: str = "<config>") -> Config:
     check_sources(r, sources, sources_complete)
     check_anchors(r, anchors, anchor_keys, anchors_complete, sources, fusion)
     check_fusion(r, fusion, anchors)
-    check_range_model(r, tables["range_model"], fusion, anchors)
+    check_range_model(r, tables["range_model"], fusion, anchors, anchor_axes)
     check_imu(r, imu, lever)
     check_zenoh(r, zenoh)
     check_ros2(r, tables["ros2"], zenoh)
     if r.errors:
         raise ConfigError(r.errors, r.warnings)
     config = Config(
-        sources=tuple(s for _, s in sources), anchors_m=anchors, mounting=mounting,
+        sources=tuple(s for _, s in sources), anchors_m=anchors, anchor_axes=anchor_axes,
+        mounting=mounting,
         lever_arm_m=lever,
         imu_noise={k: float(imu[k]) for k in IMU_NOISE_KEYS if k in imu},
         imu_limits={k: float(imu[k]) for k in IMU_LIMIT_KEYS if k in imu},
@@ -172,15 +188,19 @@ def _sources(r: Report, doc: Mapping[str, Any]) -> tuple[list[tuple[int, SourceC
     return out, complete
 
 
-def _anchors(r: Report, doc: Mapping[str, Any]) -> tuple[dict[int, Vec3], dict[int, str], bool]:
-    """The valid anchors, their keys as spelt in the file, and whether all were valid."""
+def _anchors(r: Report, doc: Mapping[str, Any]
+             ) -> tuple[dict[int, Vec3], dict[int, str], bool, dict[int, Rotation]]:
+    """The valid anchors, their keys as spelt in the file, whether all were valid, and the
+    orientations of those given in the table form (``{ position_m = [x, y, z],
+    orientation_xyzw = [qx, qy, qz, qw] }``: the anchor's axes in the navigation frame)."""
     table = doc.get("anchors", {})
     if not isinstance(table, dict):
         r.error("anchors", f"expected a table ([anchors]), got {show(table)} "
                            f"({type_name(table)})")
-        return {}, {}, False
+        return {}, {}, False, {}
     anchors: dict[int, Vec3] = {}
     keys: dict[int, str] = {}
+    axes: dict[int, Rotation] = {}
     complete = True
     for key, value in table.items():
         name = f"anchors.{toml_key(key)}"
@@ -189,13 +209,50 @@ def _anchors(r: Report, doc: Mapping[str, Any]) -> tuple[dict[int, Vec3], dict[i
             r.error(name, "not an integer id (\"3\", \"0x1151\") of 0 or more")
             complete = False
             continue
-        if not VEC3.ok(value):
-            r.error(name, f"expected {VEC3.what}, got {show(value)} ({type_name(value)})")
+        position, rotation = _anchor_entry(r, name, value)
+        if position is None:
             complete = False
             continue
         if found in keys:
             r.error(name, f"the same id as anchors.{toml_key(keys[found])}")
             complete = False
             continue
-        anchors[found], keys[found] = vec3(value), key
-    return anchors, keys, complete
+        anchors[found], keys[found] = position, key
+        if rotation is not None:
+            axes[found] = rotation
+    return anchors, keys, complete, axes
+
+
+def _anchor_entry(r: Report, name: str, value: Any) -> tuple[Vec3 | None, Rotation | None]:
+    """One ``[anchors]`` entry: ``[x, y, z]``, or ``{ position_m = [x, y, z],
+    orientation_xyzw = [qx, qy, qz, qw] }`` (a unit quaternion, the anchor's axes to the
+    navigation frame, for the range model's anchor term)."""
+    if VEC3.ok(value):
+        return vec3(value), None
+    if not isinstance(value, dict):
+        r.error(name, f"expected {VEC3.what}, or {{ position_m = [x, y, z], orientation_xyzw "
+                f"= [qx, qy, qz, qw] }}, got {show(value)} ({type_name(value)})")
+        return None, None
+    unknown = sorted(set(value) - {"position_m", "orientation_xyzw"})
+    if unknown:
+        r.error(f"{name}.{toml_key(unknown[0])}", "unknown key (an anchor takes position_m "
+                "and orientation_xyzw)")
+        return None, None
+    position: Any = value.get("position_m")
+    if not VEC3.ok(position):
+        r.error(f"{name}.position_m", f"expected {VEC3.what}, got {show(position)}")
+        return None, None
+    q = value.get("orientation_xyzw")
+    if q is None:
+        return vec3(position), None
+    if not XYZW.ok(q):
+        r.error(f"{name}.orientation_xyzw", f"expected {XYZW.what}, got {show(q)}")
+        return None, None
+    norm = math.sqrt(sum(float(x) ** 2 for x in q))
+    if abs(norm - 1.0) > QUATERNION_TOLERANCE:
+        r.error(f"{name}.orientation_xyzw", f"a quaternion of norm {norm:.6g}: expected a "
+                "unit quaternion (x, y, z, w)")
+        return None, None
+    qx, qy, qz, qw = (float(x) / norm for x in q)
+    rows = quat_to_matrix(np.array([qw, qx, qy, qz])).tolist()
+    return vec3(position), (vec3(rows[0]), vec3(rows[1]), vec3(rows[2]))

@@ -45,6 +45,7 @@ POSITIVE = Kind("a positive number", lambda v: _is_number(v) and math.isfinite(v
 ENDPOINTS = Kind("an array of endpoint strings (\"tcp/192.168.1.10:7447\")",
                  lambda v: isinstance(v, list) and all(isinstance(e, str) for e in v))
 VEC3 = Kind("[x, y, z] of finite numbers", lambda v: _is_finite_vec(v, 3))
+XYZW = Kind("[qx, qy, qz, qw] of finite numbers", lambda v: _is_finite_vec(v, 4))
 ROWS = Kind("3 rows of 3 finite numbers ([[1, 0, 0], [0, 1, 0], [0, 0, 1]])",
             lambda v: isinstance(v, list) and len(v) == 3 and all(_is_finite_vec(r, 3) for r in v))
 NUMBERS = Kind("an array of finite numbers", lambda v: isinstance(v, list) and all(
@@ -180,7 +181,10 @@ _RANGE_MODEL_SPEC = {"tag_degree": Key(INTEGER, Range(0.0, MAX_DEGREE, lo_closed
                      "anchor_delays_m": Key(DELAYS), "calibrated_from": Key(STRING),
                      # k of k ln(d / 1 m): ~0.12 m measured; the delay grows with the
                      # distance (k ≥ 0), and beyond 0.5 m it is no antenna's
-                     "log_distance_m": Key(NUMBER, Range(0.0, 0.5, lo_closed=True))}
+                     "log_distance_m": Key(NUMBER, Range(0.0, 0.5, lo_closed=True)),
+                     # the anchors' own direction term: [anchors] entries with orientations
+                     "anchor_degree": Key(INTEGER, Range(0.0, MAX_DEGREE, lo_closed=True)),
+                     "anchor_coefficients_m": Key(NUMBERS)}
 TABLES: dict[str, dict[str, Key]] = {
     "imu": _IMU_SPEC, "fusion": _FUSION_SPEC, "range_model": _RANGE_MODEL_SPEC,
     "pipeline": _PIPELINE_SPEC, "log": _LOG_SPEC, "zenoh": _ZENOH_SPEC, "robot": _ROBOT_SPEC,

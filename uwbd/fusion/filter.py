@@ -283,7 +283,7 @@ class Filter(ImuPropagation, EpochFusion, FilterOutputs):
             self._constraints_ns = t_ns
             constraints = self._constraints()
         prior = self._snapshot() if self.records is not None else None
-        ranges = self._apply_range_model(anchors, ranges)
+        ranges = self._apply_range_model(ids, anchors, ranges)
         if self._lever_index:  # the rows' lever: the given one (or phase centre) + its error
             base = self.lever if self.cfg.range_model.enabled else self._plain_lever
             self.lever = base + ekf.b_r[self._lever_index[0] - N_CORE:][:3]

@@ -25,7 +25,7 @@ import csv
 import math
 import re
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TypeVar
 
@@ -65,6 +65,16 @@ class Dataset:
     anchors_m: dict[int, tuple[float, float, float]]
     mounting: tuple[tuple[float, float, float], ...] = IDENTITY3  # IMU axes -> body
     lever_arm_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # IMU -> tag antenna, body axes
+    # the anchors' antenna orientations where the dataset gives them: (x, y, z, w), the
+    # anchor's axes -> the anchors' frame
+    anchor_orientations_xyzw: dict[int, tuple[float, float, float, float]] = \
+        field(default_factory=dict)
+
+    @property
+    def anchor_axes(self) -> dict[int, Array]:
+        """The anchors' orientations as rotations (anchor axes -> frame)."""
+        return {a: quat_to_matrix(np.array([w, x, y, z]))
+                for a, (x, y, z, w) in self.anchor_orientations_xyzw.items()}
 
 
 _DECIMAL = re.compile(r"([+-]?)(\d*)(?:\.(\d*))?")
@@ -181,7 +191,7 @@ def _inrol_time(path: Path, line: int, text: str) -> int:
 
 
 def load_inrol(directory: Path) -> Dataset:
-    """An inrol directory: anchor positions (their antenna orientations are not used), IMU
+    """An inrol directory: anchor positions and antenna orientations, IMU
     samples (gyro columns first in the file), ranges, and the IMU's true pose, every time
     on :data:`INROL_EPOCH_NS`; or, where ``tag_pose.txt`` stands in for ``imu_pose.txt``, a
     range-model calibration recording: no IMU, the tag's pose as truth. Ranges with exactly
@@ -193,14 +203,15 @@ def load_inrol(directory: Path) -> Dataset:
     if calibration:
         pose_path = directory / "tag_pose.txt"
     anchors: dict[int, tuple[float, float, float]] = {}
+    orientations: dict[int, tuple[float, float, float, float]] = {}
     cols = ["anchor_id", "tx", "ty", "tz", "qx", "qy", "qz", "qw"]
     for line, row in _rows(anchor_path, cols, spaces=True):
         anchor_id = _cell(anchor_path, line, "anchor_id", row[0], int)
         if anchor_id in anchors:
             raise DatasetError(f"{anchor_path}: line {line}: anchor {anchor_id} listed twice")
         x, y, z = _floats(anchor_path, line, cols[1:4], row[1:4])
-        _floats(anchor_path, line, cols[4:], row[4:])  # checked, not used
         anchors[anchor_id] = (x, y, z)
+        orientations[anchor_id] = _unit_quaternion(anchor_path, line, cols[4:], row[4:])
     imu = []
     cols = ["index", "timestamp", "wx", "wy", "wz", "ax", "ay", "az"]
     for line, row in [] if calibration else _rows(imu_path, cols, spaces=True):
@@ -220,14 +231,25 @@ def load_inrol(directory: Path) -> Dataset:
     cols = ["timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw"]
     t_ns, p, rot = [], [], []
     for line, row in _rows(pose_path, cols, spaces=True):
-        x, y, z, qx, qy, qz, qw = _floats(pose_path, line, cols[1:], row[1:])
-        norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
-        if abs(norm - 1.0) > 1e-3:
-            raise DatasetError(f"{pose_path}: line {line}: quaternion of norm {norm:.6g}, "
-                               "expected a unit quaternion")
+        x, y, z = _floats(pose_path, line, cols[1:4], row[1:4])
+        qx, qy, qz, qw = _unit_quaternion(pose_path, line, cols[4:], row[4:])
         t_ns.append(_inrol_time(pose_path, line, row[0]))
         p.append([x, y, z])
-        rot.append(quat_to_matrix(np.array([qw, qx, qy, qz]) / norm))
+        rot.append(quat_to_matrix(np.array([qw, qx, qy, qz])))
     if calibration:  # the truth is the tag's own pose: body frame = tag frame
-        return _dataset(imu, uwb, t_ns, p, rot, anchors)
-    return _dataset(imu, uwb, t_ns, p, rot, anchors, INROL_MOUNTING, INROL_LEVER_ARM_M)
+        ds = _dataset(imu, uwb, t_ns, p, rot, anchors)
+    else:
+        ds = _dataset(imu, uwb, t_ns, p, rot, anchors, INROL_MOUNTING, INROL_LEVER_ARM_M)
+    ds.anchor_orientations_xyzw = orientations
+    return ds
+
+
+def _unit_quaternion(path: Path, line: int, cols: list[str], cells: list[str]
+                     ) -> tuple[float, float, float, float]:
+    """Cells ``qx qy qz qw`` as a unit quaternion (x, y, z, w)."""
+    qx, qy, qz, qw = _floats(path, line, cols, cells)
+    norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+    if not abs(norm - 1.0) < 1e-3:
+        raise DatasetError(f"{path}: line {line}: quaternion of norm {norm:.6g}, expected a "
+                           "unit quaternion")
+    return (qx / norm, qy / norm, qz / norm, qw / norm)

@@ -174,7 +174,8 @@ def write_dataset(ds: Dataset, path: Path, mounting: Sequence[Sequence[float]],
     """The dataset as a log of decoded frames and truth; its config holds the anchors, the
     IMU mounting (sensor -> body) and the IMU-to-antenna lever arm, fusion at defaults.
     ``progress``: a bar on stderr."""
-    toml = cfgmod.to_toml((), ds.anchors_m, mounting, lever_arm_m)
+    toml = cfgmod.to_toml((), ds.anchors_m, mounting, lever_arm_m,
+                          anchor_orientations_xyzw=ds.anchor_orientations_xyzw)
     with LogWriter(path, toml) as log:
         for frame in tqdm(merge(ds.imu, ds.uwb), total=len(ds.imu) + len(ds.uwb),
                           desc="import", unit="frame", disable=not progress, leave=False,

@@ -44,6 +44,7 @@ and lever arm take it to the antenna).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -96,6 +97,7 @@ class RangeSamples:
     range_m: Array
     distance_m: Array  # |p_antenna − a| by the truth
     u_tag: Array  # (n, 3) the anchor -> tag ray in the tag's axes
+    u_anchor: Array  # (n, 3) the same ray in its anchor's axes (NaN rows: no orientation)
 
     @property
     def residual_m(self) -> Array:
@@ -103,7 +105,7 @@ class RangeSamples:
 
     def take(self, keep: npt.NDArray[np.bool_]) -> RangeSamples:
         return RangeSamples(self.t_ns[keep], self.anchor[keep], self.range_m[keep],
-                            self.distance_m[keep], self.u_tag[keep])
+                            self.distance_m[keep], self.u_tag[keep], self.u_anchor[keep])
 
 
 def _attitude_spikes(rotation: Array, t_ns: npt.NDArray[np.int64]) -> npt.NDArray[np.bool_]:
@@ -120,10 +122,12 @@ def _attitude_spikes(rotation: Array, t_ns: npt.NDArray[np.int64]) -> npt.NDArra
 
 def range_samples(frames: Iterable[Frame], anchors_m: Mapping[int, Sequence[float]],
                   truth_t_ns: npt.NDArray[np.int64], truth_p_m: Array, truth_rotation: Array,
-                  lever_arm_m: Sequence[float],
-                  tag_mounting: Sequence[Sequence[float]]) -> RangeSamples:
+                  lever_arm_m: Sequence[float], tag_mounting: Sequence[Sequence[float]],
+                  anchor_axes: Mapping[int, Sequence[Sequence[float]]] | None = None
+                  ) -> RangeSamples:
     """Every tag range of ``frames`` whose anchor is known (configured, or sent with it)
-    against the truth at its time."""
+    against the truth at its time; the rays in the anchors' axes where ``anchor_axes``
+    (anchor axes -> navigation frame) gives them."""
     good = ~(truth_spikes(truth_t_ns, truth_p_m) | _attitude_spikes(truth_rotation, truth_t_ns))
     tt, tp, tr = truth_t_ns[good], truth_p_m[good], truth_rotation[good]
     if len(tt) < 2:
@@ -158,7 +162,11 @@ def range_samples(frames: Iterable[Frame], anchors_m: Mapping[int, Sequence[floa
     # u = C_tbᵀ Rᵀ d / |d|
     u = np.einsum("ji,nkj,nk->ni", np.asarray(tag_mounting, dtype=float), R, d)
     u /= np.maximum(np.linalg.norm(u, axis=1), 1e-9)[:, None]
-    return RangeSamples(t_ns, anchor, range_m, dist, u)
+    u_anchor = np.full((len(t_ns), 3), np.nan)
+    for axes_of, rows in (anchor_axes or {}).items():
+        mine = anchor == axes_of
+        u_anchor[mine] = d[mine] @ np.asarray(rows, dtype=float) / dist[mine, None]  # Cᵀ d
+    return RangeSamples(t_ns, anchor, range_m, dist, u, u_anchor)
 
 
 def robust_sigma(e: Array) -> float:
@@ -166,11 +174,14 @@ def robust_sigma(e: Array) -> float:
     return float(1.4826 * np.median(np.abs(e - np.median(e)))) if len(e) else math.nan
 
 
-def _design(s: RangeSamples, degree: int, anchor_ids: Sequence[int], distance: bool) -> Array:
-    """Columns: each anchor's offset, the tag's harmonics, and (``distance``) ln(d / 1 m)."""
+def _design(s: RangeSamples, degree: int, anchor_ids: Sequence[int], distance: bool,
+            anchor_degree: int = 0) -> Array:
+    """Columns: each anchor's offset, the tag's harmonics, the anchors' (``anchor_degree``;
+    every sample's anchor oriented) and (``distance``) ln(d / 1 m)."""
     offsets = (s.anchor[:, None] == np.asarray(anchor_ids)[None, :]).astype(float)
     log_d = np.log(np.maximum(s.distance_m, MIN_LOG_DISTANCE_M))[:, None]
-    return np.hstack([offsets, basis(s.u_tag, degree)] + ([log_d] if distance else []))
+    return np.hstack([offsets, basis(s.u_tag, degree), basis(s.u_anchor, anchor_degree)]
+                     + ([log_d] if distance else []))
 
 
 def _irls(A: Array, e: Array, iterations: int = 30) -> Array:
@@ -197,22 +208,28 @@ class ModelFit:
     coefficient_sigma_m: Array
     log_distance_m: float | None = None  # k of k ln(d / 1 m); None: not fitted
     log_distance_sigma_m: float = math.nan
+    anchor_degree: int = 0  # the anchors' direction term
+    anchor_coefficients_m: Array = dataclasses.field(default_factory=lambda: np.zeros(0))
+    anchor_coefficient_sigma_m: Array = dataclasses.field(default_factory=lambda: np.zeros(0))
 
     def delay_m(self, s: RangeSamples) -> Array:
         """The model's delay of each sample (offsets, direction and distance terms)."""
         distance = self.log_distance_m is not None
-        x = np.concatenate([self.offsets_m, self.coefficients_m]
+        x = np.concatenate([self.offsets_m, self.coefficients_m, self.anchor_coefficients_m]
                            + ([[self.log_distance_m]] if distance else []))
-        return np.asarray(_design(s, self.degree, self.anchor_ids, distance) @ x, dtype=float)
+        return np.asarray(_design(s, self.degree, self.anchor_ids, distance,
+                                  self.anchor_degree) @ x, dtype=float)
 
 
-def fit(s: RangeSamples, degree: int, distance: bool, jackknife: bool = True) -> ModelFit:
-    """The offsets, the tag's term of ``degree`` and (``distance``) the distance term."""
+def fit(s: RangeSamples, degree: int, distance: bool, jackknife: bool = True,
+        anchor_degree: int = 0) -> ModelFit:
+    """The offsets, the tag's term of ``degree``, the anchors' of ``anchor_degree`` and
+    (``distance``) the distance term."""
     ids = tuple(int(a) for a in np.unique(s.anchor))
     e = s.residual_m
-    A = _design(s, degree, ids, distance)
+    A = _design(s, degree, ids, distance, anchor_degree)
     x = _irls(A, e)
-    n_off, n_tag = len(ids), n_coefficients(degree)
+    n_off, n_tag, n_anchor = len(ids), n_coefficients(degree), n_coefficients(anchor_degree)
     sigma = np.full(A.shape[1] - n_off, math.nan)
     if jackknife and A.shape[1] > n_off:
         block = (s.t_ns - s.t_ns[0]) // int(BLOCK_S * 1e9)
@@ -221,9 +238,12 @@ def fit(s: RangeSamples, degree: int, distance: bool, jackknife: bool = True) ->
             xs = np.array([_irls(A[block != b], e[block != b], 10)[n_off:] for b in blocks])
             m = len(blocks)
             sigma = np.sqrt((m - 1) / m * ((xs - xs.mean(axis=0)) ** 2).sum(axis=0))
-    return ModelFit(degree, ids, x[:n_off], x[n_off:n_off + n_tag], sigma[:n_tag],
+    tag, anchor = slice(0, n_tag), slice(n_tag, n_tag + n_anchor)
+    coefficients = x[n_off:]
+    return ModelFit(degree, ids, x[:n_off], coefficients[tag], sigma[tag],
                     float(x[-1]) if distance else None,
-                    float(sigma[-1]) if distance else math.nan)
+                    float(sigma[-1]) if distance else math.nan, anchor_degree,
+                    coefficients[anchor], sigma[anchor])
 
 
 @dataclass(frozen=True)
@@ -346,6 +366,8 @@ class RangeCalibration:
     held_out: dict[int, tuple[float, float]]
     before_sigma_m: float  # the robust σ of the ranges with the offsets only
     distance_fit: tuple[float, float]  # k and its σ as fitted, written or not
+    # held-out σ of the fitted model without, then with, the anchors' term (None: not asked)
+    anchor_held_out: tuple[float, ...] | None = None
 
     def keys(self, anchor_delays: bool = True) -> dict[str, dict[str, object]]:
         """The config keys: ``[range_model]`` (the tag's term, the distance term, 0 where
@@ -360,6 +382,8 @@ class RangeCalibration:
             round(float(c), 5) for c in f.coefficients_m]}
         # always written: 0 clears a term that an earlier calibration left in the config
         model["log_distance_m"] = round(f.log_distance_m or 0.0, 4)
+        model["anchor_degree"] = f.anchor_degree
+        model["anchor_coefficients_m"] = [round(float(c), 5) for c in f.anchor_coefficients_m]
         n = self.noise
         fusion: dict[str, object] = {}
         if n.nlos.onset_m is not None:
@@ -406,17 +430,18 @@ class RangeCalibration:
         if f.degree:
             lines.append(f"tag term, degree {f.degree} ({tag_mounting_said}), coefficients "
                          "± σ (10 s block jackknife):")
-            k = 0
-            for lv in range(1, f.degree + 1):
-                row = []
-                for m in range(-lv, lv + 1):
-                    row.append(f"c{lv},{m:+d} {f.coefficients_m[k]:+.4f} ± "
-                               f"{f.coefficient_sigma_m[k]:.4f}")
-                    k += 1
-                lines.append("  " + "   ".join(row))
+            lines += _coefficient_rows(f.coefficients_m, f.coefficient_sigma_m, f.degree)
             c = f.coefficients_m
             lines.append(f"  degree 1 as a phase centre (tag axes): ({math.sqrt(3) * c[2]:+.3f}, "
                          f"{math.sqrt(3) * c[0]:+.3f}, {math.sqrt(3) * c[1]:+.3f}) m")
+        if f.anchor_degree and self.anchor_held_out is not None:
+            without, with_term = self.anchor_held_out
+            lines.append(f"anchors' term, degree {f.anchor_degree} (each anchor's axes), "
+                         "coefficients ± σ; held out "
+                         f"{without:.4f} m without it -> {with_term:.4f} m with it "
+                         f"({100 * (with_term / without - 1):+.0f} %):")
+            lines += _coefficient_rows(f.anchor_coefficients_m, f.anchor_coefficient_sigma_m,
+                                       f.anchor_degree)
         distance = f.log_distance_m
         fitted, fitted_sigma = self.distance_fit
         lines.append(f"distance term k ln(d / 1 m): k {fitted:+.4f} ± {fitted_sigma:.4f} m " + (
@@ -446,15 +471,34 @@ class RangeCalibration:
         return "\n".join(lines)
 
 
+def _coefficient_rows(c: Array, sigma: Array, degree: int) -> list[str]:
+    """A direction term's coefficients ± σ, a line per degree."""
+    rows, k = [], 0
+    for lv in range(1, degree + 1):
+        rows.append("  " + "   ".join(f"c{lv},{m:+d} {c[k + m + lv]:+.4f} ± "
+                                      f"{sigma[k + m + lv]:.4f}" for m in range(-lv, lv + 1)))
+        k += 2 * lv + 1
+    return rows
+
+
 def _toml(v: object) -> str:
     return write_toml({"t": {"v": v}}).split(" = ", 1)[1].strip()
 
 
-def calibrate(s: RangeSamples, degree: int, oriented: bool = True) -> RangeCalibration:
-    """The model of ``degree`` and the noise, with every degree's held-out check.
-    ``oriented``: the truth gives the tag's attitude (not the identity throughout)."""
-    if not 0 <= degree <= MAX_DEGREE:
-        raise RangeCalibrationError(f"degree {degree}: expected 0..{MAX_DEGREE}")
+def calibrate(s: RangeSamples, degree: int, oriented: bool = True,
+              anchor_degree: int = 0) -> RangeCalibration:
+    """The model of ``degree`` (the anchors' term of ``anchor_degree``) and the noise, with
+    every degree's held-out check. ``oriented``: the truth gives the tag's attitude (not the
+    identity throughout)."""
+    if not 0 <= degree <= MAX_DEGREE or not 0 <= anchor_degree <= MAX_DEGREE:
+        raise RangeCalibrationError(f"degree {degree}, anchor degree {anchor_degree}: "
+                                    f"expected 0..{MAX_DEGREE}")
+    blind = sorted({int(a) for a in s.anchor[np.isnan(s.u_anchor[:, 0])]})
+    if anchor_degree and blind:
+        raise RangeCalibrationError(
+            f"anchor(s) {', '.join(map(str, blind))} have no orientation in the config: the "
+            "anchors' term needs each one's ([anchors] N = { position_m = [x, y, z], "
+            "orientation_xyzw = [qx, qy, qz, qw] }; `uwbd import inrol` writes them)")
     span_s = float(s.t_ns[-1] - s.t_ns[0]) / 1e9 if len(s.t_ns) else 0.0
     if len(s.t_ns) < MIN_RANGES or span_s < MIN_SPAN_S:
         raise RangeCalibrationError(
@@ -476,12 +520,19 @@ def calibrate(s: RangeSamples, degree: int, oriented: bool = True) -> RangeCalib
     held_out = {d: (held_out_sigma(d, False), held_out_sigma(d, True))
                 for d in range(MAX_DEGREE + 1)}
     plain, distanced = held_out[degree]
-    model = fit(s, degree, distance=True)
+    model = fit(s, degree, distance=True, anchor_degree=anchor_degree)
     k, k_sigma = model.log_distance_m or 0.0, model.log_distance_sigma_m
     distance = (k, k_sigma)
-    if not (distanced < plain and k >= MIN_DISTANCE_SIGMAS * k_sigma):
-        model = fit(s, degree, distance=False)
+    with_distance = distanced < plain and k >= MIN_DISTANCE_SIGMAS * k_sigma
+    if not with_distance:
+        model = fit(s, degree, distance=False, anchor_degree=anchor_degree)
+    anchor_held_out = None
+    if anchor_degree:  # the fitted model held out without, then with, the anchors' term
+        anchor_held_out = tuple(
+            robust_sigma(test.residual_m - fit(train, degree, with_distance, False, a)
+                         .delay_m(test)) for a in (0, anchor_degree))
     before = fit(s, 0, distance=False, jackknife=False)
     return RangeCalibration(model, noise_shape(s, s.residual_m - model.delay_m(s)),
                             len(s.t_ns), span_s, len(model.anchor_ids), held_out,
-                            robust_sigma(s.residual_m - before.delay_m(s)), distance)
+                            robust_sigma(s.residual_m - before.delay_m(s)), distance,
+                            anchor_held_out)

@@ -243,12 +243,15 @@ def range_residuals(rec: Recording) -> RangeResiduals | None:
         return None
     try:
         s = range_samples(rec.frames, c.anchors_m, rec.truth_t_ns, rec.truth_p_m,
-                          rec.truth_rotation, c.lever_arm_m, model.tag_mounting)
+                          rec.truth_rotation, c.lever_arm_m, model.tag_mounting,
+                          c.anchor_axes)
     except RangeCalibrationError:
         return None
     if len(s.t_ns) < 20:
         return None
     raw = s.residual_m
-    if not model.enabled and not model.anchor_delays_m and not model.log_distance_m:
+    if not (model.enabled or model.anchor_delays_m or model.log_distance_m
+            or model.anchor_degree):
         return RangeResiduals(s, raw, None)
-    return RangeResiduals(s, raw, raw - model.delay_m(s.anchor, s.u_tag, s.distance_m))
+    return RangeResiduals(s, raw, raw - model.delay_m(s.anchor, s.u_tag, s.distance_m,
+                                                      s.u_anchor))

@@ -98,11 +98,20 @@ class RangeModel:
     # (anchor id, delay m): taken off that anchor's every range, before anything else
     anchor_delays_m: tuple[tuple[int, float], ...] = ()
     log_distance_m: float = 0.0  # k ≥ 0 of the distance term k ln(d / 1 m); 0: none
+    # the anchors' own direction term (degree 0: none), common to the units, of the ray in
+    # each anchor's axes; applied to the anchors whose axes [anchors] gives (id, rows:
+    # anchor axes -> navigation frame)
+    anchor_degree: int = 0
+    anchor_coefficients_m: tuple[float, ...] = ()
+    anchor_axes: tuple[tuple[int, tuple[tuple[float, float, float], ...]], ...] = ()
 
     def __post_init__(self) -> None:
-        if len(self.coefficients_m) != n_coefficients(self.degree):
-            raise ValueError(f"degree {self.degree} takes {n_coefficients(self.degree)} "
-                             f"coefficients, got {len(self.coefficients_m)}")
+        for what, degree, c in (("degree", self.degree, self.coefficients_m),
+                                ("anchor degree", self.anchor_degree,
+                                 self.anchor_coefficients_m)):
+            if len(c) != n_coefficients(degree):
+                raise ValueError(f"{what} {degree} takes {n_coefficients(degree)} "
+                                 f"coefficients, got {len(c)}")
 
     @property
     def enabled(self) -> bool:
@@ -111,6 +120,39 @@ class RangeModel:
     @functools.cached_property
     def _delays(self) -> dict[int, float]:
         return dict(self.anchor_delays_m)
+
+    @functools.cached_property
+    def _anchor_axes(self) -> dict[int, Array]:
+        return {a: np.array(rows, dtype=float) for a, rows in self.anchor_axes}
+
+    def anchor_term_m(self, ids: Sequence[int], anchors_m: Array, antenna_m: Array) -> Array:
+        """Each range's anchor direction term for the antenna at ``antenna_m`` (0 for an
+        anchor without axes, and for every one at anchor degree 0)."""
+        out = np.zeros(len(ids))
+        if not self.anchor_degree:
+            return out
+        axes, c = self._anchor_axes, self.anchor_coefficients_m
+        for i, a in enumerate(ids):
+            C = axes.get(a)
+            if C is None:
+                continue
+            x, y, z = (C.T @ (antenna_m - anchors_m[i])).tolist()  # anchor -> tag, its axes
+            n = math.sqrt(x * x + y * y + z * z) or 1.0
+            out[i] = sum(k * h for k, h in zip(
+                c, harmonics(x / n, y / n, z / n, self.anchor_degree), strict=True))
+        return out
+
+    def anchor_rays(self, anchor: Sequence[int] | npt.NDArray[np.int64], anchors_m: Array,
+                    antenna_m: Array) -> Array:
+        """The anchor -> tag rays in each anchor's axes (n×3; NaN rows for anchors without
+        axes)."""
+        out = np.full((len(anchor), 3), np.nan)
+        for i, a in enumerate(anchor):
+            C = self._anchor_axes.get(int(a))
+            if C is not None:
+                u = C.T @ (antenna_m[i] - anchors_m[i])
+                out[i] = u / (np.linalg.norm(u) or 1.0)
+        return out
 
     @property
     def corrects_ranges(self) -> bool:
@@ -152,15 +194,20 @@ class RangeModel:
         return d
 
     def delay_m(self, anchor: Sequence[int] | npt.NDArray[np.int64], u_tag: Array,
-                distance_m: Array) -> Array:
-        """The whole model's delay of each range: its anchor's delay, the distance term and
-        the tag's direction term (rays ``u_tag``, tag axes; n×3)."""
+                distance_m: Array, u_anchor: Array | None = None) -> Array:
+        """The whole model's delay of each range: its anchor's delay, the distance term, the
+        tag's direction term (rays ``u_tag``, tag axes; n×3) and the anchors' (rays
+        ``u_anchor`` in the anchors' axes, NaN rows where an anchor has none)."""
         delays = dict(self.anchor_delays_m)
         out = np.array([delays.get(int(a), 0.0) for a in anchor], dtype=float)
         if self.log_distance_m:
             out += self.log_distance_m * np.log(np.maximum(distance_m, MIN_LOG_DISTANCE_M))
         if self.enabled:
             out += basis(u_tag, self.degree) @ np.array(self.coefficients_m)
+        if self.anchor_degree and u_anchor is not None:
+            term = basis(np.nan_to_num(u_anchor), self.anchor_degree) @ np.array(
+                self.anchor_coefficients_m)
+            out += np.where(np.isnan(u_anchor[:, 0]), 0.0, term)
         return out
 
     def phase_centre_m(self) -> Array:

@@ -75,18 +75,21 @@ class EpochFusion:
     _at_rest: bool
     _imu_fresh: Callable[[], bool]  # the filter's: the last IMU sample is recent
 
-    def _apply_range_model(self, anchors: Array, ranges: Array) -> Array:
-        """The tag antenna's direction term (:mod:`~uwbd.fusion.models.range_model`), once
-        the heading is known: its degree 1 as the antenna's phase centre (the lever arm of
-        the range rows), higher degrees taken off the ranges at the prior attitude. Before,
-        the term would be turned by a heading that may be anything: only the phase centre's
-        part along the vertical is applied (the tilt is known), the rest held back (the
-        health note ``range_model_held``)."""
-        model = self.cfg.range_model
+    def _apply_range_model(self, ids: list[int], anchors: Array, ranges: Array) -> Array:
+        """The anchors' direction term at the prior position (it needs no attitude); the tag
+        antenna's (:mod:`~uwbd.fusion.models.range_model`), once the heading is known: its
+        degree 1 as the antenna's phase centre (the lever arm of the range rows), higher
+        degrees taken off the ranges at the prior attitude. Before, the term would be turned
+        by a heading that may be anything: only the phase centre's part along the vertical is
+        applied (the tilt is known), the rest held back (the health note
+        ``range_model_held``)."""
+        model, ekf = self.cfg.range_model, self.ekf
+        if model.anchor_degree and ekf is not None:
+            ranges = ranges - model.anchor_term_m(
+                ids, anchors, np.array(ekf.p) + ekf.R @ self._plain_lever)
         if not model.enabled:
             return ranges
         self.monitor.range_model_held = not self._aligned
-        ekf = self.ekf
         if ekf is None:
             return ranges
         if not self._aligned:
