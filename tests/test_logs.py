@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import zstandard
 from hypothesis import example, given, settings
@@ -21,6 +22,7 @@ from mcap.records import Message
 from drivers.frames import ImuSample, UwbRanges
 from uwbd.codec import frame_to_json, strict_json
 from uwbd.config import parse
+from uwbd.fusion.core.rotation import quat_to_matrix
 from uwbd.logs import foxglove as fx
 from uwbd.logs import reading, scan
 from uwbd.logs.mcaplog import UNENCODABLE, LogWriter, SourceInfo
@@ -230,6 +232,12 @@ def test_import_real_inrol_run(tmp_path: Path) -> None:
     assert len(uwb) == len({r[1] for r in rows["uwb.txt"]})
     assert len(rec.truth_t_ns) == len(rows["imu_pose.txt"])
     assert set(rec.config.anchors_m) == set(range(1, 9))
+    # the anchors' antenna orientations (x, y, z, w): kept in the config's table form
+    first = (INROL / "anchor.txt").read_text().splitlines()[1].split()
+    axes = np.array(rec.config.anchor_axes[int(first[0])])
+    x, y, z, w = (float(v) for v in first[4:8])
+    assert axes == pytest.approx(quat_to_matrix(np.array([w, x, y, z])), abs=1e-9)
+    assert set(rec.config.anchor_axes) == set(range(1, 9))
     assert rec.frames[0].t_ns - INROL_EPOCH_NS < 100_000_000  # the files' clock starts at 0
 
 

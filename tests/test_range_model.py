@@ -14,6 +14,7 @@ import pytest
 from mcap.writer import Writer
 from procs import one_line, uwbd
 
+from drivers.frames import UwbRanges
 from uwbd.config import ConfigError, apply_overrides, parse
 from uwbd.fusion.core.rotation import quat_from_euler, quat_to_matrix
 from uwbd.fusion.filter import Filter
@@ -96,6 +97,33 @@ calibrated_from = "calib.mcap"
     assert got.phase_centre_m() == pytest.approx(S3 * np.array([-0.001, 0.03, 0.05]))
 
 
+def test_an_anchor_with_an_orientation_gives_the_anchors_term_its_axes() -> None:
+    """``[anchors]`` in the table form (position and the antenna's orientation, x y z w:
+    here turned 90° about z), beside the plain one; anchors without an orientation take
+    no anchors' term, and check-config says so."""
+    config = parse(BASE + """
+[anchors]
+1 = { position_m = [0.0, 0.0, 2.0], orientation_xyzw = [0.0, 0.0, 0.70710678, 0.70710678] }
+2 = [5.0, 0.0, 2.0]
+3 = [5.0, 4.0, 2.0]
+[range_model]
+anchor_degree = 1
+anchor_coefficients_m = [0.01, 0.02, 0.03]
+""")
+    assert config.anchors_m[1] == (0.0, 0.0, 2.0)
+    model = config.filter_config().range_model
+    assert model.anchor_degree == 1 and model.anchor_coefficients_m == (0.01, 0.02, 0.03)
+    (axes_of, rows), = model.anchor_axes
+    assert axes_of == 1
+    assert np.array(rows) == pytest.approx(np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]]))
+    # the tag 1 m east of anchor 1 is along the anchor's -y: c_1,-1 √3 (-1); anchor 2: none
+    term = model.anchor_term_m([1, 2], np.array([[0.0, 0.0, 2.0], [5.0, 0.0, 2.0]]),
+                               np.array([1.0, 0.0, 2.0]))
+    assert term == pytest.approx([-S3 * 0.01, 0.0])
+    assert any("range_model.anchor_degree: no orientation for anchor(s) 2, 3" in w
+               for w in config.warnings), config.warnings
+
+
 @pytest.mark.parametrize(("section", "message"), [
     ("tag_degree = 2\ntag_coefficients_m = [0.1, 0.0, 0.0]",
      "range_model.tag_coefficients_m: degree 2 takes 8 coefficients"),
@@ -112,10 +140,32 @@ calibrated_from = "calib.mcap"
     ("log_distance_m = 12.0", "range_model.log_distance_m: must be zero or more and at most "
      "0.5, got 12"),
     ("log_distance_m = -0.1", "range_model.log_distance_m: must be zero or more"),
+    ("anchor_degree = 1\nanchor_coefficients_m = [0.1]",
+     "range_model.anchor_coefficients_m: anchor degree 1 takes 3 coefficients, got 1"),
+    ("anchor_coefficients_m = [0.1, 0.0, 0.0]",
+     "range_model.anchor_coefficients_m: given without range_model.anchor_degree"),
+    ("anchor_degree = 1\nanchor_coefficients_m = [0.0, 2.0, 0.0]",
+     "range_model.anchor_coefficients_m: element 1 is 2 m"),
 ])
 def test_config_mistakes_are_errors_naming_the_key(section: str, message: str) -> None:
     with pytest.raises(ConfigError) as err:
         parse(BASE + "[range_model]\n" + section + "\n", "robot.toml")
+    assert f"robot.toml: {message}" in str(err.value), str(err.value)
+
+
+@pytest.mark.parametrize(("entry", "message"), [
+    ("{ position_m = [0, 0, 2], orientation_xyzw = [0, 0, 0.5, 0.5] }",
+     "anchors.1.orientation_xyzw: a quaternion of norm 0.707107: expected a unit quaternion"),
+    ("{ position_m = [0, 0, 2], orientation_xyzw = [0, 0, 1] }",
+     "anchors.1.orientation_xyzw: expected [qx, qy, qz, qw] of finite numbers"),
+    ("{ position = [0, 0, 2] }", "anchors.1.position: unknown key (an anchor takes "
+     "position_m and orientation_xyzw)"),
+    ("{ orientation_xyzw = [0, 0, 0, 1] }", "anchors.1.position_m: expected [x, y, z]"),
+    ('"here"', "anchors.1: expected [x, y, z] of finite numbers, or { position_m"),
+])
+def test_an_anchor_entry_mistake_is_an_error_naming_it(entry: str, message: str) -> None:
+    with pytest.raises(ConfigError) as err:
+        parse(BASE + f"[anchors]\n1 = {entry}\n", "robot.toml")
     assert f"robot.toml: {message}" in str(err.value), str(err.value)
 
 
@@ -169,15 +219,19 @@ def test_the_filter_applies_the_term_once_the_heading_is_known_and_says_so_befor
 
 
 def test_a_model_of_zeros_gives_the_very_same_poses_as_none() -> None:
-    """Degree 1 and 2 with every coefficient and every anchor delay zero take the model's
-    every path (the phase centre, the higher degrees, the delays) and change no pose."""
+    """Degree 1 and 2 with every coefficient and every anchor delay zero, and the anchors'
+    term of zeros, take the model's every path (the phase centre, the higher degrees, the
+    delays, the anchors' term) and change no pose."""
     sim = simulate(handheld_async(4))  # long enough for the heading to be found
     cfg = parse(simulation_toml(sim)).filter_config()
     assert not cfg.range_model.enabled
     a, _ = run(cfg, sim)
     zero_delays = tuple((i, 0.0) for i in range(len(sim.config.anchors_m)))
     for degree in (1, 2):
-        zeros = RangeModel(degree, (0.0,) * n_coefficients(degree), anchor_delays_m=zero_delays)
+        zeros = RangeModel(degree, (0.0,) * n_coefficients(degree), anchor_delays_m=zero_delays,
+                           anchor_degree=degree,
+                           anchor_coefficients_m=(0.0,) * n_coefficients(degree),
+                           anchor_axes=((0, IDENTITY3), (3, IDENTITY3)))
         b, flt = run(dataclasses.replace(cfg, range_model=zeros), sim)
         assert flt._aligned and any("range_model_held" in p.health.notes for p in b)
         assert [p.position_m for p in a] == [p.position_m for p in b] and a
@@ -205,11 +259,13 @@ def test_calibrated_anchor_delays_do_what_the_delay_states_would() -> None:
 def calibration_recording(root: Path, seconds: float = 80.0, seed: int = 0,
                           attitude: bool = True,
                           correlated: tuple[float, float] = (0.0, 1.0),
-                          log_distance_m: float = LOG_DISTANCE_M) -> Path:
+                          log_distance_m: float = LOG_DISTANCE_M,
+                          anchor_term_m: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Path:
     """A range-model calibration recording in the inrol layout (``anchor.txt``,
     ``tag_pose.txt``, ``uwb.txt``): the tag walked round the room turning through every
     heading, each range with its anchor's delay, the tag's phase-centre term, the distance
-    term ``log_distance_m`` ln(d / 1 m), noise (white, and ``correlated`` = (σ m, τ s) of a
+    term ``log_distance_m`` ln(d / 1 m), the anchors' degree-1 term ``anchor_term_m`` (the
+    anchors' axes are the room's), noise (white, and ``correlated`` = (σ m, τ s) of a
     Gauss–Markov error per anchor) and a few one-sided NLOS ranges."""
     rng = np.random.default_rng(seed)
     root.mkdir()
@@ -239,8 +295,11 @@ def calibration_recording(root: Path, seconds: float = 80.0, seed: int = 0,
         R = quat_to_matrix(q[i])
         fade = math.exp(-(tr - slow[a][0]) / tau_c)
         slow[a] = (tr, fade * slow[a][1] + rng.normal(0, sigma_c * math.sqrt(1 - fade**2)))
-        d = float(np.linalg.norm(pos + R @ PHASE_CENTRE_M - np.array(ANCHORS[a])))
-        r = (d + log_distance_m * math.log(d) + DELAYS[a] + slow[a][1] + rng.normal(0, 0.03)
+        ray = pos + R @ PHASE_CENTRE_M - np.array(ANCHORS[a])
+        d = float(np.linalg.norm(ray))
+        anchor_term = float(np.array(anchor_term_m) @ basis(ray[None, :] / d, 1)[0])
+        r = (d + log_distance_m * math.log(d) + DELAYS[a] + anchor_term + slow[a][1]
+             + rng.normal(0, 0.03)
              + (rng.uniform(0.3, 1.0) if rng.random() < 0.04 else 0.0))
         lines.append(f"{k} {tr:.6f} {a} {r:.6f}")
     (root / "uwb.txt").write_text("\n".join(lines) + "\n")
@@ -292,6 +351,35 @@ def test_calibrate_ranges_recovers_the_term_and_the_delays(tmp_path: Path) -> No
     assert tag_only.range_bias_states is True
 
 
+def test_the_anchors_term_is_fitted_from_their_orientations_and_applied(tmp_path: Path) -> None:
+    """A recording whose ranges carry an anchors' degree-1 term (the ray in each anchor's
+    axes): ``--anchor-degree 1`` recovers it from the orientations ``uwbd import inrol``
+    keeps, writes it, and the config gives the filter the term and every anchor's axes."""
+    data = calibration_recording(tmp_path / "calib", anchor_term_m=(0.02, -0.04, 0.03))
+    assert uwbd("import", "inrol", str(data), "-o", "calib.mcap", cwd=tmp_path).returncode == 0
+    done = uwbd("calibrate-ranges", "calib.mcap", "--anchor-degree", "1", "-o", "rm.toml",
+                cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert "anchors' term, degree 1 (each anchor's axes)" in done.stdout
+    base = BASE + "[anchors]\n" + "".join(
+        f"{a} = {{ position_m = [{x}, {y}, {z}], orientation_xyzw = [0, 0, 0, 1] }}\n"
+        for a, (x, y, z) in ANCHORS.items())
+    model = parse(base + (tmp_path / "rm.toml").read_text()).filter_config().range_model
+    assert model.anchor_degree == 1
+    assert model.anchor_coefficients_m == pytest.approx((0.02, -0.04, 0.03), abs=0.01)
+    assert dict(model.anchor_axes) == dict.fromkeys(ANCHORS, IDENTITY3)
+    # the term taken off a range: the ray from anchor 1 along its x axis is c_1,+1 √3
+    at = model.anchor_term_m([1, 2], np.array([ANCHORS[1], ANCHORS[2]], dtype=float),
+                             np.array(ANCHORS[1]) + np.array([1.0, 0.0, 0.0]))
+    assert at[0] == pytest.approx(S3 * model.anchor_coefficients_m[2])
+    # a config without the orientations: nothing to fit it from
+    (tmp_path / "positions.toml").write_text(BASE + "[anchors]\n" + "".join(
+        f"{a} = [{x}, {y}, {z}]\n" for a, (x, y, z) in ANCHORS.items()))
+    one_line(uwbd("calibrate-ranges", "calib.mcap", "--anchor-degree", "1", "-c",
+                  "positions.toml", cwd=tmp_path), 2, "have no orientation in the config",
+             "orientation_xyzw")
+
+
 def test_a_distance_term_is_written_only_where_the_ranges_have_one(tmp_path: Path) -> None:
     """Ranges without a distance term, or with one that shrinks with distance (no DW1000's:
     a truth out of scale): the fit says k ± σ and writes 0, which clears an earlier
@@ -335,6 +423,41 @@ def test_the_distance_term_comes_off_every_range_from_the_first() -> None:
     assert left_in.rmse_xy_m > 2.5 * clean.rmse_xy_m and left_in.nees_mean > 4, left_in
     assert taken_off.rmse_3d_m == pytest.approx(clean.rmse_3d_m, rel=0.02), (taken_off, clean)
     assert taken_off.nees_mean < 1.5, taken_off
+
+
+def test_the_anchors_term_comes_off_every_range_at_the_prior_position() -> None:
+    """Simulated ranges carrying an anchors' degree-1 term (the ray in each anchor's axes,
+    here the room's): left in, the filter is worse; taken off at the prior position, as
+    good as on clean ranges."""
+    short = handheld_async(3)
+    sim = simulate(dataclasses.replace(short, segments=short.segments[:8]))  # 37 s
+    cfg = parse(simulation_toml(sim)).filter_config()
+    c = (0.02, -0.05, 0.04)
+    anchors = np.array(sim.config.anchors_m)
+    lever = np.array(sim.config.lever_arm_m)  # body z; the simulated body stays level
+
+    def carrying(f: UwbRanges) -> UwbRanges:
+        antenna = np.array([np.interp(f.t_ns, sim.truth_t_ns, sim.truth_p_m[:, i])
+                            for i in range(3)]) + lever
+        out = []
+        for r in f.ranges:
+            ray = antenna - anchors[r.anchor_id]
+            term = float(np.array(c) @ basis(ray[None, :] / np.linalg.norm(ray), 1)[0])
+            out.append(dataclasses.replace(r, range_m=r.range_m + term))
+        return dataclasses.replace(f, ranges=tuple(out))
+
+    uwb = [carrying(f) for f in sim.uwb]
+
+    def accuracy(c_: FilterConfig, frames: list) -> object:
+        poses, _, _ = run_filter(c_, merge(sim.imu, frames))
+        return score_poses(poses, sim.truth_t_ns, sim.truth_p_m, 10.0)
+
+    axes = tuple((i, IDENTITY3) for i in range(len(anchors)))
+    model = RangeModel(anchor_degree=1, anchor_coefficients_m=c, anchor_axes=axes)
+    clean, left_in = accuracy(cfg, sim.uwb), accuracy(cfg, uwb)
+    taken_off = accuracy(dataclasses.replace(cfg, range_model=model), uwb)
+    assert left_in.rmse_3d_m > 1.5 * clean.rmse_3d_m, (left_in, clean)
+    assert taken_off.rmse_3d_m < 1.1 * clean.rmse_3d_m, (taken_off, clean)
 
 
 def test_a_correlated_range_error_is_measured_and_written_for_the_multipath_states(

@@ -213,7 +213,8 @@ def test_the_distance_term_comes_off_the_ranges_before_the_survey(handheld_log: 
 
 def test_with_anchors_keeps_the_configs_spelling_and_the_rest() -> None:
     text = ('[anchors]\n"0x10" = [0.0, 0.0, 2.0]\n"17" = [5.0, 0.0, 2.0]\n"18" = [0.0, 4.0, 2.0]\n'
-            '"19" = [5.0, 4.0, 2.1]\n\n[fusion]\nrange_sigma_m = 0.08\n')
+            '"19" = { position_m = [5.0, 4.0, 2.1], orientation_xyzw = [0.0, 0.0, 1.0, 0.0] }'
+            '\n\n[fusion]\nrange_sigma_m = 0.08\n')
     truth = {16: (0.0, 0.0, 2.0), 17: (5.1, 0.0, 2.0), 18: (0.0, 4.1, 2.0), 19: (5.1, 4.1, 2.1)}
     pairs = [(a, b) for a in truth for b in truth if a < b]
     arr = np.array([truth[a] for a in sorted(truth)])
@@ -228,6 +229,7 @@ def test_with_anchors_keeps_the_configs_spelling_and_the_rest() -> None:
     parsed = parse(out)
     assert parsed.anchors_m[17][0] == pytest.approx(5.1, abs=0.02)
     assert parsed.anchors_m[19] == pytest.approx(truth[19], abs=0.03)
+    assert parsed.anchor_axes[19] == parse(text).anchor_axes[19]  # its orientation kept
 
 
 def test_gauge_mistakes_are_one_line_each() -> None:

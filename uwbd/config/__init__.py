@@ -13,7 +13,10 @@ Sections::
                          prefix; nav_frame_id ("enu"), body_frame_id ("base_link"): the frame
                          names in poses, transforms and ROS 2 bags
     [[sources]]          name, driver, port, baud
-    [anchors]            "<id>" = [x, y, z]            (m, navigation frame ENU)
+    [anchors]            "<id>" = [x, y, z]            (m, navigation frame ENU), or
+                         "<id>" = { position_m = [x, y, z], orientation_xyzw = [qx, qy,
+                         qz, qw] } (the antenna's axes in the navigation frame, for the
+                         range model's anchors' term; ``uwbd import inrol`` writes them)
     [imu]                mounting = 3x3 rows (sensor -> body FLU), lever_arm_m = [x, y, z],
                          noise densities from the IMU's datasheet (defaults: a consumer MEMS
                          part with margin for vibration): acc_noise_mps2_rthz (0.01),
@@ -44,6 +47,9 @@ Sections::
                          (3x3 rows, tag axes -> body; identity), anchor_delays_m ({ "<id>" =
                          delay }: taken off each anchor's ranges), log_distance_m (k ≥ 0
                          of the delay k ln(d / 1 m) that grows with distance; 0),
+                         anchor_degree (0..3; 0: none) and anchor_coefficients_m (the
+                         anchors' own direction term, the ray in each one's axes, common to
+                         the units; applied to anchors given with an orientation),
                          calibrated_from (a note)
     [pipeline]           aligner_wait_ms (0), pose_rate_hz (50), status_period_s (1),
                          stall_after_s (1: a port silent this long is "stalled")

@@ -230,8 +230,9 @@ def _anchor_entry(r: Report, name: str, value: Any) -> tuple[Vec3 | None, Rotati
     if VEC3.ok(value):
         return vec3(value), None
     if not isinstance(value, dict):
-        r.error(name, f"expected {VEC3.what}, or {{ position_m = [x, y, z], orientation_xyzw "
-                f"= [qx, qy, qz, qw] }}, got {show(value)} ({type_name(value)})")
+        also = "" if isinstance(value, list) else \
+            ", or { position_m = [x, y, z], orientation_xyzw = [qx, qy, qz, qw] }"
+        r.error(name, f"expected {VEC3.what}{also}, got {show(value)} ({type_name(value)})")
         return None, None
     unknown = sorted(set(value) - {"position_m", "orientation_xyzw"})
     if unknown:

@@ -27,6 +27,13 @@ direction term still in the range (which scales that term by ``1/(1 + k/d)``: 6 
 INRoL hardware ``k`` ≈ 0.12 m: a range at 4 m carries 17 cm more delay than one at 1 m. Left
 in, it stretches the solution away from the room's centre by about 5 %.
 
+Each anchor's antenna has a direction-dependent delay too, common to the units of one
+model: ``Σ c'_lm Y_lm(u_a)`` of the same ray in the anchor's axes (``u_a = C_anᵀ (p_antenna
+− a) / |…|``, ``C_an`` the anchor's orientation that ``[anchors]`` gives in the table form).
+It needs the tag's position only, not its attitude: the filter takes it off each range at
+the prior position (its position Jacobian, about c'/d, is left out), from the start of
+tracking; anchors given without an orientation take none.
+
 Degree 1 is exactly a shift of the antenna's phase centre: ``Σ_m c_1m Y_1m(u) = δ·u`` with
 ``δ = √3 (c_11, c_1−1, c_10)`` (tag x, y, z), and ``|d + R δ| ≈ |d| + δ·u``. The filter
 applies it as a lever arm of ``lever + C_tb δ``, so its Jacobian comes free. Higher degrees

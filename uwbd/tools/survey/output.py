@@ -49,7 +49,8 @@ def anchors_document(result: Survey, header: str) -> str:
 
 def with_anchors(config_text: str, result: Survey, header: str, where: str) -> str:
     """``config_text`` with its ``[anchors]`` replaced by the surveyed ones (each keeping the
-    key it was spelt with; anchors the survey did not see kept), as a TOML document that
+    key it was spelt with, and its orientation where it has one; anchors the survey did not
+    see kept), as a TOML document that
     :func:`uwbd.config.parse` accepts. Comments are not kept."""
     try:
         doc = tomllib.loads(config_text)
@@ -63,7 +64,11 @@ def with_anchors(config_text: str, result: Survey, header: str, where: str) -> s
     positions = result.positions()
     for k, v in table_in.items():
         a = anchor_id(k)
-        out[k] = [round(c, 3) for c in positions[a]] if a in positions else v
+        if a not in positions:
+            out[k] = v
+            continue
+        surveyed = [round(c, 3) for c in positions[a]]  # an orientation given stays
+        out[k] = {**v, "position_m": surveyed} if isinstance(v, dict) else surveyed
     for a, p in positions.items():
         if a not in spelt:
             out[str(a)] = [round(c, 3) for c in p]
