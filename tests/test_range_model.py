@@ -122,6 +122,9 @@ anchor_coefficients_m = [0.01, 0.02, 0.03]
     assert term == pytest.approx([-S3 * 0.01, 0.0])
     assert any("range_model.anchor_degree: no orientation for anchor(s) 2, 3" in w
                for w in config.warnings), config.warnings
+    loose = parse(BASE + '[fusion]\nmode = "loose"\n[range_model]\nanchor_degree = 1\n'
+                  'anchor_coefficients_m = [0.0, 0.0, 0.0]\n')
+    assert any("loose mode's fixes take no anchors' term" in w for w in loose.warnings)
 
 
 @pytest.mark.parametrize(("section", "message"), [

@@ -235,7 +235,7 @@ def check_range_model(r: Report, model: dict[str, Any], fusion: Mapping[str, Any
                + ", ".join(map(str, without)) + " and fusion.range_bias_states = false: "
                "their ranges are taken with their antenna delay in them (calibrate-ranges "
                "on a recording that sees them, or the delay states back on)")
-    _check_anchor_term(r, model, anchors, oriented)
+    _check_anchor_term(r, model, fusion, anchors, oriented)
     degree = model.get("tag_degree", 0)
     coefficients = model.get("tag_coefficients_m")
     if degree >= 2 and fusion.get("mode") == "loose":
@@ -320,10 +320,10 @@ def check_filter(r: Report, config: Config) -> None:
                 + _FILTER_WORDS.sub(lambda m: _FILTER_NAMES[m.group()], text))
 
 
-def _check_anchor_term(r: Report, model: Mapping[str, Any], anchors: Mapping[int, Vec3],
-                       oriented: Collection[int]) -> None:
+def _check_anchor_term(r: Report, model: Mapping[str, Any], fusion: Mapping[str, Any],
+                       anchors: Mapping[int, Vec3], oriented: Collection[int]) -> None:
     """``anchor_degree`` and its coefficients as the tag's; the anchors it cannot apply to
-    (no orientation in ``[anchors]``) said."""
+    (no orientation in ``[anchors]``), and loose mode (whose fixes take none), said."""
     degree = model.get("anchor_degree", 0)
     coefficients = model.get("anchor_coefficients_m")
     if degree == 0:
@@ -343,6 +343,9 @@ def _check_anchor_term(r: Report, model: Mapping[str, Any], anchors: Mapping[int
         r.error("range_model.anchor_coefficients_m", f"element {big[0]} is "
                 f"{coefficients[big[0]]:g} m: an antenna's direction term is at most "
                 f"{MAX_TAG_TERM_M:g} m (are they in metres?)")
+    if fusion.get("mode") == "loose":
+        r.warn("range_model.anchor_degree", f"{degree}: loose mode's fixes take no anchors' "
+               "term (it applies to the ranges of tight mode)")
     without = sorted(set(anchors) - set(oriented))
     if without:
         r.warn("range_model.anchor_degree", "no orientation for anchor(s) "
