@@ -34,6 +34,18 @@ ANCHORS = {1: (0.0, 0.0, 0.3), 2: (5.0, 0.0, 0.3), 3: (5.0, 4.0, 0.3), 4: (0.0, 
 DELAYS = {1: -0.12, 2: 0.02, 3: -0.08, 4: 0.03, 5: 0.0, 6: 0.01, 7: -0.02, 8: -0.04}
 PHASE_CENTRE_M = np.array([0.05, 0.01, 0.09])  # tag axes
 LOG_DISTANCE_M = 0.1  # the ranges' distance term: 0.1 ln(d / 1 m)
+H = math.sqrt(0.5)
+# the anchors' antennas (x, y, z, w, their axes in the room's): the low ones turned about z
+# by 90° each, the high ones tilted 45° about x
+ORIENTATIONS = {1: (0, 0, 0, 1), 2: (0, 0, H, H), 3: (0, 0, 1, 0), 4: (0, 0, H, -H),
+                **dict.fromkeys((5, 6, 7, 8), (math.sin(math.pi / 8), 0, 0,
+                                               math.cos(math.pi / 8)))}
+
+
+def axes_of(q: tuple[float, ...]) -> np.ndarray:
+    """An orientation (x, y, z, w) as rows: the anchor's axes -> the room's."""
+    x, y, z, w = q
+    return quat_to_matrix(np.array([w, x, y, z]))
 
 
 def sphere(n: int) -> np.ndarray:
@@ -268,12 +280,13 @@ def calibration_recording(root: Path, seconds: float = 80.0, seed: int = 0,
     ``tag_pose.txt``, ``uwb.txt``): the tag walked round the room turning through every
     heading, each range with its anchor's delay, the tag's phase-centre term, the distance
     term ``log_distance_m`` ln(d / 1 m), the anchors' degree-1 term ``anchor_term_m`` (the
-    anchors' axes are the room's), noise (white, and ``correlated`` = (σ m, τ s) of a
+    ray in each anchor's axes, ``ORIENTATIONS``), noise (white, and ``correlated`` = (σ m, τ s) of a
     Gauss–Markov error per anchor) and a few one-sided NLOS ranges."""
     rng = np.random.default_rng(seed)
     root.mkdir()
     lines = ["# anchor_id tx ty tz qx qy qz qw"]
-    lines += [f"{a} {x} {y} {z} 0 0 0 1" for a, (x, y, z) in ANCHORS.items()]
+    lines += [f"{a} {x} {y} {z} " + " ".join(map(str, ORIENTATIONS[a]))
+              for a, (x, y, z) in ANCHORS.items()]
     (root / "anchor.txt").write_text("\n".join(lines) + "\n")
     t = np.arange(0.0, seconds, 0.01)
     p = np.column_stack([2.5 + 1.5 * np.cos(0.21 * t), 2.0 + 1.2 * np.sin(0.33 * t),
@@ -300,7 +313,8 @@ def calibration_recording(root: Path, seconds: float = 80.0, seed: int = 0,
         slow[a] = (tr, fade * slow[a][1] + rng.normal(0, sigma_c * math.sqrt(1 - fade**2)))
         ray = pos + R @ PHASE_CENTRE_M - np.array(ANCHORS[a])
         d = float(np.linalg.norm(ray))
-        anchor_term = float(np.array(anchor_term_m) @ basis(ray[None, :] / d, 1)[0])
+        u_anchor = axes_of(ORIENTATIONS[a]).T @ ray / d  # in the anchor's axes
+        anchor_term = float(np.array(anchor_term_m) @ basis(u_anchor[None, :], 1)[0])
         r = (d + log_distance_m * math.log(d) + DELAYS[a] + anchor_term + slow[a][1]
              + rng.normal(0, 0.03)
              + (rng.uniform(0.3, 1.0) if rng.random() < 0.04 else 0.0))
@@ -365,16 +379,18 @@ def test_the_anchors_term_is_fitted_from_their_orientations_and_applied(tmp_path
     assert done.returncode == 0, done.stderr
     assert "anchors' term, degree 1 (each anchor's axes)" in done.stdout
     base = BASE + "[anchors]\n" + "".join(
-        f"{a} = {{ position_m = [{x}, {y}, {z}], orientation_xyzw = [0, 0, 0, 1] }}\n"
+        f"{a} = {{ position_m = [{x}, {y}, {z}], orientation_xyzw = {list(ORIENTATIONS[a])} }}\n"
         for a, (x, y, z) in ANCHORS.items())
     model = parse(base + (tmp_path / "rm.toml").read_text()).filter_config().range_model
     assert model.anchor_degree == 1
     assert model.anchor_coefficients_m == pytest.approx((0.02, -0.04, 0.03), abs=0.01)
-    assert dict(model.anchor_axes) == dict.fromkeys(ANCHORS, IDENTITY3)
-    # the term taken off a range: the ray from anchor 1 along its x axis is c_1,+1 √3
-    at = model.anchor_term_m([1, 2], np.array([ANCHORS[1], ANCHORS[2]], dtype=float),
-                             np.array(ANCHORS[1]) + np.array([1.0, 0.0, 0.0]))
-    assert at[0] == pytest.approx(S3 * model.anchor_coefficients_m[2])
+    for a, rows in model.anchor_axes:
+        assert np.array(rows) == pytest.approx(axes_of(ORIENTATIONS[a]))
+    # the term taken off a range: from anchor 2 (turned 90° about z) along the room's +x,
+    # which is the anchor's -y: -c_1,-1 √3
+    at = model.anchor_term_m([2, 1], np.array([ANCHORS[2], ANCHORS[1]], dtype=float),
+                             np.array(ANCHORS[2]) + np.array([1.0, 0.0, 0.0]))
+    assert at[0] == pytest.approx(-S3 * model.anchor_coefficients_m[0])
     # a config without the orientations: nothing to fit it from
     (tmp_path / "positions.toml").write_text(BASE + "[anchors]\n" + "".join(
         f"{a} = [{x}, {y}, {z}]\n" for a, (x, y, z) in ANCHORS.items()))
@@ -430,21 +446,23 @@ def test_the_distance_term_comes_off_every_range_from_the_first() -> None:
 
 def test_the_anchors_term_comes_off_every_range_at_the_prior_position() -> None:
     """Simulated ranges carrying an anchors' degree-1 term (the ray in each anchor's axes,
-    here the room's): left in, the filter is worse; taken off at the prior position, as
-    good as on clean ranges."""
+    each turned 90° more about z than the one before): left in, the filter is worse; taken
+    off at the prior position, as good as on clean ranges."""
     short = handheld_async(3)
     sim = simulate(dataclasses.replace(short, segments=short.segments[:8]))  # 37 s
     cfg = parse(simulation_toml(sim)).filter_config()
     c = (0.02, -0.05, 0.04)
     anchors = np.array(sim.config.anchors_m)
     lever = np.array(sim.config.lever_arm_m)  # body z; the simulated body stays level
+    axes = [axes_of((0.0, 0.0, math.sin(i * math.pi / 4), math.cos(i * math.pi / 4)))
+            for i in range(len(anchors))]
 
     def carrying(f: UwbRanges) -> UwbRanges:
         antenna = np.array([np.interp(f.t_ns, sim.truth_t_ns, sim.truth_p_m[:, i])
                             for i in range(3)]) + lever
         out = []
         for r in f.ranges:
-            ray = antenna - anchors[r.anchor_id]
+            ray = axes[r.anchor_id].T @ (antenna - anchors[r.anchor_id])
             term = float(np.array(c) @ basis(ray[None, :] / np.linalg.norm(ray), 1)[0])
             out.append(dataclasses.replace(r, range_m=r.range_m + term))
         return dataclasses.replace(f, ranges=tuple(out))
@@ -455,8 +473,8 @@ def test_the_anchors_term_comes_off_every_range_at_the_prior_position() -> None:
         poses, _, _ = run_filter(c_, merge(sim.imu, frames))
         return score_poses(poses, sim.truth_t_ns, sim.truth_p_m, 10.0)
 
-    axes = tuple((i, IDENTITY3) for i in range(len(anchors)))
-    model = RangeModel(anchor_degree=1, anchor_coefficients_m=c, anchor_axes=axes)
+    model = RangeModel(anchor_degree=1, anchor_coefficients_m=c, anchor_axes=tuple(
+        (i, tuple(tuple(row) for row in C.tolist())) for i, C in enumerate(axes)))
     clean, left_in = accuracy(cfg, sim.uwb), accuracy(cfg, uwb)
     taken_off = accuracy(dataclasses.replace(cfg, range_model=model), uwb)
     assert left_in.rmse_3d_m > 1.5 * clean.rmse_3d_m, (left_in, clean)

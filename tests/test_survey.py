@@ -19,6 +19,7 @@ from drivers import trek1000
 from drivers.frames import AnchorPair, AnchorRanges, ImuSample, UwbRanges
 from uwbd.config import parse, to_toml
 from uwbd.config.model import SourceConfig
+from uwbd.fusion.core.rotation import quat_to_matrix
 from uwbd.fusion.models.range_model import RangeModel
 from uwbd.logs.mcaplog import LogWriter, SourceInfo
 from uwbd.logs.reading import read_log
@@ -29,11 +30,14 @@ from uwbd.tools.survey import (
     Gauge,
     Settings,
     SurveyError,
+    anchors_document,
     log_ranges,
+    orientations_of,
     survey,
     with_anchors,
     without_distance_term,
 )
+from uwbd.tools.survey.output import turned_xyzw
 
 PAIR_NOISE_M = 0.05
 NS = 1_000_000_000
@@ -230,6 +234,33 @@ def test_with_anchors_keeps_the_configs_spelling_and_the_rest() -> None:
     assert parsed.anchors_m[17][0] == pytest.approx(5.1, abs=0.02)
     assert parsed.anchors_m[19] == pytest.approx(truth[19], abs=0.03)
     assert parsed.anchor_axes[19] == parse(text).anchor_axes[19]  # its orientation kept
+
+
+def test_an_anchors_orientation_turns_with_the_surveyed_frame() -> None:
+    """An orientation the config gives stays with its anchor in both outputs, turned by
+    the survey's frame turn about z (``p' = R(turn) p``: the axes' rows turn alike)."""
+    q = [0.1, 0.2, 0.3, math.sqrt(1 - 0.14)]
+    turned = turned_xyzw(q, 37.0)
+    c, s = math.cos(math.radians(37.0)), math.sin(math.radians(37.0))
+    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    def rows(v: list[float]) -> np.ndarray:
+        return quat_to_matrix(np.array([v[3], v[0], v[1], v[2]]))
+    assert rows(turned) == pytest.approx(Rz @ rows(q), abs=1e-8)
+    # the config's layout turned 37° from the gauge's: anchor 1 is then put on +x
+    truth = np.array([[1.0, 1.0, 2.0], [1.0 + 5.0 * c, 1.0 + 5.0 * s, 2.0],
+                      [1.0 - 4.0 * s, 1.0 + 4.0 * c, 2.0],
+                      [1.0 + 5.0 * c - 4.0 * s, 1.0 + 5.0 * s + 4.0 * c, 2.1]])
+    text = "[anchors]\n" + "".join(f"{a} = {p.tolist()}\n" for a, p in enumerate(truth[:3])) \
+        + f"3 = {{ position_m = {truth[3].tolist()}, orientation_xyzw = {q} }}\n"
+    pairs = [(a, b) for a in range(4) for b in range(a + 1, 4)]
+    result = survey(parse(text).anchors_m, [], pair_reports(truth, pairs, 30, 5),
+                    Settings(gauge=Gauge(0, 1, 2)))
+    assert result.frame_turn_deg == pytest.approx(-37.0, abs=0.5)
+    document = parse(anchors_document(result, "surveyed", orientations_of(text)))
+    rewritten = parse(with_anchors(text, result, "surveyed", "cfg.toml"))
+    for config in (document, rewritten):
+        assert np.array(config.anchor_axes[3]) == pytest.approx(
+            rows(turned_xyzw(q, result.frame_turn_deg)), abs=1e-6)
 
 
 def test_gauge_mistakes_are_one_line_each() -> None:

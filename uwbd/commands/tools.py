@@ -250,6 +250,7 @@ def cmd_survey(args: argparse.Namespace) -> int:
             SurveyError,
             anchors_document,
             log_ranges,
+            orientations_of,
             survey,
             table,
             with_anchors,
@@ -293,7 +294,8 @@ def cmd_survey(args: argparse.Namespace) -> int:
     header = (f"[anchors] surveyed by `uwbd survey` from {path} ({result.source})\n"
               f"frame: {result.gauge}")
     if table_out is not None:
-        write_atomically(table_out, anchors_document(result, header))
+        write_atomically(table_out, anchors_document(result, header,
+                                                     orientations_of(config.text)))
         print(f"wrote {table_out}: the surveyed [anchors] table (replace the config's with it)")
     if rewrite is not None:
         try:

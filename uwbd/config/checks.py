@@ -347,7 +347,11 @@ def _check_anchor_term(r: Report, model: Mapping[str, Any], fusion: Mapping[str,
         r.warn("range_model.anchor_degree", f"{degree}: loose mode's fixes take no anchors' "
                "term (it applies to the ranges of tight mode)")
     without = sorted(set(anchors) - set(oriented))
-    if without:
+    if not oriented:
+        r.warn("range_model.anchor_degree", "no anchor in [anchors] has an orientation: the "
+               "anchors' term applies to none (give them as { position_m = [x, y, z], "
+               "orientation_xyzw = [qx, qy, qz, qw] })")
+    elif without:
         r.warn("range_model.anchor_degree", "no orientation for anchor(s) "
                + ", ".join(map(str, without)) + ": their ranges take no anchor term (give "
                "them as { position_m = [x, y, z], orientation_xyzw = [qx, qy, qz, qw] })")

@@ -83,13 +83,7 @@ def _apply_override(doc: dict[str, Any], item: str, where: str) -> None:
     if not isinstance(table, dict):
         raise fail(f"{section} in {where} is not a table")
     if section == "anchors":
-        found = anchor_id(key)
-        if found is None:
-            raise fail("an anchor id is an integer of 0 or more (\"3\", \"0x1151\")")
-        if not VEC3.ok(value):
-            raise fail(f"expected {VEC3.what}, got {show(value)} ({type_name(value)})")
-        for other in [k for k in table if anchor_id(k) == found]:
-            del table[other]  # the same anchor, spelt otherwise ("0x3" for "3")
+        key, value = _anchor_override(table, key, value, fail)
     else:
         spec = TABLES[section].get(key)
         if spec is None:
@@ -100,6 +94,33 @@ def _apply_override(doc: dict[str, Any], item: str, where: str) -> None:
         if problem is not None:
             raise fail(problem)
     table[key] = value
+
+
+def _anchor_override(table: dict[str, Any], key: str, value: Any,
+                     fail: Callable[[str], ConfigError]) -> tuple[str, Any]:
+    """``anchors.<id>=[x, y, z]`` (an orientation the anchor has stays), ``anchors.<id>={
+    position_m = …, orientation_xyzw = … }``, or ``anchors.<id>.position_m`` /
+    ``.orientation_xyzw`` alone: the entry's key and its new value (``parse`` checks the
+    numbers and names what is wrong)."""
+    ident, _, field = key.partition(".")
+    found = anchor_id(ident.strip('"'))
+    if found is None:
+        raise fail("an anchor id is an integer of 0 or more (\"3\", \"0x1151\")")
+    old: Any = None
+    for other in [k for k in table if anchor_id(k) == found]:
+        old = table.pop(other)  # the same anchor, spelt otherwise ("0x3" for "3")
+    entry = dict(old) if isinstance(old, dict) else (
+        {"position_m": old} if old is not None else {})
+    fields = ("position_m", "orientation_xyzw")
+    if field:
+        if field not in fields:
+            raise fail("an anchor takes position_m and orientation_xyzw" + known(field, fields))
+        return ident, {**entry, field: value}
+    if isinstance(value, dict):
+        return ident, value
+    if not VEC3.ok(value):
+        raise fail(f"expected {VEC3.what}, got {show(value)} ({type_name(value)})")
+    return ident, ({**entry, "position_m": value} if "orientation_xyzw" in entry else value)
 
 
 def _override_source(doc: dict[str, Any], index: int | None, name: str | None,

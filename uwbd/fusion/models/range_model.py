@@ -149,18 +149,6 @@ class RangeModel:
                 c, harmonics(x / n, y / n, z / n, self.anchor_degree), strict=True))
         return out
 
-    def anchor_rays(self, anchor: Sequence[int] | npt.NDArray[np.int64], anchors_m: Array,
-                    antenna_m: Array) -> Array:
-        """The anchor -> tag rays in each anchor's axes (n×3; NaN rows for anchors without
-        axes)."""
-        out = np.full((len(anchor), 3), np.nan)
-        for i, a in enumerate(anchor):
-            C = self._anchor_axes.get(int(a))
-            if C is not None:
-                u = C.T @ (antenna_m[i] - anchors_m[i])
-                out[i] = u / (np.linalg.norm(u) or 1.0)
-        return out
-
     @property
     def corrects_ranges(self) -> bool:
         """Whether :meth:`corrected_m` changes a range."""

@@ -92,8 +92,9 @@ from uwbd.tools.survey.model import (
     Survey,
     SurveyError,
 )
-from uwbd.tools.survey.output import anchors_document, table, with_anchors
+from uwbd.tools.survey.output import anchors_document, orientations_of, table, with_anchors
 
 __all__ = ["AnchorEstimate", "Gauge", "PairRange", "Settings", "Survey", "SurveyError",
-           "anchors_document", "log_ranges", "survey", "table", "with_anchors",
+           "anchors_document", "log_ranges", "orientations_of", "survey", "table",
+           "with_anchors",
            "without_distance_term"]

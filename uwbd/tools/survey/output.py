@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Sequence
 from typing import Any
 
 from uwbd.config import ConfigError, parse
@@ -38,13 +39,31 @@ def table(result: Survey) -> str:
     return "\n".join(lines)
 
 
-def anchors_document(result: Survey, header: str) -> str:
-    """A TOML file holding the surveyed ``[anchors]`` table (mm), checked by
+def anchors_document(result: Survey, header: str,
+                     orientations_xyzw: dict[int, list[float]] | None = None) -> str:
+    """A TOML file holding the surveyed ``[anchors]`` table (mm), an anchor's orientation
+    (``orientations_xyzw``, the config's) kept, turned with the frame; checked by
     :func:`uwbd.config.parse`."""
-    doc = {"anchors": {str(a): [round(v, 3) for v in p] for a, p in result.positions().items()}}
+    kept = orientations_xyzw or {}
+
+    def entry(a: int, p: Sequence[float]) -> Any:
+        surveyed = [round(v, 3) for v in p]
+        q = kept.get(a)
+        return surveyed if q is None else {
+            "position_m": surveyed, "orientation_xyzw": turned_xyzw(q, result.frame_turn_deg)}
+
+    doc = {"anchors": {str(a): entry(a, p) for a, p in result.positions().items()}}
     text = _comment(header) + write_toml(doc)
     _check(text, "the anchors file")
     return text
+
+
+def orientations_of(config_text: str) -> dict[int, list[float]]:
+    """The anchors' orientations (x, y, z, w) a config's ``[anchors]`` gives (table form)."""
+    table = tomllib.loads(config_text).get("anchors", {})
+    return {found: entry["orientation_xyzw"] for key, entry in table.items()
+            if isinstance(entry, dict) and "orientation_xyzw" in entry
+            and (found := anchor_id(key)) is not None}
 
 
 def with_anchors(config_text: str, result: Survey, header: str, where: str) -> str:
@@ -67,8 +86,12 @@ def with_anchors(config_text: str, result: Survey, header: str, where: str) -> s
         if a not in positions:
             out[k] = v
             continue
-        surveyed = [round(c, 3) for c in positions[a]]  # an orientation given stays
-        out[k] = {**v, "position_m": surveyed} if isinstance(v, dict) else surveyed
+        surveyed = [round(c, 3) for c in positions[a]]
+        out[k] = surveyed if not isinstance(v, dict) else {**v, "position_m": surveyed}
+    for k, v in out.items():  # an orientation stays, turned with the frame
+        if isinstance(v, dict) and isinstance(v.get("orientation_xyzw"), list):
+            out[k] = {**v, "orientation_xyzw": turned_xyzw(v["orientation_xyzw"],
+                                                           result.frame_turn_deg)}
     for a, p in positions.items():
         if a not in spelt:
             out[str(a)] = [round(c, 3) for c in p]
@@ -76,6 +99,15 @@ def with_anchors(config_text: str, result: Survey, header: str, where: str) -> s
     text = _comment(header) + write_toml(doc)
     _check(text, where)
     return text
+
+
+def turned_xyzw(q: Sequence[float], turn_deg: float) -> list[float]:
+    """The orientation ``q`` (x, y, z, w) in the frame turned by ``turn_deg`` about z
+    (``p' = R(turn) p``): ``q_z(turn) ⊗ q``."""
+    half = math.radians(turn_deg) / 2
+    s, c = math.sin(half), math.cos(half)
+    x, y, z, w = (float(v) for v in q)
+    return [round(v, 9) for v in (c * x - s * y, c * y + s * x, c * z + s * w, c * w - s * z)]
 
 
 def _comment(header: str) -> str:
