@@ -156,7 +156,8 @@ anchor_coefficients_m = [0.01, 0.02, 0.03]
      "0.5, got 12"),
     ("log_distance_m = -0.1", "range_model.log_distance_m: must be zero or more"),
     ("anchor_degree = 1\nanchor_coefficients_m = [0.1]",
-     "range_model.anchor_coefficients_m: anchor degree 1 takes 3 coefficients, got 1"),
+     "range_model.anchor_coefficients_m: anchor degree 1 takes 3 coefficients (degrees 1..1, "
+     "m = -l..l each), got 1"),
     ("anchor_coefficients_m = [0.1, 0.0, 0.0]",
      "range_model.anchor_coefficients_m: given without range_model.anchor_degree"),
     ("anchor_degree = 1\nanchor_coefficients_m = [0.0, 2.0, 0.0]",

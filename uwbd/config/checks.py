@@ -249,17 +249,23 @@ def check_range_model(r: Report, model: dict[str, Any], fusion: Mapping[str, Any
             r.error("range_model.tag_coefficients_m", "given without range_model.tag_degree: "
                     "set the degree they were fitted for (uwbd calibrate-ranges writes both)")
         return
+    _check_coefficients(r, "range_model.tag_coefficients_m", "degree", degree, coefficients)
+
+
+def _check_coefficients(r: Report, key: str, what: str, degree: int,
+                        coefficients: list[float] | None) -> bool:
+    """A direction term's coefficients: as many as ``degree`` takes, each plausible for an
+    antenna; False when their number is wrong."""
     n = n_coefficients(degree)
     if coefficients is None or len(coefficients) != n:
-        r.error("range_model.tag_coefficients_m", f"degree {degree} takes {n} coefficients "
-                "(degrees 1..{0}, m = -l..l each), got ".format(degree)
-                + ("none" if coefficients is None else str(len(coefficients))))
-        return
+        r.error(key, f"{what} {degree} takes {n} coefficients (degrees 1..{degree}, m = -l..l "
+                "each), got " + ("none" if coefficients is None else str(len(coefficients))))
+        return False
     big = [i for i, c in enumerate(coefficients) if abs(c) > MAX_TAG_TERM_M]
     if big:
-        r.error("range_model.tag_coefficients_m", f"element {big[0]} is "
-                f"{coefficients[big[0]]:g} m: an antenna's direction term is at most "
-                f"{MAX_TAG_TERM_M:g} m (are they in metres?)")
+        r.error(key, f"element {big[0]} is {coefficients[big[0]]:g} m: an antenna's direction "
+                f"term is at most {MAX_TAG_TERM_M:g} m (are they in metres?)")
+    return True
 
 
 def check_imu(r: Report, imu: Mapping[str, Any], lever: Vec3) -> None:
@@ -332,17 +338,9 @@ def _check_anchor_term(r: Report, model: Mapping[str, Any], fusion: Mapping[str,
                     "range_model.anchor_degree: set the degree they were fitted for (uwbd "
                     "calibrate-ranges writes both)")
         return
-    n = n_coefficients(degree)
-    if coefficients is None or len(coefficients) != n:
-        r.error("range_model.anchor_coefficients_m", f"anchor degree {degree} takes {n} "
-                "coefficients, got " + ("none" if coefficients is None else
-                                        str(len(coefficients))))
+    if not _check_coefficients(r, "range_model.anchor_coefficients_m", "anchor degree",
+                               degree, coefficients):
         return
-    big = [i for i, c in enumerate(coefficients) if abs(c) > MAX_TAG_TERM_M]
-    if big:
-        r.error("range_model.anchor_coefficients_m", f"element {big[0]} is "
-                f"{coefficients[big[0]]:g} m: an antenna's direction term is at most "
-                f"{MAX_TAG_TERM_M:g} m (are they in metres?)")
     if fusion.get("mode") == "loose":
         r.warn("range_model.anchor_degree", f"{degree}: loose mode's fixes take no anchors' "
                "term (it applies to the ranges of tight mode)")
