@@ -123,7 +123,7 @@ def _attitude_spikes(rotation: Array, t_ns: npt.NDArray[np.int64]) -> npt.NDArra
 def range_samples(frames: Iterable[Frame], anchors_m: Mapping[int, Sequence[float]],
                   truth_t_ns: npt.NDArray[np.int64], truth_p_m: Array, truth_rotation: Array,
                   lever_arm_m: Sequence[float], tag_mounting: Sequence[Sequence[float]],
-                  anchor_axes: Mapping[int, Sequence[Sequence[float]]] | None = None
+                  anchor_axes: Mapping[int, npt.ArrayLike] | None = None
                   ) -> RangeSamples:
     """Every tag range of ``frames`` whose anchor is known (configured, or sent with it)
     against the truth at its time; the rays in the anchors' axes where ``anchor_axes``
