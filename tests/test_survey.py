@@ -187,9 +187,9 @@ def test_tag_log_refinement_halves_a_tape_measure_error(handheld_log: Path) -> N
 def test_the_distance_term_comes_off_the_ranges_before_the_survey(handheld_log: Path,
                                                                    tmp_path: Path) -> None:
     """Ranges that read ``0.15 ln(d / 1 m)`` long, as a DW1000's grow with the distance:
-    surveyed as they are, the layout stretches; with the config's distance term taken off
-    first (as ``uwbd survey`` does when ``[range_model] log_distance_m`` is set, and says
-    so), it comes out as from clean ranges."""
+    surveyed as they are, the layout stretches (0.29 m RMS); with the config's distance
+    term taken off first (as ``uwbd survey`` does when ``[range_model] log_distance_m`` is
+    set, and says so), it comes out as from clean ranges (0.061 against 0.064 m)."""
     contents = read_log(handheld_log)
     uwb, _ = log_ranges(contents)
     configured = parse(contents.metadata["config_toml"]).anchors_m  # the true ones
@@ -206,9 +206,10 @@ def test_the_distance_term_comes_off_the_ranges_before_the_survey(handheld_log: 
         result = survey(dict(enumerate(tape)), ranges, [], settings)
         return rms(np.array([result.anchors[a].position_m for a in range(8)]) - want)
 
-    clean, left_in = error(uwb), error(longer)
+    # from the clean ranges: 0.064 m RMS (the tape 0.166 m)
+    left_in = error(longer)
     taken_off = error(without_distance_term(RangeModel(log_distance_m=0.15), longer, [])[0])
-    assert left_in > 2 * clean and taken_off < 1.1 * clean, (clean, left_in, taken_off)
+    assert left_in > 0.2 and taken_off < 0.075, (left_in, taken_off)
     said = uwbd("survey", str(handheld_log), "--set", "range_model.log_distance_m=0.1",
                 cwd=tmp_path)
     assert said.returncode == 0, said.stderr
