@@ -24,7 +24,8 @@ from uwbd.fusion.settings import IDENTITY3, FilterConfig
 from uwbd.tools.evaluate import merge, run_filter, score_poses
 from uwbd.tools.importer import load_inrol
 from uwbd.tools.logtools import simulation_toml
-from uwbd.tools.range_calibration import calibrate, nlos_tail, range_samples
+from uwbd.tools.range_calibration import calibrate, range_samples
+from uwbd.tools.range_noise import nlos_tail
 from uwbd.tools.sim_presets import handheld_async
 from uwbd.tools.simulator import simulate
 

@@ -41,12 +41,8 @@ from uwbd.tools.evaluate import (
     truth_spikes,
 )
 from uwbd.tools.logtools import Recording
-from uwbd.tools.range_calibration import (
-    RangeCalibrationError,
-    RangeSamples,
-    range_samples,
-    robust_sigma,
-)
+from uwbd.tools.range_calibration import RangeCalibrationError, RangeSamples, range_samples
+from uwbd.tools.range_noise import robust_sigma
 
 Track = tuple[Times, Array, Array | None]
 
