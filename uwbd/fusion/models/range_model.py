@@ -193,7 +193,7 @@ class RangeModel:
         """The whole model's delay of each range: its anchor's delay, the distance term, the
         tag's direction term (rays ``u_tag``, tag axes; n×3) and the anchors' (rays
         ``u_anchor`` in the anchors' axes, NaN rows where an anchor has none)."""
-        delays = dict(self.anchor_delays_m)
+        delays = self._delays
         out = np.array([delays.get(int(a), 0.0) for a in anchor], dtype=float)
         if self.log_distance_m:
             out += self.log_distance_m * np.log(np.maximum(distance_m, MIN_LOG_DISTANCE_M))

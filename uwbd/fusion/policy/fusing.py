@@ -74,6 +74,7 @@ class EpochFusion:
     _aligned: bool
     _at_rest: bool
     _imu_fresh: Callable[[], bool]  # the filter's: the last IMU sample is recent
+    _antenna: Callable[[], Array | None]  # the filter's: the antenna by the estimate
 
     def _apply_range_model(self, ids: list[int], anchors: Array, ranges: Array) -> Array:
         """The anchors' direction term at the prior position (it needs no attitude); the tag
@@ -84,9 +85,9 @@ class EpochFusion:
         applied (the tilt is known), the rest held back (the health note
         ``range_model_held``)."""
         model, ekf = self.cfg.range_model, self.ekf
-        if model.anchor_degree and ekf is not None:
-            ranges = ranges - model.anchor_term_m(
-                ids, anchors, np.array(ekf.p) + ekf.R @ self._plain_lever)
+        antenna = self._antenna() if model.anchor_degree else None
+        if antenna is not None:
+            ranges = ranges - model.anchor_term_m(ids, anchors, antenna)
         if not model.enabled:
             return ranges
         self.monitor.range_model_held = not self._aligned
