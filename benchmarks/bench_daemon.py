@@ -45,7 +45,7 @@ import zenoh
 
 from uwbd.fusion.core import native
 from uwbd.logs.reading import read_log
-from uwbd.logs.replay import replay
+from uwbd.service.replay import replay
 from uwbd.tools.logtools import write_simulation
 from uwbd.tools.sim_presets import segments_for
 from uwbd.tools.simulator import SimConfig, simulate

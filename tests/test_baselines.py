@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from drivers.frames import ImuSample
-from uwbd.fusion.core.eskf import GRAVITY_MPS2
+from uwbd.fusion.core.noise import GRAVITY_MPS2
 from uwbd.fusion.core.rotation import Array, euler_from_quat, quat_from_euler, quat_to_matrix
 from uwbd.fusion.settings import FilterConfig
 from uwbd.tools.baselines import (

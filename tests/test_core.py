@@ -25,16 +25,18 @@ from uwbd.fusion.checks.imu_check import ImuCheck, ImuLimits, new_imu_check
 from uwbd.fusion.checks.intrinsics import ImuIntrinsics, body_maps, to_body
 from uwbd.fusion.checks.window_raim import solve_snapshot
 from uwbd.fusion.core import native
-from uwbd.fusion.core.eskf import N_CORE, TH_, V_, Eskf, ImuNoise, Row
+from uwbd.fusion.core.eskf import Eskf
+from uwbd.fusion.core.layout import N_CORE, TH_, V_
 from uwbd.fusion.core.lsq import multilaterate
+from uwbd.fusion.core.noise import ImuNoise
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.core.state import CoreEskf, new_eskf
+from uwbd.fusion.core.weights import Row, RowPolicy
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.models.measurements import range_check, range_rows
 from uwbd.fusion.policy.outputs import MAX_OBSERVABLE_YAW_SIGMA
-from uwbd.fusion.policy.rest import ImuWindow, RestLimits
-from uwbd.fusion.policy.robust import RobustPolicy, RowPolicy
-from uwbd.fusion.settings import Z_DOWN, FilterConfig
+from uwbd.fusion.policy.rest import ImuWindow
+from uwbd.fusion.settings import Z_DOWN, FilterConfig, RestLimits, RobustPolicy
 from uwbd.fusion.types import Pose
 from uwbd.tools.evaluate import merge, run_filter, run_smoother
 from uwbd.tools.importer import INROL_LEVER_ARM_M, INROL_MOUNTING, load_iasl, load_inrol
@@ -286,7 +288,7 @@ def test_the_row_policy_in_c_matches_its_reference(seed: int, n_aux: int, kinds:
     H = rng.normal(size=(m, fast.n))
     y = rng.normal(size=m) * scale  # from well inside the gate to far outside it
     R = rng.uniform(0.001, 0.1, size=m)
-    policy = RowPolicy.of(kinds.encode(), 6.63, RobustPolicy(enabled=robust), fix_ok)
+    policy = RobustPolicy(enabled=robust).rows(kinds.encode(), 6.63, fix_ok)
     twin_fast, _ = twin(n_aux, seed)  # the same rows, the policy called back from C
     called = twin_fast.sequential_update(H, y, R, policy.__call__, None)
     rows_fast = fast.sequential_update(H, y, R, _ReadNotCalled(*policy), None)
@@ -396,7 +398,7 @@ def test_a_tight_epoch_in_one_call_matches_rows_then_update(seed: int, k: int, e
     H_extra = rng.normal(size=(extra, fast.n))
     y_extra, R_extra = rng.normal(size=extra) * 0.1, rng.uniform(0.001, 0.1, size=extra)
     kinds = b"r" * k + b"z" * extra
-    policy = RowPolicy.of(kinds, 6.63, RobustPolicy(enabled=robust), True)
+    policy = RobustPolicy(enabled=robust).rows(kinds, 6.63, True)
     rows_fast = fast.fuse_ranges(lever, anchors, ranges, var, tuple(columns[a] for a in ids),
                                  (H_extra, y_extra, R_extra), policy, considered)
     assert rows_fast is not None
@@ -418,7 +420,7 @@ def test_a_tight_epoch_with_an_antenna_on_an_anchor_is_left_to_the_reference() -
     anchors = np.array([fast.p, [5.0, 0.0, 0.0]])  # the first anchor at the antenna
     rows = fast.fuse_ranges(np.zeros(3), anchors, np.array([0.0, 5.0]), np.full(2, 0.01),
                             ((), ()), (np.zeros((0, fast.n)), np.zeros(0), np.zeros(0)),
-                            RowPolicy.of(b"rr", 6.63, RobustPolicy(), True), None)
+                            RobustPolicy().rows(b"rr", 6.63, True), None)
     assert rows is None and np.array_equal(fast.P, P) and np.array_equal(nominal(fast), x)
 
 

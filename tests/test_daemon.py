@@ -22,11 +22,11 @@ from drivers.emulator.scenario import CircleScenario
 from uwbd.config import parse
 from uwbd.fusion.core import native
 from uwbd.logs.reading import read_log
-from uwbd.logs.replay import replay
 from uwbd.logs.sink import McapSink
 from uwbd.service.narrator import Narrator
 from uwbd.service.pipeline import Pipeline, PoseList
 from uwbd.service.ports import ReadQueue
+from uwbd.service.replay import replay
 from uwbd.tools.logtools import write_simulation
 from uwbd.tools.simulator import SimConfig, simulate
 

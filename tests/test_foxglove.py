@@ -30,9 +30,9 @@ from uwbd.config import parse
 from uwbd.logs import foxglove as fx
 from uwbd.logs.mcaplog import METADATA_NAME
 from uwbd.logs.reading import read_log
-from uwbd.logs.replay import replay
 from uwbd.logs.sink import McapSink
 from uwbd.service.pipeline import Pipeline
+from uwbd.service.replay import replay
 from uwbd.tools.logtools import simulation_toml, write_simulation
 from uwbd.tools.simulator import DEFAULT_SEGMENTS, SimConfig, simulate
 

@@ -14,8 +14,10 @@ from truth import position_errors
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
 from uwbd.fusion.checks.gating import chi2_quantile
 from uwbd.fusion.core import native
-from uwbd.fusion.core.eskf import N_CORE, TH_, Eskf, ImuNoise
+from uwbd.fusion.core.eskf import Eskf
+from uwbd.fusion.core.layout import N_CORE, TH_
 from uwbd.fusion.core.lsq import coplanar, multilaterate
+from uwbd.fusion.core.noise import ImuNoise
 from uwbd.fusion.core.rotation import (
     Array,
     euler_from_quat,
@@ -25,9 +27,8 @@ from uwbd.fusion.core.rotation import (
 )
 from uwbd.fusion.core.smoother import smooth
 from uwbd.fusion.filter import Filter
-from uwbd.fusion.policy.health import Phase
 from uwbd.fusion.settings import FilterConfig, Mode
-from uwbd.fusion.types import Pose
+from uwbd.fusion.types import Phase, Pose
 from uwbd.tools.evaluate import (
     merge,
     run_filter,

@@ -17,7 +17,9 @@ import pytest
 from drivers.frames import ImuSample
 from uwbd.config import ConfigError, apply_overrides, parse
 from uwbd.fusion.checks.intrinsics import ImuIntrinsics, to_body
-from uwbd.fusion.core.eskf import GRAVITY_MPS2, N_CORE, Eskf, ImuNoise
+from uwbd.fusion.core.eskf import Eskf
+from uwbd.fusion.core.layout import N_CORE
+from uwbd.fusion.core.noise import GRAVITY_MPS2, ImuNoise
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.settings import Z_DOWN, FilterConfig
 from uwbd.logs.mcaplog import LogWriter

@@ -28,15 +28,13 @@ from uwbd.fusion.checks.anchor_consistency import (
     ConsistencyLimits,
 )
 from uwbd.fusion.checks.gating import chi2_quantile
-from uwbd.fusion.core.eskf import N_CORE
+from uwbd.fusion.core.layout import N_CORE
 from uwbd.fusion.core.lsq import multilaterate
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.filter import Filter
-from uwbd.fusion.policy.health import Phase
 from uwbd.fusion.policy.mirror import MirrorSide
-from uwbd.fusion.policy.robust import RobustPolicy, RowPolicy
-from uwbd.fusion.settings import FilterConfig, Mode
-from uwbd.fusion.types import Pose
+from uwbd.fusion.settings import FilterConfig, Mode, RobustPolicy
+from uwbd.fusion.types import Phase, Pose
 from uwbd.service.pipeline import Pipeline, PoseList
 from uwbd.tools.baselines import UwbLeastSquares
 from uwbd.tools.evaluate import merge, run_filter, run_method, score, score_poses
@@ -290,8 +288,8 @@ def test_the_robust_weight_itself_de_weights_the_nlos_side_more() -> None:
     inside the gate a range 2σ long is de-weighted, more than one 2σ short (NLOS only adds
     delay); robust off, both weigh 1; beyond the gate, 0 either way."""
     gate = chi2_quantile(0.9973, 1)
-    robust = RowPolicy.of(b"r", gate, RobustPolicy(), True)
-    plain = RowPolicy.of(b"r", gate, RobustPolicy(enabled=False), True)
+    robust = RobustPolicy().rows(b"r", gate, True)
+    plain = RobustPolicy(enabled=False).rows(b"r", gate, True)
     s = 0.04  # S, m²: σ = 0.2 m
     long, short = robust(0, 2 * 0.2, s), robust(0, -2 * 0.2, s)
     assert 0.0 < long < short < 1.0 and long < 0.5

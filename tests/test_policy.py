@@ -10,9 +10,11 @@ import numpy as np
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.policy.alignment import HeadingAligner
 from uwbd.fusion.policy.fixes import RangeWindow
-from uwbd.fusion.policy.health import HealthLimits, HealthMonitor, Phase
+from uwbd.fusion.policy.health import HealthMonitor
 from uwbd.fusion.policy.mirror import MirrorSide
 from uwbd.fusion.policy.rest import STILL_EVERY_NS, UwbStillness
+from uwbd.fusion.settings import HealthLimits
+from uwbd.fusion.types import Phase
 
 NS = 1_000_000_000
 T0 = 1_700_000_000 * NS

@@ -22,7 +22,8 @@ import pytest
 
 from uwbd.config import parse
 from uwbd.service.pipeline import Pipeline
-from uwbd.service.ports import EpochClock, ReadQueue, SerialSource, ThreadReads, _reader_module
+from uwbd.service.ports import EpochClock, ReadQueue, SerialSource
+from uwbd.service.reads import ThreadReads, _reader_module
 
 READER = _reader_module()
 pytestmark = pytest.mark.skipif(READER is None, reason="the C reader is not built or ruled out")

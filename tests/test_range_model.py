@@ -19,8 +19,7 @@ from uwbd.config import ConfigError, apply_overrides, parse
 from uwbd.fusion.core.rotation import quat_from_euler, quat_to_matrix
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.models.range_model import RangeModel, basis, n_coefficients
-from uwbd.fusion.policy.robust import RobustPolicy
-from uwbd.fusion.settings import IDENTITY3, FilterConfig
+from uwbd.fusion.settings import IDENTITY3, FilterConfig, RobustPolicy
 from uwbd.tools.evaluate import merge, run_filter, score_poses
 from uwbd.tools.importer import load_inrol
 from uwbd.tools.logtools import simulation_toml

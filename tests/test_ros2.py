@@ -22,8 +22,8 @@ from uwbd.config import parse
 from uwbd.fusion.core.rotation import quat_to_matrix
 from uwbd.fusion.types import Pose
 from uwbd.logs.reading import read_log
-from uwbd.ros2.bag import write_bag
 from uwbd.tools.logtools import write_simulation
+from uwbd.tools.ros2_bag import write_bag
 from uwbd.tools.simulator import DEFAULT_SEGMENTS, SimConfig, simulate
 
 READER_TYPES = get_typestore(Stores.ROS2_JAZZY)

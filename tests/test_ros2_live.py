@@ -31,9 +31,9 @@ from drivers.emulator import DeviceSpec, Emulator, Faults
 from drivers.emulator.scenario import CircleScenario
 from drivers.frames import ImuSample
 from uwbd.config import ConfigError, parse
+from uwbd.config.ros2 import settings_of
 from uwbd.fusion.types import Pose
 from uwbd.ros2 import rmw_zenoh as rz
-from uwbd.ros2.bag import write_bag
 from uwbd.ros2.cdr import imu_layout, pose_layouts
 from uwbd.ros2.messages import (
     TYPESTORE,
@@ -44,7 +44,7 @@ from uwbd.ros2.messages import (
     pose_msg,
     tf_msg,
 )
-from uwbd.ros2.settings import settings_of
+from uwbd.tools.ros2_bag import write_bag
 
 # a store of its own (Jazzy's), not uwbd's: the hashes and the decoding are checked against it
 JAZZY = get_typestore(Stores.ROS2_JAZZY)

@@ -15,7 +15,8 @@ from drivers.frames import ImuSample
 from uwbd.config import parse
 from uwbd.fusion.checks.window_raim import RaimLimits, WindowRaim
 from uwbd.fusion.filter import Filter
-from uwbd.fusion.policy.health import HealthLimits, HealthMonitor
+from uwbd.fusion.policy.health import HealthMonitor
+from uwbd.fusion.settings import HealthLimits
 from uwbd.fusion.types import Pose
 from uwbd.tools.evaluate import merge
 from uwbd.tools.logtools import simulation_toml

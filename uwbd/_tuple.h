@@ -1,4 +1,4 @@
-/* A named tuple made from C (uwbd/fusion/_outcomes.c, uwbd/logs/_scan.c). */
+/* A named tuple made from C (uwbd/logs/_scan.c, uwbd/fusion/core/_checks.c). */
 #ifndef UWBD_TUPLE_H
 #define UWBD_TUPLE_H
 

@@ -24,7 +24,7 @@ from uwbd.commands.common import (
 )
 from uwbd.config import ConfigError, parse
 from uwbd.logs.reading import not_a_log, recover
-from uwbd.logs.replay import replay
+from uwbd.service.replay import replay
 
 READ_CHUNK_BYTES = 65536
 
@@ -134,7 +134,7 @@ def cmd_recover(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    """A log as a ROS 2 bag folder (metadata.yaml + MCAP, CDR): see :mod:`uwbd.ros2.bag`."""
+    """A log as a ROS 2 bag folder (metadata.yaml + MCAP, CDR): see :mod:`uwbd.tools.ros2_bag`."""
     path, contents = open_log(args.log, "exporting")
     out = Path(args.ros2)
     if out.exists() or out.is_symlink():
@@ -145,7 +145,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     if config_toml is not None or not any(m.topic == "/pose" for m in contents.messages):
         require_replayable(path, contents)  # the poses come from a replay
     try:
-        from uwbd.ros2.bag import export_ros2
+        from uwbd.tools.ros2_bag import export_ros2
     except ImportError as err:
         raise UsageError(f"export needs the tools extra ({err.name} is missing): pip install "
                          "'uwbd[tools]' (from a checkout: pip install '.[tools]')") from err

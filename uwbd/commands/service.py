@@ -25,9 +25,7 @@ from uwbd.commands.common import (
 )
 from uwbd.config import default_robot_name, endpoint_problem
 from uwbd.config.checks import Report
-from uwbd.config.zenoh_checks import check_zenoh_file
-from uwbd.config.zenoh_session import effective, zenoh_reason
-from uwbd.ros2.settings import (
+from uwbd.config.ros2 import (
     DEFAULT_TOPICS,
     EXTRA_HINT,
     TOPIC_NAME,
@@ -35,6 +33,8 @@ from uwbd.ros2.settings import (
     missing_extra,
     settings_of,
 )
+from uwbd.config.zenoh_checks import check_zenoh_file
+from uwbd.config.zenoh_session import effective, zenoh_reason
 from uwbd.service.daemon import PipelineError
 from uwbd.service.daemon import run as run_daemon
 from uwbd.service.demo import run_demo
@@ -174,7 +174,7 @@ def _ros2_listen(args: argparse.Namespace, settings: Ros2Settings) -> Listen:
     topic = args.ros2 or settings.topics["pose"] or DEFAULT_TOPICS["pose"]
     if not TOPIC_NAME.fullmatch(topic):
         raise UsageError(f"--ros2 {topic}: not a ROS 2 topic name (e.g. /uwbd/pose, /tf)")
-    from uwbd.ros2.echo import ros2_topic
+    from uwbd.service.ros2_echo import ros2_topic
 
     return ros2_topic(settings, topic)
 

@@ -112,7 +112,7 @@ def cmd_calibrate_imu(args: argparse.Namespace) -> int:
     static capture (:mod:`uwbd.tools.imu_calibration`); ``-o`` writes them as an ``[imu]``
     snippet, ``--write-config`` into a copy of a config."""
     from drivers.frames import ImuSample
-    from uwbd.fusion.core.eskf import GRAVITY_MPS2
+    from uwbd.fusion.core.noise import GRAVITY_MPS2
     from uwbd.tools.imu_calibration import MIN_STATIC_S, CalibrationError, calibrate
 
     if args.gravity is not None and not 9.7 <= args.gravity <= 9.9:

@@ -79,7 +79,6 @@ from uwbd.config.model import (
     IMU_INTRINSIC_KEYS,
     IMU_LIMIT_KEYS,
     IMU_NOISE_KEYS,
-    MULTIPATH_SIGMA_M,
     Config,
     ConfigError,
     SourceConfig,
@@ -102,7 +101,7 @@ from uwbd.config.zenoh_checks import endpoint_problem
 
 __all__ = [
     "G_MPS2", "IMU_DRIVERS", "IMU_INTRINSIC_KEYS", "IMU_LIMIT_KEYS", "IMU_NOISE_KEYS",
-    "MAX_CONFIG_BYTES", "MIN_ANCHOR_SPACING_M", "MULTIPATH_SIGMA_M", "NOISE_PLAUSIBLE_FACTOR",
+    "MAX_CONFIG_BYTES", "MIN_ANCHOR_SPACING_M", "NOISE_PLAUSIBLE_FACTOR",
     "ROTATION_TOLERANCE", "STANDARD_BAUDS", "UWB_DRIVERS", "ZENOH_PROTOCOLS", "Config",
     "ConfigError", "SourceConfig", "Vec3", "apply_overrides", "default_robot_name",
     "endpoint_problem", "load", "parse", "to_toml",

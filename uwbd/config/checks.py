@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from uwbd.config.model import Config, SourceConfig, Vec3, vec3
+from uwbd.config.ros2 import TOPIC_KEYS, settings_of
 from uwbd.config.schema import (
     DEADBAND_PLAUSIBLE_RPS,
     DRIVERS,
@@ -35,7 +36,6 @@ from uwbd.fusion.filter import MAX_ANCHOR_COORD_M, Filter
 from uwbd.fusion.models.range_model import n_coefficients
 from uwbd.fusion.policy.fusing import MAX_RANGE_BIAS_SIGMA_M
 from uwbd.fusion.settings import IDENTITY3
-from uwbd.ros2.settings import TOPIC_KEYS, settings_of
 
 
 class Report:

@@ -9,15 +9,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from uwbd.config.ros2 import Ros2Settings, settings_of
 from uwbd.fusion.checks.gating import GatingPolicy
 from uwbd.fusion.checks.imu_check import ImuLimits
 from uwbd.fusion.checks.intrinsics import ImuIntrinsics
-from uwbd.fusion.core.eskf import GRAVITY_MPS2, ImuNoise
+from uwbd.fusion.core.noise import GRAVITY_MPS2, ImuNoise
 from uwbd.fusion.models.range_model import RangeModel
-from uwbd.fusion.policy.health import HealthLimits
-from uwbd.fusion.policy.robust import RobustPolicy
-from uwbd.fusion.settings import IDENTITY3, FilterConfig, Mode
-from uwbd.ros2.settings import Ros2Settings, settings_of
+from uwbd.fusion.settings import IDENTITY3, FilterConfig, HealthLimits, Mode, RobustPolicy
 
 Vec3 = tuple[float, float, float]
 # [imu] key -> ImuNoise field
@@ -31,7 +29,10 @@ IMU_INTRINSIC_KEYS = (*IMU_INTRINSIC_VECTORS, "gyro_deadband_rps", "gravity_mps2
 # and alert limits, and the ranges' bias bound
 _HEALTH_KEYS = ("integrity_risk", "horizontal_alert_limit_m", "vertical_alert_limit_m",
                 "range_bias_bound_m")
-MULTIPATH_SIGMA_M = 0.07  # the default time-correlated range error (real installations)
+# [fusion] keys that are FilterConfig fields (the same names), taken as they are
+_FILTER_KEYS = ("lever_arm_sigma_m", "range_sigma_m", "range_bias_states", "range_bias_sigma_m",
+                "tag_delay_sigma_m", "multipath_tau_s", "tag_side", "zupt", "nhc",
+                "known_height_m", "gate_probability")
 
 
 def vec3(value: Sequence[float]) -> Vec3:
@@ -145,16 +146,20 @@ class Config:
                           tuple(sorted(self.anchor_axes.items())))
 
     def filter_config(self) -> FilterConfig:
+        """The filter's settings: each key given, the rest at :class:`FilterConfig`'s
+        defaults (written there only)."""
         f = self.fusion
-        range_sigma_m = f.get("range_sigma_m", 0.10)
+        given = {k: f[k] for k in _FILTER_KEYS if k in f}
+        if "height_range_m" in f:
+            given["height_range_m"] = (float(f["height_range_m"][0]),
+                                       float(f["height_range_m"][1]))
+        if "multipath_sigma_m" in f:  # 0 turns the states off
+            given["multipath_states"] = f["multipath_sigma_m"] > 0
+            given["multipath_sigma_m"] = f["multipath_sigma_m"] or FilterConfig.multipath_sigma_m
+        gating = FilterConfig().gating
         return FilterConfig(
-            mode=Mode(f.get("mode", "tight")), anchors_m=self.anchors_m,
+            mode=Mode(f.get("mode", FilterConfig.mode.value)), anchors_m=self.anchors_m,
             mounting_rotation=self.mounting, lever_arm_m=self.lever_arm_m,
-            lever_arm_sigma_m=f.get("lever_arm_sigma_m", 0.0),
-            range_sigma_m=range_sigma_m,
-            range_bias_states=f.get("range_bias_states", True),
-            range_bias_sigma_m=f.get("range_bias_sigma_m", 0.1),
-            tag_delay_sigma_m=f.get("tag_delay_sigma_m", 0.2),
             imu_noise=ImuNoise(**{IMU_NOISE_KEYS[k]: v for k, v in self.imu_noise.items()}),
             imu_limits=ImuLimits(
                 acc_full_scale_mps2=self.imu_limits.get("acc_full_scale_mps2",
@@ -163,19 +168,12 @@ class Config:
                                                         ImuLimits.gyro_full_scale_rps)),
             imu_intrinsics=self.intrinsics(),
             gravity_mps2=self.imu_intrinsics.get("gravity_mps2", GRAVITY_MPS2),
-            robust=RobustPolicy.of_onset(f.get("robust", True), f.get("nlos_onset_m"),
-                                         range_sigma_m),
-            multipath_states=f.get("multipath_sigma_m", MULTIPATH_SIGMA_M) > 0,
-            multipath_sigma_m=f.get("multipath_sigma_m", MULTIPATH_SIGMA_M) or MULTIPATH_SIGMA_M,
-            multipath_tau_s=f.get("multipath_tau_s", 1.0),
+            robust=RobustPolicy.of_onset(f.get("robust", RobustPolicy.enabled),
+                                         f.get("nlos_onset_m"),
+                                         f.get("range_sigma_m", FilterConfig.range_sigma_m)),
             range_model=self.range_model_settings(),
-            tag_side=f.get("tag_side", "auto"),
-            height_range_m=((float(f["height_range_m"][0]), float(f["height_range_m"][1]))
-                            if "height_range_m" in f else None),
-            zupt=f.get("zupt", True),
-            nhc=f.get("nhc", False), known_height_m=f.get("known_height_m"),
-            gate_probability=f.get("gate_probability", 0.997),
-            gating=GatingPolicy(min_anchors=f.get("min_anchors", 1),
-                                max_range_m=f.get("max_range_m", 100.0)),
+            gating=GatingPolicy(min_anchors=f.get("min_anchors", gating.min_anchors),
+                                max_range_m=f.get("max_range_m", gating.max_range_m)),
             health=HealthLimits(**{k: f[k] for k in _HEALTH_KEYS if k in f}),
+            **given,
         )

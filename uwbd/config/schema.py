@@ -12,12 +12,12 @@ from typing import Any
 
 from drivers.nlink import N_SLOTS
 from uwbd.config.model import IMU_INTRINSIC_VECTORS, IMU_LIMIT_KEYS, IMU_NOISE_KEYS
+from uwbd.config.ros2 import DISTROS, MAX_DOMAIN_ID, NAMESPACE, NODE_NAME, TOPIC_KEYS, TOPIC_NAME
 from uwbd.config.spelling import maybe, show, type_name
-from uwbd.fusion.core.eskf import ImuNoise
+from uwbd.fusion.core.noise import ImuNoise
 from uwbd.fusion.filter import MAX_ANCHOR_COORD_M
 from uwbd.fusion.models.range_model import MAX_DEGREE
 from uwbd.fusion.settings import Mode
-from uwbd.ros2.settings import DISTROS, MAX_DOMAIN_ID, NAMESPACE, NODE_NAME, TOPIC_KEYS, TOPIC_NAME
 
 
 def _is_number(v: object) -> bool:
@@ -162,7 +162,7 @@ FRAME_ID = Kind("a frame name of letters, digits, '_', '-', '.' and '/' (\"base_
                 and re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_./-]*", v) is not None)
 _ROBOT_SPEC = {"name": Key(NAME), "nav_frame_id": Key(FRAME_ID),
                "body_frame_id": Key(FRAME_ID)}
-# the daemon's ROS 2 topics (uwbd.ros2.settings: ROS 2's name rules)
+# the daemon's ROS 2 topics (uwbd.config.ros2: ROS 2's name rules)
 ROS_NODE = Kind("a ROS 2 node name of letters, digits and '_', not starting with a digit "
                 "(\"uwbd\")", lambda v: isinstance(v, str) and NODE_NAME.fullmatch(v) is not None)
 ROS_NAMESPACE = Kind("a ROS 2 namespace (\"/robot1\", or \"/\" for none)",

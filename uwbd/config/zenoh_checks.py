@@ -13,9 +13,9 @@ from typing import Any
 
 from uwbd.config.checks import Report
 from uwbd.config.model import Config
+from uwbd.config.ros2 import EXTRA_HINT, EXTRA_MODULES, missing_extra
 from uwbd.config.schema import HOST_PORT_PROTOCOLS, HOSTNAME, ZENOH_PROTOCOLS
 from uwbd.config.spelling import known, show
-from uwbd.ros2.settings import EXTRA_HINT, EXTRA_MODULES, missing_extra
 
 
 def check_zenoh(r: Report, zenoh: Mapping[str, Any]) -> None:

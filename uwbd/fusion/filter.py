@@ -54,10 +54,12 @@ from uwbd.fusion.checks.imu_check import ImuCheck, new_imu_check
 from uwbd.fusion.checks.intrinsics import body_maps, to_body
 from uwbd.fusion.checks.mounting_yaw import MountingYaw
 from uwbd.fusion.checks.window_raim import RaimLimits, WindowRaim
-from uwbd.fusion.core.eskf import BA_, BG_, N_CORE, TH_, Eskf
+from uwbd.fusion.core.eskf import Eskf
+from uwbd.fusion.core.layout import BA_, BG_, N_CORE, TH_
 from uwbd.fusion.core.lsq import LsqFix, coplanar
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.core.smoother import EpochRecord, Nominal
+from uwbd.fusion.core.weights import RowPolicy
 from uwbd.fusion.models.measurements import (
     Rows,
     height_rows,
@@ -78,7 +80,7 @@ from uwbd.fusion.policy.recovery import (
     NS,
 )
 from uwbd.fusion.policy.rest import ImuWindow, UwbStillness
-from uwbd.fusion.policy.robust import AnchorStats, RowPolicy, quality_scale
+from uwbd.fusion.policy.robust import AnchorStats, quality_scale
 from uwbd.fusion.settings import FilterConfig, Mode
 from uwbd.fusion.types import FusionReport
 

@@ -10,15 +10,60 @@ from enum import Enum
 from uwbd.fusion.checks.gating import GatingPolicy
 from uwbd.fusion.checks.imu_check import ImuLimits
 from uwbd.fusion.checks.intrinsics import ImuIntrinsics
-from uwbd.fusion.core.eskf import GRAVITY_MPS2, ImuNoise
+from uwbd.fusion.core.noise import GRAVITY_MPS2, ImuNoise
+from uwbd.fusion.core.weights import RowPolicy
 from uwbd.fusion.models.range_model import RangeModel
-from uwbd.fusion.policy.health import HealthLimits
-from uwbd.fusion.policy.rest import RestLimits
-from uwbd.fusion.policy.robust import RobustPolicy
 
 Vec3 = tuple[float, float, float]
 IDENTITY3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 Z_DOWN = ((1.0, 0.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, -1.0))  # an IMU mounted upside down
+
+
+@dataclass(frozen=True)
+class HealthLimits:
+    coast_after_s: float = 1.0
+    range_timeout_s: float = 5.0
+    # a pose is healthy only while its protection levels, at this risk, are within these
+    integrity_risk: float = 1e-3
+    horizontal_alert_limit_m: float = 1.0
+    vertical_alert_limit_m: float = 1.5
+    # each range's unmodelled bias at most (ARAIM's nominal bias): antenna patterns, delays
+    range_bias_bound_m: float = 0.05
+    window_count: int = 12  # innovations judged over the last this many UWB measurements
+    max_rejected_fraction: float = 0.5
+    max_mean_nis: float = 6.0  # of the window's NIS, each clipped at 25
+    diverged_after_s: float = 2.0  # inconsistent this long: the state may be wrong
+    recover_hold_s: float = 3.0
+    imu_fault_hold_s: float = 1.0
+    clear_hold_s: float = 0.5  # after the last fault, degraded this long still (hysteresis)
+
+
+@dataclass(frozen=True)
+class RestLimits:
+    acc_std_mps2: float = 0.15  # |std of the specific force| over the window
+    gyro_rps: float = 0.03  # |mean rate| and |std of the rate|
+    gravity_tolerance_mps2: float = 1.0  # | |mean f| − g |: scale errors of a few % only
+
+
+@dataclass(frozen=True)
+class RobustPolicy:
+    enabled: bool = True
+    c_long: float = 2.5
+    c_short: float = 4.0
+
+    @staticmethod
+    def of_onset(enabled: bool, nlos_onset_m: float | None, range_sigma_m: float
+                 ) -> RobustPolicy:
+        """The policy of a config: ``[fusion] nlos_onset_m`` (``uwbd calibrate-ranges``
+        fits it: where a longer range becomes likelier NLOS than noise) as the long side's
+        scale in the ranges' σ; without it, the default 2.5 σ."""
+        if nlos_onset_m is None:
+            return RobustPolicy(enabled)
+        return RobustPolicy(enabled, c_long=nlos_onset_m / range_sigma_m)
+
+    def rows(self, kinds: bytes, gate_1: float, fix_ok: bool) -> RowPolicy:
+        """The numbers one update's rows are weighed with (:mod:`uwbd.fusion.core.weights`)."""
+        return RowPolicy(kinds, gate_1, self.enabled, self.c_long, self.c_short, fix_ok)
 
 
 class Mode(str, Enum):

@@ -1,13 +1,12 @@
 """A lean chunked MCAP writer for uwbd's logs: the ``mcap`` library's records, with the
 per-message path in one call.
 
-``mcap.writer.Writer`` builds a dataclass and makes a dozen calls for every message (about
-10 µs a message measured; a log takes ~600 a second). Here a message is one packed header
-and its bytes appended to the open chunk (:class:`PyChunk`, or its C twin ``_chunk.c``
-where built); everything else — schemas, channels, metadata,
-chunks, message and chunk indexes, statistics, the summary and its offsets, the footer —
-is written with the library's own record classes, in the same layout as its writer (the
-reader tests and ``uwbd.logs.reading.read_log`` check the files with the library's reader).
+``mcap.writer.Writer`` builds a dataclass and makes a dozen calls for every message. Here a
+message is one packed header and its bytes appended to the open chunk (:class:`PyChunk`, or
+its C twin ``_chunk.c`` where built); everything else — schemas, channels, metadata, chunks,
+message and chunk indexes, statistics, the summary and its offsets, the footer — is written
+with the library's own record classes, in the same layout as its writer (the reader tests
+and ``uwbd.logs.reading.read_log`` check the files with the library's reader).
 """
 
 from __future__ import annotations

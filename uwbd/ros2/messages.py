@@ -1,6 +1,6 @@
 """The ROS 2 messages of uwbd's poses and IMU samples, built with the pure-Python ``rosbags``
 (the ``ros2`` and ``tools`` extras): the same for the live topics (:mod:`uwbd.ros2.publisher`)
-and the bag (:mod:`uwbd.ros2.bag`).
+and the bag (:mod:`uwbd.tools.ros2_bag`).
 
 - the pose: ``geometry_msgs/msg/PoseWithCovarianceStamped`` in ``nav_frame_id`` with its 6×6
   covariance;
@@ -41,8 +41,7 @@ from rosbags.typesys.stores import ros2_humble as msgs
 from drivers.frames import ImuSample
 from uwbd.config import Config
 from uwbd.fusion.core.rotation import quat_from_matrix
-from uwbd.fusion.policy.health import Health, Phase
-from uwbd.fusion.types import Pose
+from uwbd.fusion.types import Health, Phase, Pose
 
 # ROS 2 message classes (Humble's definitions)
 Time = msgs.builtin_interfaces__msg__Time
@@ -68,7 +67,7 @@ KeyValue = msgs.diagnostic_msgs__msg__KeyValue
 # The message definitions of these types are the same from Humble to Kilted (same RIHS01
 # hashes), so Humble's store serves every distribution.
 TYPESTORE = get_typestore(Stores.ROS2_HUMBLE)
-# each topic's type, by role (the roles of uwbd.ros2.settings, and the bag's truth)
+# each topic's type, by role (the roles of uwbd.config.ros2, and the bag's truth)
 TYPES = {"pose": PoseWithCovarianceStamped.__msgtype__, "odom": Odometry.__msgtype__,
          "imu": Imu.__msgtype__, "tf": TFMessage.__msgtype__,
          "tf_static": TFMessage.__msgtype__, "diagnostics": DiagnosticArray.__msgtype__,

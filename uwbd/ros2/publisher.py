@@ -34,8 +34,8 @@ import zenoh.ext
 
 from drivers.frames import Frame, ImuSample
 from uwbd.config import Config
-from uwbd.fusion.policy.health import health_from_dict
-from uwbd.fusion.types import Pose
+from uwbd.config.ros2 import NO_TYPE_HASH
+from uwbd.fusion.types import Pose, health_from_dict
 from uwbd.ros2 import rmw_zenoh as rz
 from uwbd.ros2.cdr import imu_layout, pose_layouts
 from uwbd.ros2.messages import (
@@ -47,7 +47,6 @@ from uwbd.ros2.messages import (
     imu_variances,
     static_tf_msg,
 )
-from uwbd.ros2.settings import NO_TYPE_HASH
 
 NODE_ID = 0  # the node's id in its context; its publishers' ids follow from 1
 STREAM_QOS = rz.Qos(depth=10)

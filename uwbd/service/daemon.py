@@ -29,14 +29,8 @@ from uwbd.logs.sink import McapSink
 from uwbd.service.narrator import Narrator
 from uwbd.service.notify import Notifier
 from uwbd.service.pipeline import Pipeline, Sink
-from uwbd.service.ports import (
-    EpochClock,
-    LoopReads,
-    ReadQueue,
-    SerialSource,
-    ThreadReads,
-    make_reads,
-)
+from uwbd.service.ports import EpochClock, ReadQueue, SerialSource
+from uwbd.service.reads import LoopReads, ThreadReads, make_reads
 from uwbd.service.zenohsink import ZenohSink
 
 if TYPE_CHECKING:

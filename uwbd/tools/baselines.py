@@ -26,8 +26,8 @@ from filterpy.kalman import KalmanFilter
 from scipy.signal import butter, sosfilt_zi
 
 from drivers.frames import ImuSample, UwbRanges
-from uwbd.fusion.core.eskf import GRAVITY_MPS2
 from uwbd.fusion.core.lsq import LsqFix
+from uwbd.fusion.core.noise import GRAVITY_MPS2
 from uwbd.fusion.core.rotation import (
     Array,
     quat_from_euler,
@@ -292,8 +292,8 @@ class ComplementaryAttitude:
 def _sosfilt_step(sections: list[list[float]], zi: list[list[list[float]]],
                   x: list[float]) -> list[float]:
     """One sample through ``scipy.signal.sosfilt``'s cascade (transposed direct form II,
-    its operations in its order, so the same numbers), ``zi`` updated in place: per sample
-    a call into scipy costs ~50 µs, this ~3."""
+    its operations in its order, so the same numbers), ``zi`` updated in place: a sample
+    at a time without a call into scipy per sample."""
     out = list(x)
     for (b0, b1, b2, _a0, a1, a2), (z0, z1) in zip(sections, zi, strict=True):
         for k, xk in enumerate(out):

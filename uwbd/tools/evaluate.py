@@ -11,7 +11,7 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.frames import Frame, ImuSample, UwbRanges
-from uwbd.fusion.core.eskf import P_
+from uwbd.fusion.core.layout import P_
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.core.smoother import smooth
 from uwbd.fusion.filter import Filter

@@ -38,7 +38,7 @@ from drivers.frames import ImuSample
 from uwbd import config as cfgmod
 from uwbd.config.overrides import write_toml
 from uwbd.config.schema import INTRINSIC_BOUNDS
-from uwbd.fusion.core.eskf import GRAVITY_MPS2
+from uwbd.fusion.core.noise import GRAVITY_MPS2
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.settings import Z_DOWN
 from uwbd.logs.mcaplog import LogWriter, SourceInfo

@@ -13,74 +13,19 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 
+from uwbd.fusion.core.layout import BA_, BG_, N_CORE, P_, TH_, V_
+from uwbd.fusion.core.noise import GRAVITY_MPS2, ImuNoise, process_noise
 from uwbd.fusion.core.rotation import Array, quat_to_matrix, skew
-from uwbd.fusion.policy.robust import RowPolicy
+from uwbd.fusion.core.weights import RawRow, Row, RowPolicy, full_weight
 
-GRAVITY_MPS2 = 9.80665
 Vector = Sequence[float] | Array
-# error-state layout
-P_, V_, TH_, BG_, BA_ = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
-N_CORE = 15
-
-
-@dataclass(frozen=True)
-class ImuNoise:
-    """Continuous-time noise densities.
-
-    Accel white noise ``σ_a`` (m/s²/√Hz), gyro ``σ_g`` (rad/s/√Hz), bias random walks ``σ_ba``
-    (m/s³/√Hz), ``σ_bg`` (rad/s²/√Hz), and the range-bias random walk ``σ_br`` (m/√s) when
-    range-bias states are on. Defaults: a consumer MEMS IMU's datasheet densities
-    (≈ 0.003 m/s²/√Hz, ≈ 0.0002 rad/s/√Hz for MPU-9250-class parts) raised 3-5× for
-    vibration and temperature, which real mountings add.
-    """
-
-    acc: float = 0.01
-    gyro: float = 0.001
-    acc_bias: float = 1e-3
-    gyro_bias: float = 1e-4
-    range_bias: float = 1e-4
-
-
-class Row(NamedTuple):
-    """One scalar of a sequential update: innovation, its variance, the weight it was fused
-    with (0: not fused), and whether it was skipped as numerically impossible."""
-
-    innovation: float
-    variance: float
-    weight: float
-    numerical: bool
-
-
-RawRow = tuple[float, float, float, bool]  # a Row's fields as the C core returns them
 # a pose's covariance (6×6 row-major over p and the nav-frame attitude), σ_xy, heading
 # observable, position, velocity, orientation (x, y, z, w)
 PoseNumbers = tuple[tuple[float, ...], float, bool, tuple[float, float, float],
                     tuple[float, float, float], tuple[float, float, float, float]]
-
-
-def process_noise(noise: ImuNoise, n_range_bias: int, aux_tau_s: Array | None,
-                  aux_sigma: Array | None) -> tuple[Array, Array, Array]:
-    """What §3 takes for ``Q_d``: its diagonal per second (n), and per range-model state the
-    Gauss–Markov time constant ``τ`` (inf: a random walk, whose rate the diagonal holds)
-    and stationary variance."""
-    q_rate = np.zeros(N_CORE + n_range_bias)
-    q_rate[V_] = noise.acc**2
-    q_rate[TH_] = noise.gyro**2
-    q_rate[BG_] = noise.gyro_bias**2
-    q_rate[BA_] = noise.acc_bias**2
-    q_rate[N_CORE:] = noise.range_bias**2
-    tau = (np.full(n_range_bias, np.inf) if aux_tau_s is None
-           else np.asarray(aux_tau_s, dtype=float).reshape(n_range_bias))
-    markov = np.isfinite(tau)
-    q_rate[N_CORE:][markov] = 0.0
-    var = (np.zeros(n_range_bias) if aux_sigma is None
-           else np.where(markov, np.asarray(aux_sigma, dtype=float) ** 2, 0.0))
-    return q_rate, tau, var
 
 
 class Eskf:
@@ -199,7 +144,7 @@ class Eskf:
         if self._epoch_propagated:  # else both are still identity and ones
             self._epoch_propagated = False
             if self.keep_transition:  # (else never multiplied: still identity and ones)
-                self._Phi_epoch = self._I_core.copy()  # (np.eye: 1 µs more)
+                self._Phi_epoch = self._I_core.copy()
                 self._decay_epoch = self._no_decay.copy()
         return Phi, (dv[0], dv[1], dv[2])
 
@@ -374,7 +319,7 @@ class Eskf:
     def update(self, H: Array, y: Array, R: Array) -> Array:
         """Every row fused with full weight: returns the injected ``δx``."""
         self.last_dx = np.zeros(self.n)
-        self.sequential_update(H, y, R, _full_weight)
+        self.sequential_update(H, y, R, full_weight)
         return self.last_dx
 
     def inject(self, dx: Array) -> None:
@@ -472,10 +417,6 @@ class Eskf:
         w, x, y, z = self.q
         r = np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
         return math.sqrt(max(float(r @ self.P[TH_, TH_] @ r), 0.0))
-
-
-def _full_weight(i: int, nu: float, s: float) -> float:
-    return 1.0
 
 
 def _turned(q: Vector, tx: float, ty: float, tz: float) -> list[float]:

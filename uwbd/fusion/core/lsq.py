@@ -100,7 +100,7 @@ def _multilaterate_core(core: Any, anchors: Array, ranges: Array, sigma_m: float
     if out is None or out is NotImplemented:
         return out
     position, inverse, residuals, used, iterations = out
-    # the RMS in floats (np.mean costs ~5 µs; ranges are few)
+    # the RMS in plain floats: ranges are few
     kept = [r * r for r, u in zip(residuals, used, strict=True) if u]
     rms_m = math.sqrt(sum(kept) / len(kept)) if kept else math.nan
     return LsqFix(np.array(position), sigma_m**2 * np.array(inverse).reshape(3, 3),

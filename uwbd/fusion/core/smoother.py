@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from uwbd.fusion.core.eskf import BA_, BG_, N_CORE, P_, TH_, V_
+from uwbd.fusion.core.layout import BA_, BG_, N_CORE, P_, TH_, V_
 from uwbd.fusion.core.rotation import Array, quat_from_rotvec, quat_mul
 
 

@@ -15,19 +15,11 @@ from typing import Any
 import numpy as np
 
 from uwbd.fusion.core import native
-from uwbd.fusion.core.eskf import (
-    GRAVITY_MPS2,
-    N_CORE,
-    Eskf,
-    ImuNoise,
-    PoseNumbers,
-    RawRow,
-    Row,
-    Vector,
-    process_noise,
-)
+from uwbd.fusion.core.eskf import Eskf, PoseNumbers, Vector
+from uwbd.fusion.core.layout import N_CORE
+from uwbd.fusion.core.noise import GRAVITY_MPS2, ImuNoise, process_noise
 from uwbd.fusion.core.rotation import Array
-from uwbd.fusion.policy.robust import RowPolicy
+from uwbd.fusion.core.weights import RawRow, Row, RowPolicy
 
 
 def new_eskf(p: Vector, v: Vector, q: Vector, P0: Array, noise: ImuNoise,

@@ -13,7 +13,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from uwbd.fusion.checks.anchor_consistency import single_fault_estimates
-from uwbd.fusion.core.eskf import N_CORE, P_, TH_, V_, Eskf
+from uwbd.fusion.core.eskf import Eskf
+from uwbd.fusion.core.layout import N_CORE, P_, TH_, V_
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.core.rotation import Array, skew
 

@@ -22,9 +22,11 @@ import numpy as np
 
 from uwbd.fusion.checks.anchor_consistency import CHECK_EVERY_NS, AnchorConsistency
 from uwbd.fusion.checks.window_raim import WindowRaim
-from uwbd.fusion.core.eskf import BA_, BG_, P_, TH_, Eskf, RawRow
+from uwbd.fusion.core.eskf import Eskf
+from uwbd.fusion.core.layout import BA_, BG_, P_, TH_
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.core.weights import RawRow, RowPolicy
 from uwbd.fusion.models.measurements import (
     Rows,
     position_rows,
@@ -33,7 +35,7 @@ from uwbd.fusion.models.measurements import (
     range_rows,
 )
 from uwbd.fusion.policy.health import HealthMonitor
-from uwbd.fusion.policy.robust import AnchorStats, RowPolicy
+from uwbd.fusion.policy.robust import AnchorStats
 from uwbd.fusion.settings import Mode
 from uwbd.fusion.types import FusionReport
 
@@ -243,8 +245,8 @@ class EpochFusion:
         kinds = "".join([kind[0] for kind, _ in keys])
         policy = self._policies.get((kinds, fix_ok))
         if policy is None:  # a few shapes of update recur: each made once
-            policy = self._policies[kinds, fix_ok] = RowPolicy.of(
-                kinds.encode(), self._gate_1, self.cfg.robust, fix_ok)
+            policy = self._policies[kinds, fix_ok] = self.cfg.robust.rows(
+                kinds.encode(), self._gate_1, fix_ok)
         return policy
 
     def _no_rows(self, n: int) -> Rows:

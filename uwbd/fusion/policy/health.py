@@ -44,114 +44,12 @@ from __future__ import annotations
 
 import collections
 import math
-from dataclasses import dataclass
-from enum import Enum
 from statistics import NormalDist
-from typing import Any, NamedTuple
+
+from uwbd.fusion.settings import HealthLimits
+from uwbd.fusion.types import Health, Phase
 
 NS = 1_000_000_000
-
-
-class Phase(str, Enum):
-    WAITING = "waiting"
-    RECOVERING = "recovering"
-    COASTING = "coasting"
-    DEGRADED = "degraded"
-    ALIGNING = "aligning"
-    TRACKING = "tracking"
-
-
-class Health(NamedTuple):
-    """One step's verdict. Times are seconds; ``None`` where there is nothing to tell. (A
-    named tuple, immutable: every pose makes one, and a frozen dataclass took twice as long.)"""
-
-    phase: Phase
-    faults: tuple[str, ...] = ()
-    notes: tuple[str, ...] = ()
-    since_range_s: float | None = None  # since the last accepted UWB measurement
-    position_sigma_m: float | None = None  # horizontal, √(σx² + σy²)
-    # the error bounds at the integrity risk (m): covariance inflated by the window test
-    horizontal_protection_m: float | None = None
-    vertical_protection_m: float | None = None
-    resets: int = 0
-    last_reset_t_ns: int | None = None
-    last_reset_reason: str = ""
-    last_reset_jump_m: float | None = None  # how far the position moved at that reset
-
-    @property
-    def healthy(self) -> bool:
-        return self.phase is Phase.TRACKING
-
-    def summary(self) -> str:
-        """One line for a terminal or ``systemctl status``."""
-        if not self.faults and not self.notes and self.phase in _PLAIN:
-            return _PLAIN[self.phase]  # (every pose has one: the common case at once)
-        text = self.phase.value
-        if self.phase is Phase.COASTING and self.since_range_s is not None:
-            text += f" ({self.since_range_s:.1f} s without an accepted range)"
-        if self.faults:
-            text += ": " + ", ".join(self.faults)
-        if self.phase is Phase.RECOVERING and self.last_reset_reason:
-            text += f" (reset: {self.last_reset_reason})"
-        if self.notes:
-            text += "; " + ", ".join(self.notes)
-        return text
-
-    def as_dict(self) -> dict[str, Any]:
-        """JSON-ready (non-finite numbers as ``None``)."""
-        num = _rounded  # (a module function: not made anew per call)
-        return {"phase": self.phase.value, "healthy": self.healthy,
-                "faults": list(self.faults), "notes": list(self.notes),
-                "since_range_s": num(self.since_range_s),
-                "position_sigma_m": num(self.position_sigma_m),
-                "horizontal_protection_m": num(self.horizontal_protection_m),
-                "vertical_protection_m": num(self.vertical_protection_m),
-                "resets": self.resets,
-                "last_reset_t_ns": self.last_reset_t_ns,
-                "last_reset_reason": self.last_reset_reason,
-                "last_reset_jump_m": num(self.last_reset_jump_m)}
-
-
-def health_from_dict(d: dict[str, Any]) -> Health:
-    """The record :meth:`Health.as_dict` wrote (a log's ``/pose``): what it holds, the rest
-    at its default."""
-    def num(key: str) -> float | None:
-        v = d.get(key)
-        return None if v is None else float(v)
-    reset_t = d.get("last_reset_t_ns")
-    return Health(Phase(d.get("phase", "waiting")), tuple(d.get("faults") or ()),
-                  tuple(d.get("notes") or ()), num("since_range_s"), num("position_sigma_m"),
-                  num("horizontal_protection_m"), num("vertical_protection_m"),
-                  int(d.get("resets") or 0), None if reset_t is None else int(reset_t),
-                  str(d.get("last_reset_reason") or ""), num("last_reset_jump_m"))
-
-
-def _rounded(x: float | None) -> float | None:
-    return None if x is None or not math.isfinite(x) else round(x, 4)
-
-
-WAITING = Health(Phase.WAITING)
-# the summaries of the phases whose line is their name alone when nothing is wrong
-_PLAIN = {p: p.value for p in Phase if p not in (Phase.COASTING, Phase.RECOVERING)}
-
-
-@dataclass(frozen=True)
-class HealthLimits:
-    coast_after_s: float = 1.0
-    range_timeout_s: float = 5.0
-    # a pose is healthy only while its protection levels, at this risk, are within these
-    integrity_risk: float = 1e-3
-    horizontal_alert_limit_m: float = 1.0
-    vertical_alert_limit_m: float = 1.5
-    # each range's unmodelled bias at most (ARAIM's nominal bias): antenna patterns, delays
-    range_bias_bound_m: float = 0.05
-    window_count: int = 12  # innovations judged over the last this many UWB measurements
-    max_rejected_fraction: float = 0.5
-    max_mean_nis: float = 6.0  # of the window's NIS, each clipped at 25
-    diverged_after_s: float = 2.0  # inconsistent this long: the state may be wrong
-    recover_hold_s: float = 3.0
-    imu_fault_hold_s: float = 1.0
-    clear_hold_s: float = 0.5  # after the last fault, degraded this long still (hysteresis)
 
 
 class HealthMonitor:

@@ -24,7 +24,8 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from uwbd.fusion.core.eskf import N_CORE, Eskf
+from uwbd.fusion.core.eskf import Eskf
+from uwbd.fusion.core.layout import N_CORE
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.core.rotation import Array, quat_from_euler, quat_to_matrix
 from uwbd.fusion.core.state import new_eskf

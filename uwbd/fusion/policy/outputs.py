@@ -14,11 +14,11 @@ from uwbd.fusion.checks.mounting_yaw import MountingYaw
 from uwbd.fusion.checks.window_raim import WindowRaim
 from uwbd.fusion.core.eskf import Eskf
 from uwbd.fusion.core.rotation import Array
-from uwbd.fusion.policy.health import WAITING, Health, HealthMonitor
+from uwbd.fusion.policy.health import HealthMonitor
 from uwbd.fusion.policy.mirror import MirrorSide
 from uwbd.fusion.policy.robust import AnchorStats
 from uwbd.fusion.settings import FilterConfig
-from uwbd.fusion.types import Pose
+from uwbd.fusion.types import WAITING, Health, Pose
 
 Vec3 = tuple[float, float, float]
 NS = 1_000_000_000

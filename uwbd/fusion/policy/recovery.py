@@ -20,7 +20,8 @@ import numpy as np
 from uwbd.fusion.checks.anchor_consistency import AnchorConsistency
 from uwbd.fusion.checks.mounting_yaw import MountingYaw
 from uwbd.fusion.checks.window_raim import WindowRaim
-from uwbd.fusion.core.eskf import P_, TH_, V_, Eskf
+from uwbd.fusion.core.eskf import Eskf
+from uwbd.fusion.core.layout import P_, TH_, V_
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.policy.alignment import HeadingAligner

@@ -12,24 +12,17 @@ from __future__ import annotations
 
 import collections
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
 from uwbd.fusion.core import native
-from uwbd.fusion.core.eskf import GRAVITY_MPS2
 from uwbd.fusion.core.lsq import LsqFix
+from uwbd.fusion.core.noise import GRAVITY_MPS2
 from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.settings import RestLimits
 
 Vec3 = tuple[float, float, float]
 JUDGE_EVERY_NS = 20_000_000
-
-
-@dataclass(frozen=True)
-class RestLimits:
-    acc_std_mps2: float = 0.15  # |std of the specific force| over the window
-    gyro_rps: float = 0.03  # |mean rate| and |std of the rate|
-    gravity_tolerance_mps2: float = 1.0  # | |mean f| − g |: scale errors of a few % only
 
 
 class ImuWindow:

@@ -23,58 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, NamedTuple
-
-
-@dataclass(frozen=True)
-class RobustPolicy:
-    enabled: bool = True
-    c_long: float = 2.5
-    c_short: float = 4.0
-
-    @staticmethod
-    def of_onset(enabled: bool, nlos_onset_m: float | None, range_sigma_m: float
-                 ) -> RobustPolicy:
-        """The policy of a config: ``[fusion] nlos_onset_m`` (``uwbd calibrate-ranges``
-        fits it: where a longer range becomes likelier NLOS than noise) as the long side's
-        scale in the ranges' σ; without it, the default 2.5 σ."""
-        if nlos_onset_m is None:
-            return RobustPolicy(enabled)
-        return RobustPolicy(enabled, c_long=nlos_onset_m / range_sigma_m)
-
-
-class RowPolicy(NamedTuple):
-    """How :meth:`uwbd.fusion.core.eskf.Eskf.sequential_update` weighs each row of one update:
-    ``kinds`` one byte a row — ``r`` a range (the χ² gate ``gate_1``, then the robust
-    weight), ``p`` a position-fix axis (the fix as a whole passed its 3-D gate: ``fix_ok``),
-    any other a pseudo-measurement (gated, weight 1). A tuple, so that the C core reads it
-    without calling back; called as ``policy(i, ν, S)`` it is the reference."""
-
-    kinds: bytes
-    gate_1: float
-    robust: bool
-    c_long: float
-    c_short: float
-    fix_ok: bool
-
-    @staticmethod
-    def of(kinds: bytes, gate_1: float, robust: RobustPolicy, fix_ok: bool) -> RowPolicy:
-        return RowPolicy(kinds, gate_1, robust.enabled, robust.c_long, robust.c_short, fix_ok)
-
-    def __call__(self, i: int, nu: float, s: float) -> float:
-        kind = self.kinds[i]
-        if kind == 0x70:  # "p"
-            return 1.0 if self.fix_ok else 0.0
-        e2 = nu * nu / s
-        if e2 > self.gate_1:
-            return 0.0
-        if kind != 0x72 or not self.robust:  # "r"
-            return 1.0
-        e = nu / math.sqrt(s)
-        c = self.c_long if e > 0 else self.c_short
-        c2 = c * c
-        w = c2 / (c2 + e * e)
-        return w * w  # not ** 2: libm's pow may round differently from the C core's product
+from typing import Any
 
 
 def quality_scale(quality: float | None) -> float:

@@ -13,9 +13,9 @@ from typing import Any
 import zenoh
 
 from uwbd import journal
+from uwbd.config.ros2 import Ros2Settings
 from uwbd.ros2 import rmw_zenoh as rz
 from uwbd.ros2.messages import TYPESTORE
-from uwbd.ros2.settings import Ros2Settings
 from uwbd.service.echo import QUIET_AFTER_S, Listen
 
 LOG = journal.get("echo")

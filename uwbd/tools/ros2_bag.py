@@ -4,14 +4,14 @@ extra), so no ROS installation is needed to write it. It is laid out as ``ros2 b
 storage) and Foxglove expect; the tests read it back with rosbags' reader (not with a ROS
 installation, which this machine does not have).
 
-The topics are the daemon's live ones (the config's ``[ros2]`` names, :mod:`uwbd.ros2.settings`;
+The topics are the daemon's live ones (the config's ``[ros2]`` names, :mod:`uwbd.config.ros2`;
 by default ``/uwbd/pose``, ``/uwbd/odom``, ``/uwbd/imu``, ``/tf``, ``/tf_static``,
 ``/diagnostics``) with the messages of :mod:`uwbd.ros2.messages`, one diagnostics message per
 pose, and ``/uwbd/truth`` (``geometry_msgs/msg/PoseStamped``) when the log has truth.
 ``/tf_static`` is offered transient local (latched), as tf2's static broadcaster does.
 
 Where the poses come from (:func:`export_ros2`): the log's own ``/pose`` when it has some
-and no other config is asked for; else the log is replayed (:func:`uwbd.logs.replay.replay`)
+and no other config is asked for; else the log is replayed (:func:`uwbd.service.replay.replay`)
 with the config given, or its own. The IMU samples are the log's ``/imu`` frames, or its
 raw IMU bytes decoded by the drivers.
 """
@@ -40,10 +40,8 @@ from tqdm import tqdm
 
 from drivers.frames import ImuSample
 from uwbd.config import Config, parse
-from uwbd.fusion.policy.health import health_from_dict
-from uwbd.fusion.types import Pose
+from uwbd.fusion.types import Pose, health_from_dict
 from uwbd.logs.reading import LogContents
-from uwbd.logs.replay import replay
 from uwbd.ros2.messages import (
     TYPES,
     TYPESTORE,
@@ -58,6 +56,7 @@ from uwbd.ros2.messages import (
     tf_msg,
     truth_msg,
 )
+from uwbd.service.replay import replay
 from uwbd.tools.logtools import decoded_frames, load_recording
 
 # bag format version 8 (Jazzy's) keeps the QoS profiles a string, which Humble's rosbag2
