@@ -111,9 +111,9 @@ def test_the_zenoh_file_is_the_base_and_the_tables_keys_go_over_it(tmp_path: Pat
     # what neither gives is uwbd's default, not Zenoh's (a peer on tcp/[::]:0, every interface)
     (tmp_path / "bare.json5").write_text("{ transport: { link: { tx: { lease: 10000 } } } }")
     bare = session_config({"config": str(tmp_path / "bare.json5")})
-    assert json.loads(bare.get_json("listen/endpoints")) == []
+    assert json.loads(bare.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447"]
     assert json.loads(bare.get_json("mode")) == "peer"
-    assert json.loads(bare.get_json("scouting/multicast/enabled")) is True
+    assert json.loads(bare.get_json("scouting/multicast/enabled")) is False
     (tmp_path / "own.json5").write_text("{ listen: { endpoints: ['tcp/127.0.0.1:0'] } }")
     own = session_config({"config": str(tmp_path / "own.json5")})
     assert json.loads(own.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
@@ -255,3 +255,68 @@ def test_a_plaintext_listener_beyond_this_host_is_warned_of(listen: str, warned:
     assert bool(said) == warned, config.warnings
     if warned:
         assert "publish false ones" in said[0] and "Securing Zenoh" in said[0]
+
+
+def test_no_zenoh_table_means_this_host_only(tmp_path: Path) -> None:
+    """#44: a config without ``[zenoh]`` neither scouts nor listens beyond loopback; a table
+    that gives endpoints of its own gets no listener beside them (a daemon dialling the ROS 2
+    router on this host's 7447 must not try to listen there too)."""
+    for zcfg in ({}, {"prefix": "uwbd/x"}):
+        config = session_config(zcfg)
+        assert json.loads(config.get_json("scouting/multicast/enabled")) is False
+        assert json.loads(config.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447"]
+        assert json.loads(config.get_json("connect/endpoints")) == []
+    dialling = session_config({"connect": ["tcp/127.0.0.1:7447"]})
+    assert json.loads(dialling.get_json("listen/endpoints")) == []
+    assert effective({})["multicast_scouting"] is False
+    text = SOURCES + f"[anchors]\n{ANCHORS}\n"
+    assert not [w for w in parse(text).warnings if "zenoh" in w]
+
+
+def test_multicast_scouting_without_a_zenoh_file_is_warned_of(tmp_path: Path) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(SOURCES + f"[anchors]\n{ANCHORS}\n[zenoh]\nmulticast_scouting = true\n")
+    checked = uwbd("check-config", str(cfg))
+    assert checked.returncode == 0, checked.stderr
+    assert "zenoh.multicast_scouting" in checked.stderr and "publish false ones" in checked.stderr
+
+
+def test_the_router_warns_when_anyone_on_the_network_reaches_it_in_plain_tcp() -> None:
+    """``uwbd router`` with no options listens on every interface: it says so, and how to
+    secure it; on loopback it does not."""
+    for listen, warned in ((f"tcp/0.0.0.0:{free_port()}", True),
+                           (f"tcp/127.0.0.1:{free_port()}", False)):
+        router = subprocess.Popen([*UWBD, "router", "--listen", listen],
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=UNBUFFERED)
+        try:
+            said = read_until(router, b"routing on", 20, stream="stderr").decode()
+        finally:
+            router.send_signal(signal.SIGINT)
+            router.communicate(timeout=20)
+        assert router.returncode == 0
+        assert ("reachable from the network without encryption" in said) == warned, said
+        if warned:
+            assert "--zenoh-config" in said and "127.0.0.1" in said
+
+
+def test_a_daemon_without_a_zenoh_table_is_read_by_echo_on_the_same_host(tmp_path: Path) -> None:
+    """The default on both sides: the daemon listens on this host's 7447, ``uwbd echo`` with
+    no option dials it there."""
+    devices = [DeviceSpec("imu", "wit", Faults()), DeviceSpec("uwb", "nlink", Faults())]
+    with Emulator(devices, CircleScenario(seed=3), duration_s=8.0, link_dir=tmp_path) as emu:
+        cfg = tmp_path / "cfg.toml"
+        cfg.write_text(emulated_sources({n: p.path for n, p in emu.ports.items()})
+                       + '[robot]\nname = "defaults"\n')
+        daemon = subprocess.Popen([*UWBD, "run", "-c", str(cfg), "--log-dir",
+                                   str(tmp_path / "logs")], stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, env=UNBUFFERED)
+        try:
+            said = read_until(daemon, b"zenoh peer", 20, stream="stderr").decode()
+            emu.start()
+            echo = uwbd("echo", "--prefix", "uwbd/defaults", "--count", "2", "--timeout", "15")
+        finally:
+            daemon.send_signal(signal.SIGTERM)
+            daemon.communicate(timeout=20)
+    assert "listen tcp/127.0.0.1:7447" in said and "multicast scouting off" in said, said
+    assert echo.returncode == 0, echo.stderr
+    assert len([x for x in echo.stdout.splitlines() if " p=(" in x]) == 2

@@ -92,7 +92,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--prefix", help="key prefix (default: from -c, else uwbd/<hostname>)")
     p.add_argument("-c", "--config", help="take the [zenoh] settings from this config")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="e.g. tcp/192.168.1.10:7447 (repeatable); default: scouting")
+                   help="e.g. tcp/192.168.1.10:7447 (repeatable); default: a daemon on this host, "
+                   "tcp/127.0.0.1:7447")
     p.add_argument("--ros2", nargs="?", const="", metavar="TOPIC",
                    help="the ROS 2 topic instead, decoded as a ROS 2 node would get it "
                    "(default: the pose topic, /uwbd/pose; domain and names from -c's [ros2])")

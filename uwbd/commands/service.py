@@ -34,7 +34,7 @@ from uwbd.config.ros2 import (
     settings_of,
 )
 from uwbd.config.zenoh_checks import check_zenoh_file
-from uwbd.config.zenoh_session import effective, zenoh_reason
+from uwbd.config.zenoh_session import THIS_HOST_LISTEN, effective, zenoh_reason
 from uwbd.service.daemon import PipelineError
 from uwbd.service.daemon import run as run_daemon
 from uwbd.service.demo import run_demo
@@ -133,10 +133,10 @@ def cmd_echo(args: argparse.Namespace) -> int:
         prefix = prefix or config.zenoh_prefix
     if args.zenoh_config:
         zcfg["config"] = args.zenoh_config
-    if "config" not in zcfg and "multicast_scouting" not in zcfg:
-        zcfg["multicast_scouting"] = not args.connect  # scouting for a daemon not named
     if args.connect:
         zcfg["connect"] = [*args.connect, *zcfg.get("connect", [])]
+    elif not zcfg.get("connect") and "config" not in zcfg:
+        zcfg["connect"] = [THIS_HOST_LISTEN]  # a daemon on this host, as it listens by default
     prefix = str(prefix or f"uwbd/{default_robot_name()}")
     if zcfg.get("connect"):
         # it dials a daemon or a router: as a client it needs no listen endpoint of its own,
@@ -189,7 +189,7 @@ def _daemons_reach(zenoh_cfg: dict[str, Any], where: str) -> dict[str, Any]:
     if "config" in zenoh_cfg:  # the daemon's certificates (and scouting, unless the table's)
         out["config"] = zenoh_cfg["config"]
     if "multicast_scouting" in zenoh_cfg or "config" not in zenoh_cfg:
-        out["multicast_scouting"] = zenoh_cfg.get("multicast_scouting", True)
+        out["multicast_scouting"] = zenoh_cfg.get("multicast_scouting", False)
     return out
 
 

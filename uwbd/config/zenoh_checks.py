@@ -34,11 +34,17 @@ def check_zenoh(r: Report, zenoh: Mapping[str, Any]) -> None:
             good[key].append((k, endpoint))
     if "config" not in zenoh:  # (a Zenoh file may hold authentication or access control)
         for k, endpoint in good["listen"]:
-            if _plaintext_beyond_this_host(endpoint):
+            if plaintext_beyond_this_host(endpoint):
                 r.warn(f"zenoh.listen[{k}]", f"{show(endpoint)} is reachable from the network "
                        "without encryption or authentication: anyone there can read the "
                        "poses and publish false ones; listen on 127.0.0.1 (a router reaches "
                        "it), or secure it (README, \"Securing Zenoh\")")
+        if zenoh.get("multicast_scouting"):
+            r.warn("zenoh.multicast_scouting", "true announces this robot to the whole LAN and "
+                   "meshes with any peer that answers, without encryption or authentication: "
+                   "anyone there can read the poses and publish false ones; leave it false "
+                   "(this host only, or connect to a router), or secure it (README, \"Securing "
+                   "Zenoh\")")
     if zenoh.get("mode") == "client" and not zenoh.get("connect"):
         r.error("zenoh.mode", "\"client\" needs a zenoh.connect endpoint (a router or peer)")
     prefix = zenoh.get("prefix", "").strip("/")
@@ -89,8 +95,9 @@ def endpoint_problem(endpoint: str) -> str | None:
     return None
 
 
-def _plaintext_beyond_this_host(endpoint: str) -> bool:
-    """A well-formed tcp/udp/ws endpoint whose host is not a loopback address."""
+def plaintext_beyond_this_host(endpoint: str) -> bool:
+    """A tcp/udp/ws endpoint whose host is not a loopback address: anyone on the network
+    reaches it, unencrypted and unauthenticated."""
     protocol, _, address = endpoint.partition("#")[0].partition("?")[0].partition("/")
     if protocol not in ("tcp", "udp", "ws"):
         return False
@@ -100,7 +107,7 @@ def _plaintext_beyond_this_host(endpoint: str) -> bool:
     try:
         return not ipaddress.ip_address(host).is_loopback
     except ValueError:
-        return True  # a host name: whichever interface it names
+        return True  # a host name, or a wildcard: whichever interface it names
 
 
 def _host_port_problem(address: str) -> str | None:

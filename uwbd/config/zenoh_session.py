@@ -21,10 +21,13 @@ ZENOH_PATHS = {"mode": "mode", "connect": "connect/endpoints", "listen": "listen
                "multicast_scouting": "scouting/multicast/enabled"}
 
 
-# what uwbd sets where neither the table nor a Zenoh file does (Zenoh's own defaults differ:
-# a peer listens on every interface, tcp/[::]:0)
+# where a daemon with no [zenoh] table, or one that gives no endpoint, listens: this host only
+# (``uwbd echo`` dials it there)
+THIS_HOST_LISTEN = "tcp/127.0.0.1:7447"
+# what uwbd sets where neither the table nor a Zenoh file does: this host only (Zenoh's own
+# defaults differ: a peer listens on every interface, tcp/[::]:0, and scouts the LAN)
 UWBD_DEFAULTS: dict[str, Any] = {"mode": "peer", "connect": [], "listen": [],
-                                 "multicast_scouting": True}
+                                 "multicast_scouting": False}
 
 
 def session_config(zcfg: dict[str, Any],
@@ -32,13 +35,16 @@ def session_config(zcfg: dict[str, Any],
     """A Zenoh config from the ``[zenoh]`` table (mode, connect, listen, multicast_scouting).
     With ``config``, a Zenoh config file (JSON5: TLS, authentication, access control, all
     Zenoh's own) is the base, and the keys the table gives are set over it. A key neither
-    gives is ``defaults``' (uwbd's: a peer, listening nowhere, scouting on), never Zenoh's
-    own default."""
-    defaults = {**UWBD_DEFAULTS, **(defaults or {})}
+    gives is ``defaults``' (uwbd's: a peer, not scouting, listening on this host only where
+    no endpoint is given at all), never Zenoh's own default."""
     path = zcfg.get("config")
     config: zenoh.Config = (zenoh.Config() if path is None
                             else zenoh.Config.from_file(str(path)))
     untouched = zenoh.Config()
+    alone = not any(key in zcfg or config.get_json(ZENOH_PATHS[key])
+                    != untouched.get_json(ZENOH_PATHS[key]) for key in ("connect", "listen"))
+    defaults = {**UWBD_DEFAULTS, **({"listen": [THIS_HOST_LISTEN]} if alone else {}),
+                **(defaults or {})}
     for key, where in ZENOH_PATHS.items():
         if key in zcfg:
             value = zcfg[key]

@@ -15,6 +15,7 @@ from typing import Any
 import zenoh
 
 from uwbd import journal
+from uwbd.config.zenoh_checks import plaintext_beyond_this_host
 from uwbd.config.zenoh_session import endpoints, session_config, zenoh_reason
 from uwbd.service.interrupt import wait_until
 
@@ -37,6 +38,13 @@ def run_router(zcfg: dict[str, Any], stop: threading.Event | None = None,
         where = ", ".join(zcfg.get("listen", listen_default or [])) or zcfg.get("config", "")
         raise RouterError(f"cannot start a router on {where}: {zenoh_reason(err)}") from err
     listen = endpoints(config, "listen", "router")
+    open_to_all = [e for e in listen if plaintext_beyond_this_host(e)]
+    if open_to_all and "config" not in zcfg:
+        LOG.warning("%s is reachable from the network without encryption or authentication: "
+                    "anyone there can read every robot's poses and publish false ones. Secure "
+                    "it with TLS and access control (--zenoh-config with the shipped "
+                    "config/zenoh/router.json5, README \"Securing Zenoh\"), or listen on "
+                    "127.0.0.1 (--listen tcp/127.0.0.1:7447)", ", ".join(open_to_all))
     try:
         LOG.info("routing on %s (multicast scouting %s); daemons connect with [zenoh] "
                  "connect = [%s]", ", ".join(listen),
