@@ -11,6 +11,8 @@ import pty
 import random
 import selectors
 import signal
+import socket
+import stat
 import struct
 import subprocess
 import termios
@@ -128,6 +130,59 @@ def test_recover_refuses_what_is_not_mcap_and_leaves_no_output(tmp_path: Path) -
     # any MCAP file is fine, uwbd's or not
     ok = uwbd("recover", str(foreign_mcap(tmp_path / "f.mcap")), "-o", str(tmp_path / "r.mcap"))
     assert ok.returncode == 0 and "1 messages recovered" in ok.stdout, ok.stderr
+
+
+def _not_files(tmp_path: Path) -> list[Path]:
+    """What ``-o`` must never write over nor remove: a FIFO, a folder, a socket and, as root,
+    a character device (a twin of /dev/null, made here)."""
+    fifo, folder, sock = tmp_path / "fifo", tmp_path / "folder", tmp_path / "sock"
+    os.mkfifo(fifo)
+    folder.mkdir()
+    with socket.socket(socket.AF_UNIX) as s:
+        s.bind(str(sock))
+    nodes = [fifo, folder, sock]
+    if os.geteuid() == 0:
+        null = tmp_path / "null"
+        os.mknod(null, 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+        nodes.append(null)
+    return nodes
+
+
+def test_outputs_that_are_not_regular_files_are_refused_and_left_alone(
+        tmp_path: Path, sim_log: Path) -> None:
+    """#44: ``-o`` onto a device node, FIFO, socket or folder: one line, exit 2, before any
+    work; the node is still there, of its kind; and a symlink to /dev/null is not followed."""
+    nodes = _not_files(tmp_path)
+    link = tmp_path / "to-null"
+    link.symlink_to("/dev/null")
+    before = {n: stat.S_IFMT(n.lstat().st_mode) for n in [*nodes, link]}
+    for target in [*nodes, link]:
+        for args in (("replay", str(sim_log), "-o", str(target)),
+                     ("recover", str(sim_log), "-o", str(target)),
+                     ("simulate", "--duration", "2", "-o", str(target)),
+                     ("import", "inrol", str(tmp_path), "-o", str(target)),
+                     ("survey", str(sim_log), "-o", str(target)),
+                     ("calibrate-ranges", str(sim_log), "-o", str(target))):
+            line = one_line(uwbd(*args, timeout=60), 2, str(target), "not a file")
+            assert "give the path of a file" in line, line
+    assert {n: stat.S_IFMT(n.lstat().st_mode) for n in [*nodes, link]} == before
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+
+
+def test_a_failed_write_leaves_the_old_file_and_no_part(tmp_path: Path, sim_log: Path) -> None:
+    """The output is written to a new file beside it and renamed over it whole: a command
+    that fails leaves what was there before, and nothing of its own."""
+    out = tmp_path / "out.mcap"
+    out.write_bytes(b"an earlier run's log")
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(sim_log.read_bytes()[:400])  # the header only: nothing to recover
+    one_line(uwbd("recover", str(damaged), "-o", str(out)), 1, "nothing written")
+    assert out.read_bytes() == b"an earlier run's log"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["damaged.mcap", "out.mcap"]
+    ok = uwbd("recover", str(sim_log), "-o", str(out))
+    assert ok.returncode == 0, ok.stderr
+    assert out.read_bytes().startswith(b"\x89MCAP") and out.stat().st_mode & 0o777 != 0o600
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["damaged.mcap", "out.mcap"]
 
 
 def test_outputs_into_missing_or_read_only_folders_fail_before_work(

@@ -5,10 +5,12 @@ logs, extras)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
-import tempfile
-from collections.abc import Callable
+import secrets
+import stat
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,14 +37,52 @@ class RunError(Exception):
 
 
 def writable_folder(target: Path, what: str) -> None:
-    """Fail before any work when ``target`` (a file to write) cannot be created."""
+    """Fail before any work when ``target`` (a file to write) cannot be created, or is there
+    and is not a regular file (a device node, a FIFO, a socket, a folder): a command writes
+    and removes nothing but regular files of its own."""
     folder = target.parent
     if not folder.is_dir():
         raise UsageError(f"cannot write {what} {target}: folder {folder} does not exist")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise UsageError(f"cannot write {what} {target}: folder {folder} is not writable")
-    if target.is_dir():
-        raise UsageError(f"cannot write {what} {target}: it is a folder")
+    try:
+        mode = target.stat().st_mode
+    except FileNotFoundError:
+        return
+    except OSError as err:
+        raise UsageError(f"cannot write {what} {target}: {err.strerror or err}") from err
+    if not stat.S_ISREG(mode):
+        kind = ("a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode)
+                else "a socket" if stat.S_ISSOCK(mode) else "a device node")
+        raise UsageError(f"cannot write {what} {target}: it is {kind}, not a file; give the "
+                         "path of a file to write")
+
+
+@contextlib.contextmanager
+def written(target: Path, what: str) -> Iterator[Path]:
+    """A new file beside ``target`` to write in the block: renamed over ``target`` when the
+    block ends well, removed when it does not (``target`` is then as it was). Checked first
+    as :func:`writable_folder` checks."""
+    writable_folder(target, what)
+    final = target.resolve() if target.is_symlink() else target  # the file a link names
+    while True:
+        tmp = final.with_name(f".{final.name}.{secrets.token_hex(4)}.part")
+        try:
+            os.close(os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
+            break
+        except FileExistsError:
+            continue
+        except OSError as err:
+            raise RunError(f"cannot write {target}: {err.strerror or err}") from err
+    try:
+        yield tmp
+        os.replace(tmp, final)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        raise RunError(f"cannot write {target}: {err.strerror or err}") from err
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def driver_name(name: str) -> str:
@@ -170,19 +210,10 @@ def tools_report(command: str) -> Any:
     return report
 
 
-def write_atomically(target: Path, text: str) -> None:
-    """``text`` into ``target`` whole or not at all (a temporary file renamed over it)."""
-    tmp = None
-    try:
-        with tempfile.NamedTemporaryFile("w", encoding="utf-8", dir=target.parent,
-                                         prefix=f".{target.name}.", delete=False) as f:
-            tmp = Path(f.name)
-            f.write(text)
-        os.replace(tmp, target)
-    except OSError as err:
-        if tmp is not None:
-            tmp.unlink(missing_ok=True)
-        raise RunError(f"cannot write {target}: {err.strerror or err}") from err
+def write_atomically(target: Path, text: str, what: str = "the file") -> None:
+    """``text`` into ``target`` whole or not at all (a new file renamed over it)."""
+    with written(target, what) as tmp:
+        tmp.write_text(text, encoding="utf-8")
 
 
 def load_config_file(path: str, warn: bool = False, host: bool = False) -> Config:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import json
 import sys
@@ -21,6 +22,7 @@ from uwbd.commands.common import (
     require_matching_sources,
     require_replayable,
     writable_folder,
+    written,
 )
 from uwbd.config import ConfigError, parse
 from uwbd.logs.reading import not_a_log, recover
@@ -72,23 +74,26 @@ def cmd_replay(args: argparse.Namespace) -> int:
     # not walk them again and again (measured: 11 % of a 10-minute replay, and pauses of
     # up to 90 ms, without this)
     gc.freeze()
-    try:
-        pipeline, poses = replay(contents, str(path), out, args.realtime,
-                                 progress=sys.stderr.isatty(), config_toml=config_toml)
-    except ConfigError as err:
-        raise UsageError(str(err)) from err
-    log_errors = [str(getattr(sink, "error", "")) for sink in pipeline.sinks
-                  if getattr(sink, "error", "")]
-    print(f"{path}: {pipeline.poses} poses; filter {pipeline.filter.status}"
-          + (f"; written to {out}" if out and not log_errors and out.is_file() else ""))
-    if poses.poses:
-        x, y, z = poses.poses[-1].position_m
-        print(f"last pose ({x:.3f}, {y:.3f}, {z:.3f}) m")
-    for line in _findings(pipeline.filter.diagnostics()):
-        print(line)
-    if out is not None and (log_errors or not out.is_file()):
-        raise RunError(f"{out}: the replayed log is incomplete: "
-                       f"{log_errors[0] if log_errors else 'the file was not written'}")
+    with contextlib.ExitStack() as stack:  # the log to a new file, renamed over -o when whole
+        tmp = None if out is None else stack.enter_context(written(out, "the replayed log"))
+        try:
+            pipeline, poses = replay(contents, str(path), tmp, args.realtime,
+                                     progress=sys.stderr.isatty(), config_toml=config_toml)
+        except ConfigError as err:
+            raise UsageError(str(err)) from err
+        log_errors = [str(getattr(sink, "error", "")) for sink in pipeline.sinks
+                      if getattr(sink, "error", "")]
+        print(f"{path}: {pipeline.poses} poses; filter {pipeline.filter.status}")
+        if poses.poses:
+            x, y, z = poses.poses[-1].position_m
+            print(f"last pose ({x:.3f}, {y:.3f}, {z:.3f}) m")
+        for line in _findings(pipeline.filter.diagnostics()):
+            print(line)
+        if tmp is not None and (log_errors or not tmp.is_file()):
+            raise RunError(f"{out}: not written: the replayed log could not be written whole: "
+                           f"{log_errors[0] if log_errors else 'the file was not written'}")
+    if out is not None:
+        print(f"written to {out}")
     return 0
 
 
@@ -117,16 +122,11 @@ def cmd_recover(args: argparse.Namespace) -> int:
         raise UsageError(problem)
     if target.exists() and target.resolve() == source.resolve():
         raise UsageError(f"{target}: give another file to write, not the log itself")
-    writable_folder(target, "the recovered log")
-    try:
-        result = recover(source, target)
-    except OSError as err:
-        target.unlink(missing_ok=True)
-        raise RunError(f"cannot write {target}: {err.strerror or err}") from err
-    if result.messages == 0:  # an empty log claims a recovery that did not happen
-        target.unlink(missing_ok=True)
-        raise RunError(f"{source}: no message could be recovered, nothing written"
-                       + (f" ({result.error})" if result.error else ""))
+    with written(target, "the recovered log") as tmp:
+        result = recover(source, tmp)
+        if result.messages == 0:  # an empty log claims a recovery that did not happen
+            raise RunError(f"{source}: no message could be recovered, nothing written"
+                           + (f" ({result.error})" if result.error else ""))
     print(f"{target}: {result.messages} messages recovered from {source}"
           + (f" ({result.error})" if result.truncated else
              " (it was complete)"))

@@ -23,6 +23,7 @@ from uwbd.commands.common import (
     tools_report,
     writable_folder,
     write_atomically,
+    written,
 )
 from uwbd.config import ConfigError
 from uwbd.tools.importer import Dataset, DatasetError, load_iasl, load_inrol
@@ -34,17 +35,14 @@ from uwbd.tools.simulator import SimConfig, simulate
 def cmd_simulate(args: argparse.Namespace) -> int:
     """Run the simulator and write its log (raw device bytes + ground truth)."""
     out = Path(args.output)
-    writable_folder(out, "the log")
+    writable_folder(out, "the log")  # (before the simulation's work)
     driver = driver_name(args.uwb)
     if args.duration is not None and not args.duration > 0:
         raise UsageError(f"--duration {args.duration}: give a positive number of seconds")
     sim = simulate(SimConfig(seed=args.seed) if args.duration is None else
                    SimConfig(seed=args.seed, segments=segments_for(args.duration)))
-    try:
-        write_simulation(sim, out, driver)
-    except OSError as err:
-        out.unlink(missing_ok=True)  # half a log claims nothing
-        raise RunError(f"cannot write {out}: {err.strerror or err}") from err
+    with written(out, "the log") as tmp:  # half a log claims nothing
+        write_simulation(sim, tmp, driver)
     duration = (sim.truth_t_ns[-1] - sim.truth_t_ns[0]) / 1e9
     print(f"{out}: {duration:.0f} s simulated, {len(sim.imu)} IMU samples, "
           f"{len(sim.uwb)} UWB epochs ({args.uwb}), seed {args.seed}")
@@ -63,11 +61,8 @@ def cmd_import(args: argparse.Namespace) -> int:
         ds = IMPORTERS[args.format](directory)
     except DatasetError as err:
         raise UsageError(str(err)) from err
-    try:
-        write_dataset(ds, out, ds.mounting, ds.lever_arm_m, progress=sys.stderr.isatty())
-    except OSError as err:
-        out.unlink(missing_ok=True)  # half a log claims nothing
-        raise RunError(f"cannot write {out}: {err.strerror or err}") from err
+    with written(out, "the log") as tmp:  # half a log claims nothing
+        write_dataset(ds, tmp, ds.mounting, ds.lever_arm_m, progress=sys.stderr.isatty())
     # the loaders return ranges and truth non-empty, every stream in time order
     starts = [ds.uwb[0].t_ns, int(ds.truth_t_ns[0])] + [f.t_ns for f in ds.imu[:1]]
     ends = [ds.uwb[-1].t_ns, int(ds.truth_t_ns[-1])] + [f.t_ns for f in ds.imu[-1:]]
