@@ -109,6 +109,23 @@ def test_gid_and_attachment_are_laid_out_as_rmw_zenoh_lays_them() -> None:
         rz.read_attachment(data[:-1])
 
 
+@pytest.mark.parametrize(("seq", "t_ns"), [(1, 1_700_000_000_123_456_789), (2**63 - 1, 0),
+                                           (12345, 2**62 + 7)])
+def test_the_attachment_is_what_zenoh_ext_serializes(seq: int, t_ns: int) -> None:
+    """rmw_zenoh (Humble 0.1.2, Jazzy 0.2.4, Rolling 0.6.0 and later) writes its attachment
+    with zenoh-ext's serializer, as ``(int64 sequence number, int64 source timestamp,
+    [uint8; 16] gid)``: held here to that serializer itself, both ways, not to uwbd's
+    reading of the design document."""
+    gid = rz.gid(f"@ros2_lv/0/z/0/{seq % 97}/MP/%/%/uwbd/%uwbd%pose/t/h/::,10:,:,:,,")
+    ours = rz.attachment(seq, t_ns, gid)
+    theirs = zenoh.ext.z_serialize((zenoh.ext.Int64(seq), zenoh.ext.Int64(t_ns),
+                                    [zenoh.ext.UInt8(b) for b in gid]))
+    assert ours == theirs.to_bytes()
+    back = zenoh.ext.z_deserialize(tuple[zenoh.ext.Int64, zenoh.ext.Int64,
+                                         list[zenoh.ext.UInt8]], zenoh.ZBytes(ours))
+    assert (int(back[0]), int(back[1]), bytes(int(b) for b in back[2])) == (seq, t_ns, gid)
+
+
 # -- the [ros2] section ------------------------------------------------------------------------
 
 
@@ -127,6 +144,19 @@ def test_a_bad_ros2_section_names_its_key(extra: str, needles: tuple[str, ...]) 
     text = str(err.value)
     for needle in needles:
         assert needle in text, text
+
+
+def test_the_imu_topic_is_live_only_when_named_and_always_in_a_bag() -> None:
+    """#44: the IMU republished costs most of the publishers' CPU: off live by default, on
+    when the section names it; a bag of a log holds it by default all the same, and
+    ``imu_topic = ""`` turns it off in both."""
+    default = settings_of({"enabled": True}, env={})
+    assert "imu" not in default.published and default.published["pose"] == "/uwbd/pose"
+    assert default.recorded["imu"] == "/uwbd/imu"
+    named = settings_of({"enabled": True, "imu_topic": "sensors/imu"}, env={})
+    assert named.published["imu"] == named.recorded["imu"] == "/sensors/imu"
+    off = settings_of({"enabled": True, "imu_topic": ""}, env={})
+    assert "imu" not in off.published and "imu" not in off.recorded
 
 
 def test_domain_comes_from_the_section_then_ros_domain_id() -> None:
@@ -197,6 +227,7 @@ multicast_scouting = false
 
 [ros2]
 enabled = true
+imu_topic = "uwbd/imu"  # (off live unless named: every topic is checked here)
 """)
     return path
 

@@ -204,7 +204,7 @@ def check_ros2(r: Report, ros2: Mapping[str, Any], zenoh: Mapping[str, Any]) -> 
                 "false: enable Zenoh, or turn ros2.enabled off")
     settings = settings_of(ros2, env={})
     seen: dict[str, str] = {}
-    for role, name in settings.published.items():
+    for role, name in settings.recorded.items():
         key = TOPIC_KEYS[role]
         if name in seen:
             r.error(f"ros2.{key}", f"{show(ros2.get(key, name))} is {name}, as "

@@ -23,6 +23,9 @@ NO_TYPE_HASH = frozenset({"humble"})
 # the topics, by role: the config key of each and its default name
 TOPIC_KEYS = {"pose": "pose_topic", "odom": "odom_topic", "imu": "imu_topic", "tf": "tf_topic",
               "tf_static": "tf_static_topic", "diagnostics": "diagnostics_topic"}
+# the live topics a config must name to have (a bag of a log holds them by their default name):
+# the IMU's, 200 messages a second, costs most of the publishers' CPU
+LIVE_ONLY_WHEN_NAMED = frozenset({"imu"})
 DEFAULT_TOPICS = {"pose": "uwbd/pose", "odom": "uwbd/odom", "imu": "uwbd/imu", "tf": "/tf",
                   "tf_static": "/tf_static", "diagnostics": "/diagnostics"}
 MAX_DOMAIN_ID = 232  # DDS's limit, kept so a domain means the same under every middleware
@@ -43,6 +46,8 @@ class Ros2Settings:
     node_name: str = "uwbd"
     distro: str = "jazzy"
     topics: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_TOPICS))
+    # roles off live because the config does not name them (LIVE_ONLY_WHEN_NAMED)
+    unnamed: frozenset[str] = LIVE_ONLY_WHEN_NAMED
     domain_from: str = "default"  # "[ros2] domain_id", "ROS_DOMAIN_ID" or "default"
 
     def resolve(self, name: str) -> str:
@@ -60,7 +65,14 @@ class Ros2Settings:
 
     @property
     def published(self) -> dict[str, str]:
-        """Role → fully qualified name, of the topics that are on."""
+        """Role → fully qualified name, of the live topics that are on."""
+        return {role: self.resolve(name) for role, name in self.topics.items()
+                if name and role not in self.unnamed}
+
+    @property
+    def recorded(self) -> dict[str, str]:
+        """Role → fully qualified name, of the topics a bag holds: every one not turned off
+        (``""``), those off live only for want of a name included."""
         return {role: self.resolve(name) for role, name in self.topics.items() if name}
 
 
@@ -85,7 +97,8 @@ def settings_of(section: Mapping[str, Any], env: Mapping[str, str] | None = None
         enabled=bool(section.get("enabled", False)), domain_id=domain,
         namespace=normal_namespace(str(section.get("namespace", "/"))),
         node_name=str(section.get("node_name", "uwbd")),
-        distro=str(section.get("distro", "jazzy")), topics=topics, domain_from=domain_from)
+        distro=str(section.get("distro", "jazzy")), topics=topics, domain_from=domain_from,
+        unnamed=frozenset(r for r in LIVE_ONLY_WHEN_NAMED if TOPIC_KEYS[r] not in section))
 
 
 def missing_extra() -> str | None:

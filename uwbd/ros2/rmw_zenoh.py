@@ -4,7 +4,12 @@ publisher's id (GID) and the attachment every sample carries.
 
 Read from ros2/rmw_zenoh's ``docs/design.md`` and the sources it names (rolling, 2025); each
 function says the section. The tests hold these to the design document's worked examples
-byte for byte. Not checked here: a real ROS 2 peer (there is none on this machine).
+byte for byte, and the attachment to zenoh-ext's own serializer. Not checked here: a real
+ROS 2 peer (there is none on this machine).
+
+The floor: rmw_zenoh **Humble 0.1.2, Jazzy 0.2.4, Rolling 0.6.0** (every Kilted). Releases
+before them wrote a string-keyed attachment and throw on the serialized one these samples
+carry.
 """
 
 from __future__ import annotations

@@ -156,7 +156,7 @@ def write_bag(out: Path, config: Config, poses: Sequence[Pose], imu: Sequence[Im
         "diagnostics": ((p.t_ns, diagnostics_msg(p.t_ns, p.health, config.robot_name))
                         for p in poses),
     }
-    named = config.ros2_settings.published  # role -> topic
+    named = config.ros2_settings.recorded  # role -> topic
     if truth:
         made["truth"] = ((t.t_ns, truth_msg(t, frames)) for t in truth)
         named["truth"] = TRUTH_TOPIC
@@ -211,7 +211,7 @@ def export_ros2(contents: LogContents, where: str, out: Path, config_toml: str |
     truth = log_truth(contents)
     counts = write_bag(out, config, poses, log_imu(contents, where, config_toml), truth,
                        progress)
-    topics = config.ros2_settings.published
+    topics = config.ros2_settings.recorded
     if truth:
         topics["truth"] = TRUTH_TOPIC
     return Exported(out, counts, poses_from, topics)
