@@ -24,7 +24,7 @@ from uwbd.codec import frame_to_json, strict_json
 from uwbd.config import parse
 from uwbd.fusion.core.rotation import quat_to_matrix
 from uwbd.logs import foxglove as fx
-from uwbd.logs import reading, scan
+from uwbd.logs import intact, reading, scan
 from uwbd.logs.mcaplog import UNENCODABLE, LogWriter, SourceInfo
 from uwbd.logs.reading import read_log
 from uwbd.logs.sink import McapSink
@@ -335,7 +335,7 @@ def test_a_record_out_of_range_is_refused_and_the_file_stays_whole(tmp_path: Pat
 
 
 def _library_read(path: Path) -> tuple[list[tuple[str, int, bytes]], dict[str, str]]:
-    contents = reading._read_by_library(path)
+    contents = reading._read_by_library(path, path.read_bytes(), intact.Damage())
     return [tuple(m) for m in contents.messages], contents.metadata  # type: ignore[misc]
 
 
@@ -454,8 +454,8 @@ def test_one_damaged_chunk_costs_that_chunk_only(tmp_path: Path) -> None:
                   for c in make_reader(f).get_summary().chunk_indexes]
     assert len(chunks) >= 5
     # the messages each chunk holds: a run of the file's, in order
-    counts = [sum(isinstance(r, Message) for r in reading.intact_records(
-        buf[:8] + buf[start:start + length], reading.Damage())) for start, length in chunks]
+    counts = [sum(isinstance(r, Message) for r in intact.intact_records(
+        buf[:8] + buf[start:start + length], intact.Damage())) for start, length in chunks]
     assert sum(counts) == len(whole)
     for k, (start, length) in enumerate(chunks):
         first = sum(counts[:k])
@@ -474,6 +474,78 @@ def test_one_damaged_chunk_costs_that_chunk_only(tmp_path: Path) -> None:
         assert "damaged stretch(es) skipped" in done.stdout
         assert ([tuple(m) for m in read_log(fixed).messages]
                 == [tuple(m) for m in read_log(tmp_path / f"bad{k}.mcap").messages]), k
+
+
+def test_a_damaged_chunk_length_field_costs_nothing(tmp_path: Path) -> None:
+    """#44: each bit of a chunk's record-length field flipped in turn (the first chunk's, a
+    middle one's, the last one's): every message is read back, by the chunk's own fields,
+    and the warning says the length field was damaged."""
+    sim = simulate(SimConfig(segments=SHORT, seed=6))
+    path = tmp_path / "sim.mcap"
+    write_simulation(sim, path)
+    buf = path.read_bytes()
+    whole = [tuple(m) for m in read_log(path).messages]
+    with path.open("rb") as f:
+        starts = [c.chunk_start_offset for c in make_reader(f).get_summary().chunk_indexes]
+    bad = tmp_path / "bad.mcap"
+    for start in (starts[0], starts[len(starts) // 2], starts[-1]):
+        for bit in range(64):
+            damaged = bytearray(buf)
+            damaged[start + 1 + bit // 8] ^= 1 << (bit % 8)
+            bad.write_bytes(bytes(damaged))
+            contents = read_log(bad)
+            assert [tuple(m) for m in contents.messages] == whole, (start, bit)
+            assert "length field is damaged" in contents.error, (start, bit)
+    done = uwbd("recover", str(bad), "-o", str(tmp_path / "fixed.mcap"))
+    assert done.returncode == 0 and f"{len(whole)} messages recovered" in done.stdout
+
+
+def _crashed_log(tmp_path: Path) -> tuple[Path, int, list[tuple[object, ...]]]:
+    """A simulated log as a crash leaves it: every chunk whole, no summary, no footer."""
+    path = tmp_path / "sim.mcap"
+    write_simulation(simulate(SimConfig(segments=SHORT, seed=7)), path)
+    with path.open("rb") as f:
+        last = max(c.chunk_start_offset + c.chunk_length
+                   for c in make_reader(f).get_summary().chunk_indexes)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:last])
+    return cut, last, [tuple(m) for m in read_log(cut).messages]
+
+
+def test_a_zeroed_tail_costs_nothing_and_is_never_read(tmp_path: Path) -> None:
+    """#44: what a power loss leaves, a file whose last 3 GB are zeros (sparse here, so the
+    test costs no disk): read up to the zeros, found by walking the records' headers and a
+    bounded read at each end, never reading the tail; replay and recover say so."""
+    cut, last, messages = _crashed_log(tmp_path)
+    tailed = tmp_path / "tailed.mcap"
+    tailed.write_bytes(cut.read_bytes())
+    with tailed.open("r+b") as f:
+        f.truncate(last + 3 * 2**30)
+    damage = intact.Damage()
+    with tailed.open("rb") as f:
+        assert intact.intact_size(f, damage) == last
+    assert damage.zeroed == (last, last + 3 * 2**30)
+    contents = read_log(tailed)
+    assert [tuple(m) for m in contents.messages] == messages
+    assert f"bytes {last}-{last + 3 * 2**30} are zeros" in contents.error
+    assert "without a footer" in contents.error and "mid-record" not in contents.error
+    replayed = uwbd("replay", str(tailed))
+    assert replayed.returncode == 0 and "are zeros" in replayed.stderr, replayed.stderr
+    done = uwbd("recover", str(tailed), "-o", str(tmp_path / "fixed.mcap"))
+    assert done.returncode == 0 and f"{len(messages)} messages recovered" in done.stdout
+    assert (tmp_path / "fixed.mcap").stat().st_size < last * 2
+
+
+def test_a_zeroed_tail_after_a_damaged_record_is_found_from_the_end(tmp_path: Path) -> None:
+    """A torn record before the zeros (its header claims more than the file holds): the
+    headers stop short of the tail, which is then found from the file's end."""
+    cut, last, messages = _crashed_log(tmp_path)
+    torn = tmp_path / "torn.mcap"
+    torn.write_bytes(cut.read_bytes() + struct.pack("<BQ", 0x06, 2**40) + b"\x01" * 100
+                     + bytes(2**20))
+    contents = read_log(torn)
+    assert [tuple(m) for m in contents.messages] == messages
+    assert f"bytes {last + 109}-{last + 109 + 2**20} are zeros" in contents.error
 
 
 def test_recover_of_random_bytes_writes_nothing_and_fails(tmp_path: Path) -> None:

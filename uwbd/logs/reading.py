@@ -1,34 +1,30 @@
 """uwbd's MCAP logs read back (:mod:`uwbd.logs.mcaplog` writes them), and recovered.
 
 Reading is a linear scan of the records, so a log cut short by a crash (no footer, which
-the seeking reader refuses) reads up to its last complete chunk, and a damaged chunk (a
-flipped bit: its CRC fails) costs that chunk only: reading goes on after it
-(:func:`intact_records`); ``LogContents.truncated`` says something was lost, ``error`` what
-and where. :func:`recover` rewrites such a file, any MCAP file, as a valid one.
+the seeking reader refuses) reads up to its last complete chunk, and damage (a flipped bit,
+a zeroed tail) costs what it damaged only (:mod:`uwbd.logs.intact`);
+``LogContents.truncated`` says something was lost, ``error`` what and where. :func:`recover`
+rewrites such a file, any MCAP file, as a valid one.
 """
 
 from __future__ import annotations
 
 import contextlib
 import gc
-import io
 import json
-import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
-import zstandard
-from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
 
 from uwbd import __version__
 from uwbd.logs import foxglove as fx
 from uwbd.logs.chunked import MCAP0_MAGIC
+from uwbd.logs.intact import Damage, intact_records, intact_size
 from uwbd.logs.mcaplog import CHUNK_BYTES, METADATA_NAME
-from uwbd.logs.scan import C_SCAN, HEAD, UnusualRecordError, scan
+from uwbd.logs.scan import C_SCAN, UnusualRecordError, scan
 
 
 class LogMessage(NamedTuple):
@@ -80,13 +76,14 @@ def read_log(path: Path) -> LogContents:
     A whole file is read by :func:`uwbd.logs.scan.scan` (one ``struct`` call a message);
     any other (cut short, damaged, compressed otherwise) by the ``mcap`` library's reader,
     which says where it ends."""
+    damage = Damage()
     with path.open("rb") as f:
-        buf = f.read()
+        buf = f.read(intact_size(f, damage))
     with _no_cycle_collection():
-        try:
-            return _read_whole(buf)
-        except UnusualRecordError:
-            return _read_by_library(path)
+        if not damage:
+            with contextlib.suppress(UnusualRecordError):
+                return _read_whole(buf)
+        return _read_by_library(path, buf, damage)
 
 
 @contextlib.contextmanager
@@ -147,14 +144,13 @@ def _raw_protobuf(encoding: str, schema: str | None, topic: str) -> bool:
         schema == fx.RAW_SCHEMA_NAME or (schema is None and topic.startswith("/raw/")))
 
 
-def _read_by_library(path: Path) -> LogContents:
+def _read_by_library(path: Path, buf: bytes, damage: Damage) -> LogContents:
     out = LogContents()
     channels: dict[int, str] = {}
     raw_protobuf: set[int] = set()  # channels of uwbd.Raw messages (new logs)
     schemas: dict[int, str] = {}
-    damage = Damage()
     messages: list[tuple[int, int, bytes]] = []
-    for record in intact_records(path.read_bytes(), damage):
+    for record in intact_records(buf, damage):
         if isinstance(record, Schema):
             schemas[record.id] = record.name
         elif isinstance(record, Channel):
@@ -179,124 +175,6 @@ def _read_by_library(path: Path) -> LogContents:
     return out
 
 
-@dataclass
-class Damage:
-    """What :func:`intact_records` had to pass over: damaged stretches (from byte, to byte,
-    why), and whether the file ends mid-record (a crash)."""
-
-    skipped: list[tuple[int, int, str]] = field(default_factory=list)
-    torn_at: int | None = None  # where the last, unfinished record starts
-    torn_why: str = ""
-
-    def __bool__(self) -> bool:
-        return bool(self.skipped) or self.torn_at is not None
-
-    def said(self, path: Path) -> str:
-        parts = []
-        if self.skipped:
-            lost = sum(end - start for start, end, _ in self.skipped)
-            start, end, why = self.skipped[0]
-            parts.append(f"{len(self.skipped)} damaged stretch(es) skipped ({lost} bytes; the "
-                         f"first, bytes {start}-{end}: {why}), read on from the next intact "
-                         "chunk")
-        if self.torn_at is not None:
-            parts.append(f"it ends mid-record near byte {self.torn_at} ({self.torn_why})")
-        return f"{path}: " + "; ".join(parts)
-
-
-def intact_records(buf: bytes, damage: Damage) -> Iterator[Any]:
-    """Every record of the MCAP file ``buf`` that reads whole and passes its CRC, in file
-    order. Where one does not (a flipped bit, a torn write), the next intact chunk is found
-    by a scan for a chunk record that reads whole, and reading goes on there: one damaged
-    chunk costs that chunk, not the rest of the file. What was passed over goes in
-    ``damage``."""
-    pos = len(MCAP0_MAGIC)
-    while True:
-        stream = io.BytesIO(buf)
-        stream.seek(pos)
-        good_end = pos
-        try:
-            for record in StreamReader(stream, skip_magic=True, validate_crcs=True).records:
-                yield record
-                good_end = stream.tell()
-            return
-        except DAMAGED as err:
-            why = f"{type(err).__name__}: {err}"
-            resume = _after_record(buf, good_end)
-            if resume is None:
-                resume = _next_chunk(buf, good_end + 1)
-            if resume is None:
-                if isinstance(err, (EndOfFile, EOFError, struct.error)):
-                    damage.torn_at, damage.torn_why = good_end, why
-                else:  # damaged, and nothing intact after it
-                    damage.skipped.append((good_end, len(buf), why))
-                return
-            damage.skipped.append((good_end, resume, why))
-            pos = resume
-
-
-MAX_OPCODE = 0x10
-
-
-def _after_record(buf: bytes, at: int) -> int | None:
-    """Where the record at ``at`` ends by its own length field, if that lands on the start
-    of another record that fits the file (a bit flipped in a chunk's contents leaves its
-    length intact: skipping just that record loses nothing else); None otherwise."""
-    if at + HEAD.size > len(buf):
-        return None
-    opcode, length = HEAD.unpack_from(buf, at)
-    end = int(at + HEAD.size + length)
-    if not 0 < opcode <= MAX_OPCODE or end + HEAD.size > len(buf):
-        return None
-    next_opcode, next_length = HEAD.unpack_from(buf, end)
-    if not 0 < next_opcode <= MAX_OPCODE or end + HEAD.size + next_length > len(buf):
-        return None
-    if next_opcode == 0x06 and not _whole_chunk(buf[end:end + HEAD.size + next_length]):
-        return None
-    return end
-
-
-def _whole_chunk(record: bytes) -> bool:
-    """``record`` is one chunk record that decompresses, passes its CRC and holds whole
-    records (the reader then finds the end of the bytes, as it would a file cut there)."""
-    stream = io.BytesIO(record)
-    inner = 0
-    try:
-        for _ in StreamReader(stream, skip_magic=True, validate_crcs=True).records:
-            inner += 1
-    except (EndOfFile, EOFError, struct.error):
-        return inner > 0 and stream.tell() == len(record)
-    except DAMAGED:
-        return False
-    return inner > 0
-
-
-_CHUNK_HEAD = struct.Struct("<BQQQQII")  # opcode, length, start, end, size, CRC, compression
-
-
-def _next_chunk(buf: bytes, start: int) -> int | None:
-    """The offset of the first chunk record at or after ``start`` that reads whole, with
-    its CRC right (None: none)."""
-    i = buf.find(b"\x06", start)
-    while i != -1:
-        if i + _CHUNK_HEAD.size <= len(buf):
-            _, length, *_, compression_len = _CHUNK_HEAD.unpack_from(buf, i)
-            if (compression_len <= 16 and 32 <= length <= len(buf) - i - 9
-                    and _whole_chunk(buf[i:i + 9 + length])):
-                return i
-        i = buf.find(b"\x06", i + 1)
-    return None
-
-
-# what reading a damaged or torn file raises: mcap's own errors, a record cut off (EOFError,
-# struct.error), a damaged compressed chunk (zstandard, lz4: a RuntimeError), a damaged
-# length or size field, which has the reader ask for more than an index holds
-# (OverflowError) or allocate exabytes for a chunk's records (MemoryError: found by the
-# damaged-log property test)
-DAMAGED = (McapError, EOFError, ValueError, struct.error, zstandard.ZstdError, RuntimeError,
-           OverflowError, MemoryError)
-
-
 @dataclass(frozen=True)
 class Recovered:
     messages: int
@@ -317,7 +195,9 @@ def recover(source: Path, target: Path) -> Recovered:
 
         w = Writer(out, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
         w.start(profile="", library=f"uwbd {__version__} (recover)")
-        records = list(intact_records(source.read_bytes(), damage))
+        with source.open("rb") as f:
+            buf = f.read(intact_size(f, damage))
+        records = list(intact_records(buf, damage))
         # schemas and channels first, from anywhere in the file: a damaged first chunk may
         # have held them, and a finished file's summary section repeats them
         for record in records:
