@@ -4,6 +4,7 @@ aligner that orders the sources' frames before the filter."""
 from __future__ import annotations
 
 import itertools
+from pathlib import Path
 
 import numpy as np
 
@@ -11,10 +12,12 @@ from drivers.emulator import ENCODERS
 from drivers.frames import ImuSample
 from uwbd.config import apply_overrides, parse
 from uwbd.fusion.types import Pose
+from uwbd.logs.reading import read_log
 from uwbd.service.aligner import Aligner
 from uwbd.service.pipeline import Pipeline, PoseList
+from uwbd.service.replay import replay
 from uwbd.tools.evaluate import merge
-from uwbd.tools.logtools import simulation_toml
+from uwbd.tools.logtools import simulation_toml, write_simulation
 from uwbd.tools.sim_presets import handheld_async
 from uwbd.tools.simulator import SimConfig, simulate
 
@@ -41,6 +44,30 @@ def test_single_ranges_update_at_once_but_poses_leave_at_the_configured_rate() -
     assert len(ranges) > 3 * len(times)  # the ranges far outnumber the poses
     # on the 50 Hz grid (a pose may come a little early in its slot after a late one)
     assert gaps_s.min() >= 0.01 and 0.8 * 50 * duration_s <= len(times) <= 50 * duration_s + 2
+
+
+def test_poses_leave_at_the_configured_rate_at_any_single_range_rate(tmp_path: Path) -> None:
+    """#44: 180 single ranges a second (and 60, and 400) with a 100 Hz IMU, read as the ports
+    send them (a log's reads, through the drivers): the poses leave at the configured 50 a
+    second, not a period after each pose plus the wait for the next range (44 a second at
+    180 before)."""
+    base = handheld_async(3)
+    for ranges_hz in (60.0, 180.0, 400.0):
+        sim = simulate(SimConfig(**{**base.__dict__, "segments": base.segments[:3],
+                                    "uwb_rate_hz": ranges_hz,
+                                    "uwb_jitter_s": 0.2 / ranges_hz}))
+        path = tmp_path / f"r{ranges_hz:.0f}.mcap"
+        write_simulation(sim, path, "nlink")
+        _, kept = replay(read_log(path), str(path))
+        times = [p.t_ns for p in kept.poses]
+        duration_s = (times[-1] - times[0]) / 1e9
+        assert 0.98 * 50 * duration_s <= len(times) <= 50 * duration_s + 2, (ranges_hz,
+                                                                               len(times))
+        # and so in every second, on a grid of 20 ms slots (a pose late in its slot, the
+        # next may come early in its own)
+        per_s = np.bincount((np.array(times) - times[0]) // 10**9)[:-1]
+        assert per_s.min() >= 48 and per_s.max() <= 51, (ranges_hz, per_s)
+        assert min(np.diff(times)) > 0
 
 
 def test_a_pose_due_within_a_read_leaves_after_the_reads_last_sample() -> None:

@@ -197,13 +197,13 @@ class Pipeline:
         if isinstance(frame, ImuSample):
             self._predict([frame])
             return
-        if isinstance(frame, UwbRanges):
-            flt.update(frame)
-            if len(frame.ranges) < 2 and frame.t_ns - self._last_pose_ns < self._pose_period_ns:
-                return  # a single range: the next pose is due later
-        else:
+        if not isinstance(frame, UwbRanges):
             return  # anchor-to-anchor ranges: logged for surveying, never fused
-        self._emit_pose()
+        flt.update(frame)
+        if len(frame.ranges) >= 2:
+            self._emit_pose()
+        elif frame.t_ns - self._last_pose_ns >= self._pose_period_ns:
+            self._emit_pose(frame.t_ns)  # a single range brings the pose due: on the grid
 
     def _emit_pose(self, due_ns: int | None = None) -> None:
         """The pose now; the next falls due a period after this one or, for a pose the IMU

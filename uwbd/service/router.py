@@ -51,6 +51,8 @@ def run_router(zcfg: dict[str, Any], stop: threading.Event | None = None,
                  "on" if json.loads(config.get_json("scouting/multicast/enabled")) else "off",
                  ", ".join(f'"{_dialled(e)}"' for e in listen))
         wait_until(stop or threading.Event())
+    except KeyboardInterrupt:
+        pass  # Ctrl-C as it started: a stop all the same
     finally:
         session.close()
         LOG.info("router stopped")
