@@ -24,6 +24,7 @@ from drivers.emulator import DeviceSpec, Emulator, Faults
 from drivers.emulator.scenario import DEFAULT_ANCHORS_M, CircleScenario
 from uwbd.config import load, parse
 from uwbd.config.zenoh_session import effective, session_config
+from uwbd.logs.reading import read_log
 
 ROOT = Path(__file__).resolve().parents[1]
 ANCHORS = "\n".join(f'"{i}" = [{x}, {y}, {z}]' for i, (x, y, z) in enumerate(DEFAULT_ANCHORS_M))
@@ -121,6 +122,14 @@ def test_the_zenoh_file_is_the_base_and_the_tables_keys_go_over_it(tmp_path: Pat
     assert checked.returncode == 0, checked.stderr
 
 
+def readme_robot_block() -> str:
+    """The README's step 3 ("Securing Zenoh"), as written: a robot's [robot] and [zenoh]."""
+    text = (ROOT / "README.md").read_text()
+    blocks = [b.split("```", 1)[0] for b in text.split("```toml\n")[1:]]
+    (block,) = [b for b in blocks if 'config = "/etc/uwbd/zenoh/robot.json5"' in b]
+    return "\n".join(line.strip() for line in block.splitlines()) + "\n"
+
+
 def client_config(tls: Path, name: str, port: int) -> zenoh.Config:
     return zenoh.Config.from_json5(json.dumps({
         "mode": "client", "connect": {"endpoints": [f"tls/127.0.0.1:{port}"]},
@@ -158,18 +167,11 @@ def test_fleet_over_mutual_tls_admits_the_robot_and_refuses_a_forger(tmp_path: P
         assert f"tls/127.0.0.1:{port}" in said
         ports = {n: p.path for n, p in emu.ports.items()}
         cfg = tmp_path / "robot1.toml"
-        cfg.write_text(f"""[robot]
-name = "robot1"
-
-{emulated_sources(ports)}
-[zenoh]
-mode = "client"
-connect = ["tls/127.0.0.1:{port}"]
-listen = []
-multicast_scouting = false
-config = "robot.json5"
-""")
-        assert uwbd("check-config", str(cfg)).returncode == 0
+        cfg.write_text(emulated_sources(ports) + readme_robot_block()
+                       .replace("tls/router.local:7447", f"tls/127.0.0.1:{port}")
+                       .replace("/etc/uwbd/zenoh/robot.json5", str(robot_file)))
+        checked = uwbd("check-config", str(cfg))
+        assert checked.returncode == 0 and "warning" not in checked.stderr, checked.stderr
         daemon = subprocess.Popen([*UWBD, "run", "-c", str(cfg), "--log-dir",
                                    str(tmp_path / "logs")], stderr=subprocess.PIPE,
                                   stdout=subprocess.DEVNULL, env=UNBUFFERED)
@@ -320,3 +322,106 @@ def test_a_daemon_without_a_zenoh_table_is_read_by_echo_on_the_same_host(tmp_pat
     assert "listen tcp/127.0.0.1:7447" in said and "multicast scouting off" in said, said
     assert echo.returncode == 0, echo.stderr
     assert len([x for x in echo.stdout.splitlines() if " p=(" in x]) == 2
+
+
+def _robot_with(tmp_path: Path, tls: Path, name: str = "robot1", **files: str) -> Path:
+    """A robot's config and Zenoh file (the README's, with ``files`` as its TLS settings)."""
+    settings = {"root_ca_certificate": str(tls / "ca.pem"), "enable_mtls": True,
+                "connect_private_key": str(tls / "robot1.key"),
+                "connect_certificate": str(tls / "robot1.pem"), **files}
+    (tmp_path / "robot.json5").write_text(json.dumps(
+        {"transport": {"link": {"tls": settings}}}))
+    cfg = tmp_path / "robot.toml"
+    cfg.write_text(f'{emulated_sources({"imu": "/dev/ttyUSB7", "uwb": "/dev/ttyUSB8"})}\n'
+                   f'[robot]\nname = "{name}"\n\n'
+                   '[zenoh]\nmode = "client"\nconnect = ["tls/127.0.0.1:9"]\nlisten = []\n'
+                   'config = "robot.json5"\n')
+    return cfg
+
+
+def test_bad_tls_material_is_refused_before_any_run(tmp_path: Path) -> None:
+    """#44: the six kinds of bad key or certificate an outside test found running without
+    Zenoh: each one line at check-config, and ``run`` exits 2 without starting."""
+    tls = make_certificates(tmp_path / "tls", ["robot1", "robot2"])
+    other = make_certificates(tmp_path / "other", ["robot1"], ca_name="other-ca")
+    (tmp_path / "garbage.key").write_bytes(b"-----BEGIN PRIVATE KEY-----\nbm9wZQ==\n"
+                                           b"-----END PRIVATE KEY-----\n")
+    (tmp_path / "empty.key").write_bytes(b"")
+    (tmp_path / "random.pem").write_bytes(bytes(range(256)) * 4)
+    cases = [
+        ({"connect_private_key": str(tmp_path / "garbage.key")}, "not a PEM private key"),
+        ({"connect_private_key": str(tmp_path / "empty.key")}, "not a PEM private key"),
+        ({"connect_private_key": str(tls / "robot2.key")}, "is not the key of"),
+        ({"connect_certificate": str(tmp_path / "random.pem")}, "not a PEM certificate"),
+        ({"connect_private_key": str(tls / "robot1.pem"),
+          "connect_certificate": str(tls / "robot1.key")}, "swapped"),
+        ({"connect_private_key": str(other / "robot1.key"),
+          "connect_certificate": str(other / "robot1.pem")}, "is not signed by"),
+    ]
+    for k, (files, said) in enumerate(cases):
+        case = tmp_path / f"case{k}"
+        case.mkdir()
+        cfg = _robot_with(case, tls, **files)
+        line = one_line(uwbd("check-config", str(cfg)), 2, "zenoh.config", said)
+        assert "transport.link.tls." in line, line
+        run = uwbd("run", "-c", str(cfg), "--duration", "1", "--log-dir", str(case / "logs"))
+        assert run.returncode == 2 and said in run.stderr, run.stderr
+        assert not (case / "logs").exists()
+    good = _robot_with(tmp_path, tls)
+    checked = uwbd("check-config", str(good))
+    assert checked.returncode == 0 and checked.stderr == "", checked.stderr
+
+
+def test_a_robot_name_other_than_the_certificates_is_warned_of(tmp_path: Path) -> None:
+    """#44: the README's steps once left [robot] name at the host's name; the router's access
+    control then dropped every pose while the daemon said all was well."""
+    tls = make_certificates(tmp_path / "tls", ["robot1"])
+    cfg = _robot_with(tmp_path, tls, name="vm")
+    checked = uwbd("check-config", str(cfg))
+    assert checked.returncode == 0, checked.stderr
+    assert "robot1's certificate" in checked.stderr and 'name = "robot1"' in checked.stderr
+
+
+def test_a_daemon_whose_keys_the_router_refuses_says_so(tmp_path: Path) -> None:
+    """#44: behind the shipped router's access control, a daemon named otherwise than its
+    certificate has every put dropped there: its status says ``refused`` and one line says
+    why, within a few probes; the one named as its certificate stays ``up``."""
+    tls = make_certificates(tmp_path / "tls", ["router", "robot1"])
+    port = free_port()
+    router_file = tmp_path / "router.json5"
+    router_file.write_text(shipped("router.json5", tls, **{
+        "tls/0.0.0.0:7447": f"tls/127.0.0.1:{port}"}))
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        router = subprocess.Popen([*UWBD, "router", "--zenoh-config", str(router_file)],
+                                  stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                                  env=UNBUFFERED)
+        procs.append(router)
+        read_until(router, b"routing on", 20, "stderr")
+        for name in ("robot1", "vm"):
+            folder = tmp_path / name
+            folder.mkdir()
+            cfg = _robot_with(folder, tls, name=name)
+            cfg.write_text(cfg.read_text().replace("tls/127.0.0.1:9", f"tls/127.0.0.1:{port}")
+                           + "[pipeline]\nstatus_period_s = 0.5\n")
+            procs.append(subprocess.Popen(
+                [*UWBD, "run", "-c", str(cfg), "--log-dir", str(folder / "logs"),
+                 "--duration", "14"], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
+                env=UNBUFFERED))
+        said = read_until(procs[2], b"does not hold this daemon's liveliness token", 30,
+                          "stderr").decode()
+        outputs = [p.communicate(timeout=30)[1].decode() for p in procs[1:]]
+    finally:
+        for proc in reversed(procs):
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                proc.communicate(timeout=20)
+    assert "uwbd/vm/alive" in said and "is [robot] name the certificate's?" in said
+    assert "liveliness token" not in outputs[0], outputs[0]
+    statuses = {}
+    for name in ("robot1", "vm"):
+        (log,) = (tmp_path / name / "logs").glob("*.mcap")
+        statuses[name] = [s["zenoh"]["state"] for s in read_log(log).json("/status")
+                          if "zenoh" in s]
+    assert statuses["robot1"] and set(statuses["robot1"]) == {"up"}, statuses
+    assert statuses["vm"][-1] == "refused", statuses

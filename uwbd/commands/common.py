@@ -224,11 +224,11 @@ def load_config_file(path: str, warn: bool = False, host: bool = False) -> Confi
         config = load_config(Path(path))
     except ConfigError as err:
         raise UsageError(str(err)) from err
-    problems = host_problems(config, path) if host else []
-    if problems:
-        raise UsageError("\n".join(problems))
+    checked = host_problems(config, path) if host else None
+    if checked is not None and checked.errors:
+        raise UsageError("\n".join(checked.errors))
     if warn:
-        for warning in config.warnings:
+        for warning in [*config.warnings, *(checked.warnings if checked else [])]:
             LOG.warning("%s", warning)
     return config
 

@@ -20,16 +20,17 @@ def cmd_check_config(args: argparse.Namespace) -> int:
         for warning in err.warnings:
             LOG.warning("%s", warning)
         raise UsageError(str(err)) from err
-    for warning in config.warnings:
+    host = host_problems(config, args.config)
+    warnings = [*config.warnings, *host.warnings]
+    for warning in warnings:
         LOG.warning("%s", warning)
-    problems = host_problems(config, args.config)
-    if problems:
-        raise UsageError("\n".join(problems))
+    if host.errors:
+        raise UsageError("\n".join(host.errors))
     ports = ", ".join(f"{s.name}={s.driver}@{s.port}" for s in config.sources) or "no sources"
     what = f"{config.filter_config().mode.value} fusion"
     ros2 = config.ros2_settings
     if ros2.enabled:
         what += f"; ROS 2 topics on domain {ros2.domain_id} ({ros2.domain_from})"
     print(f"{args.config}: ok ({ports}; {len(config.anchors_m)} anchors; {what}"
-          + (f"; {len(config.warnings)} warning(s) above)" if config.warnings else ")"))
+          + (f"; {len(warnings)} warning(s) above)" if warnings else ")"))
     return 0

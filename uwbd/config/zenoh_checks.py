@@ -16,6 +16,7 @@ from uwbd.config.model import Config
 from uwbd.config.ros2 import EXTRA_HINT, EXTRA_MODULES, missing_extra
 from uwbd.config.schema import HOST_PORT_PROTOCOLS, HOSTNAME, ZENOH_PROTOCOLS
 from uwbd.config.spelling import known, show
+from uwbd.config.zenoh_tls import Identity, check_material
 
 
 def check_zenoh(r: Report, zenoh: Mapping[str, Any]) -> None:
@@ -142,26 +143,27 @@ SECURE_PROTOCOLS = ("tls", "quic")
 TLS = "transport/link/tls/"
 
 
-def check_zenoh_file(r: Report, zcfg: Mapping[str, Any]) -> None:
+def check_zenoh_file(r: Report, zcfg: Mapping[str, Any]) -> list[Identity]:
     """``zenoh.config`` on this machine (``check-config`` and ``run``; a replay on another
     machine needs none of it): the file is there and Zenoh reads it merged with the table's
-    keys; a ``tls/`` or ``quic/`` endpoint has the key, certificates and CA it needs, and
-    every file the TLS settings name exists."""
+    keys; a ``tls/`` or ``quic/`` endpoint has the key, certificates and CA it needs, every
+    file the TLS settings name exists and holds what it should (:mod:`.zenoh_tls`). Returns
+    the certificates' identities that passed."""
     import zenoh  # noqa: PLC0415 - only for configs that name a Zenoh file
 
     from uwbd.config import zenoh_session as zs  # noqa: PLC0415
 
     path = zcfg.get("config")
     if path is None:
-        return
+        return []
     if not Path(path).is_file():
         r.error("zenoh.config", f"{path}: no such file (a Zenoh config file, JSON5)")
-        return
+        return []
     try:
         merged = zs.session_config(dict(zcfg))
     except zenoh.ZError as err:
         r.error("zenoh.config", f"{path}: Zenoh: {zs.zenoh_reason(err)}")
-        return
+        return []
 
     def get(key: str) -> Any:
         try:
@@ -192,11 +194,14 @@ def check_zenoh_file(r: Report, zcfg: Mapping[str, Any]) -> None:
         file = get(TLS + name)
         if isinstance(file, str) and not Path(file).is_file():
             r.error("zenoh.config", f"{path}: transport.link.tls.{name} {file}: no such file")
+    return check_material(lambda name: get(TLS + name),
+                          lambda what: r.error("zenoh.config", f"{path}: {what}"))
 
 
-def host_problems(config: Config, where: str) -> list[str]:
+def host_problems(config: Config, where: str) -> Report:
     """What this machine lacks to run ``config`` (its Zenoh file and what that names), one
-    line each, and the ``ros2`` extra when ``[ros2]`` is on; nothing where Zenoh is off."""
+    line each, and the ``ros2`` extra when ``[ros2]`` is on; nothing where Zenoh is off. Its
+    warnings: a certificate whose name the key prefix does not follow."""
     r = Report(where)
     zcfg = config.zenoh
     missing = missing_extra() if config.ros2_settings.enabled else None
@@ -204,12 +209,19 @@ def host_problems(config: Config, where: str) -> list[str]:
         r.error("ros2.enabled", f"the ROS 2 topics need the ros2 extra ({missing}, for "
                 f"{EXTRA_MODULES[missing]}, is missing): {EXTRA_HINT}")
     if not zcfg.get("enabled", True):
-        return r.errors
+        return r
     if "config" not in zcfg:  # (a TLS client needs nothing: it trusts the Web PKI's CAs)
         for k, endpoint in enumerate(zcfg.get("listen", [])):
             if str(endpoint).partition("/")[0] in SECURE_PROTOCOLS:
                 r.error(f"zenoh.listen[{k}]", f"{show(endpoint)}: listening on TLS needs a "
                         "key and certificate: name a Zenoh config file that gives them with "
                         "zenoh.config (README, \"Securing Zenoh\")")
-    check_zenoh_file(r, zcfg)
-    return r.errors
+    for identity in check_zenoh_file(r, zcfg):
+        own = f"uwbd/{identity.common_name}"
+        if identity.side == "connect" and identity.common_name and config.zenoh_prefix != own:
+            r.warn("zenoh.config", f"{identity.certificate} is {identity.common_name}'s "
+                   f"certificate, and this daemon publishes on {config.zenoh_prefix}/**: a "
+                   f"router's access control as shipped (config/zenoh/router.json5) admits "
+                   f"{identity.common_name}'s puts on {own}/** only and drops these; set "
+                   f'[robot] name = "{identity.common_name}" (or zenoh.prefix = "{own}")')
+    return r

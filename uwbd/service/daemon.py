@@ -37,6 +37,7 @@ if TYPE_CHECKING:
     from uwbd.ros2.publisher import Ros2Sink
 
 ZENOH_RETRY_S = 5.0
+PROBE_EVERY_S = 5.0  # does the router hold this daemon's liveliness token? (ZenohSink.probe)
 LOG = journal.get("daemon")
 
 
@@ -170,6 +171,8 @@ class ZenohLink:
         self._next_try = loop.time()
         self._said = ""
         self._reach = effective(config.zenoh)  # (with its Zenoh file's keys)
+        self._next_probe = loop.time()
+        self._unheld = 0  # probes in a row that found no router holding the token
         if config.zenoh.get("enabled", True):
             self.retry()
 
@@ -244,16 +247,42 @@ class ZenohLink:
         z = self._reach
         expects = bool(z["connect"]) or z["mode"] == "client"
         state = "disconnected" if expects and routers + peers == 0 else "up"
+        if state == "up" and routers and self._refused(error):
+            state = "refused"
         before = self.pipeline.extra_status.get("zenoh", {}).get("state")
-        if state != before and before in ("up", "disconnected"):
+        if state != before and before in ("up", "disconnected", "refused"):
             if state == "disconnected":
                 LOG.warning("zenoh: no router or peer reached (connect %s): poses reach no "
                             "one off this process; Zenoh keeps trying",
                             ", ".join(z.get("connect", [])) or "by scouting")
+            elif state == "refused":
+                LOG.warning("zenoh: the router does not hold this daemon's liveliness token "
+                            "%s/alive: its access control refuses this daemon's keys, and "
+                            "drops every pose and status put on them (as shipped it admits a "
+                            "certificate's puts on uwbd/<its common name>/** only: is [robot] "
+                            "name the certificate's?)", self.config.zenoh_prefix)
+            elif before == "refused":
+                LOG.info("zenoh: the router admits this daemon's keys again")
             else:
                 LOG.info("zenoh: connected again (%d router(s), %d peer(s))", routers, peers)
         self.pipeline.extra_status["zenoh"] = {"state": state, "error": error,
                                                "routers": routers, "peers": peers}
+
+    def _refused(self, error: str) -> bool:
+        """Two probes in a row found no router holding the token (one may race a reconnect);
+        a probe every ``PROBE_EVERY_S``."""
+        assert self.sink is not None
+        if error:
+            return False
+        holders = self.sink.token_holders
+        if holders is not None:
+            self._unheld = self._unheld + 1 if holders < 2 else 0
+            self.sink.token_holders = None
+        if self.loop.time() >= self._next_probe:
+            self._next_probe = self.loop.time() + PROBE_EVERY_S
+            with contextlib.suppress(zenoh.ZError):
+                self.sink.probe(PROBE_EVERY_S / 2)
+        return self._unheld >= 2
 
 
 def _announce(config: Config, where: str, log_dir: Path,

@@ -36,10 +36,31 @@ class ZenohSink:
         self._pose = self.session.declare_publisher(f"{self.prefix}/pose", encoding=json_enc)
         self._status = self.session.declare_publisher(f"{self.prefix}/status", encoding=json_enc)
         self._token = self.session.liveliness().declare_token(f"{self.prefix}/alive")
+        self.token_holders: int | None = None  # who holds the token, as the last probe found
+        self._probing = False
         self._status_bytes = b"{}"
         self._queryable = self.session.declare_queryable(f"{self.prefix}/status", self._on_query)
         # what else declared on this session (the ROS 2 topics), closed before it
         self.close_first: list[Callable[[], None]] = []
+
+    def probe(self, timeout_s: float) -> None:
+        """Ask the network who holds this daemon's liveliness token: this session itself,
+        and a router that admitted the token's declaration (one whose access control refuses
+        this daemon's keys does not hold it, and drops its puts as well). The count lands in
+        :attr:`token_holders` when the query ends (on a Zenoh thread)."""
+        if self._probing:
+            return
+        self._probing = True
+        replies = [0]
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            replies[0] += reply.ok is not None
+
+        def on_end() -> None:
+            self.token_holders = replies[0]
+            self._probing = False
+        self.session.liveliness().get(f"{self.prefix}/alive", timeout=timeout_s,
+                                      handler=zenoh.handlers.Callback(on_reply, on_end))
 
     def _on_query(self, query: zenoh.Query) -> None:
         with query:  # finalises the query promptly
