@@ -797,19 +797,18 @@ static PyObject *state_move_to(State *self, PyObject *const *args, Py_ssize_t na
 
 /* -- outputs ---------------------------------------------------------------------------- */
 
-/* pose_numbers(aligned, max_yaw_sigma)
- * -> (covariance (36), σ_xy, heading observable, position (3), velocity (3), xyzw (4)),
+/* pose_numbers(aligned)
+ * -> (covariance (36), σ_xy, position (3), velocity (3), xyzw (4)),
  *    or None when a number is not finite
  * The covariance over position and the attitude error turned into the navigation frame,
  * [[Ppp, Ppθ Rᵀ], [R Pθp, R Pθθ Rᵀ]], row-major, made symmetric; while the heading is not
  * aligned its yaw row and column are 0 and its variance π². */
 static PyObject *state_pose_numbers(State *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    if (check_args(nargs, 2, "pose_numbers"))
+    if (check_args(nargs, 1, "pose_numbers"))
         return NULL;
     int aligned = PyObject_IsTrue(args[0]);
-    double max_yaw_sigma = PyFloat_AsDouble(args[1]);
-    if (aligned < 0 || PyErr_Occurred())
+    if (aligned < 0)
         return NULL;
     Py_ssize_t n = self->n;
     const double *P = self->P, *q = self->q, *p = self->p, *v = self->v;
@@ -847,12 +846,10 @@ static PyObject *state_pose_numbers(State *self, PyObject *const *args, Py_ssize
         s += cov[i];
     if (!isfinite(s))
         Py_RETURN_NONE;
-    double xy = cov[0] + cov[7], yaw = cov[35];
+    double xy = cov[0] + cov[7];
     double sigma_xy = sqrt(xy > 0.0 ? xy : 0.0);
-    int observable = aligned && sqrt(yaw > 0.0 ? yaw : 0.0) < max_yaw_sigma;
     const double xyzw[4] = {q[1], q[2], q[3], q[0]};
-    return Py_BuildValue("(NdNNNN)", uwbd_floats(cov, 36, 0), sigma_xy,
-                         PyBool_FromLong(observable), uwbd_floats(p, 3, 0),
+    return Py_BuildValue("(NdNNN)", uwbd_floats(cov, 36, 0), sigma_xy, uwbd_floats(p, 3, 0),
                          uwbd_floats(v, 3, 0), uwbd_floats(xyzw, 4, 0));
 }
 
@@ -917,7 +914,7 @@ static PyMethodDef state_methods[] = {
     METHOD(add_variances, "add_variances(d): P_ii += d_i."),
     METHOD(set_covariance, "set_covariance(P): P restored."),
     METHOD(move_to, "move_to(p, v): position and velocity set."),
-    METHOD(pose_numbers, "pose_numbers(aligned, max_yaw_sigma) -> the pose's numbers or None."),
+    METHOD(pose_numbers, "pose_numbers(aligned) -> the pose's numbers or None."),
     {NULL, NULL, 0, NULL},
 };
 

@@ -22,9 +22,9 @@ from uwbd.fusion.core.rotation import Array, quat_to_matrix, skew
 from uwbd.fusion.core.weights import RawRow, Row, RowPolicy, full_weight
 
 Vector = Sequence[float] | Array
-# a pose's covariance (6×6 row-major over p and the nav-frame attitude), σ_xy, heading
-# observable, position, velocity, orientation (x, y, z, w)
-PoseNumbers = tuple[tuple[float, ...], float, bool, tuple[float, float, float],
+# a pose's covariance (6×6 row-major over p and the nav-frame attitude), σ_xy, position,
+# velocity, orientation (x, y, z, w)
+PoseNumbers = tuple[tuple[float, ...], float, tuple[float, float, float],
                     tuple[float, float, float], tuple[float, float, float, float]]
 
 
@@ -382,9 +382,9 @@ class Eskf:
         """Position and velocity set (a position reset to a UWB fix)."""
         self.p, self.v = [float(c) for c in p], [float(c) for c in v]
 
-    def pose_numbers(self, aligned: bool, max_yaw_sigma_rad: float) -> PoseNumbers | None:
-        """The pose's covariance, horizontal σ, whether the heading is observable, position,
-        velocity and orientation (x, y, z, w); ``None`` when a number is not finite.
+    def pose_numbers(self, aligned: bool) -> PoseNumbers | None:
+        """The pose's covariance, horizontal σ, position, velocity and orientation (x, y, z,
+        w); ``None`` when a number is not finite.
 
         The covariance is over position and the attitude error turned into the navigation
         frame, ``T P Tᵀ`` with ``T = [[I, 0, 0], [0, 0, R]]`` over (p, v, θ), made
@@ -402,9 +402,8 @@ class Eskf:
         p, v, (w, x, y, z) = self.p, self.v, self.q
         if not math.isfinite(sum(p) + sum(v) + w + x + y + z + float(cov.sum())):
             return None
-        observable = aligned and math.sqrt(max(cov[5, 5], 0.0)) < max_yaw_sigma_rad
         return (tuple(cov.ravel().tolist()), math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0)),
-                observable, (p[0], p[1], p[2]), (v[0], v[1], v[2]), (x, y, z, w))
+                (p[0], p[1], p[2]), (v[0], v[1], v[2]), (x, y, z, w))
 
     # -- views ----------------------------------------------------------------------------
     @property

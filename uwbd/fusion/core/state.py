@@ -150,8 +150,8 @@ class CoreEskf(Eskf):
     def move_to(self, p: Vector, v: Vector) -> None:
         self._state.move_to([float(c) for c in p], [float(c) for c in v])
 
-    def pose_numbers(self, aligned: bool, max_yaw_sigma_rad: float) -> PoseNumbers | None:
-        numbers: PoseNumbers | None = self._state.pose_numbers(aligned, max_yaw_sigma_rad)
+    def pose_numbers(self, aligned: bool) -> PoseNumbers | None:
+        numbers: PoseNumbers | None = self._state.pose_numbers(aligned)
         return numbers
 
 

@@ -72,7 +72,7 @@ class FilterOutputs:
 
     def heading_observable(self) -> bool:
         ekf = self.ekf
-        return ekf is not None and self._aligned and ekf.yaw_sigma_rad() < MAX_OBSERVABLE_YAW_SIGMA
+        return ekf is not None and heading_observable(self._aligned, ekf.yaw_sigma_rad() ** 2)
 
     def pose(self) -> Pose | None:
         """The pose now, or ``None`` before the start, while restarting, or when any of
@@ -81,11 +81,12 @@ class FilterOutputs:
         t_ns = self.t_ns
         if ekf is None or t_ns is None:
             return None
-        numbers = ekf.pose_numbers(self._aligned, MAX_OBSERVABLE_YAW_SIGMA)
+        numbers = ekf.pose_numbers(self._aligned)
         if numbers is None:
             self._restart_not_finite(t_ns)
             return None
-        covariance, sigma_xy, observable, position, velocity, orientation = numbers
+        covariance, sigma_xy, position, velocity, orientation = numbers
+        observable = heading_observable(self._aligned, covariance[35])  # yaw's variance
         health = self.monitor.assess(t_ns, True, observable, sigma_xy, True,
                                      math.sqrt(max(covariance[14], 0.0)), False,  # σz²: [2, 2]
                                      _major_sigma(covariance[0], covariance[1], covariance[7]))
@@ -109,6 +110,12 @@ class FilterOutputs:
                 **({"lever_arm_estimate_m": [round(float(c), 4) for c in self.lever]}
                    if self._lever_index and self.ekf is not None else {}),
                 **({"mounting_finding": mounting} if mounting else {})}
+
+
+def heading_observable(aligned: bool, yaw_variance: float) -> bool:
+    """The rule: the heading counts as known once aligned and while its σ is under
+    ``MAX_OBSERVABLE_YAW_SIGMA`` (the yaw's variance: the nav-z component of ``R δθ``)."""
+    return aligned and math.sqrt(max(yaw_variance, 0.0)) < MAX_OBSERVABLE_YAW_SIGMA
 
 
 def _major_sigma(xx: float, xy: float, yy: float) -> float:
