@@ -124,8 +124,8 @@ def test_every_problem_is_reported_at_once_one_line_each() -> None:
     ('[imu]\nlever_arm_m = [0, 0]', "imu.lever_arm_m: expected [x, y, z] of finite numbers, "
                                     "got [0, 0] (an array of 2)"),
     ('[imu]\nmounting = [1, 0, 0]', "imu.mounting: expected 3 rows of 3 finite numbers"),
-    ('[imu]\nacc_noise_mps2_rthz = "0.01"', "imu.acc_noise_mps2_rthz: expected a positive "
-                                            'number, got "0.01" (a string)'),
+    ('[imu]\nacc_noise_mps2_rthz = "0.01"', "imu.acc_noise_mps2_rthz: expected a number, "
+                                            'got "0.01" (a string)'),
     ('[pipeline]\nstatus_period_s = 1979-05-27',
      "pipeline.status_period_s: expected a number, got 1979-05-27 (a date)"),
     ("fusion = 3", "fusion: expected a table ([fusion]), got 3 (an integer)"),
@@ -287,9 +287,10 @@ def test_min_anchors_beyond_the_configured_anchors_is_an_error() -> None:
 # -- rates, sigmas, the IMU ---------------------------------------------------------------
 
 @pytest.mark.parametrize(("section", "body", "message"), [
-    ("pipeline", "pose_rate_hz = 0", "pipeline.pose_rate_hz: must be positive and at most 1000, "
-                                     "got 0"),
-    ("pipeline", "pose_rate_hz = 1001", "pipeline.pose_rate_hz: must be positive and at most"),
+    ("pipeline", "pose_rate_hz = 0", "pipeline.pose_rate_hz: must be at least 0.1 and at most "
+                                     "1000, got 0"),
+    ("pipeline", "pose_rate_hz = 1001", "pipeline.pose_rate_hz: must be at least 0.1 and at "
+                                        "most"),
     ("pipeline", "status_period_s = 0.01", "pipeline.status_period_s: must be at least 0.05 and "
                                            "at most 3600, got 0.01"),
     ("pipeline", "status_period_s = 7200", "pipeline.status_period_s: must be at least 0.05"),
@@ -302,9 +303,9 @@ def test_min_anchors_beyond_the_configured_anchors_is_an_error() -> None:
     ("fusion", "gate_probability = 0.5", "fusion.gate_probability: must be more than 0.5 and less "
                                          "than 1, got 0.5"),
     ("fusion", "gate_probability = 1", "fusion.gate_probability: must be more than 0.5"),
-    ("fusion", "min_anchors = 0", "fusion.min_anchors: must be at least 1, got 0"),
-    ("fusion", "max_range_m = 0", "fusion.max_range_m: must be positive, got 0"),
-    ("fusion", "multipath_tau_s = 0", "fusion.multipath_tau_s: must be positive, got 0"),
+    ("fusion", "min_anchors = 0", "fusion.min_anchors: must be at least 1 and at most 64"),
+    ("fusion", "max_range_m = 0", "fusion.max_range_m: must be at least 0.1 and at most 10000"),
+    ("fusion", "multipath_tau_s = 0", "fusion.multipath_tau_s: must be positive and at most 3600"),
     ("fusion", "multipath_sigma_m = -0.1", "fusion.multipath_sigma_m: must be zero or more"),
     ("fusion", "range_bias_sigma_m = -1", "fusion.range_bias_sigma_m: must be zero or more"),
     ("fusion", "tag_delay_sigma_m = inf", "fusion.tag_delay_sigma_m: must be a finite number"),
@@ -314,13 +315,21 @@ def test_min_anchors_beyond_the_configured_anchors_is_an_error() -> None:
     ("fusion", "tag_side = \"under\"", "fusion.tag_side: expected one of auto, below, above"),
     ("fusion", "height_range_m = [2, 1]", "fusion.height_range_m: expected [lowest, highest] in "
                                           "m, lowest < highest, got [2, 1]"),
-    ("log", "rotate_mb = 0", "log.rotate_mb: must be positive, got 0"),
-    ("log", "rotate_minutes = -5", "log.rotate_minutes: must be positive, got -5"),
+    ("log", "rotate_mb = 0", "log.rotate_mb: must be at least 0.1 and at most 1000000, got 0"),
+    ("log", "rotate_minutes = -5", "log.rotate_minutes: must be at least 1 and at most 1000000"),
     ("log", 'directory = ""', "log.directory: must not be empty"),
-    ("imu", "gyro_noise_rps_rthz = -0.0002", "imu.gyro_noise_rps_rthz: expected a positive "
-                                             "number, got -0.0002 (a float)"),
-    ("imu", "acc_bias_walk_mps3_rthz = nan", "imu.acc_bias_walk_mps3_rthz: expected a positive"),
-    ("imu", "acc_full_scale_mps2 = 0", "imu.acc_full_scale_mps2: expected a positive number"),
+    ("imu", "gyro_noise_rps_rthz = -0.0002", "imu.gyro_noise_rps_rthz: must be more than 1e-08 "
+                                             "and at most 1, got -0.0002"),
+    ("imu", "acc_bias_walk_mps3_rthz = nan", "imu.acc_bias_walk_mps3_rthz: must be a finite"),
+    ("imu", "acc_full_scale_mps2 = 0", "imu.acc_full_scale_mps2: must be at least 9 and at most"),
+    # absurd but finite: an exponent slipped (#44)
+    ("imu", "gyro_noise_rps_rthz = 1e300", "imu.gyro_noise_rps_rthz: must be more than 1e-08"),
+    ("fusion", "range_bias_sigma_m = 1e300", "fusion.range_bias_sigma_m: must be zero or more "
+                                             "and at most 100"),
+    ("fusion", "max_range_m = 1e-300", "fusion.max_range_m: must be at least 0.1"),
+    ("pipeline", "pose_rate_hz = 1e-300", "pipeline.pose_rate_hz: must be at least 0.1"),
+    ("imu", "gyro_full_scale_rps = 1e-300", "imu.gyro_full_scale_rps: must be at least 0.5"),
+    ("log", "rotate_mb = 1e300", "log.rotate_mb: must be at least 0.1 and at most 1000000"),
 ])
 def test_rates_and_sigmas_must_make_sense(section: str, body: str, message: str) -> None:
     assert message in one_problem(with_section(section, body))
@@ -663,7 +672,7 @@ def test_the_robot_names_its_keys_logs_and_frames(tmp_path: Path) -> None:
     with pytest.raises(cfgmod.ConfigError) as err:
         cfgmod.parse('[robot]\nname = "robot one"\nnav_frame_id = ""\n', "cfg.toml")
     assert err.value.problems == [
-        "cfg.toml: robot.name: expected a name of letters, digits, '-' and '_' (\"robot1\"), "
-        "got \"robot one\" (a string)",
+        "cfg.toml: robot.name: expected a name of letters, digits, '-' and '_', at most 64 "
+        "(\"robot1\"), got \"robot one\" (a string)",
         "cfg.toml: robot.nav_frame_id: expected a frame name of letters, digits, '_', '-', '.' "
         "and '/' (\"base_link\"), got \"\" (a string)"]

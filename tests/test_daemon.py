@@ -142,7 +142,7 @@ def test_absent_port_is_retried_and_shown(tmp_path: Path) -> None:
 @pytest.mark.parametrize(("text", "message"), [
     ("[fusion]\nmode = 3\n", "cfg.toml: fusion.mode: expected a string, got 3 (an integer)"),
     ("[[sources]]\nname = 'imu'\ndriver = 'wit'\n", "cfg.toml: sources[0].port: required"),
-    ("[pipeline]\npose_rate_hz = -5\n", "cfg.toml: pipeline.pose_rate_hz: must be positive"),
+    ("[pipeline]\npose_rate_hz = -5\n", "cfg.toml: pipeline.pose_rate_hz: must be at least 0.1"),
     ("[zenoh\n", "cfg.toml"),
 ])
 def test_malformed_config_is_one_clear_line_and_exit_2(tmp_path: Path, text: str,

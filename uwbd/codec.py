@@ -100,15 +100,33 @@ def _plain(value: Any) -> Any:
     return value
 
 
+MAX_T_NS = 2**63 - 1  # int64 nanoseconds: the year 2262
+
+
+def t_ns_of(value: Any) -> int:
+    """A record's time: integer nanoseconds since the Unix epoch, ``0 ≤ t_ns < 2⁶³`` (a float
+    that is a whole number in range is taken); ``ValueError`` for anything else (a string,
+    null, NaN, 10³⁰, −5)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"t_ns: expected integer nanoseconds, got {value!r}")
+    if isinstance(value, float) and not (math.isfinite(value) and value.is_integer()):
+        raise ValueError(f"t_ns: expected integer nanoseconds, got {value!r}")
+    if not 0 <= value <= MAX_T_NS:
+        raise ValueError(f"t_ns: {value!r} is outside 0 .. 2^63 - 1 ns (1970 .. 2262)")
+    return int(value)
+
+
 def frame_from_dict(d: dict[str, Any]) -> Frame:
     """The inverse of :func:`frame_to_dict` (``null`` back to NaN where a number was)."""
     def vec(v: Any) -> Any:
         return None if v is None else tuple(math.nan if x is None else x for x in v)
 
+    if not isinstance(d, dict):
+        raise ValueError(f"not a frame: a JSON {type(d).__name__}, not an object")
     kind = d.get("type")
     if kind == "ImuSample":
         return ImuSample(
-            int(d["t_ns"]), vec(d["acc_mps2"]), vec(d["gyro_rps"]), d.get("temperature_c"),
+            t_ns_of(d["t_ns"]), vec(d["acc_mps2"]), vec(d["gyro_rps"]), d.get("temperature_c"),
             vec(d.get("angle_deg")), vec(d.get("mag_raw")), vec(d.get("quaternion_wire")),
             d.get("device_time_ns"))
     if kind == "UwbRanges":
@@ -117,12 +135,12 @@ def frame_from_dict(d: dict[str, Any]) -> Frame:
                                    r.get("quality"), vec(r.get("anchor_position_m")),
                                    r.get("fp_rssi_dbm"), r.get("rx_rssi_dbm"))
                        for r in d["ranges"])
-        return UwbRanges(int(d["t_ns"]), ranges, vec(d.get("tag_position_m")), d.get("quality"),
+        return UwbRanges(t_ns_of(d["t_ns"]), ranges, vec(d.get("tag_position_m")), d.get("quality"),
                          vec(d.get("tag_velocity_mps")), vec(d.get("tag_position_error_m")),
                          d.get("tag_id"), d.get("device_time_ms"))
     if kind == "AnchorRanges":
         pairs = tuple(AnchorPair(int(q["anchor_a"]), int(q["anchor_b"]),
                                  math.nan if q["range_m"] is None else float(q["range_m"]))
                       for q in d["pairs"])
-        return AnchorRanges(int(d["t_ns"]), pairs, d.get("device_time_ms"))
+        return AnchorRanges(t_ns_of(d["t_ns"]), pairs, d.get("device_time_ms"))
     raise ValueError(f"not a frame: type {kind!r}")

@@ -25,7 +25,7 @@ from uwbd.commands.common import (
     written,
 )
 from uwbd.config import ConfigError, parse
-from uwbd.logs.reading import not_a_log, recover
+from uwbd.logs.reading import LogContents, not_a_log, recover
 from uwbd.service.replay import replay
 
 READ_CHUNK_BYTES = 65536
@@ -89,12 +89,25 @@ def cmd_replay(args: argparse.Namespace) -> int:
             print(f"last pose ({x:.3f}, {y:.3f}, {z:.3f}) m")
         for line in _findings(pipeline.filter.diagnostics()):
             print(line)
+        if pipeline.poses == 0:
+            raise RunError(f"{path}: no pose came out of the replay (the filter: "
+                           f"{pipeline.filter.status}){_why_no_pose(contents)}"
+                           + ("; nothing written" if out is not None else ""))
         if tmp is not None and (log_errors or not tmp.is_file()):
             raise RunError(f"{out}: not written: the replayed log could not be written whole: "
                            f"{log_errors[0] if log_errors else 'the file was not written'}")
     if out is not None:
         print(f"written to {out}")
     return 0
+
+
+def _why_no_pose(contents: LogContents) -> str:
+    """What in a log keeps a filter from starting, where the log itself shows it."""
+    times = {m.log_time_ns for m in contents.messages if m.topic.startswith("/raw/")}
+    if len(times) == 1:
+        return (f": every read has the log time {times.pop()} ns, and the filter runs on the "
+                "reads' receive times")
+    return ""
 
 
 def _findings(diagnostics: dict[str, Any]) -> list[str]:

@@ -37,14 +37,23 @@ def apply_overrides(text: str, overrides: Sequence[str], where: str = "<config>"
     """
     if not overrides:
         return text
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"{where}: {err}") from err
+    doc = toml_document(text, where)
     for item in overrides:
         _apply_override(doc, item, where)
     said = " ".join(f"--set {item}" for item in overrides)
     return f"# {one_line(where)} with {one_line(said)}\n" + write_toml(doc)
+
+
+def toml_document(text: str, where: str) -> dict[str, Any]:
+    """``text`` read as TOML; what is not TOML, or is nested past any config (a recursion
+    the parser cannot finish), is a :class:`ConfigError` naming ``where``."""
+    try:
+        doc: dict[str, Any] = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{where}: {err}") from err
+    except RecursionError as err:
+        raise ConfigError(f"{where}: arrays or tables nested too deeply to be a config") from err
+    return doc
 
 
 def _apply_override(doc: dict[str, Any], item: str, where: str) -> None:
@@ -146,6 +155,8 @@ def _override_value(raw: str, fail: Callable[[str], ConfigError]) -> Any:
         raise fail("no value after =")
     try:
         return tomllib.loads(f"value = {raw}")["value"]
+    except RecursionError as err:
+        raise fail("nested too deeply to be a value") from err
     except tomllib.TOMLDecodeError as err:
         if re.fullmatch(r"[^\s\"'\[\]{}=#,]+", raw):
             return raw  # a bare word: a string

@@ -5,6 +5,7 @@ checks of the file as a whole."""
 from __future__ import annotations
 
 import math
+import stat
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -35,7 +36,7 @@ from uwbd.config.model import (
     Vec3,
     vec3,
 )
-from uwbd.config.overrides import apply_overrides
+from uwbd.config.overrides import apply_overrides, toml_document
 from uwbd.config.schema import (
     SECTIONS,
     SOURCE_SPEC,
@@ -53,9 +54,9 @@ Rotation = tuple[Vec3, Vec3, Vec3]
 QUATERNION_TOLERANCE = 1e-3  # a quaternion typed to 4 digits is this close to unit norm
 
 if sys.version_info >= (3, 11):
-    import tomllib
+    pass
 else:  # pragma: no cover - Python 3.10
-    import tomli as tomllib
+    pass
 
 MAX_CONFIG_BYTES = 1 << 20  # a config file is a few kB: more is some other file
 
@@ -64,6 +65,12 @@ def load(path: Path, overrides: Sequence[str] = ()) -> Config:
     """The config file at ``path`` with ``overrides`` (``section.key=value``) applied."""
     where = str(path)
     try:
+        mode = path.stat().st_mode
+        if stat.S_ISDIR(mode):
+            raise ConfigError(f"{where}: Is a directory, not a config file")
+        if not stat.S_ISREG(mode):
+            raise ConfigError(f"{where}: not a regular file (a FIFO or a device): give a "
+                              "config file")
         with path.open("rb") as f:
             data = f.read(MAX_CONFIG_BYTES + 1)
     except OSError as err:
@@ -86,10 +93,7 @@ def load(path: Path, overrides: Sequence[str] = ()) -> Config:
 
 def parse(text: str, where: str = "<config>") -> Config:
     """The config in ``text`` (``where``: the file, for messages), every problem at once."""
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"{where}: {err}") from err
+    doc = toml_document(text, where)
     r = Report(where)
     _unknown_keys(r, doc, SECTIONS, "")
     sources, sources_complete = _sources(r, doc)

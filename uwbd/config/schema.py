@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from drivers.nlink import N_SLOTS
-from uwbd.config.model import IMU_INTRINSIC_VECTORS, IMU_LIMIT_KEYS, IMU_NOISE_KEYS
+from uwbd.config.model import IMU_INTRINSIC_VECTORS, IMU_NOISE_KEYS
 from uwbd.config.ros2 import DISTROS, MAX_DOMAIN_ID, NAMESPACE, NODE_NAME, TOPIC_KEYS, TOPIC_NAME
 from uwbd.config.spelling import maybe, show, type_name
 from uwbd.fusion.core.noise import ImuNoise
@@ -41,7 +41,6 @@ BOOL = Kind("true or false", lambda v: isinstance(v, bool))
 NUMBER = Kind("a number", _is_number)
 INTEGER = Kind("an integer", lambda v: isinstance(v, int) and not isinstance(v, bool))
 STRING = Kind("a string", lambda v: isinstance(v, str))
-POSITIVE = Kind("a positive number", lambda v: _is_number(v) and math.isfinite(v) and v > 0)
 ENDPOINTS = Kind("an array of endpoint strings (\"tcp/192.168.1.10:7447\")",
                  lambda v: isinstance(v, list) and all(isinstance(e, str) for e in v))
 VEC3 = Kind("[x, y, z] of finite numbers", lambda v: _is_finite_vec(v, 3))
@@ -99,6 +98,10 @@ class Key:
         """What is wrong with ``value`` for this key, or ``None``."""
         if not self.kind.ok(value):
             return f"expected {self.kind.what}, got {show(value)} ({type_name(value)})"
+        if isinstance(value, str) and "\0" in value:
+            return f"{show(value)} holds a NUL character, which no path or name can"
+        if isinstance(value, str) and len(value) > MAX_STRING_CHARS:
+            return f"{len(value)} characters: at most {MAX_STRING_CHARS}"
         if self.bounds is not None:
             return self.bounds.problem(value)
         if self.choices and value not in self.choices:
@@ -109,13 +112,23 @@ class Key:
         return None
 
 
-_ZERO_OR_MORE = Range(0.0, lo_closed=True)
-_POSITIVE_RANGE = Range(0.0)
+MAX_STRING_CHARS = 4096  # a path's (PATH_MAX); names are shorter still (NAME)
+MAX_NAME_CHARS = 64  # a robot's name: part of key expressions and of log files' names
+# every number has bounds: past them a value is a slip (a unit, an exponent), not a setting
+_SIGMA_M = Range(0.0, 100.0, lo_closed=True)  # a range error's σ, or a delay's
+_LENGTH_M = Range(0.0, 1000.0)
 MAX_BAUD = 12_000_000  # the fastest USB serial adapters (FTDI FT232H); the kernel's limit is near
 SOURCE_SPEC = {"name": Key(STRING, non_empty=True), "driver": Key(STRING),
                "port": Key(STRING, non_empty=True), "baud": Key(INTEGER, Range(0.0, MAX_BAUD))}
 _IMU_SPEC = {"mounting": Key(ROWS), "lever_arm_m": Key(VEC3),
-             **{k: Key(POSITIVE) for k in (*IMU_NOISE_KEYS, *IMU_LIMIT_KEYS)},
+             # noise densities: consumer MEMS parts are ~1e-3, tactical grade ~1e-5
+             "acc_noise_mps2_rthz": Key(NUMBER, Range(1e-7, 10.0)),
+             "gyro_noise_rps_rthz": Key(NUMBER, Range(1e-8, 1.0)),
+             "acc_bias_walk_mps3_rthz": Key(NUMBER, Range(1e-9, 1.0)),
+             "gyro_bias_walk_rps2_rthz": Key(NUMBER, Range(1e-10, 0.1)),
+             # full scales: under 1 g an IMU at rest clips; FULL_SCALE_PLAUSIBLE warns nearer
+             "acc_full_scale_mps2": Key(NUMBER, Range(9.0, 1e5, lo_closed=True)),
+             "gyro_full_scale_rps": Key(NUMBER, Range(0.5, 1e4, lo_closed=True)),
              # each axis of these within INTRINSIC_BOUNDS (checks.check_imu, per element)
              **{k: Key(VEC3) for k in IMU_INTRINSIC_VECTORS},
              "gyro_deadband_rps": Key(NUMBER, Range(0.0, 0.1, lo_closed=True)),
@@ -124,39 +137,40 @@ _FUSION_SPEC = {
     "mode": Key(STRING, choices=tuple(m.value for m in Mode)),
     "range_sigma_m": Key(NUMBER, Range(0.0, 5.0)),
     "range_bias_states": Key(BOOL),
-    "range_bias_sigma_m": Key(NUMBER, _ZERO_OR_MORE),
-    "tag_delay_sigma_m": Key(NUMBER, _ZERO_OR_MORE),
+    "range_bias_sigma_m": Key(NUMBER, _SIGMA_M),
+    "tag_delay_sigma_m": Key(NUMBER, _SIGMA_M),
     "zupt": Key(BOOL), "nhc": Key(BOOL), "robust": Key(BOOL),
-    "nlos_onset_m": Key(NUMBER, _POSITIVE_RANGE),
+    "nlos_onset_m": Key(NUMBER, Range(0.0, 10.0)),
     "known_height_m": Key(NUMBER, Range(-MAX_ANCHOR_COORD_M, MAX_ANCHOR_COORD_M, True)),
     "gate_probability": Key(NUMBER, Range(0.5, 1.0, hi_closed=False)),
-    "min_anchors": Key(INTEGER, Range(1, lo_closed=True)),
-    "max_range_m": Key(NUMBER, _POSITIVE_RANGE),
-    "multipath_sigma_m": Key(NUMBER, _ZERO_OR_MORE),
-    "multipath_tau_s": Key(NUMBER, _POSITIVE_RANGE),
+    "min_anchors": Key(INTEGER, Range(1, 64, lo_closed=True)),
+    "max_range_m": Key(NUMBER, Range(0.1, 10000.0, lo_closed=True)),
+    "multipath_sigma_m": Key(NUMBER, Range(0.0, 2.0, lo_closed=True)),
+    "multipath_tau_s": Key(NUMBER, Range(0.0, 3600.0)),
     "tag_side": Key(STRING, choices=("auto", "below", "above")),
     "height_range_m": Key(PAIR),
     # a pose is healthy only while its protection levels, at this risk, are within these
     "integrity_risk": Key(NUMBER, Range(1e-9, 0.5)),
-    "horizontal_alert_limit_m": Key(NUMBER, _POSITIVE_RANGE),
-    "vertical_alert_limit_m": Key(NUMBER, _POSITIVE_RANGE),
+    "horizontal_alert_limit_m": Key(NUMBER, _LENGTH_M),
+    "vertical_alert_limit_m": Key(NUMBER, _LENGTH_M),
     "range_bias_bound_m": Key(NUMBER, Range(0.0, 5.0, lo_closed=True)),
     # > 0: the lever arm's error estimated as states, with this prior σ per axis
     "lever_arm_sigma_m": Key(NUMBER, Range(0.0, 2.0, lo_closed=True)),
 }
 _PIPELINE_SPEC = {"aligner_wait_ms": Key(NUMBER, Range(0.0, 1000.0, lo_closed=True)),
-                  "pose_rate_hz": Key(NUMBER, Range(0.0, 1000.0)),
+                  "pose_rate_hz": Key(NUMBER, Range(0.1, 1000.0, lo_closed=True)),
                   "status_period_s": Key(NUMBER, Range(0.05, 3600.0, lo_closed=True)),
                   "stall_after_s": Key(NUMBER, Range(0.1, 3600.0, lo_closed=True))}
 _LOG_SPEC = {"directory": Key(STRING, non_empty=True),
-             "rotate_mb": Key(NUMBER, _POSITIVE_RANGE),
-             "rotate_minutes": Key(NUMBER, _POSITIVE_RANGE)}
+             "rotate_mb": Key(NUMBER, Range(0.1, 1e6, lo_closed=True)),
+             "rotate_minutes": Key(NUMBER, Range(1.0, 1e6, lo_closed=True))}
 _ZENOH_SPEC = {"enabled": Key(BOOL), "mode": Key(STRING, choices=("peer", "client", "router")),
                "connect": Key(ENDPOINTS), "listen": Key(ENDPOINTS), "prefix": Key(STRING),
                "config": Key(STRING, non_empty=True),
                "multicast_scouting": Key(BOOL)}
-NAME = Kind("a name of letters, digits, '-' and '_' (\"robot1\")",
-            lambda v: isinstance(v, str) and re.fullmatch(r"[A-Za-z0-9_-]+", v) is not None)
+NAME = Kind(f"a name of letters, digits, '-' and '_', at most {MAX_NAME_CHARS} (\"robot1\")",
+            lambda v: isinstance(v, str) and len(v) <= MAX_NAME_CHARS
+            and re.fullmatch(r"[A-Za-z0-9_-]+", v) is not None)
 FRAME_ID = Kind("a frame name of letters, digits, '_', '-', '.' and '/' (\"base_link\")",
                 lambda v: isinstance(v, str)
                 and re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_./-]*", v) is not None)

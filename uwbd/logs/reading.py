@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import json
+import stat
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,6 +21,7 @@ from typing import Any, NamedTuple
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 
 from uwbd import __version__
+from uwbd.codec import MAX_T_NS
 from uwbd.logs import foxglove as fx
 from uwbd.logs.chunked import MCAP0_MAGIC
 from uwbd.logs.intact import Damage, intact_records, intact_size
@@ -47,14 +49,30 @@ class LogContents:
         return {m.topic for m in self.messages}
 
     def json(self, topic: str) -> Iterator[dict[str, Any]]:
-        return (json.loads(m.data) for m in self.messages if m.topic == topic)
+        return (_json_object(m.data) for m in self.messages if m.topic == topic)
+
+
+def _json_object(data: bytes) -> dict[str, Any]:
+    """A JSON record as a dict; one that is not (not UTF-8, not JSON, not an object) as an
+    empty one, which its reader skips as a record missing its fields."""
+    try:
+        value = json.loads(data)
+    except ValueError:  # (UnicodeDecodeError and JSONDecodeError are ValueErrors)
+        return {}
+    return value if isinstance(value, dict) else {}
 
 
 def not_a_log(path: Path) -> str:
-    """Why ``path`` cannot be read as an MCAP file ("" when it can): missing, a folder,
-    unreadable, empty, or not starting with the MCAP magic."""
+    """Why ``path`` cannot be read as an MCAP file ("" when it can): missing, a folder or
+    anything but a regular file (a FIFO would block the read), unreadable, empty, or not
+    starting with the MCAP magic."""
     if path.is_dir():
         return f"{path}: is a folder, not an MCAP log"
+    try:
+        if not stat.S_ISREG(path.stat().st_mode):
+            return f"{path}: not a regular file (a FIFO or a device), not an MCAP log"
+    except OSError as err:
+        return f"cannot read {path}: {err.strerror or err}"
     try:
         with path.open("rb") as f:
             head = f.read(len(MCAP0_MAGIC))
@@ -80,10 +98,26 @@ def read_log(path: Path) -> LogContents:
     with path.open("rb") as f:
         buf = f.read(intact_size(f, damage))
     with _no_cycle_collection():
+        contents = None
         if not damage:
             with contextlib.suppress(UnusualRecordError):
-                return _read_whole(buf)
-        return _read_by_library(path, buf, damage)
+                contents = _read_whole(buf)
+        if contents is None:
+            contents = _read_by_library(path, buf, damage)
+    return _in_time(contents, path)
+
+
+def _in_time(contents: LogContents, path: Path) -> LogContents:
+    """Messages whose log time no int64 nanosecond holds (past 2262: a damaged or foreign
+    log's) are left out, and said."""
+    if contents.messages and max(m.log_time_ns for m in contents.messages) > MAX_T_NS:
+        kept = [m for m in contents.messages if m.log_time_ns <= MAX_T_NS]
+        said = (f"{path}: {len(contents.messages) - len(kept)} messages with log times past "
+                "2^63 - 1 ns (the year 2262) left out")
+        contents.messages = kept
+        contents.truncated = True
+        contents.error = f"{contents.error}; {said}" if contents.error else said
+    return contents
 
 
 @contextlib.contextmanager

@@ -24,7 +24,7 @@ from drivers.emulator import ENCODERS
 from drivers.frames import Frame, ImuSample, UwbRanges
 from uwbd import config as cfgmod
 from uwbd import journal
-from uwbd.codec import frame_from_dict
+from uwbd.codec import frame_from_dict, t_ns_of
 from uwbd.fusion.core.rotation import Array, quat_from_euler, quat_from_matrix, quat_to_matrix
 from uwbd.logs.mcaplog import LogWriter, SourceInfo, pose_message
 from uwbd.logs.reading import LogContents
@@ -244,7 +244,9 @@ def truth_poses(contents: LogContents, where: str) -> tuple[npt.NDArray[np.int64
             orientation = pose.get("orientation", {})
             row = [float(pose["position"][k]) for k in "xyz"]
             quat = [float(orientation.get(k, 1.0 if k == "w" else 0.0)) for k in "wxyz"]
-            t_ns = int(d["t_ns"])
+            t_ns = t_ns_of(d["t_ns"])
+            if not all(map(math.isfinite, row + quat)):
+                raise ValueError("a position or orientation that is not a finite number")
         except (KeyError, TypeError, ValueError, AttributeError) as err:
             bad += 1
             first = first or f"{type(err).__name__}: {err}"

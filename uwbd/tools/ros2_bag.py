@@ -39,6 +39,8 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from tqdm import tqdm
 
 from drivers.frames import ImuSample
+from uwbd import journal
+from uwbd.codec import t_ns_of
 from uwbd.config import Config, parse
 from uwbd.fusion.types import Pose, health_from_dict
 from uwbd.logs.reading import LogContents
@@ -57,11 +59,12 @@ from uwbd.ros2.messages import (
     truth_msg,
 )
 from uwbd.service.replay import replay
-from uwbd.tools.logtools import decoded_frames, load_recording
+from uwbd.tools.logtools import decoded_frames, load_recording, truth_poses
 
 # bag format version 8 (Jazzy's) keeps the QoS profiles a string, which Humble's rosbag2
 # reads too
 BAG_VERSION: Literal[8] = 8
+LOG = journal.get("export")
 TRUTH_TOPIC = "/uwbd/truth"
 _DEFAULT_TIME = QosTime(0, 0)  # unspecified: the middleware's default (infinite)
 
@@ -97,29 +100,37 @@ def _vec3(v: Sequence[Any]) -> tuple[float, float, float]:
     return (_num(v[0]), _num(v[1]), _num(v[2]))
 
 
-def log_poses(contents: LogContents) -> list[Pose]:
+def log_poses(contents: LogContents, where: str) -> list[Pose]:
     """The log's ``/pose`` messages as poses (``null``, a number that was not finite, as NaN),
-    with their health records."""
+    with their health records; a record that is not one is skipped, and said once."""
     out: list[Pose] = []
+    bad, first = 0, ""
     for d in contents.json("/pose"):
-        p, q = d["pose"]["position"], d["pose"]["orientation"]
-        out.append(Pose(
-            t_ns=int(d["t_ns"]), position_m=_vec3([p["x"], p["y"], p["z"]]),
-            velocity_mps=_vec3(d.get("velocity_mps") or [None] * 3),
-            orientation_xyzw=(_num(q["x"]), _num(q["y"]), _num(q["z"]), _num(q["w"])),
-            covariance=tuple(_num(c) for c in d.get("covariance") or [None] * 36),
-            status=str(d.get("status", "")), heading_observable=bool(d.get("heading_observable")),
-            health=health_from_dict(d.get("health") or {})))
+        try:
+            p, q = d["pose"]["position"], d["pose"]["orientation"]
+            out.append(Pose(
+                t_ns=t_ns_of(d["t_ns"]), position_m=_vec3([p["x"], p["y"], p["z"]]),
+                velocity_mps=_vec3(d.get("velocity_mps") or [None] * 3),
+                orientation_xyzw=(_num(q["x"]), _num(q["y"]), _num(q["z"]), _num(q["w"])),
+                covariance=tuple(_num(c) for c in d.get("covariance") or [None] * 36),
+                status=str(d.get("status", "")),
+                heading_observable=bool(d.get("heading_observable")),
+                health=health_from_dict(d.get("health") or {})))
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
+            bad += 1
+            first = first or f"{type(err).__name__}: {err}"
+    if bad:
+        LOG.warning("%s: %d of %d /pose records are not poses and were skipped (the first: "
+                    "%s)", where, bad, bad + len(out), first)
     return out
 
 
-def log_truth(contents: LogContents) -> list[TruthPose]:
-    out: list[TruthPose] = []
-    for d in contents.json("/truth"):
-        p, q = d["pose"]["position"], d["pose"]["orientation"]
-        out.append(TruthPose(int(d["t_ns"]), _vec3([p["x"], p["y"], p["z"]]),
-                             (_num(q["x"]), _num(q["y"]), _num(q["z"]), _num(q["w"]))))
-    return out
+def log_truth(contents: LogContents, where: str) -> list[TruthPose]:
+    """The log's ``/truth`` poses, as :func:`uwbd.tools.logtools.truth_poses` reads them."""
+    t, p, q = truth_poses(contents, where)
+    return [TruthPose(int(t_ns), (float(x), float(y), float(z)),
+                      (float(qx), float(qy), float(qz), float(qw)))
+            for t_ns, (x, y, z), (qw, qx, qy, qz) in zip(t, p, q, strict=True)]
 
 
 def log_imu(contents: LogContents, where: str, config_toml: str | None = None) -> list[ImuSample]:
@@ -203,12 +214,12 @@ def export_ros2(contents: LogContents, where: str, out: Path, config_toml: str |
         config = parse(contents.metadata.get("config_toml", ""), f"{where} (metadata)")
     else:
         config = parse(config_toml, f"{where} (with -c/--set)")
-    poses = log_poses(contents) if config_toml is None else []
+    poses = log_poses(contents, where) if config_toml is None else []
     poses_from = "log"
     if not poses:
         _, kept = replay(contents, where, progress=progress, config_toml=config_toml)
         poses, poses_from = kept.poses, "replay"
-    truth = log_truth(contents)
+    truth = log_truth(contents, where)
     counts = write_bag(out, config, poses, log_imu(contents, where, config_toml), truth,
                        progress)
     topics = config.ros2_settings.recorded
