@@ -168,12 +168,15 @@ class LogWriter:
             self._channels[topic] = self._w.register_channel(topic, encoding, schema_id)
         return self._channels[topic]
 
-    def _add(self, channel: int, t_ns: int, data: bytes) -> None:
+    def _add(self, channel: int, t_ns: int, data: bytes, counted: bool = True) -> None:
+        """A message; ``counted``: one of the records the log was given (a cut loses it),
+        not the anchors' scene each file repeats for its viewers."""
         if self._scene_version != self.view.anchors_version:
             self._scene_version = self.view.anchors_version
-            self.json("/anchors", t_ns, self.view.scene(t_ns), "foxglove.SceneUpdate")
+            self._add(self._json_channel("/anchors", "foxglove.SceneUpdate", None), t_ns,
+                      strict_json(self.view.scene(t_ns)), counted=False)
         self._sequence = (self._sequence + 1) & 0xFFFFFFFF  # MCAP's sequence is 32 bits
-        self.unflushed += 1
+        self.unflushed += counted
         self._w.add_message(channel, t_ns, data, self._sequence)
 
     def raw(self, source: str, t_ns: int, data: bytes) -> None:
