@@ -425,3 +425,20 @@ def test_a_daemon_whose_keys_the_router_refuses_says_so(tmp_path: Path) -> None:
                           if "zenoh" in s]
     assert statuses["robot1"] and set(statuses["robot1"]) == {"up"}, statuses
     assert statuses["vm"][-1] == "refused", statuses
+
+
+def test_a_zenoh_that_cannot_start_as_configured_is_exit_2_and_no_run(tmp_path: Path) -> None:
+    """#44: a listen endpoint another process holds: one line, exit 2, no log; never a run
+    without Zenoh. (A router not reachable yet is another thing: retried, fusion goes on.)"""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        cfg = tmp_path / "cfg.toml"
+        cfg.write_text(emulated_sources({"imu": "/dev/ttyUSB7", "uwb": "/dev/ttyUSB8"})
+                       + f'[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\n')
+        line = one_line(uwbd("run", "-c", str(cfg), "--duration", "3", "--log-dir",
+                             str(tmp_path / "logs")), 2, "zenoh cannot start as configured",
+                        "Address already in use", "another process listens there")
+    assert str(cfg) in line
+    assert not (tmp_path / "logs").exists()

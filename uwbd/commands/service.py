@@ -35,7 +35,7 @@ from uwbd.config.ros2 import (
 )
 from uwbd.config.zenoh_checks import check_zenoh_file
 from uwbd.config.zenoh_session import THIS_HOST_LISTEN, effective, zenoh_reason
-from uwbd.service.daemon import PipelineError
+from uwbd.service.daemon import PipelineError, ZenohStartError
 from uwbd.service.daemon import run as run_daemon
 from uwbd.service.demo import run_demo
 from uwbd.service.echo import EchoError, Listen, dial_endpoints, echo, uwbd_keys
@@ -96,8 +96,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
         if problem is not None:
             raise UsageError(f"--ros2 {args.ros2}: {problem}")
     with tempfile.TemporaryDirectory(prefix="uwbd-demo-") as tmp:
-        return run_demo(Path(tmp), duration_s=args.duration, seed=args.seed, live=live,
-                        ros2_router=args.ros2)
+        try:
+            return run_demo(Path(tmp), duration_s=args.duration, seed=args.seed, live=live,
+                            ros2_router=args.ros2)
+        except ZenohStartError as err:
+            raise UsageError(f"demo: {err}") from err
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -113,6 +116,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                                           summary_s=args.summary_every, where=args.config))
     except PipelineError as err:
         raise RunError(str(err)) from err
+    except ZenohStartError as err:
+        raise UsageError(f"{args.config}: {err}") from err
     finally:
         for sink in extra:  # the pipeline closes its sinks; this is for a run that never began
             sink.close()

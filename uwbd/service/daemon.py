@@ -48,6 +48,16 @@ class PipelineError(RuntimeError):
     """The pipeline raised: the run stopped (its log is finished)."""
 
 
+class ZenohStartError(RuntimeError):
+    """Zenoh cannot start as configured (a listen endpoint taken, a setting Zenoh refuses):
+    the daemon does not run without it. A router not reachable yet is not this: that is
+    retried."""
+
+
+# what Zenoh says of a client or peer that reaches none of its connect endpoints yet
+NOT_REACHED = "Unable to connect to any of"
+
+
 async def run(config: Config, log_dir: Path, duration_s: float | None = None,
               extra_sinks: tuple[Sink, ...] = (),
               on_log: Callable[[McapSink], None] | None = None,
@@ -69,12 +79,12 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
     sinks: list[Sink] = [narrator, *extra_sinks]
     sinks.append(mcap)
     pipeline = Pipeline(config, sinks)
+    zenoh_link = ZenohLink(config, pipeline, loop)  # (raises ZenohStartError: no run)
     clock = EpochClock()
     queue = ReadQueue(pipeline, idle=mcap.write_pending)
     reads = make_reads(loop, clock, queue)
     sources += [SerialSource(s, queue, loop, clock, reads) for s in config.sources]
     _announce(config, where, log_dir, reads)
-    zenoh_link = ZenohLink(config, pipeline, loop)
     stop = asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
@@ -175,6 +185,13 @@ class ZenohLink:
         self._unheld = 0  # probes in a row that found no router holding the token
         if config.zenoh.get("enabled", True):
             self.retry()
+            reason = self.pipeline.extra_status.get("zenoh", {}).get("error", "")
+            if self.sink is None and NOT_REACHED not in reason:
+                hint = ("another process listens there (another uwbd, or a Zenoh router): "
+                        "give [zenoh] listen another endpoint, or connect to that router"
+                        if "Address already in use" in reason else
+                        "check [zenoh] and its Zenoh file")
+                raise ZenohStartError(f"zenoh cannot start as configured: {reason}; {hint}")
 
     def retry(self) -> None:
         if (self.sink is not None or not self.config.zenoh.get("enabled", True)
@@ -186,11 +203,11 @@ class ZenohLink:
             self.sink = ZenohSink(c.zenoh, c.zenoh_prefix, c.nav_frame_id)
         except zenoh.ZError as err:
             reason = zenoh_reason(err)
-            if reason != self._said:
-                self._said = reason
-                LOG.error("zenoh not started: %s; check [zenoh] listen/connect (is the router "
+            if reason != self._said and (self._said or NOT_REACHED in reason):
+                LOG.error("zenoh not started: %s; check [zenoh] connect (is the router "
                           "up?); trying again every %.0f s, fusion and the log go on", reason,
                           ZENOH_RETRY_S)
+            self._said = reason
             self.pipeline.extra_status["zenoh"] = {"state": "not started", "error": reason}
             return
         self.pipeline.add_sink(self.sink)  # first: the JSON pose leaves before the ROS 2 ones
