@@ -60,25 +60,16 @@ from uwbd.fusion.core.lsq import LsqFix, coplanar
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.core.smoother import EpochRecord, Nominal
 from uwbd.fusion.core.weights import RowPolicy
-from uwbd.fusion.models.measurements import (
-    Rows,
-    height_rows,
-    nhc_rows,
-    zupt_rows,
-)
+from uwbd.fusion.models.measurements import Rows, height_rows, nhc_rows, zupt_rows
 from uwbd.fusion.policy.alignment import HeadingAligner
 from uwbd.fusion.policy.fixes import RangeWindow
-from uwbd.fusion.policy.fusing import (
-    EpochFusion,
-)
+from uwbd.fusion.policy.fusing import EpochFusion
 from uwbd.fusion.policy.health import HealthMonitor
 from uwbd.fusion.policy.initialise import Start
 from uwbd.fusion.policy.mirror import WALL_NORMAL_Z, MirrorSide
 from uwbd.fusion.policy.outputs import FilterOutputs
 from uwbd.fusion.policy.propagation import NUMERICAL_ERRORS, ImuPropagation
-from uwbd.fusion.policy.recovery import (
-    NS,
-)
+from uwbd.fusion.policy.recovery import NS
 from uwbd.fusion.policy.rest import ImuWindow, UwbStillness
 from uwbd.fusion.policy.robust import AnchorStats, quality_scale
 from uwbd.fusion.settings import FilterConfig, Mode
