@@ -25,6 +25,9 @@ from typing import Any
 from uwbd.fusion.checks.intrinsics import BodyMaps
 from uwbd.fusion.core import native
 
+# why a sample is rejected: the health's words, handed to the C front as they are
+NOT_FINITE, SATURATED, JUMP = "imu_not_finite", "imu_saturated", "imu_jump"
+
 Vec3 = tuple[float, float, float]
 
 
@@ -73,18 +76,18 @@ class ImuCheck:
 
     def _reason(self, acc: Vec3, gyro: Vec3) -> str:
         if not math.isfinite(acc[0] + acc[1] + acc[2] + gyro[0] + gyro[1] + gyro[2]):
-            return "imu_not_finite"  # NaN and inf propagate through the sum
+            return NOT_FINITE  # NaN and inf propagate through the sum
         a, g = self.acc_clip, self.gyro_clip
         if (abs(acc[0]) >= a or abs(acc[1]) >= a or abs(acc[2]) >= a
                 or abs(gyro[0]) >= g or abs(gyro[1]) >= g or abs(gyro[2]) >= g):
-            return "imu_saturated"
+            return SATURATED
         last = self.last_good
         if last is not None and self._jump_run < self.limits.max_jump_run:
             (la, lg), lim = last, self.limits
             if (math.dist(acc, la) > lim.max_acc_jump_mps2
                     or math.dist(gyro, lg) > lim.max_gyro_jump_rps):
                 self._jump_run += 1
-                return "imu_jump"
+                return JUMP
         self._jump_run = 0
         return ""
 
@@ -101,4 +104,5 @@ def new_imu_check(limits: ImuLimits, maps: BodyMaps) -> Any:
                *(x for row in maps.gyro_M for x in row), *maps.gyro_b, *maps.gyro_offset,
                maps.gyro_band)
     return core.ImuFront((check.acc_clip, check.gyro_clip, limits.max_acc_jump_mps2,
-                          limits.max_gyro_jump_rps, limits.max_jump_run), numbers)
+                          limits.max_gyro_jump_rps, limits.max_jump_run), numbers,
+                         (NOT_FINITE, SATURATED, JUMP, ""))

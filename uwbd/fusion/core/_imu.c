@@ -6,10 +6,11 @@
  * checks/intrinsics.to_body's (BodyMaps' numbers, the same arithmetic in the same order),
  * and step() is the branch of ImuPropagation._predict for a good sample while tracking.
  *
- *   ImuFront(limits, maps)
- *     limits: (acc_clip, gyro_clip, max_acc_jump, max_gyro_jump, max_jump_run)
- *     maps:   acc_M (9, row-major), acc_b (3), gyro_M (9), gyro_b (3), gyro_offset (3),
- *             gyro_band: 28 floats
+ *   ImuFront(limits, maps, reasons)
+ *     limits:  (acc_clip, gyro_clip, max_acc_jump, max_gyro_jump, max_jump_run)
+ *     maps:    acc_M (9, row-major), acc_b (3), gyro_M (9), gyro_b (3), gyro_offset (3),
+ *              gyro_band: 28 floats
+ *     reasons: the policy's words for not finite, saturated, jump, and a good sample
  *   .judge(t_ns, acc, gyro) -> "" or the reason     .burst_s(t_ns)     .last_good
  *   .step(state, t_ns, acc, gyro, dt, propagate_every_s) -> (acc_b, gyro_b) or the reason:
  *     judged; when good, mapped, State.predict over dt and State.propagate when the interval
@@ -36,10 +37,9 @@ typedef struct {
     double good_acc[3], good_gyro[3];
     int has_good, has_burst, has_last;
     long long burst_start_ns, last_ns;
+    PyObject *reasons[4]; /* the policy's words: not finite, saturated, jump; and "" */
 } ImuFront;
 
-static PyObject *reasons[3]; /* interned: not finite, saturated, jump */
-static PyObject *no_reason;
 
 static double dist3(const double a[3], const double b[3])
 {
@@ -129,7 +129,7 @@ static PyObject *front_judge(ImuFront *s, PyObject *const *args, Py_ssize_t narg
     if (sample_args(args, &t_ns, a, g) < 0)
         return NULL;
     int r = judge(s, t_ns, a, g);
-    return Py_NewRef(r < 0 ? no_reason : reasons[r]);
+    return Py_NewRef(s->reasons[r < 0 ? 3 : r]);
 }
 
 static PyObject *front_step(ImuFront *s, PyObject *const *args, Py_ssize_t nargs)
@@ -148,7 +148,7 @@ static PyObject *front_step(ImuFront *s, PyObject *const *args, Py_ssize_t nargs
         return NULL;
     int r = judge(s, t_ns, a, g);
     if (r >= 0)
-        return Py_NewRef(reasons[r]);
+        return Py_NewRef(s->reasons[r]);
     double ab[3], gb[3];
     to_body(s, a, g, ab, gb);
     uwbd_state_predict(args[0], ab, gb, dt);
@@ -197,7 +197,7 @@ static PyObject *front_step_many(ImuFront *s, PyObject *const *args, Py_ssize_t 
             break; /* not the common sample: the policy's */
         int r = judge(s, t_ns, a, g);
         if (r >= 0) {
-            reason = reasons[r];
+            reason = s->reasons[r];
             break;
         }
         double ab[3], gb[3];
@@ -246,12 +246,19 @@ static PyObject *get_last_good(ImuFront *s, void *c)
 
 static int front_init(ImuFront *s, PyObject *args, PyObject *kwds)
 {
-    static char *names[] = {"limits", "maps", NULL};
+    static char *names[] = {"limits", "maps", "reasons", NULL};
     double lim[5], maps[N_MAPS];
-    PyObject *limits, *map_numbers;
-    if (!PyArg_ParseTupleAndKeywords(args, kwds, "OO", names, &limits, &map_numbers) ||
+    PyObject *limits, *map_numbers, *words;
+    if (!PyArg_ParseTupleAndKeywords(args, kwds, "OOO!", names, &limits, &map_numbers,
+                                     &PyTuple_Type, &words) ||
         uwbd_get_vec(limits, lim, 5, "limits") || uwbd_get_vec(map_numbers, maps, N_MAPS, "maps"))
         return -1;
+    if (PyTuple_GET_SIZE(words) != 4) {
+        PyErr_SetString(PyExc_TypeError, "reasons: (not finite, saturated, jump, good)");
+        return -1;
+    }
+    for (int i = 0; i < 4; i++)
+        Py_XSETREF(s->reasons[i], Py_NewRef(PyTuple_GET_ITEM(words, i)));
     s->acc_clip = lim[0];
     s->gyro_clip = lim[1];
     s->max_acc_jump = lim[2];
@@ -268,14 +275,15 @@ static int front_init(ImuFront *s, PyObject *args, PyObject *kwds)
     return 0;
 }
 
+static void front_dealloc(ImuFront *s)
+{
+    for (int i = 0; i < 4; i++)
+        Py_CLEAR(s->reasons[i]);
+    Py_TYPE(s)->tp_free((PyObject *)s);
+}
+
 int uwbd_imu_front_ready(void)
 {
-    static const char *names[3] = {"imu_not_finite", "imu_saturated", "imu_jump"};
-    for (int i = 0; i < 3; i++)
-        if (reasons[i] == NULL && (reasons[i] = PyUnicode_InternFromString(names[i])) == NULL)
-            return -1;
-    if (no_reason == NULL && (no_reason = PyUnicode_InternFromString("")) == NULL)
-        return -1;
     return PyType_Ready(&UwbdImuFrontType);
 }
 
@@ -305,6 +313,7 @@ PyTypeObject UwbdImuFrontType = {
     .tp_flags = Py_TPFLAGS_DEFAULT,
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)front_init,
+    .tp_dealloc = (destructor)front_dealloc,
     .tp_methods = front_methods,
     .tp_getset = front_getset,
 };
