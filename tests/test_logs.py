@@ -440,18 +440,22 @@ def test_a_damaged_or_cut_log_reads_as_the_library_reads_it(
         assert all(any(m == o for o in got) for m in map(tuple, contents.messages))
 
 
+def _simulated_log(tmp_path: Path, seed: int
+                   ) -> tuple[Path, bytes, list[tuple[object, ...]], list[tuple[int, int]]]:
+    """A short simulated log: its path, bytes, messages, and its chunks (offset, length)."""
+    path = tmp_path / "sim.mcap"
+    write_simulation(simulate(SimConfig(segments=SHORT, seed=seed)), path)
+    with path.open("rb") as f:
+        chunks = [(c.chunk_start_offset, c.chunk_length)
+                  for c in make_reader(f).get_summary().chunk_indexes]
+    return path, path.read_bytes(), [tuple(m) for m in read_log(path).messages], chunks
+
+
 def test_one_damaged_chunk_costs_that_chunk_only(tmp_path: Path) -> None:
     """A bit flipped in each chunk of a real log in turn: every other chunk's messages are
     read back (read_log, so replay, report, export, survey; and recover), and the warning
     says what was skipped."""
-    sim = simulate(SimConfig(segments=SHORT, seed=5))
-    path = tmp_path / "sim.mcap"
-    write_simulation(sim, path)
-    buf = path.read_bytes()
-    whole = [tuple(m) for m in read_log(path).messages]
-    with path.open("rb") as f:
-        chunks = [(c.chunk_start_offset, c.chunk_length)
-                  for c in make_reader(f).get_summary().chunk_indexes]
+    _, buf, whole, chunks = _simulated_log(tmp_path, 5)
     assert len(chunks) >= 5
     # the messages each chunk holds: a run of the file's, in order
     counts = [sum(isinstance(r, Message) for r in intact.intact_records(
@@ -480,13 +484,8 @@ def test_a_damaged_chunk_length_field_costs_nothing(tmp_path: Path) -> None:
     """#44: each bit of a chunk's record-length field flipped in turn (the first chunk's, a
     middle one's, the last one's): every message is read back, by the chunk's own fields,
     and the warning says the length field was damaged."""
-    sim = simulate(SimConfig(segments=SHORT, seed=6))
-    path = tmp_path / "sim.mcap"
-    write_simulation(sim, path)
-    buf = path.read_bytes()
-    whole = [tuple(m) for m in read_log(path).messages]
-    with path.open("rb") as f:
-        starts = [c.chunk_start_offset for c in make_reader(f).get_summary().chunk_indexes]
+    _, buf, whole, chunks = _simulated_log(tmp_path, 6)
+    starts = [start for start, _ in chunks]
     bad = tmp_path / "bad.mcap"
     for start in (starts[0], starts[len(starts) // 2], starts[-1]):
         for bit in range(64):
