@@ -140,8 +140,6 @@ void uwbd_symmetrise(double *P, Py_ssize_t n)
 static PyMethodDef core_methods[] = {
     {"gauss_newton", (PyCFunction)(void (*)(void))uwbd_gauss_newton, METH_FASTCALL,
      "lsq._solve's Gauss-Newton iteration, in place on x; the iterations, 0: no fix."},
-    {"multilaterate", (PyCFunction)(void (*)(void))uwbd_multilaterate, METH_FASTCALL,
-     "lsq.multilaterate from a start point: the fix, its outlier test and second fix."},
     {"leverages", (PyCFunction)(void (*)(void))uwbd_leverages, METH_FASTCALL,
      "Each range's leverage at x (multilaterate's outlier test); None if singular."},
     {"window_moments", (PyCFunction)(void (*)(void))uwbd_window_moments, METH_FASTCALL,

@@ -64,7 +64,6 @@ int uwbd_single_faults(double *S, const double *nu, Py_ssize_t k, double *b, dou
 /* -- stateless functions of the module -------------------------------------------------- */
 PyObject *uwbd_gauss_newton(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 PyObject *uwbd_leverages(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
-PyObject *uwbd_multilaterate(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 PyObject *uwbd_window_moments(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 PyObject *uwbd_raim_snapshot(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 

@@ -20,9 +20,7 @@ code here is the reference it translates.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -63,12 +61,6 @@ def multilaterate(anchors_m: Array, ranges_m: Array, sigma_m: float = 0.1,
     ``side`` (+1 above, −1 below) is where to start when the anchors are coplanar and no
     ``x0`` is given (:mod:`uwbd.fusion.policy.mirror` decides it)."""
     dims = 2 if fixed_z is not None else 3
-    core = native.core
-    if core is not None and len(ranges_m) >= dims:  # the whole of it in one call
-        fix = _multilaterate_core(core, anchors_m, ranges_m, sigma_m, x0, fixed_z, side,
-                                  outlier_sigma)
-        if fix is not NotImplemented:
-            return fix
     used = np.ones(len(ranges_m), dtype=bool)
     fix = _solve(anchors_m, ranges_m, used, sigma_m, x0, fixed_z, side)
     if fix is None or used.sum() <= dims + 1:
@@ -81,30 +73,6 @@ def multilaterate(anchors_m: Array, ranges_m: Array, sigma_m: float = 0.1,
         return fix
     used[np.flatnonzero(used)[worst]] = False
     return _solve(anchors_m, ranges_m, used, sigma_m, fix.position_m, fixed_z, side) or fix
-
-
-def _multilaterate_core(core: Any, anchors: Array, ranges: Array, sigma_m: float,
-                        x0: Array | None, fixed_z: float | None, side: int,
-                        outlier_sigma: float) -> Any:
-    """:func:`multilaterate` on the C core (its start point as :func:`_solve` takes it);
-    ``NotImplemented`` where the core leaves the outlier test to the code below."""
-    dims = 2 if fixed_z is not None else 3
-    x = np.array(x0 if x0 is not None else _initial_guess(anchors, ranges, fixed_z, side),
-                 dtype=float)
-    if fixed_z is not None:
-        x[2] = fixed_z
-    out = core.multilaterate(np.ascontiguousarray(anchors, dtype=float),
-                             np.ascontiguousarray(ranges, dtype=float), x.tolist(), dims,
-                             sigma_m, outlier_sigma, MAX_ITERATIONS, CONVERGED_M,
-                             ACCEPT_LAST_STEP_M)
-    if out is None or out is NotImplemented:
-        return out
-    position, inverse, residuals, used, iterations = out
-    # the RMS in plain floats: ranges are few
-    kept = [r * r for r, u in zip(residuals, used, strict=True) if u]
-    rms_m = math.sqrt(sum(kept) / len(kept)) if kept else math.nan
-    return LsqFix(np.array(position), sigma_m**2 * np.array(inverse).reshape(3, 3),
-                  np.array(residuals), np.array(used), rms_m, iterations)
 
 
 def _leverages(anchors: Array, x: Array, dims: int) -> Array:
