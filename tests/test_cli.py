@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import signal
@@ -163,3 +164,22 @@ def test_a_command_imports_only_its_own_layer() -> None:
     out = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True,
                          timeout=60, check=False)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_every_help_text_is_plain_text() -> None:
+    """#45: what --help prints is for a terminal: no reStructuredText markup (``x``,
+    :mod:`x`) from the docstrings it may be built from."""
+    import re  # noqa: PLC0415
+
+    from uwbd.cli import build_parser  # noqa: PLC0415
+
+    parser = build_parser()
+    subparsers = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    texts = {"uwbd": parser.format_help()}
+    for action in subparsers:
+        for name, sub in action.choices.items():
+            texts[name] = sub.format_help()
+    assert len(texts) > 10
+    markup = re.compile(r"``|:(mod|func|class|meth|attr|data):`")
+    found = {name: text for name, text in texts.items() if markup.search(text)}
+    assert not found, found

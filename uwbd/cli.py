@@ -31,7 +31,8 @@ IMPORT_FORMATS = ("iasl", "inrol")  # uwbd.commands.tools.IMPORTERS' keys
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="uwbd", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="uwbd", description=(
+        "The UWB + IMU localisation daemon and its tools: one subcommand per job."))
     ap.add_argument("--version", action="version",
                     version=f"uwbd {__version__} (fusion: {native.implementation})")
     talk = argparse.ArgumentParser(add_help=False)
