@@ -11,7 +11,7 @@
 #include <Python.h>
 #include <stdint.h>
 
-#define N_CORE 15 /* p, v, θ, b_g, b_a: the error state's core (docs/ekf.md §1) */
+#include "_layout.h" /* N_CORE and the nominal state's offsets, generated from layout.py */
 #define TH0 6     /* the attitude error's first column */
 
 /* -- helpers (_core.c) ------------------------------------------------------------------- */

@@ -76,7 +76,7 @@ static int state_init(State *self, PyObject *args, PyObject *kwds)
     Py_ssize_t m = n - N_CORE;
     self->n = n;
     self->m = m;
-    self->len = 16 + m + n * n + n;
+    self->len = NOM_AUX + m + n * n + n;
     self->x = PyMem_Calloc((size_t)self->len, sizeof(double));
     self->decay_epoch = PyMem_Calloc((size_t)(m + 1), sizeof(double));
     self->q_rate = PyMem_Calloc((size_t)n, sizeof(double));
@@ -91,8 +91,9 @@ static int state_init(State *self, PyObject *args, PyObject *kwds)
     }
     self->markov_var = self->markov_tau + m + 1;
     double *x = self->x;
-    self->p = x, self->v = x + 3, self->q = x + 6, self->bg = x + 10, self->ba = x + 13;
-    self->br = x + 16, self->P = x + 16 + m, self->last_dx = self->P + n * n;
+    self->p = x + NOM_P, self->v = x + NOM_V, self->q = x + NOM_Q, self->bg = x + NOM_BG;
+    self->ba = x + NOM_BA, self->br = x + NOM_AUX, self->P = x + NOM_AUX + m;
+    self->last_dx = self->P + n * n;
     memcpy(self->P, Pb.buf, sizeof(double) * n * n);
     PyBuffer_Release(&Pb);
     double *tau = PyMem_Calloc((size_t)(2 * m + 1), sizeof(double)), *var = tau + m;

@@ -1,4 +1,13 @@
-"""The error state's layout: the core's 15 blocks, then the range model's (docs/ekf.md §1)."""
+"""The filter state's layout, written once: setup.py generates the C core's ``_layout.h`` from
+this file at build time, so the two cannot disagree (docs/ekf.md §1).
+
+The error state: the core's 15 blocks, then the range model's states. The nominal state in
+the C core's memory (``state.CoreEskf`` takes its views from the same table): position,
+velocity, attitude (w, x, y, z), the biases, then the range model's states from
+``NOMINAL_AUX``; the covariance follows them.
+"""
 
 P_, V_, TH_, BG_, BA_ = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
 N_CORE = 15  # position, velocity, attitude, gyro bias, accelerometer bias
+NOMINAL = {"p": (0, 3), "v": (3, 6), "q": (6, 10), "b_g": (10, 13), "b_a": (13, 16)}
+NOMINAL_AUX = 16

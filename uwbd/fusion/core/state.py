@@ -16,7 +16,7 @@ import numpy as np
 
 from uwbd.fusion.core import native
 from uwbd.fusion.core.eskf import Eskf, PoseNumbers, Vector
-from uwbd.fusion.core.layout import N_CORE
+from uwbd.fusion.core.layout import N_CORE, NOMINAL, NOMINAL_AUX
 from uwbd.fusion.core.noise import GRAVITY_MPS2, ImuNoise, process_noise
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.core.weights import RawRow, Row, RowPolicy
@@ -62,10 +62,11 @@ class CoreEskf(Eskf):
             q_rate.tolist(), tau.tolist(), var.tolist(), self.gravity_mps2)
         x = np.frombuffer(state, dtype=float)  # the C type's memory, read-only
         m = n_range_bias
-        self.p, self.v, self.q = x[0:3], x[3:6], x[6:10]
-        self.b_g, self.b_a, self.b_r = x[10:13], x[13:16], x[16:16 + m]
-        self.P = x[16 + m:16 + m + n * n].reshape(n, n)
-        self.last_dx = x[16 + m + n * n:]
+        (self.p, self.v, self.q, self.b_g, self.b_a) = (
+            x[start:stop] for start, stop in NOMINAL.values())
+        self.b_r = x[NOMINAL_AUX:NOMINAL_AUX + m]
+        self.P = x[NOMINAL_AUX + m:NOMINAL_AUX + m + n * n].reshape(n, n)
+        self.last_dx = x[NOMINAL_AUX + m + n * n:]
         self._clamp_key: tuple[Array, float] | None = None
         self._clamp_limit = np.zeros(0)
         # the hot operations, bound once
