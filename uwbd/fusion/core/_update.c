@@ -7,7 +7,7 @@
 
 #include "_core.h"
 
-#define POLICY_TYPE "decide: a callable or (kinds, gate_1, robust, c_long, c_short, fix_ok)"
+#define POLICY_TYPE "decide: a callable or a RowPolicy (uwbd/fusion/core/weights.py)"
 
 int uwbd_get_decide(PyObject *decide, UwbdRowPolicy *pol)
 {
@@ -17,18 +17,19 @@ int uwbd_get_decide(PyObject *decide, UwbdRowPolicy *pol)
         PyErr_SetString(PyExc_TypeError, POLICY_TYPE);
         return -1;
     }
-    if (PyTuple_GET_SIZE(decide) != 6 || !PyBytes_Check(PyTuple_GET_ITEM(decide, 0))) {
+    if (PyTuple_GET_SIZE(decide) != POLICY_FIELDS ||
+        !PyBytes_Check(PyTuple_GET_ITEM(decide, POLICY_KINDS))) {
         PyErr_SetString(PyExc_TypeError, POLICY_TYPE);
         return -1;
     }
-    PyObject *kinds = PyTuple_GET_ITEM(decide, 0);
+    PyObject *kinds = PyTuple_GET_ITEM(decide, POLICY_KINDS);
     pol->kinds = PyBytes_AS_STRING(kinds);
     pol->count = PyBytes_GET_SIZE(kinds);
-    pol->gate_1 = PyFloat_AsDouble(PyTuple_GET_ITEM(decide, 1));
-    pol->robust = PyObject_IsTrue(PyTuple_GET_ITEM(decide, 2));
-    pol->c_long = PyFloat_AsDouble(PyTuple_GET_ITEM(decide, 3));
-    pol->c_short = PyFloat_AsDouble(PyTuple_GET_ITEM(decide, 4));
-    pol->fix_ok = PyObject_IsTrue(PyTuple_GET_ITEM(decide, 5));
+    pol->gate_1 = PyFloat_AsDouble(PyTuple_GET_ITEM(decide, POLICY_GATE_1));
+    pol->robust = PyObject_IsTrue(PyTuple_GET_ITEM(decide, POLICY_ROBUST));
+    pol->c_long = PyFloat_AsDouble(PyTuple_GET_ITEM(decide, POLICY_C_LONG));
+    pol->c_short = PyFloat_AsDouble(PyTuple_GET_ITEM(decide, POLICY_C_SHORT));
+    pol->fix_ok = PyObject_IsTrue(PyTuple_GET_ITEM(decide, POLICY_FIX_OK));
     if (PyErr_Occurred() || pol->robust < 0 || pol->fix_ok < 0)
         return -1;
     return 1;
@@ -39,12 +40,12 @@ int uwbd_get_decide(PyObject *decide, UwbdRowPolicy *pol)
 static double policy_weight(const UwbdRowPolicy *pol, Py_ssize_t i, double nu, double s)
 {
     char kind = pol->kinds[i];
-    if (kind == 'p')
+    if (kind == POSITION_ROW)
         return pol->fix_ok ? 1.0 : 0.0;
     double e2 = nu * nu / s;
     if (e2 > pol->gate_1)
         return 0.0;
-    if (kind != 'r' || !pol->robust)
+    if (kind != RANGE_ROW || !pol->robust)
         return 1.0;
     double e = nu / sqrt(s);
     double c = e > 0 ? pol->c_long : pol->c_short;

@@ -2,7 +2,8 @@
 
 The policy (:mod:`uwbd.fusion.policy.robust`) sets the numbers; the core applies them to each
 row's innovation. :class:`RowPolicy` is a tuple so that the C core reads it without calling
-back; called as ``policy(i, ν, S)`` it is the reference the tests hold the C core to.
+back (setup.py generates its fields' places and the row kinds for the C core from this file);
+called as ``policy(i, ν, S)`` it is the reference the tests hold the C core to.
 """
 
 from __future__ import annotations
@@ -24,6 +25,10 @@ class Row(NamedTuple):
 RawRow = tuple[float, float, float, bool]  # a Row's fields as the C core returns them
 
 
+# a row's kind, as one byte of RowPolicy.kinds: the first letter of the measurement's kind
+RANGE_ROW, POSITION_ROW = ord("r"), ord("p")
+
+
 class RowPolicy(NamedTuple):
     """How :meth:`uwbd.fusion.core.eskf.Eskf.sequential_update` weighs each row of one update:
     ``kinds`` one byte a row — ``r`` a range (the χ² gate ``gate_1``, then the robust
@@ -40,12 +45,12 @@ class RowPolicy(NamedTuple):
 
     def __call__(self, i: int, nu: float, s: float) -> float:
         kind = self.kinds[i]
-        if kind == 0x70:  # "p"
+        if kind == POSITION_ROW:
             return 1.0 if self.fix_ok else 0.0
         e2 = nu * nu / s
         if e2 > self.gate_1:
             return 0.0
-        if kind != 0x72 or not self.robust:  # "r"
+        if kind != RANGE_ROW or not self.robust:
             return 1.0
         e = nu / math.sqrt(s)
         c = self.c_long if e > 0 else self.c_short
