@@ -26,6 +26,14 @@ def write_layout_header() -> None:
     for name, (start, _) in table["NOMINAL"].items():
         lines.append(f"#define NOM_{name.replace('_', '').upper()} {start}")
     lines.append(f"#define NOM_AUX {table['NOMINAL_AUX']}")
+    for i, name in enumerate(table["IMU_LIMITS"]):
+        lines.append(f"#define LIMIT_{name.upper()} {i}")
+    lines.append(f"#define N_LIMITS {len(table['IMU_LIMITS'])}")
+    at = 0
+    for name, count in table["IMU_MAPS"].items():
+        lines.append(f"#define MAPS_{name.upper()} {at}")
+        at += count
+    lines.append(f"#define N_MAPS {at}")
     for i, field in enumerate(table["RowPolicy"]._fields):
         lines.append(f"#define POLICY_{field.upper()} {i}")
     lines += [f"#define POLICY_FIELDS {len(table['RowPolicy']._fields)}",

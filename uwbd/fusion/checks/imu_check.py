@@ -22,8 +22,11 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from uwbd.fusion.checks.intrinsics import BodyMaps
 from uwbd.fusion.core import native
+from uwbd.fusion.core.layout import IMU_LIMITS, IMU_MAPS
 
 # why a sample is rejected: the health's words, handed to the C front as they are
 NOT_FINITE, SATURATED, JUMP = "imu_not_finite", "imu_saturated", "imu_jump"
@@ -100,9 +103,10 @@ def new_imu_check(limits: ImuLimits, maps: BodyMaps) -> Any:
     core = native.core
     if core is None:
         return check
-    numbers = (*(x for row in maps.acc_M for x in row), *maps.acc_b,
-               *(x for row in maps.gyro_M for x in row), *maps.gyro_b, *maps.gyro_offset,
-               maps.gyro_band)
-    return core.ImuFront((check.acc_clip, check.gyro_clip, limits.max_acc_jump_mps2,
-                          limits.max_gyro_jump_rps, limits.max_jump_run), numbers,
+    screen = {"acc_clip": check.acc_clip, "gyro_clip": check.gyro_clip,
+              "max_acc_jump": limits.max_acc_jump_mps2,
+              "max_gyro_jump": limits.max_gyro_jump_rps, "max_jump_run": limits.max_jump_run}
+    numbers = [float(x) for name in IMU_MAPS
+               for x in np.ravel(getattr(maps, name))]  # (in layout.py's order, as the C reads)
+    return core.ImuFront(tuple(screen[name] for name in IMU_LIMITS), numbers,
                          (NOT_FINITE, SATURATED, JUMP, ""))

@@ -7,9 +7,8 @@
  * and step() is the branch of ImuPropagation._predict for a good sample while tracking.
  *
  *   ImuFront(limits, maps, reasons)
- *     limits:  (acc_clip, gyro_clip, max_acc_jump, max_gyro_jump, max_jump_run)
- *     maps:    acc_M (9, row-major), acc_b (3), gyro_M (9), gyro_b (3), gyro_offset (3),
- *              gyro_band: 28 floats
+ *     limits:  the screen's, in layout.IMU_LIMITS' order (LIMIT_* in _layout.h)
+ *     maps:    BodyMaps' numbers in layout.IMU_MAPS' order (MAPS_*; matrices row-major)
  *     reasons: the policy's words for not finite, saturated, jump, and a good sample
  *   .judge(t_ns, acc, gyro) -> "" or the reason     .burst_s(t_ns)     .last_good
  *   .step(state, t_ns, acc, gyro, dt, propagate_every_s) -> (acc_b, gyro_b) or the reason:
@@ -27,7 +26,6 @@
 
 #include "_core.h"
 
-enum { N_MAPS = 28 };
 
 typedef struct {
     PyObject_HEAD
@@ -247,11 +245,12 @@ static PyObject *get_last_good(ImuFront *s, void *c)
 static int front_init(ImuFront *s, PyObject *args, PyObject *kwds)
 {
     static char *names[] = {"limits", "maps", "reasons", NULL};
-    double lim[5], maps[N_MAPS];
+    double lim[N_LIMITS], maps[N_MAPS];
     PyObject *limits, *map_numbers, *words;
     if (!PyArg_ParseTupleAndKeywords(args, kwds, "OOO!", names, &limits, &map_numbers,
                                      &PyTuple_Type, &words) ||
-        uwbd_get_vec(limits, lim, 5, "limits") || uwbd_get_vec(map_numbers, maps, N_MAPS, "maps"))
+        uwbd_get_vec(limits, lim, N_LIMITS, "limits") ||
+        uwbd_get_vec(map_numbers, maps, N_MAPS, "maps"))
         return -1;
     if (PyTuple_GET_SIZE(words) != 4) {
         PyErr_SetString(PyExc_TypeError, "reasons: (not finite, saturated, jump, good)");
@@ -259,17 +258,17 @@ static int front_init(ImuFront *s, PyObject *args, PyObject *kwds)
     }
     for (int i = 0; i < 4; i++)
         Py_XSETREF(s->reasons[i], Py_NewRef(PyTuple_GET_ITEM(words, i)));
-    s->acc_clip = lim[0];
-    s->gyro_clip = lim[1];
-    s->max_acc_jump = lim[2];
-    s->max_gyro_jump = lim[3];
-    s->max_jump_run = (long)lim[4];
-    memcpy(s->acc_M, maps, 9 * sizeof(double));
-    memcpy(s->acc_b, maps + 9, 3 * sizeof(double));
-    memcpy(s->gyro_M, maps + 12, 9 * sizeof(double));
-    memcpy(s->gyro_b, maps + 21, 3 * sizeof(double));
-    memcpy(s->gyro_offset, maps + 24, 3 * sizeof(double));
-    s->gyro_band = maps[27];
+    s->acc_clip = lim[LIMIT_ACC_CLIP];
+    s->gyro_clip = lim[LIMIT_GYRO_CLIP];
+    s->max_acc_jump = lim[LIMIT_MAX_ACC_JUMP];
+    s->max_gyro_jump = lim[LIMIT_MAX_GYRO_JUMP];
+    s->max_jump_run = (long)lim[LIMIT_MAX_JUMP_RUN];
+    memcpy(s->acc_M, maps + MAPS_ACC_M, 9 * sizeof(double));
+    memcpy(s->acc_b, maps + MAPS_ACC_B, 3 * sizeof(double));
+    memcpy(s->gyro_M, maps + MAPS_GYRO_M, 9 * sizeof(double));
+    memcpy(s->gyro_b, maps + MAPS_GYRO_B, 3 * sizeof(double));
+    memcpy(s->gyro_offset, maps + MAPS_GYRO_OFFSET, 3 * sizeof(double));
+    s->gyro_band = maps[MAPS_GYRO_BAND];
     s->jump_run = 0;
     s->has_good = s->has_burst = s->has_last = 0;
     return 0;
