@@ -165,6 +165,9 @@ def test_outputs_that_are_not_regular_files_are_refused_and_left_alone(
                      ("calibrate-ranges", str(sim_log), "-o", str(target))):
             line = one_line(uwbd(*args, timeout=60), 2, str(target), "not a file")
             assert "give the path of a file" in line, line
+    for target in nodes[:1] + nodes[2:]:  # a plots folder: anything but a folder is refused
+        one_line(uwbd("report", str(sim_log), "-o", str(target), timeout=60), 2, str(target),
+                 "not a folder")
     assert {n: stat.S_IFMT(n.lstat().st_mode) for n in [*nodes, link]} == before
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
 

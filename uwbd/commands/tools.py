@@ -88,6 +88,9 @@ def cmd_report(args: argparse.Namespace) -> int:
     default = path.with_suffix("")
     out_dir = Path(args.out_dir) if args.out_dir else (
         default if default != path else path.with_name(path.name + "-report"))
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UsageError(f"cannot write the plots into {out_dir}: it is not a folder; give a "
+                         "folder's path (made if missing)")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as err:
