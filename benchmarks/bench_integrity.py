@@ -275,7 +275,7 @@ def wrong_installation(seeds: int) -> None:
                   f"{findings(poses, sim.truth_t_ns, sim.truth_p_m)}, mounting_inconsistent "
                   f"{mounting}/{len(poses)}; anchors excluded "
                   f"{flt.counters['anchors_excluded']}x (named at the end: "
-                  f"{sorted(flt.consistency.findings) or 'none'})")
+                  f"{sorted(flt.findings.consistency.findings) or 'none'})")
 
 
 def main() -> None:

@@ -125,7 +125,7 @@ def test_the_imu_front_step_is_judge_map_predict_propagate(seed: int, n_aux: int
                                    gyro_offset_rps=(0.01, 0.0, -0.02)),
             "band": ImuIntrinsics(gyro_offset_rps=(0.01, 0.0, -0.02),
                                   gyro_deadband_rps=0.3)}[intrinsics]
-    def rotate(v: tuple[float, ...]) -> tuple[float, ...]:  # as Filter._to_body
+    def rotate(v: tuple[float, ...]) -> tuple[float, ...]:  # as ImuPropagation.to_body
         return tuple(r[0] * v[0] + r[1] * v[1] + r[2] * v[2] for r in C)
 
     acc_map, gyro_map = to_body(C, intr, rotate)

@@ -107,10 +107,10 @@ def test_at_the_defaults_the_filter_uses_the_plain_rotation_and_nothing_else() -
     for cfg in (FilterConfig(), FilterConfig(mounting_rotation=Z_DOWN),
                 parse(BASE).filter_config()):
         flt = Filter(cfg)
-        assert not flt.intrinsics_applied
-        assert flt._acc_to_body == flt._to_body and flt._gyro_to_body == flt._to_body
+        assert not flt.imu.intrinsics_applied
+        assert flt.imu.acc_to_body == flt.imu.to_body and flt.imu.gyro_to_body == flt.imu.to_body
     flt = Filter(FilterConfig(imu_intrinsics=ImuIntrinsics(gyro_offset_rps=(0.0, 0.0, 1e-4))))
-    assert flt.intrinsics_applied and flt._acc_to_body != flt._to_body
+    assert flt.imu.intrinsics_applied and flt.imu.acc_to_body != flt.imu.to_body
 
 
 @pytest.mark.parametrize("band", [0.0, 0.02])
@@ -135,8 +135,8 @@ def test_the_filter_integrates_the_corrected_sample_and_judges_the_raw_one() -> 
     cfg = FilterConfig(mounting_rotation=Z_DOWN, imu_intrinsics=intr)
     flt = Filter(cfg)
     flt.predict(ImuSample(1, (5.5, 0.0, -9.80665), (0.0, 0.0, 0.0)))
-    assert flt._last_imu is not None
-    acc, gyro = flt._last_imu  # corrected, in body FLU
+    assert flt.imu.last_imu is not None
+    acc, gyro = flt.imu.last_imu  # corrected, in body FLU
     assert acc == pytest.approx((5.0, 0.0, 9.80665)) and gyro == (0.0, 0.0, 0.0)
     clip = cfg.imu_limits.saturation_fraction * cfg.imu_limits.acc_full_scale_mps2
     flt.predict(ImuSample(2, (clip, 0.0, -9.8), (0.0, 0.0, 0.0)))  # corrected: below the clip

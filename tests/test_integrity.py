@@ -189,7 +189,7 @@ def test_ceiling_anchors_put_the_tag_below_them_by_default() -> None:
     cfg = ceiling_room(0)
     sim = simulate(dataclasses.replace(cfg, segments=cfg.segments[:4]))
     poses, _, flt = run_filter(datasheet(sim), merge(sim.imu, sim.uwb))
-    assert flt.mirror.ambiguous and flt.mirror.sign == -1
+    assert flt.installation.mirror.ambiguous and flt.installation.mirror.sign == -1
     acc = score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=4)
     assert acc.rmse_z_m < 0.15  # the mirror image would be ~4 m off
 
@@ -314,7 +314,8 @@ def test_the_ranges_flip_a_wrong_default_side_in_the_filter() -> None:
     sim = simulate(SimConfig(segments=room, anchors_m=anchors, start_m=(2.0, 2.0, 2.6),
                              range_noise_m=0.05, nlos_rate_hz=0.0, seed=2))
     poses, _, flt = run_filter(datasheet(sim), merge(sim.imu, sim.uwb))
-    assert flt.mirror.sign == 1 and flt.counters["restart_mirror_side_flipped_by_the_ranges"] == 1
+    assert flt.installation.mirror.sign == 1
+    assert flt.counters["restart_mirror_side_flipped_by_the_ranges"] == 1
     tail = [p for p in poses if p.t_ns > sim.truth_t_ns[0] + 8 * NS]
     assert tail and all(abs(p.position_m[2] - 2.6) < 0.3 for p in tail)
 
@@ -339,7 +340,7 @@ def test_anchors_the_device_reports_get_the_mirror_side_and_the_range_states() -
         for e in sim.uwb]
     config = datasheet(sim, anchors_m={})
     poses, _, flt = run_filter(config, merge(sim.imu, uwb))
-    assert flt.mirror.ambiguous and flt.mirror.sign == -1
+    assert flt.installation.mirror.ambiguous and flt.installation.mirror.sign == -1
     assert flt.ekf is not None and flt.ekf.n == N_CORE + len(where)  # one delay state each
     assert score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=4).rmse_z_m < 0.15
 
@@ -454,7 +455,7 @@ def test_no_input_makes_the_filter_raise_or_publish_a_non_finite_pose(
             assert all(map(math.isfinite, pose.position_m + pose.velocity_mps
                            + pose.orientation_xyzw + pose.covariance))
     # every bad value met a check first
-    assert flt.counters["internal_errors"] == 0, flt.last_internal_error
+    assert flt.counters["internal_errors"] == 0, flt.recovery.last_internal_error
 
 
 def test_rest_is_not_seen_in_slow_steady_motion() -> None:
@@ -503,7 +504,7 @@ def test_a_reported_anchor_position_with_any_bad_coordinate_is_refused(
     t_ns = _HOSTILE_BASE.uwb[40].t_ns + 1
     reports = flt.update(UwbRanges(t_ns, (AnchorRange(42, 5.0, None, position),)))
     assert [r.reason for r in reports] == ["anchor_position_invalid"]
-    assert flt.counters["internal_errors"] == 0 and 42 not in flt._anchors
+    assert flt.counters["internal_errors"] == 0 and 42 not in flt.installation.anchors
 
 
 # -- a wrong installation --------------------------------------------------------------------
@@ -563,7 +564,7 @@ def test_an_anchor_surveyed_off_is_named_and_the_estimate_is_not_healthy() -> No
             pose = flt.pose()
             if pose is not None and pose.t_ns > sim.truth_t_ns[0] + 8 * NS:
                 poses.append(pose)
-                named |= set(flt.consistency.findings)
+                named |= set(flt.findings.consistency.findings)
                 said |= {f["finding"] for f in flt.diagnostics()["anchor_findings"]}
         flagged = [p for p in poses if "anchor_inconsistent" in p.health.faults]
         if not wrong:
@@ -675,7 +676,7 @@ def test_a_mounting_turned_about_z_is_found_by_a_ground_vehicle_moving_sideways(
         assert not flagged and not finding
         return
     assert len(flagged) > len(poses) // 2 and not any(p.health.healthy for p in flagged)
-    assert flt.mounting_yaw.error_deg == pytest.approx(turn_deg, abs=3.0)
+    assert flt.findings.mounting_yaw.error_deg == pytest.approx(turn_deg, abs=3.0)
     assert "imu.mounting is likely turned about z by" in finding
 
 

@@ -223,11 +223,11 @@ def test_the_filter_applies_the_term_once_the_heading_is_known_and_says_so_befor
         scores[name] = score_poses(poses, sim.truth_t_ns, sim.truth_p_m, 10.0).rmse_3d_m
         held = [p for p in poses if "range_model_held" in p.health.notes]
         if name == "modelled":
-            assert held and held[-1].t_ns < poses[-1].t_ns and flt._aligned
+            assert held and held[-1].t_ns < poses[-1].t_ns and flt.est.aligned
             assert all(p.health.phase.value != "tracking" for p in held)
-            assert np.allclose(flt.lever, np.array(plain.lever_arm_m) + offset)
-            flt._restart(poses[-1].t_ns, "a test")  # the heading is lost: so is the term
-            assert np.array_equal(flt.lever, plain.lever_arm_m)
+            assert np.allclose(flt.est.lever, np.array(plain.lever_arm_m) + offset)
+            flt.recovery.restart(poses[-1].t_ns, "a test")  # the heading is lost: so is the term
+            assert np.array_equal(flt.est.lever, plain.lever_arm_m)
         else:
             assert not held
     assert scores["modelled"] < 0.85 * scores["plain"], scores
@@ -249,7 +249,7 @@ def test_a_model_of_zeros_gives_the_very_same_poses_as_none() -> None:
                            anchor_coefficients_m=(0.0,) * n_coefficients(degree),
                            anchor_axes=((0, IDENTITY3), (3, IDENTITY3)))
         b, flt = run(dataclasses.replace(cfg, range_model=zeros), sim)
-        assert flt._aligned and any("range_model_held" in p.health.notes for p in b)
+        assert flt.est.aligned and any("range_model_held" in p.health.notes for p in b)
         assert [p.position_m for p in a] == [p.position_m for p in b] and a
 
 

@@ -84,7 +84,7 @@ def _run(sim_cfg: SimConfig, move_anchor: tuple[float, float, float] | None,
         cfg = dataclasses.replace(cfg, anchors_m=anchors)
     flt = Filter(cfg)
     if not raim:
-        flt.raim.add = lambda *args: None  # type: ignore[method-assign]  # (never fed)
+        flt.findings.raim.add = lambda *args: None  # type: ignore[method-assign]  # (never fed)
     poses = []
     for frame in merge(sim.imu, sim.uwb):
         if isinstance(frame, ImuSample):

@@ -32,9 +32,10 @@ from uwbd.config.schema import (
     anchor_id,
 )
 from uwbd.config.spelling import show, toml_key
-from uwbd.fusion.filter import MAX_ANCHOR_COORD_M, Filter
+from uwbd.fusion.filter import Filter
 from uwbd.fusion.models.range_model import n_coefficients
 from uwbd.fusion.policy.fusing import MAX_RANGE_BIAS_SIGMA_M
+from uwbd.fusion.policy.installation import MAX_ANCHOR_COORD_M
 from uwbd.fusion.settings import IDENTITY3
 
 

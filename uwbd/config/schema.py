@@ -15,8 +15,8 @@ from uwbd.config.model import IMU_INTRINSIC_VECTORS, IMU_NOISE_KEYS
 from uwbd.config.ros2 import DISTROS, MAX_DOMAIN_ID, NAMESPACE, NODE_NAME, TOPIC_KEYS, TOPIC_NAME
 from uwbd.config.spelling import maybe, show, type_name
 from uwbd.fusion.core.noise import ImuNoise
-from uwbd.fusion.filter import MAX_ANCHOR_COORD_M
 from uwbd.fusion.models.range_model import MAX_DEGREE
+from uwbd.fusion.policy.installation import MAX_ANCHOR_COORD_M
 from uwbd.fusion.settings import Mode
 
 

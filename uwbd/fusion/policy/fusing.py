@@ -7,22 +7,20 @@ C core, the whole epoch in one call (:meth:`Eskf.fuse_ranges`); else the rows bu
 (:meth:`Eskf.sequential_update`),
 each range gated (χ²) and weighted (:class:`~uwbd.fusion.policy.robust.RowPolicy`), a loose fix
 gated as one 3-D measurement; then every row's report, counters, health evidence and
-anchor statistics, and the covariance kept within bounds. A mixin of the filter: these
-methods act on its state.
+anchor statistics, and the covariance kept within bounds. Its own state is the row
+policies; it acts on the :class:`~.estimate.Estimate` and :class:`~.estimate.Findings` it is
+handed.
 """
 
 from __future__ import annotations
 
-import collections
 import math
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from uwbd.fusion.checks.anchor_consistency import CHECK_EVERY_NS, AnchorConsistency
-from uwbd.fusion.checks.window_raim import WindowRaim
-from uwbd.fusion.core.eskf import Eskf
+from uwbd.fusion.checks.anchor_consistency import CHECK_EVERY_NS
+from uwbd.fusion.checks.gating import chi2_quantile
 from uwbd.fusion.core.layout import BA_, BG_, P_, TH_
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.core.rotation import Array
@@ -34,13 +32,11 @@ from uwbd.fusion.models.measurements import (
     range_keys,
     range_rows,
 )
-from uwbd.fusion.policy.health import HealthMonitor
+from uwbd.fusion.policy.estimate import Estimate, Findings
+from uwbd.fusion.policy.installation import Installation
 from uwbd.fusion.policy.robust import AnchorStats
-from uwbd.fusion.settings import Mode
+from uwbd.fusion.settings import FilterConfig, Mode
 from uwbd.fusion.types import FusionReport
-
-if TYPE_CHECKING:
-    from uwbd.fusion.settings import FilterConfig
 
 ATTITUDE_AND_IMU_BIASES = slice(TH_.start, BA_.stop)
 ATTITUDE_AND_GYRO_BIAS = slice(TH_.start, BG_.stop)
@@ -52,33 +48,20 @@ EXCLUSION_RANGE_STATE_VAR_M2 = 0.1**2  # the others' range-model states widened 
 
 
 class EpochFusion:
-    """The update step of :class:`~uwbd.fusion.filter.Filter`, and the state it acts on
-    (set by the filter)."""
+    """The update step (see module doc)."""
 
-    cfg: FilterConfig
-    ekf: Eskf | None
-    lever: Array
-    _plain_lever: Array
-    _model_lever: Array
-    counters: collections.Counter[str]
-    monitor: HealthMonitor
-    consistency: AnchorConsistency
-    raim: WindowRaim
-    anchor_stats: dict[int, AnchorStats]
-    _range_columns: dict[int, tuple[int, ...]]
-    _lever_index: tuple[int, ...]  # the lever arm's error states (none: not estimated)
-    _fixed_z: float | None
-    _gate_1: float
-    _gate_3: float
-    _excluded: set[int]  # the anchors left out of the last update
-    _policies: dict[tuple[str, bool], RowPolicy]
-    _empty_rows: dict[int, Rows]
-    _aligned: bool
-    _at_rest: bool
-    _imu_fresh: Callable[[], bool]  # the filter's: the last IMU sample is recent
-    _antenna: Callable[[], Array | None]  # the filter's: the antenna by the estimate
+    def __init__(self, cfg: FilterConfig, est: Estimate, installation: Installation,
+                 findings: Findings, imu_fresh: Callable[[], bool]) -> None:
+        self.cfg, self.est, self.installation, self.findings = cfg, est, installation, findings
+        self._imu_fresh = imu_fresh  # the IMU side's: the last IMU sample is recent
+        self.at_rest = False  # ZUPT rows in this update
+        self._policies: dict[tuple[str, bool], RowPolicy] = {}
+        self._empty_rows: dict[int, Rows] = {}
+        self._gate_1 = chi2_quantile(cfg.gate_probability, 1)
+        self._gate_3 = chi2_quantile(cfg.gate_probability, 3)
 
-    def _apply_range_model(self, ids: list[int], anchors: Array, ranges: Array) -> Array:
+    def apply_range_model(self, ids: list[int], anchors: Array, ranges: Array,
+                          antenna: Array | None) -> Array:
         """The anchors' direction term at the prior position (it needs no attitude); the tag
         antenna's (:mod:`~uwbd.fusion.models.range_model`), once the heading is known: its
         degree 1 as the antenna's phase centre (the lever arm of the range rows), higher
@@ -86,55 +69,55 @@ class EpochFusion:
         by a heading that may be anything: only the phase centre's part along the vertical is
         applied (the tilt is known), the rest held back (the health note
         ``range_model_held``)."""
-        model, ekf = self.cfg.range_model, self.ekf
-        antenna = self._antenna() if model.anchor_degree else None
-        if antenna is not None:
+        model, ekf = self.cfg.range_model, self.est.ekf
+        if antenna is not None and model.anchor_degree:
             ranges = ranges - model.anchor_term_m(ids, anchors, antenna)
         if not model.enabled:
             return ranges
-        self.monitor.range_model_held = not self._aligned
+        self.est.monitor.range_model_held = not self.est.aligned
         if ekf is None:
             return ranges
-        if not self._aligned:
+        plain, centre = self.installation.plain_lever, self.installation.model_lever
+        if not self.est.aligned:
             w, x, y, z = ekf.q  # the vertical in body axes, Rᵀ e_z, whatever the heading:
             up_b = np.array((2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
-            shift = self._model_lever - self._plain_lever
-            self.lever = self._plain_lever + float(shift @ up_b) * up_b
+            self.est.lever = plain + float((centre - plain) @ up_b) * up_b
             return ranges
-        self.lever = self._model_lever
+        self.est.lever = centre
         if model.degree < 2:
             return ranges
-        return ranges - model.higher_delay_m(ekf.q, ekf.p, self._model_lever.tolist(), anchors)
+        return ranges - model.higher_delay_m(ekf.q, ekf.p, centre.tolist(), anchors)
 
     def _measurement_rows(self, ids: list[int], anchors: Array, ranges: Array,
                           r_scale: Array, fix: LsqFix | None) -> Rows:
         """Tight: one row per range (§4, range); loose: the fix's axes (§4, position)."""
-        ekf = self.ekf
+        ekf = self.est.ekf
         assert ekf is not None
         if self.cfg.mode is Mode.TIGHT:
-            return range_rows(ekf, self.lever, ids, anchors, ranges,
+            return range_rows(ekf, self.est.lever, ids, anchors, ranges,
                               self.cfg.range_sigma_m**2 * r_scale,
-                              self._range_columns, self._lever_index)
+                              self.installation.range_columns, self.installation.lever_index)
         if fix is None:
             return Rows.empty(ekf.n)
-        return position_rows(ekf, self.lever, fix, 3 if self._fixed_z is None else 2,
-                             self.cfg.range_sigma_m)
+        dims = 3 if self.installation.fixed_z is None else 2
+        return position_rows(ekf, self.est.lever, fix, dims, self.cfg.range_sigma_m)
 
-    def _fuse_epoch(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
+    def fuse_epoch(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                     r_scale: Array, fix: LsqFix | None,
                     constraints: list[Rows]) -> list[FusionReport]:
         """The epoch's rows fused: tight, on the C core, in one call (:meth:`Eskf.fuse_ranges`);
         else (the reference, or where that call declines) built here and fused by
         :meth:`_fuse`."""
-        ekf = self.ekf
+        ekf = self.est.ekf
         assert ekf is not None
         # (the C core's range rows have no lever-arm columns: those epochs take the rows)
-        if ids and self.cfg.mode is Mode.TIGHT and ekf.fuses_ranges and not self._lever_index:
+        if ids and self.cfg.mode is Mode.TIGHT and ekf.fuses_ranges \
+                and not self.installation.lever_index:
             extra = Rows.stack(constraints) if constraints else self._no_rows(ekf.n)
             keys = range_keys(ids) + extra.keys
             outcome = ekf.fuse_ranges(
-                self.lever, anchors, ranges, self.cfg.range_sigma_m**2 * r_scale,
-                tuple(self._range_columns.get(a, ()) for a in ids), extra[:3],
+                self.est.lever, anchors, ranges, self.cfg.range_sigma_m**2 * r_scale,
+                tuple(self.installation.range_columns.get(a, ()) for a in ids), extra[:3],
                 self._row_policy(keys, True), self._considered())
             if outcome is not None:
                 return self._outcomes(t_ns, keys, outcome)
@@ -145,7 +128,7 @@ class EpochFusion:
     def _fuse(self, t_ns: int, rows: Rows) -> list[FusionReport]:
         """Sequential scalar updates; each range gated (χ²) and weighted (robust); a loose
         fix gated as one 3-D measurement."""
-        ekf = self.ekf
+        ekf = self.est.ekf
         assert ekf is not None
         H, y, R, keys = rows
         if not keys:
@@ -164,7 +147,7 @@ class EpochFusion:
                                         self._considered())
         return self._outcomes(t_ns, keys, outcome)
 
-    def _check_anchors(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
+    def check_anchors(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                        r_scale: Array) -> None:
         """The epoch's ranges, before the update, to the two tests of the installation:
         tight, with the heading known (the lever arm's direction). The snapshot test
@@ -173,20 +156,20 @@ class EpochFusion:
         (:mod:`~uwbd.fusion.checks.anchor_consistency`: which one disagrees?), three
         ranges at least (a single range cannot be told from the others), about ten
         epochs a second (its σ takes them as that correlated)."""
-        ekf, cfg = self.ekf, self.cfg
-        if ekf is None or not ids or cfg.mode is not Mode.TIGHT or not self._aligned:
+        ekf, cfg = self.est.ekf, self.cfg
+        if ekf is None or not ids or cfg.mode is not Mode.TIGHT or not self.est.aligned:
             return
-        raim, consistency = self.raim, self.consistency
+        raim, consistency = self.findings.raim, self.findings.consistency
         snapshot = raim.due(t_ns, ids)
         anchor_test = len(ids) >= 3 and t_ns - consistency.last_ns >= CHECK_EVERY_NS
         if not (snapshot or anchor_test):
             return
         var = cfg.range_sigma_m**2 * r_scale
-        monitor = self.monitor
+        monitor = self.est.monitor
         # (the single-fault estimates only for the anchor test: single ranges come 100+ a
         # second)
-        checked = range_check(ekf, self.lever, ids, anchors, ranges,
-                              var if anchor_test else None, self._range_columns)
+        checked = range_check(ekf, self.est.lever, ids, anchors, ranges,
+                              var if anchor_test else None, self.installation.range_columns)
         if checked is None:  # an antenna on an anchor: no line to test
             return
         U, y, b, d = checked
@@ -203,13 +186,13 @@ class EpochFusion:
             monitor.offset_m = raim.offset_m
             monitor.bias_gain = raim.bias_gain
 
-    def _exclude_findings(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
+    def exclude_findings(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                           r_scale: Array, reports: list[FusionReport]
                           ) -> tuple[list[int], Array, Array, Array]:
         """The ranges of the anchors the consistency test has found wrong are left out of
         the update (each reported, ``anchor_excluded``), as long as four others remain; the
         test goes on judging them against the state, and they return once they agree."""
-        found = self.consistency.findings
+        found = self.findings.consistency.findings
         if not found or not any(a in found for a in ids):
             return ids, anchors, ranges, r_scale
         keep = np.array([a not in found for a in ids])
@@ -217,12 +200,12 @@ class EpochFusion:
             return ids, anchors, ranges, r_scale
         for a in ids:
             if a in found:
-                if a not in self._excluded:
+                if a not in self.findings.excluded:
                     self._newly_excluded(a, found[a].bias_m)
-                self.counters["range_excluded"] += 1
+                self.est.counters["range_excluded"] += 1
                 reports.append(FusionReport(t_ns, "range", str(a), math.nan, math.nan,
                                             math.nan, False, "anchor_excluded"))
-        self._excluded = {a for a in self._excluded if a in found} | {
+        self.findings.excluded = {a for a in self.findings.excluded if a in found} | {
             a for a in ids if a in found}
         return ([a for a, k in zip(ids, keep, strict=True) if k], anchors[keep], ranges[keep],
                 r_scale[keep])
@@ -230,15 +213,15 @@ class EpochFusion:
     def _newly_excluded(self, anchor: int, bias_m: float) -> None:
         """The state has been pulled by this anchor's ranges: its position and the other
         anchors' range-model states (which took part of the error) may move again."""
-        ekf = self.ekf
+        ekf = self.est.ekf
         assert ekf is not None
         d = np.zeros(ekf.n)
         d[P_] = bias_m**2
-        for other, columns in self._range_columns.items():
+        for other, columns in self.installation.range_columns.items():
             if other != anchor:
                 d[list(columns)] += EXCLUSION_RANGE_STATE_VAR_M2
         ekf.add_variances(d)
-        self.counters["anchors_excluded"] += 1
+        self.est.counters["anchors_excluded"] += 1
 
     def _row_policy(self, keys: list[tuple[str, str]], fix_ok: bool) -> RowPolicy:
         # the first letter of each row's kind: "r"ange, "p"osition, any other gated plainly
@@ -262,7 +245,7 @@ class EpochFusion:
         observes the attitude and the IMU's biases."""
         if not self._imu_fresh():
             return ATTITUDE_AND_IMU_BIASES
-        if not self._aligned and not self._at_rest:
+        if not self.est.aligned and not self.at_rest:
             return ATTITUDE_AND_GYRO_BIAS  # at rest the heading does not matter
         return None
 
@@ -278,7 +261,8 @@ class EpochFusion:
                       outcome: Sequence[RawRow]) -> list[FusionReport]:
         gate_1 = self._gate_1
         reports = []
-        counters, monitor, anchor_stats = self.counters, self.monitor, self.anchor_stats
+        counters, monitor = self.est.counters, self.est.monitor
+        anchor_stats = self.findings.anchor_stats
         for (kind, key), (innovation, variance, weight, numerical) in zip(keys, outcome,
                                                                           strict=True):
             ok = weight > 0.0
@@ -302,10 +286,10 @@ class EpochFusion:
         return reports
 
     def _keep_covariance_sane(self) -> None:
-        ekf = self.ekf
+        ekf = self.est.ekf
         assert ekf is not None
         if ekf.clamp_covariance(MAX_SIGMA, MAX_RANGE_BIAS_SIGMA_M):
-            self.counters["covariance_clamped"] += 1
+            self.est.counters["covariance_clamped"] += 1
 
 
 def _outcome_counter(kind: str, accepted: bool) -> str:

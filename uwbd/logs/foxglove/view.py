@@ -10,7 +10,7 @@ from typing import Any
 
 from drivers.frames import Frame, UwbRanges
 from uwbd.config import ConfigError, parse
-from uwbd.fusion.filter import MAX_ANCHOR_COORD_M
+from uwbd.fusion.policy.installation import MAX_ANCHOR_COORD_M
 from uwbd.fusion.types import Pose
 from uwbd.logs.foxglove.schemas import Vec3, stamp
 

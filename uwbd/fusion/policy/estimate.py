@@ -1,0 +1,66 @@
+"""The filter's state, declared once: what the parts of :class:`~uwbd.fusion.filter.Filter`
+share, each concern a dataclass handed to the parts that read or change it.
+
+* :class:`Estimate` — the core's numbers (``ekf``; ``None`` before a start and while
+  restarting), their time, the heading (held, or aligned), the range rows' lever arm now,
+  and the counters and health evidence every part adds to;
+* :class:`Findings` — what the installation checks have found: the anchor test, the snapshot
+  test, the mounting, the anchors left out and each anchor's range statistics.
+
+The parts keep their own state (the IMU side its last samples, the recovery its restart in
+progress, the fusion its row policies); none reads another's but through these two.
+"""
+
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass, field
+
+from uwbd.fusion.checks.anchor_consistency import AnchorConsistency, ConsistencyLimits
+from uwbd.fusion.checks.mounting_yaw import MountingYaw
+from uwbd.fusion.checks.window_raim import RaimLimits, WindowRaim
+from uwbd.fusion.core.eskf import Eskf
+from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.policy.alignment import HeadingAligner
+from uwbd.fusion.policy.health import HealthMonitor
+from uwbd.fusion.policy.robust import AnchorStats
+from uwbd.fusion.settings import FilterConfig
+
+
+@dataclass(eq=False)
+class Estimate:
+    """The estimate and its evidence (see module doc)."""
+
+    monitor: HealthMonitor
+    aligner: HeadingAligner  # tells the heading while it is held (a new one at each restart)
+    lever: Array  # the range rows' lever arm now: the antenna's, or its phase centre's
+    keep_transition: bool  # keep each epoch's Φ (the smoother's, offline)
+    ekf: Eskf | None = None
+    t_ns: int | None = None  # the time of the nominal state
+    aligned: bool = False  # the heading known (before: held, and the aligner at work)
+    relevel: str | None = None  # an attitude restart pending: "keep" or "level" the tilt
+    counters: collections.Counter[str] = field(default_factory=collections.Counter)
+
+
+@dataclass(eq=False)
+class Findings:
+    """What the installation checks found (see module doc)."""
+
+    consistency: AnchorConsistency = field(
+        default_factory=lambda: AnchorConsistency(ConsistencyLimits()))
+    raim: WindowRaim = field(default_factory=lambda: WindowRaim(RaimLimits()))
+    mounting_yaw: MountingYaw = field(default_factory=MountingYaw)
+    mounting_finding: str = ""  # what the start at rest said of the mounting ("": nothing)
+    excluded: set[int] = field(default_factory=set)  # the anchors left out of the last update
+    anchor_stats: dict[int, AnchorStats] = field(default_factory=dict)
+
+    def forget(self) -> None:
+        """At a restart: the evidence was against the old estimate."""
+        self.consistency.clear()
+        self.raim.clear()
+        self.mounting_yaw.clear()  # (the body velocity was the old heading's)
+
+
+def new_aligner(cfg: FilterConfig) -> HeadingAligner:
+    """A heading aligner with nothing seen yet (at the start, and at every restart)."""
+    return HeadingAligner(cfg.align_window_s, cfg.align_min_dv_mps, cfg.range_sigma_m)
