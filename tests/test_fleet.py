@@ -1,4 +1,4 @@
-"""Several robots behind one Zenoh router, one subscriber on ``uwbd/*/pose``: the README's
+"""Several robots behind one Zenoh router, one subscriber on ``uwbd/*/pose``: docs/fleet.md's
 fleet walk-through, on loopback (unix sockets), multicast scouting off."""
 
 from __future__ import annotations

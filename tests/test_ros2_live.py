@@ -2,7 +2,7 @@
 docs/design.md) with real Zenoh sessions on a unix socket: the grammar against the design
 document's worked examples byte for byte, then a real `uwbd run` fed by the emulator, seen
 from a router session as a ROS 2 node would see it, and `uwbd echo --ros2`. There is no ROS 2
-on this machine: what needs one to confirm is said in the README."""
+on this machine: what needs one to confirm is said in docs/ros2.md."""
 
 from __future__ import annotations
 

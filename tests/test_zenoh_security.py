@@ -1,6 +1,6 @@
 """Zenoh security, the ecosystem's way: a ``[zenoh] config`` Zenoh file (TLS, mutual TLS,
 access control) merged under uwbd's keys; what ``check-config`` and ``run`` say of one that
-cannot work; and the README's fleet over mutual TLS with the shipped router and robot files,
+cannot work; and docs/security.md's fleet over mutual TLS with the shipped router and robot files,
 certificates made here: the daemon's poses reach a viewer, a forged pose is refused, a peer
 without a certificate gets nothing. Real processes on 127.0.0.1, multicast scouting off."""
 
@@ -123,8 +123,8 @@ def test_the_zenoh_file_is_the_base_and_the_tables_keys_go_over_it(tmp_path: Pat
 
 
 def readme_robot_block() -> str:
-    """The README's step 3 ("Securing Zenoh"), as written: a robot's [robot] and [zenoh]."""
-    text = (ROOT / "README.md").read_text()
+    """docs/security.md's step 3, as written: a robot's [robot] and [zenoh]."""
+    text = (ROOT / "docs" / "security.md").read_text()
     blocks = [b.split("```", 1)[0] for b in text.split("```toml\n")[1:]]
     (block,) = [b for b in blocks if 'config = "/etc/uwbd/zenoh/robot.json5"' in b]
     return "\n".join(line.strip() for line in block.splitlines()) + "\n"
@@ -256,7 +256,7 @@ def test_a_plaintext_listener_beyond_this_host_is_warned_of(listen: str, warned:
     said = [w for w in config.warnings if "zenoh.listen[0]" in w]
     assert bool(said) == warned, config.warnings
     if warned:
-        assert "publish false ones" in said[0] and "Securing Zenoh" in said[0]
+        assert "publish false ones" in said[0] and "docs/security.md" in said[0]
 
 
 def test_no_zenoh_table_means_this_host_only(tmp_path: Path) -> None:
@@ -325,7 +325,7 @@ def test_a_daemon_without_a_zenoh_table_is_read_by_echo_on_the_same_host(tmp_pat
 
 
 def _robot_with(tmp_path: Path, tls: Path, name: str = "robot1", **files: str) -> Path:
-    """A robot's config and Zenoh file (the README's, with ``files`` as its TLS settings)."""
+    """A robot's config and Zenoh file (docs/security.md's, with ``files`` as its TLS settings)."""
     settings = {"root_ca_certificate": str(tls / "ca.pem"), "enable_mtls": True,
                 "connect_private_key": str(tls / "robot1.key"),
                 "connect_certificate": str(tls / "robot1.pem"), **files}
@@ -373,7 +373,7 @@ def test_bad_tls_material_is_refused_before_any_run(tmp_path: Path) -> None:
 
 
 def test_a_robot_name_other_than_the_certificates_is_warned_of(tmp_path: Path) -> None:
-    """#44: the README's steps once left [robot] name at the host's name; the router's access
+    """#44: the secure setup's steps once left [robot] name at the host's name; the router's access
     control then dropped every pose while the daemon said all was well."""
     tls = make_certificates(tmp_path / "tls", ["robot1"])
     cfg = _robot_with(tmp_path, tls, name="vm")

@@ -113,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also answer multicast scouting on the LAN (default off)")
     p.add_argument("--zenoh-config", metavar="FILE",
                    help="a Zenoh config file (JSON5): TLS, authentication, access control "
-                   "(README, \"Securing Zenoh\")")
+                   "(docs/security.md)")
     p.set_defaults(func="service:cmd_router")
 
     p = add("replay", help="re-run a log through the same pipeline")

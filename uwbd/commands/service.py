@@ -25,6 +25,7 @@ from uwbd.commands.common import (
 )
 from uwbd.config import default_robot_name, endpoint_problem
 from uwbd.config.checks import Report
+from uwbd.config.model import LOG_DIRECTORY
 from uwbd.config.ros2 import (
     DEFAULT_TOPICS,
     EXTRA_HINT,
@@ -108,7 +109,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     config = load_config_file(args.config, warn=True, host=True)
     if not config.sources:
         raise UsageError(f"{args.config}: sources: at least one [[sources]] is needed")
-    log_dir = Path(args.log_dir or config.log.get("directory", "logs"))
+    log_dir = Path(args.log_dir or config.log.get("directory", LOG_DIRECTORY))
     live = foxglove_server(args)
     extra = (live(config),) if live is not None else ()
     try:

@@ -25,6 +25,14 @@ IMU_LIMIT_KEYS = ("acc_full_scale_mps2", "gyro_full_scale_rps")  # ImuLimits fie
 # [imu] key -> ImuIntrinsics field (the same names): a_true = (a_meas − offset) / scale
 IMU_INTRINSIC_VECTORS = ("acc_scale", "acc_offset_mps2", "gyro_offset_rps")
 IMU_INTRINSIC_KEYS = (*IMU_INTRINSIC_VECTORS, "gyro_deadband_rps", "gravity_mps2")
+# the defaults of the [log] and [pipeline] keys (uwbd.config.reference says each)
+LOG_DIRECTORY = "logs"
+ROTATE_MB = 256.0
+ROTATE_MINUTES = 60.0
+POSE_RATE_HZ = 50.0
+STATUS_PERIOD_S = 1.0
+ALIGNER_WAIT_MS = 0.0
+STALL_AFTER_S = 1.0  # no byte this long: the port is stalled
 # [fusion] keys that are HealthLimits fields (the same names): the protection levels' risk
 # and alert limits, and the ranges' bias bound
 _HEALTH_KEYS = ("integrity_risk", "horizontal_alert_limit_m", "vertical_alert_limit_m",
@@ -115,15 +123,15 @@ class Config:
 
     @property
     def aligner_wait_ns(self) -> int:
-        return int(self.pipeline.get("aligner_wait_ms", 0) * 1_000_000)
+        return int(self.pipeline.get("aligner_wait_ms", ALIGNER_WAIT_MS) * 1_000_000)
 
     @property
     def pose_period_ns(self) -> int:
-        return int(1e9 / self.pipeline.get("pose_rate_hz", 50))
+        return int(1e9 / self.pipeline.get("pose_rate_hz", POSE_RATE_HZ))
 
     @property
     def status_period_ns(self) -> int:
-        return int(self.pipeline.get("status_period_s", 1.0) * 1e9)
+        return int(self.pipeline.get("status_period_s", STATUS_PERIOD_S) * 1e9)
 
     def intrinsics(self) -> ImuIntrinsics:
         """The ``[imu]`` intrinsics given, the others at their defaults (identity)."""

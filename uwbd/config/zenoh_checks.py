@@ -39,13 +39,13 @@ def check_zenoh(r: Report, zenoh: Mapping[str, Any]) -> None:
                 r.warn(f"zenoh.listen[{k}]", f"{show(endpoint)} is reachable from the network "
                        "without encryption or authentication: anyone there can read the "
                        "poses and publish false ones; listen on 127.0.0.1 (a router reaches "
-                       "it), or secure it (README, \"Securing Zenoh\")")
+                       "it), or secure it (docs/security.md)")
         if zenoh.get("multicast_scouting"):
             r.warn("zenoh.multicast_scouting", "true announces this robot to the whole LAN and "
                    "meshes with any peer that answers, without encryption or authentication: "
                    "anyone there can read the poses and publish false ones; leave it false "
-                   "(this host only, or connect to a router), or secure it (README, \"Securing "
-                   "Zenoh\")")
+                   "(this host only, or connect to a router), or secure it "
+                   "(docs/security.md)")
     if zenoh.get("mode") == "client" and not zenoh.get("connect"):
         r.error("zenoh.mode", "\"client\" needs a zenoh.connect endpoint (a router or peer)")
     prefix = zenoh.get("prefix", "").strip("/")
@@ -215,7 +215,7 @@ def host_problems(config: Config, where: str) -> Report:
             if str(endpoint).partition("/")[0] in SECURE_PROTOCOLS:
                 r.error(f"zenoh.listen[{k}]", f"{show(endpoint)}: listening on TLS needs a "
                         "key and certificate: name a Zenoh config file that gives them with "
-                        "zenoh.config (README, \"Securing Zenoh\")")
+                        "zenoh.config (docs/security.md)")
     for identity in check_zenoh_file(r, zcfg):
         own = f"uwbd/{identity.common_name}"
         if identity.side == "connect" and identity.common_name and config.zenoh_prefix != own:

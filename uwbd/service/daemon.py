@@ -23,6 +23,7 @@ import zenoh
 
 from uwbd import __version__, journal
 from uwbd.config import Config
+from uwbd.config.model import ROTATE_MB, ROTATE_MINUTES, STALL_AFTER_S
 from uwbd.config.zenoh_session import effective, zenoh_reason
 from uwbd.fusion.core import native
 from uwbd.logs.sink import McapSink
@@ -41,7 +42,6 @@ PROBE_EVERY_S = 5.0  # does the router hold this daemon's liveliness token? (Zen
 LOG = journal.get("daemon")
 
 
-STALL_AFTER_S = 1.0  # [pipeline] stall_after_s: no byte this long, the port is stalled
 
 
 class PipelineError(RuntimeError):
@@ -67,8 +67,8 @@ async def run(config: Config, log_dir: Path, duration_s: float | None = None,
     ``summary_s``: how often a health line is logged; ``where``: the config's file name.
     Raises :class:`PipelineError` (after finishing the log) if the pipeline raised."""
     loop = asyncio.get_running_loop()
-    rotate_mb = config.log.get("rotate_mb", 256)
-    rotate_min = config.log.get("rotate_minutes", 60)
+    rotate_mb = config.log.get("rotate_mb", ROTATE_MB)
+    rotate_min = config.log.get("rotate_minutes", ROTATE_MINUTES)
     mcap = McapSink(config, directory=log_dir, rotate_bytes=int(rotate_mb * 1e6),
                     rotate_ns=int(rotate_min * 60e9), paced=True)
     if on_log is not None:

@@ -8,7 +8,7 @@ wildcard in the prefix (``uwbd/*``) every line starts with the key it came on, s
 robots can be told apart.
 
 Any Zenoh client does the same; from another language, subscribe to ``<prefix>/pose`` and
-parse the JSON payload (see the README's "Subscribing from other languages").
+parse the JSON payload (docs/fleet.md, "Subscribing").
 """
 
 from __future__ import annotations

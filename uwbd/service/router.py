@@ -43,7 +43,7 @@ def run_router(zcfg: dict[str, Any], stop: threading.Event | None = None,
         LOG.warning("%s is reachable from the network without encryption or authentication: "
                     "anyone there can read every robot's poses and publish false ones. Secure "
                     "it with TLS and access control (--zenoh-config with the shipped "
-                    "config/zenoh/router.json5, README \"Securing Zenoh\"), or listen on "
+                    "config/zenoh/router.json5, docs/security.md), or listen on "
                     "127.0.0.1 (--listen tcp/127.0.0.1:7447)", ", ".join(open_to_all))
     try:
         LOG.info("routing on %s (multicast scouting %s); daemons connect with [zenoh] "

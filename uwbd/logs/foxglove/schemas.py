@@ -92,7 +92,7 @@ def pose_in_frame_schema(extra: Mapping[str, Schema] | None = None,
 
 def _health_schema() -> Schema:
     optional = "; absent when not known"
-    return _obj("uwbd.Health", "the filter's health record (README: Integrity)", {
+    return _obj("uwbd.Health", "the filter's health record (docs/health.md)", {
         "phase": {"type": "string", "description": "waiting, recovering, coasting, degraded, "
                   "aligning or tracking (only tracking is healthy)"},
         "healthy": {"type": "boolean", "description": "phase is tracking"},
@@ -300,7 +300,7 @@ def _open_map(values: Schema, text: str) -> Schema:
 
 _COUNT = {"type": "integer", "minimum": 0}
 STATUS_SCHEMA = _obj("uwbd.Status", "once a second: the filter's health, counters, "
-                     "parsers, ports and the log (README: What the daemon says)", {
+                     "parsers, ports and the log (docs/robot.md)", {
     "timestamp": time_schema("time of the status (exact)"),
     "t_ns": _t_ns(),
     "version": {"type": "string", "description": "uwbd version"},
