@@ -23,7 +23,7 @@
 
 #define FRAME_LEN 128
 #define N_SLOTS 8
-/* TagFrame0's offsets (drivers/nlink.py TAG_FRAME0, WIRE_FORMATS.md §3.2) */
+/* TagFrame0's offsets (drivers/nlink.py TAG_FRAME0, docs/wire-formats.md) */
 #define OFF_ID 2
 #define OFF_POS 4
 #define OFF_VEL 13

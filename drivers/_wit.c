@@ -1,6 +1,6 @@
 /* drivers._frames.WitStream: the WitMotion parser (drivers/wit.py's WitParser) in C.
  *
- * The same stream semantics as the Python parser, the reference (WIRE_FORMATS.md §1): any
+ * The same stream semantics as the Python parser, the reference (docs/wire-formats.md): any
  * packet mix the device can be set to send, packets split across reads, garbage and resync;
  * the cycle rule (a cycle ends on a type wrap or on its learned closing type), the same
  * ImuSample frames and the same counters. The scaling of each field is not written here: the

@@ -1,4 +1,4 @@
-"""Decawave/Qorvo DWM1001 PANS shell stream ``lec`` (WIRE_FORMATS.md §2.2, §2.4).
+"""Decawave/Qorvo DWM1001 PANS shell stream ``lec`` (docs/wire-formats.md).
 
 One line per location update::
 

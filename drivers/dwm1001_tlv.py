@@ -1,4 +1,4 @@
-"""Decawave/Qorvo DWM1001 binary TLV API: the ``dwm_loc_get`` response (WIRE_FORMATS.md §2.5).
+"""Decawave/Qorvo DWM1001 binary TLV API: the ``dwm_loc_get`` response (docs/wire-formats.md).
 
 A response is a concatenation of ``Type(1) Length(1) Value(Length)`` records::
 

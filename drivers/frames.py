@@ -1,6 +1,6 @@
 """Typed frames that every driver produces and every encoder consumes.
 
-Conventions (see ARCHITECTURE.md, "Contracts"):
+Conventions (docs/architecture.md, "The data's way"):
 
 * ``t_ns`` is the host receive time of the frame's last byte, integer nanoseconds since the
   Unix epoch (``time.time_ns()``). Parsers have no clock: the source passes the receive time of

@@ -1,4 +1,4 @@
-"""Nooploop LinkTrack NLink protocol, ``TagFrame0`` (WIRE_FORMATS.md §3.2).
+"""Nooploop LinkTrack NLink protocol, ``TagFrame0`` (docs/wire-formats.md).
 
 A fixed 128-byte frame ``55 01 …`` ending in the low byte of the sum of the 127 bytes before
 it. Distances to anchors 0..7 sit in ``dis_m``; 0 means "no range" and yields no

@@ -1,4 +1,4 @@
-"""Nooploop LinkTrack NLink ``NodeFrame2`` (WIRE_FORMATS.md §3.3), variable length.
+"""Nooploop LinkTrack NLink ``NodeFrame2`` (docs/wire-formats.md), variable length.
 
 ``55 04 <length u16>``, a fixed part of 119 bytes (:data:`NODE_FRAME2`: role, id, system time,
 eop, position, velocity, the tag IMU, local time, voltage, and the count N of node records),

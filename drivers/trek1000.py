@@ -1,4 +1,4 @@
-"""Decawave TREK1000 / EVK1000 (DecaRangeRTLS firmware) ASCII range reports: WIRE_FORMATS.md §4.
+"""Decawave TREK1000 / EVK1000 (DecaRangeRTLS firmware) ASCII range reports: docs/wire-formats.md
 
 One report per line, single spaces, lowercase hex, ``\\r\\n``::
 

@@ -1,4 +1,4 @@
-"""WitMotion "0x55" standard protocol (JY901, WT901, HWT901B, HWT905…): WIRE_FORMATS.md §1.
+"""WitMotion "0x55" standard protocol (JY901, WT901, HWT901B, HWT905…): docs/wire-formats.md
 
 Every packet is 11 bytes: ``0x55, type, D0, D1, D2, D3, sum8`` with D0..D3 int16 LE.
 

@@ -1,4 +1,4 @@
-"""Named captures in tests/data (WIRE_FORMATS.md vectors and damaged streams): what each
+"""Named captures in tests/data (docs/wire-formats.md vectors and damaged streams): what each
 parser must recover, and that parsing resumes after every kind of damage."""
 
 from __future__ import annotations

@@ -130,7 +130,7 @@ def test_new_devices_are_served_at_their_rate(tmp_path: Path) -> None:
 
 
 def test_trek1000_device_answers_the_pc_handshake() -> None:
-    """WIRE_FORMATS.md §4.5, sans I/O: replies, the 1 s pause, mr lines off and on."""
+    """docs/wire-formats.md, sans I/O: replies, the 1 s pause, mr lines off and on."""
     dev = trek1000.Trek1000Device()
     epoch = UwbRanges(0, tuple(AnchorRange(k, 1.0 + k) for k in range(6)))
     assert trek1000.Trek1000Parser().feed(dev.report(0, epoch))[0].ranges == tuple(

@@ -1,7 +1,7 @@
 """Regenerate the named byte captures in this folder: ``python tests/data/make_captures.py``.
 
 Each file is a device stream with one named kind of damage; the tests state what a parser
-must recover from it. Vectors quoted from WIRE_FORMATS.md are copied byte for byte.
+must recover from it. Vectors quoted from docs/wire-formats.md are copied byte for byte.
 """
 
 from __future__ import annotations
@@ -27,14 +27,14 @@ TLV_SPEC_EXAMPLE = bytes.fromhex(
     "5111281900006488130000401F0000CA08000064"
     "A80C6419000064000000 00401F0000CA08000064".replace(" ", ""))
 
-# nooploop-dev/nlink_parser test/test_nlink_parser.cpp, the NodeFrame2 case (WIRE_FORMATS §3.3)
+# nooploop-dev/nlink_parser test/test_nlink_parser.cpp, the NodeFrame2 case (docs/wire-formats.md)
 NODE2_GOLDEN = bytes.fromhex(
     "5504ac000201ba661d000609ffde0a00dfffffe80300faffff1a0000000000c012000000000000"
     "0027ace23c56ed1c3cd2703bbd3257663e3bcb1b41937061bd25b26b41a1226c41dada6b416d23"
     "e92370dddbf7303f5fd6313fba811e3e4769e2bd919b4040c52300004040 5cd51c0000001d006d"
     "130401006b0c00b19fa6661d00164501 01ac1500b4a1a6661d00d3010102481a00ca9fa6661d00"
     "38ba01032b1200c6a0a6661d00644025".replace(" ", ""))
-# WIRE_FORMATS §4.2-4.4: the example lines of the Decawave PC source, byte for byte
+# docs/wire-formats.md: the example lines of the Decawave PC source, byte for byte
 TREK_SPEC_EXAMPLES = (
     b"mc 0f 00000663 000005a3 00000512 000004cb 095f c1 00024c24 a0:0\r\n"
     b"mr 0f 000005a4 000004c8 00000436 000003f9 0958 c0 40424042 a0:0\r\n"

@@ -26,7 +26,7 @@ from uwbd.config.model import (
     STALL_AFTER_S,
     STATUS_PERIOD_S,
 )
-from uwbd.config.ros2 import DEFAULT_TOPICS, TOPIC_KEYS, Ros2Settings
+from uwbd.config.ros2 import DEFAULT_TOPICS, LIVE_ONLY_WHEN_NAMED, TOPIC_KEYS, Ros2Settings
 from uwbd.config.schema import TABLES, Key
 from uwbd.config.zenoh_session import THIS_HOST_LISTEN, UWBD_DEFAULTS
 from uwbd.fusion.checks.gating import GatingPolicy
@@ -201,11 +201,12 @@ REFERENCE: dict[str, dict[str, Entry]] = {
         "node_name": Entry(_ROS2.node_name, "the node's name in `ros2 node list`"),
         "distro": Entry(_ROS2.distro, "the ROS 2 release the subscribers run "
                         "(`humble`: keys without a type hash)"),
-        **{key: Entry(DEFAULT_TOPICS[role] if role != "imu" else "",
-                      f"the {role} topic's name (\"\": off)" + (
-                          f"; live only when named (e.g. `\"{DEFAULT_TOPICS[role]}\"`), a "
-                          "bag has it by default" if role == "imu" else ""))
-           for role, key in TOPIC_KEYS.items()},
+        **{key: Entry(DEFAULT_TOPICS[role], f"the {role} topic's name (\"\": off)")
+           for role, key in TOPIC_KEYS.items() if role not in LIVE_ONLY_WHEN_NAMED},
+        **{key: Entry(None, f"the {role} topic's name (\"\": off, in bags too); live only "
+                      f"when named (e.g. `\"{DEFAULT_TOPICS[role]}\"`)",
+                      f"not live; `{DEFAULT_TOPICS[role]}` in a bag")
+           for role, key in TOPIC_KEYS.items() if role in LIVE_ONLY_WHEN_NAMED},
     },
 }
 

@@ -229,7 +229,7 @@ class Driver:
 
 DRIVERS = {
     "wit": Driver(uwb=False),
-    # TagFrame0: a distance per slot 0..7, no positions (WIRE_FORMATS.md §3.2)
+    # TagFrame0: a distance per slot 0..7, no positions (docs/wire-formats.md)
     "nlink": Driver(True, False, range(N_SLOTS), f"TagFrame0 slots 0..{N_SLOTS - 1}"),
     # shell `lec` and TLV 0x49: each range with the anchor's 16-bit short id and position
     "dwm1001": Driver(True, True, range(1 << 16), "16-bit short ids 0..0xFFFF"),

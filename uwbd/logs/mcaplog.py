@@ -1,4 +1,4 @@
-"""uwbd's MCAP logs: the layout of ARCHITECTURE.md, written and read back.
+"""uwbd's MCAP logs: the layout of docs/architecture.md ("The log"), written and read back.
 
 * ``/raw/<source>``: ``protobuf``, schema ``uwbd.Raw`` (older logs: schemaless, encoding
   ``uwbd.raw``): bytes exactly as read, one message per read;

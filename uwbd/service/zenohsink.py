@@ -1,4 +1,4 @@
-"""Poses and status over Zenoh (ARCHITECTURE.md, "Zenoh").
+"""Poses and status over Zenoh (docs/fleet.md, "Subscribing").
 
 Keys under the configured prefix (default ``uwbd/<robot name>``): ``<prefix>/pose`` carries the
 same JSON as MCAP ``/pose`` (a ``foxglove.PoseInFrame`` object plus uwbd's fields), encoding

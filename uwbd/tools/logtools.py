@@ -52,7 +52,7 @@ def simulation_toml(sim: Simulation, uwb_driver: str = "nlink") -> str:
                           c.mounting, c.lever_arm_m, fusion, imu)
 
 
-SPLIT_READ_FRACTION = 0.3  # of reads a serial port ends inside a packet (WIRE_FORMATS.md §0)
+SPLIT_READ_FRACTION = 0.3  # of reads a serial port ends inside a packet (docs/wire-formats.md)
 BYTE_NS = 10_850  # one byte at 921600 baud, 8N1
 MAG_FIELD_RAW = (210.0, 0.0, -390.0)  # the magnetometer's reading of the Earth's field, LSB
 
