@@ -29,7 +29,6 @@ from uwbd.config.model import (
 from uwbd.config.ros2 import DEFAULT_TOPICS, LIVE_ONLY_WHEN_NAMED, TOPIC_KEYS, Ros2Settings
 from uwbd.config.schema import TABLES, Key
 from uwbd.config.zenoh_session import THIS_HOST_LISTEN, UWBD_DEFAULTS
-from uwbd.fusion.checks.gating import GatingPolicy
 from uwbd.fusion.checks.imu_check import ImuLimits
 from uwbd.fusion.checks.intrinsics import ImuIntrinsics
 from uwbd.fusion.core.noise import GRAVITY_MPS2, ImuNoise
@@ -129,9 +128,9 @@ REFERENCE: dict[str, dict[str, Entry]] = {
         "known_height_m": Entry(None, "the tag's height where anchors on one horizontal "
                                 "plane cannot tell it", "no height held"),
         "gate_probability": Entry(_F.gate_probability, "each measurement's χ² gate"),
-        "min_anchors": Entry(GatingPolicy(min_anchors=1).min_anchors, "ranges a message "
+        "min_anchors": Entry(_F.gating.min_anchors, "ranges a message "
                              "needs to be used"),
-        "max_range_m": Entry(GatingPolicy().max_range_m, "a longer range is rejected"),
+        "max_range_m": Entry(_F.gating.max_range_m, "a longer range is rejected"),
         "integrity_risk": Entry(_H.integrity_risk, "the protection levels' risk: the "
                                 "probability that the error exceeds them"),
         "horizontal_alert_limit_m": Entry(_H.horizontal_alert_limit_m, "a pose is healthy "
