@@ -284,7 +284,7 @@ class Filter:
     def _antenna(self) -> Array | None:
         """The antenna's position by the estimate (a start point for least squares)."""
         ekf = self.est.ekf
-        if ekf is not None:  # p + R l, in floats (twice as fast as with R as an array)
+        if ekf is not None:  # p + R l, in floats: this runs for every UWB message
             (px, py, pz), (w, x, y, z), (lx, ly, lz) = ekf.p, ekf.q, self._lever
             return np.array((
                 px + ((1 - 2 * (y * y + z * z)) * lx + 2 * (x * y - w * z) * ly
