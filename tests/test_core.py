@@ -380,13 +380,15 @@ def test_multilateration_matches_the_reference(seed: int, k: int, height_held: b
 @needs_core
 @settings(max_examples=40, deadline=None)
 @given(st.integers(0, 2**31), st.integers(1, 8), st.integers(0, 3), st.booleans(),
-       st.sampled_from([None, slice(6, 12)]))
+       st.sampled_from([None, slice(6, 12)]), st.booleans())
 def test_a_tight_epoch_in_one_call_matches_rows_then_update(seed: int, k: int, extra: int,
                                                             robust: bool,
-                                                            considered: slice | None) -> None:
+                                                            considered: slice | None,
+                                                            lever_states: bool) -> None:
     """fuse_ranges (range rows, extra rows, weights, injection, reset in C) against the
-    reference: range_rows, the rows stacked, sequential_update in Python."""
-    fast, slow = twin(2 * 8, seed)
+    reference: range_rows, the rows stacked, sequential_update in Python; with the lever
+    arm's error states too."""
+    fast, slow = twin(2 * 8 + 3, seed)
     rng = np.random.default_rng(seed)
     ids = [int(a) for a in rng.choice(8, size=k, replace=False)]
     anchors = rng.uniform(-10, 10, size=(k, 3))
@@ -394,33 +396,45 @@ def test_a_tight_epoch_in_one_call_matches_rows_then_update(seed: int, k: int, e
     var = rng.uniform(0.001, 0.1, size=k)
     lever = rng.normal(size=3) * 0.2
     columns = {a: (N_CORE + a, N_CORE + 8 + a) for a in range(8)}
+    lever_columns = tuple(range(N_CORE + 16, N_CORE + 19)) if lever_states else ()
     H_extra = rng.normal(size=(extra, fast.n))
     y_extra, R_extra = rng.normal(size=extra) * 0.1, rng.uniform(0.001, 0.1, size=extra)
     kinds = b"r" * k + b"z" * extra
     policy = RobustPolicy(enabled=robust).rows(kinds, 6.63, True)
     rows_fast = fast.fuse_ranges(lever, anchors, ranges, var, tuple(columns[a] for a in ids),
-                                 (H_extra, y_extra, R_extra), policy, considered)
-    assert rows_fast is not None
+                                 lever_columns, (H_extra, y_extra, R_extra), policy,
+                                 considered)
+    assert rows_fast is not None and None not in rows_fast
     with native.pure_python():
-        reference = range_rows(slow, lever, ids, anchors, ranges, var, columns)
+        reference = range_rows(slow, lever, ids, anchors, ranges, var, columns, lever_columns)
     rows_slow = slow.sequential_update(np.vstack([reference.H, H_extra]),
                                        np.concatenate([reference.y, y_extra]),
                                        np.concatenate([reference.R, R_extra]), policy,
                                        considered)
-    np.testing.assert_allclose([r[:3] for r in rows_fast], [r[:3] for r in rows_slow],
-                               rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose([r[:3] for r in rows_fast if r is not None],
+                               [r[:3] for r in rows_slow], rtol=1e-9, atol=1e-12)
     same_state(fast, slow)
 
 
 @needs_core
-def test_a_tight_epoch_with_an_antenna_on_an_anchor_is_left_to_the_reference() -> None:
-    fast, _ = twin(0, 5)
-    P, x = fast.P.copy(), nominal(fast)
+def test_a_range_with_its_antenna_on_its_anchor_is_left_out_as_the_reference_drops_it(
+        ) -> None:
+    """No line to linearise: that range's row is None and the update is the other range's
+    alone, as the reference's rows (which drop it) give."""
+    fast, slow = twin(0, 5)
     anchors = np.array([fast.p, [5.0, 0.0, 0.0]])  # the first anchor at the antenna
-    rows = fast.fuse_ranges(np.zeros(3), anchors, np.array([0.0, 5.0]), np.full(2, 0.01),
-                            ((), ()), (np.zeros((0, fast.n)), np.zeros(0), np.zeros(0)),
+    ranges, var = np.array([0.0, 5.0]), np.full(2, 0.01)
+    rows = fast.fuse_ranges(np.zeros(3), anchors, ranges, var, ((), ()), (),
+                            (np.zeros((0, fast.n)), np.zeros(0), np.zeros(0)),
                             RobustPolicy().rows(b"rr", 6.63, True), None)
-    assert rows is None and np.array_equal(fast.P, P) and np.array_equal(nominal(fast), x)
+    assert rows is not None and rows[0] is None and rows[1] is not None
+    with native.pure_python():
+        reference = range_rows(slow, np.zeros(3), [0, 1], anchors, ranges, var, {})
+    assert reference.keys == [("range", "1")]
+    (want,) = slow.sequential_update(reference.H, reference.y, reference.R,
+                                     RobustPolicy().rows(b"r", 6.63, True), None)
+    np.testing.assert_allclose(rows[1][:3], want[:3], rtol=1e-9, atol=1e-12)
+    same_state(fast, slow)
 
 
 @needs_core

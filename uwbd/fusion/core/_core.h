@@ -49,11 +49,14 @@ PyObject *uwbd_scalar_rows(double *P, double *dx, Py_ssize_t n, const double *H,
                            double *work, int *fused);
 
 /* -- the range model's rows (mm_range.c) ------------------------------------------------ */
-/* The rows of the ranges (measurements.range_rows) into H (k×n, zeroed) and y: 0, or -1. */
+/* The rows of the ranges (measurements.range_rows) into H (k×n, zeroed) and y, each
+ * antenna-anchor distance into dist (k): 0, or -1. */
 int uwbd_range_rows(const double p[3], const double q[4], const double lever[3],
                     const double *anchors, const double *ranges, Py_ssize_t k,
-                    const double *b_r, Py_ssize_t n, PyObject *columns, double *H, double *y,
-                    double *closest);
+                    const double *b_r, Py_ssize_t n, PyObject *columns,
+                    PyObject *lever_columns, double *H, double *y, double *dist);
+/* A range has a line to linearise: its antenna over 1 mm from its anchor (NaN: none). */
+#define UWBD_LINE_OF(dist) ((dist) >= 1e-3)
 
 /* -- the installation checks' numbers (_checks.c) ---------------------------------------- */
 /* Baarda's single-fault estimates of k innovations nu with covariance S (k×k, destroyed):

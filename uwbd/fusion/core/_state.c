@@ -548,16 +548,18 @@ static int rows_room(State *self, Py_ssize_t need)
     return 0;
 }
 
-/* fuse_ranges(lever, anchors (k×3), ranges (k), var (k), columns, H_extra, y_extra,
- *             R_extra, decide, c0, c1) -> rows, or None
+/* fuse_ranges(lever, anchors (k×3), ranges (k), var (k), columns, lever_columns, H_extra,
+ *             y_extra, R_extra, decide, c0, c1) -> rows
  * A tight epoch: the range rows (mm_range.c), then the extra rows (ZUPT, NHC, height), as
- * update fuses them. None, with nothing changed, when an antenna is within 1 mm of an
- * anchor or a distance is not a number (the caller's reference drops such a range). */
+ * update fuses them; one row per range and extra row, in order. A range whose antenna is
+ * within 1 mm of its anchor, or whose distance is not a number, has no line to linearise:
+ * it is left out of the update (a zero row: exactly nothing changes) and its row is None
+ * (the reference, range_rows, drops it). */
 static PyObject *state_fuse_ranges(State *self, PyObject *const *args, Py_ssize_t nargs)
 {
     Py_ssize_t c0, c1, n = self->n;
     double lever[3];
-    if (check_args(nargs, 11, "fuse_ranges") || considered(args + 9, n, &c0, &c1) < 0 ||
+    if (check_args(nargs, 12, "fuse_ranges") || considered(args + 10, n, &c0, &c1) < 0 ||
         uwbd_get_vec(args[0], lever, 3, "lever"))
         return NULL;
     Py_buffer view[3], extra[3]; /* ranges, anchors, var; y, H, R of the extra rows */
@@ -574,26 +576,33 @@ static PyObject *state_fuse_ranges(State *self, PyObject *const *args, Py_ssize_
         goto done;
     got = 3;
     static const char *const names[3] = {"y_extra", "H_extra", "R_extra"};
-    if (get_rows(args[5], args[6], args[7], n, extra, &e, names) < 0)
+    if (get_rows(args[6], args[7], args[8], n, extra, &e, names) < 0)
         goto done;
     rows = 1;
     Py_ssize_t m = k + e;
-    if (rows_room(self, m * n + 2 * m) < 0)
+    if (rows_room(self, m * n + 2 * m + k) < 0)
         goto done;
-    double *H = self->rows, *y = H + m * n, *R = y + m, closest;
+    double *H = self->rows, *y = H + m * n, *R = y + m, *dist = R + m;
     memset(H, 0, sizeof(double) * (size_t)(k * n));
     if (uwbd_range_rows(self->p, self->q, lever, view[1].buf, view[0].buf, k, self->br, n,
-                        args[4], H, y, &closest) < 0)
+                        args[4], args[5], H, y, dist) < 0)
         goto done;
-    if (!(closest >= 1e-3)) {
-        out = Py_NewRef(Py_None);
-        goto done;
-    }
     memcpy(R, view[2].buf, sizeof(double) * k);
+    int lineless = 0; /* a range with no line: a zero row, which changes nothing */
+    for (Py_ssize_t a = 0; a < k; a++)
+        if (!UWBD_LINE_OF(dist[a])) {
+            memset(H + a * n, 0, sizeof(double) * n);
+            y[a] = 0.0;
+            lineless = 1;
+        }
     memcpy(H + k * n, extra[1].buf, sizeof(double) * e * n);
     memcpy(y + k, extra[0].buf, sizeof(double) * e);
     memcpy(R + k, extra[2].buf, sizeof(double) * e);
-    out = fuse_rows(self, H, y, R, m, args[8], c0, c1);
+    out = fuse_rows(self, H, y, R, m, args[9], c0, c1);
+    if (out != NULL && lineless) /* and its row is None */
+        for (Py_ssize_t a = 0; a < k; a++)
+            if (!UWBD_LINE_OF(dist[a]))
+                PyList_SetItem(out, a, Py_NewRef(Py_None));
 done:
     for (int i = 0; i < got; i++)
         PyBuffer_Release(&view[i]);
@@ -634,19 +643,20 @@ static PyObject *state_range_check(State *self, PyObject *const *args, Py_ssize_
             goto done;
         got = 4;
     }
-    /* H (k×n), y (k), H P (k×n), S (k×k) and the inverse's k×k */
-    if (rows_room(self, 2 * k * n + k + 2 * k * k) < 0)
+    /* H (k×n), y (k), H P (k×n), S (k×k), the inverse's k×k, the distances (k) */
+    if (rows_room(self, 2 * k * n + 2 * k + 2 * k * k) < 0)
         goto done;
     double *H = self->rows, *y = H + k * n, *HP = y + k, *S = HP + k * n, *Si = S + k * k;
-    double closest, *out = view[2].buf;
+    double *dist = Si + k * k, *out = view[2].buf;
     memset(H, 0, sizeof(double) * (size_t)(k * n));
     if (uwbd_range_rows(self->p, self->q, lever, view[1].buf, view[0].buf, k, self->br, n,
-                        args[4], H, y, &closest) < 0)
+                        args[4], NULL, H, y, dist) < 0)
         goto done;
-    if (!(closest >= 1e-3)) {
-        result = Py_NewRef(Py_None);
-        goto done;
-    }
+    for (Py_ssize_t a = 0; a < k; a++)
+        if (!UWBD_LINE_OF(dist[a])) {
+            result = Py_NewRef(Py_None);
+            goto done;
+        }
     for (Py_ssize_t a = 0; a < k; a++) {
         memcpy(out + 3 * a, H + a * n, sizeof(double) * 3);
         out[3 * k + a] = y[a];

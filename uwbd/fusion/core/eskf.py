@@ -306,14 +306,16 @@ class Eskf:
         return rows
 
     def fuse_ranges(self, lever_m: Array, anchors: Array, ranges: Array, var: Array,
-                    columns: tuple[tuple[int, ...], ...], extra: tuple[Array, Array, Array],
-                    decide: RowPolicy, considered: slice | None) -> list[RawRow] | None:
-        """A tight epoch in one call where the C core runs it (:class:`CoreEskf`): the rows
-        of :func:`uwbd.fusion.models.measurements.range_rows` (``columns``: each range's
-        range-model state columns), then ``extra`` rows ``(H, y, R)``, through
-        :meth:`sequential_update`. Here, and where a range needs the reference (an antenna
-        within 1 mm of its anchor), ``None`` with nothing changed: the caller builds the
-        rows and calls :meth:`sequential_update`."""
+                    columns: tuple[tuple[int, ...], ...], lever_columns: tuple[int, ...],
+                    extra: tuple[Array, Array, Array], decide: RowPolicy,
+                    considered: slice | None) -> list[RawRow | None] | None:
+        """A tight epoch in one call on the C core (:class:`CoreEskf`): the rows of
+        :func:`uwbd.fusion.models.measurements.range_rows` (``columns``: each range's
+        range-model state columns; ``lever_columns``: the lever arm's error states, or
+        ``()``), then ``extra`` rows ``(H, y, R)``, through :meth:`sequential_update`; one
+        row each, ``None`` for a range with no line to linearise (its antenna within 1 mm
+        of its anchor), which is left out. This reference has no such call (``None``): its
+        caller builds the rows (``fuses_ranges`` says which, per class)."""
         return None
 
     def update(self, H: Array, y: Array, R: Array) -> Array:

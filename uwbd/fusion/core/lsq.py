@@ -67,6 +67,8 @@ def multilaterate(anchors_m: Array, ranges_m: Array, sigma_m: float = 0.1,
         return fix
     # studentised residuals: r_i / (σ √(1 − h_ii)), h_ii the leverage of range i
     lev = _leverages(anchors_m[used], fix.position_m, dims)
+    if lev is None:  # JᵀJ singular at the fix: no leverages, no outlier test
+        return fix
     student = np.abs(fix.residuals_m[used]) / (sigma_m * np.sqrt(np.clip(1 - lev, 1e-6, None)))
     worst = int(np.argmax(student))
     if student[worst] <= outlier_sigma:
@@ -75,17 +77,19 @@ def multilaterate(anchors_m: Array, ranges_m: Array, sigma_m: float = 0.1,
     return _solve(anchors_m, ranges_m, used, sigma_m, fix.position_m, fixed_z, side) or fix
 
 
-def _leverages(anchors: Array, x: Array, dims: int) -> Array:
-    """``h_ii = J_i (JᵀJ)⁺ J_iᵀ`` of each range at ``x``."""
+def _leverages(anchors: Array, x: Array, dims: int) -> Array | None:
+    """``h_ii = J_i (JᵀJ)⁻¹ J_iᵀ`` of each range at ``x``; None where ``JᵀJ`` is singular."""
     core = native.core
     if core is not None:
         lev = core.leverages(np.ascontiguousarray(anchors, dtype=float),
                              np.ascontiguousarray(x, dtype=float), dims)
-        if lev is not None:  # else singular: the pseudo-inverse below
-            return np.array(lev)
+        return None if lev is None else np.array(lev)
     diff = x - anchors
     J = (diff / np.linalg.norm(diff, axis=1, keepdims=True))[:, :dims]
-    return np.einsum("ij,jk,ik->i", J, np.linalg.pinv(J.T @ J), J)
+    try:
+        return np.einsum("ij,jk,ik->i", J, np.linalg.inv(J.T @ J), J)
+    except np.linalg.LinAlgError:
+        return None
 
 
 def _initial_guess(anchors: Array, ranges: Array, fixed_z: float | None, side: int) -> Array:

@@ -120,15 +120,17 @@ class CoreEskf(Eskf):
         return [Row(*r) for r in rows]
 
     def fuse_ranges(self, lever_m: Array, anchors: Array, ranges: Array, var: Array,
-                    columns: tuple[tuple[int, ...], ...], extra: tuple[Array, Array, Array],
-                    decide: RowPolicy, considered: slice | None) -> list[RawRow] | None:
+                    columns: tuple[tuple[int, ...], ...], lever_columns: tuple[int, ...],
+                    extra: tuple[Array, Array, Array], decide: RowPolicy,
+                    considered: slice | None) -> list[RawRow | None] | None:
         c0, c1 = _columns(considered, self.n)
         H, y, R = extra
-        rows: list[RawRow] | None = self._fuse_ranges(
+        rows: list[RawRow | None] = self._fuse_ranges(
             lever_m, np.ascontiguousarray(anchors, dtype=float),
             np.ascontiguousarray(ranges, dtype=float), np.ascontiguousarray(var, dtype=float),
-            columns, np.ascontiguousarray(H, dtype=float), np.ascontiguousarray(y, dtype=float),
-            np.ascontiguousarray(R, dtype=float), decide, c0, c1)
+            columns, lever_columns, np.ascontiguousarray(H, dtype=float),
+            np.ascontiguousarray(y, dtype=float), np.ascontiguousarray(R, dtype=float), decide,
+            c0, c1)
         return rows
 
     def inject(self, dx: Array) -> None:

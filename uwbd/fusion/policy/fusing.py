@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from typing import cast
 
 import numpy as np
 
@@ -110,17 +111,19 @@ class EpochFusion:
         :meth:`_fuse`."""
         ekf = self.est.ekf
         assert ekf is not None
-        # (the C core's range rows have no lever-arm columns: those epochs take the rows)
-        if ids and self.cfg.mode is Mode.TIGHT and ekf.fuses_ranges \
-                and not self.installation.lever_index:
+        if ids and self.cfg.mode is Mode.TIGHT and ekf.fuses_ranges:
             extra = Rows.stack(constraints) if constraints else self._no_rows(ekf.n)
             keys = range_keys(ids) + extra.keys
             outcome = ekf.fuse_ranges(
                 self.est.lever, anchors, ranges, self.cfg.range_sigma_m**2 * r_scale,
-                tuple(self.installation.range_columns.get(a, ()) for a in ids), extra[:3],
-                self._row_policy(keys, True), self._considered())
-            if outcome is not None:
-                return self._outcomes(t_ns, keys, outcome)
+                tuple(self.installation.range_columns.get(a, ()) for a in ids),
+                self.installation.lever_index, extra[:3], self._row_policy(keys, True),
+                self._considered())
+            assert outcome is not None  # (fuses_ranges: the C core's, which always fuses)
+            if None in outcome:  # ranges with no line to linearise: left out, unreported
+                keys = [k for k, o in zip(keys, outcome, strict=True) if o is not None]
+            return self._outcomes(t_ns, keys, [o for o in outcome if o is not None]
+                                  if None in outcome else cast(list[RawRow], outcome))
         return self._fuse(t_ns, Rows.stack([self._measurement_rows(ids, anchors, ranges,
                                                                    r_scale, fix),
                                             *constraints]))
