@@ -22,7 +22,7 @@ IDENTITY = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 
 def _front(limits: ImuLimits) -> Any:
-    front = new_imu_check(limits, body_maps(IDENTITY, ImuIntrinsics()))
+    front = new_imu_check(limits, body_maps(IDENTITY, ImuIntrinsics()), native.core)
     assert not isinstance(front, ImuCheck)
     return front
 

@@ -69,7 +69,8 @@ def twin(n_aux: int, seed: int, broken: str | None = None) -> tuple[CoreEskf, Es
                   b_r=rng.normal(size=n_aux) * 0.1,
                   aux_tau_s=np.where(np.arange(n_aux) % 2 == 0, np.inf, 3.0),
                   aux_sigma=np.full(n_aux, 0.1))
-    return CoreEskf(*args, **kwargs), Eskf(*args, **kwargs)  # type: ignore[arg-type]
+    return (CoreEskf(*args, **kwargs, core=native.core),  # type: ignore[arg-type]
+            Eskf(*args, **kwargs))  # type: ignore[arg-type]
 
 
 def nominal(f: Eskf) -> Array:
@@ -129,7 +130,8 @@ def test_the_imu_front_step_is_judge_map_predict_propagate(seed: int, n_aux: int
         return tuple(r[0] * v[0] + r[1] * v[1] + r[2] * v[2] for r in C)
 
     acc_map, gyro_map = to_body(C, intr, rotate)
-    front, check = new_imu_check(ImuLimits(), body_maps(C, intr)), ImuCheck(ImuLimits())
+    front = new_imu_check(ImuLimits(), body_maps(C, intr), native.core)
+    check = ImuCheck(ImuLimits())
     fast, slow = twin(n_aux, seed)
     stream = imu_stream(seed, 80)
     stream[30] = ((math.nan, 0.0, 9.8), stream[30][1])
@@ -165,7 +167,8 @@ def test_the_imu_fronts_step_over_a_read_is_step_on_each_sample(seed: int, count
     rng = np.random.default_rng(seed)
     C = tuple(tuple(r) for r in Z_DOWN)
     maps = body_maps(C, ImuIntrinsics(gyro_offset_rps=(0.01, 0.0, -0.02)))
-    fronts = new_imu_check(ImuLimits(), maps), new_imu_check(ImuLimits(), maps)
+    fronts = (new_imu_check(ImuLimits(), maps, native.core),
+              new_imu_check(ImuLimits(), maps, native.core))
     (fast, _), (slow, _) = twin(2, seed), twin(2, seed)
     stream = imu_stream(seed, count)
     times = [1_000_000_000 + 5_000_000 * (k + 1) for k in range(count)]
@@ -331,9 +334,8 @@ def test_odd_weights_and_considered_slices_match_the_reference(considered: slice
 def test_non_finite_ranges_give_no_fix_in_either() -> None:
     anchors = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [10, 10, 3], [5, 5, 4]])
     ranges = np.array([7.0, 7.0, 7.0, math.nan, 7.0])
-    fast = multilaterate(anchors, ranges, 0.1)
-    with native.pure_python():
-        slow = multilaterate(anchors, ranges, 0.1)
+    fast = multilaterate(anchors, ranges, 0.1, core=native.core)
+    slow = multilaterate(anchors, ranges, 0.1, core=None)
     assert fast is None and slow is None
 
 
@@ -365,9 +367,9 @@ def test_multilateration_matches_the_reference(seed: int, k: int, height_held: b
         ranges[0] += 2.0  # NLOS: the outlier test drops it, given enough anchors
     args = dict(x0=None if seed % 2 else tag + 0.5, fixed_z=float(tag[2]) if height_held
                 else None)
-    fast = multilaterate(anchors, ranges, 0.1, **args)  # type: ignore[arg-type]
-    with native.pure_python():
-        slow = multilaterate(anchors, ranges, 0.1, **args)  # type: ignore[arg-type]
+    fast = multilaterate(anchors, ranges, 0.1, **args,  # type: ignore[arg-type]
+                         core=native.core)
+    slow = multilaterate(anchors, ranges, 0.1, **args, core=None)  # type: ignore[arg-type]
     assert (fast is None) == (slow is None)
     if fast is not None and slow is not None:
         assert fast.iterations == slow.iterations
@@ -600,7 +602,7 @@ def test_the_rest_tests_moments_match_numpys(seed: int, count: int, span_s: floa
     """The rest test on a window of rows: the C core's moments and numpy's, the same bits,
     so the same verdict; at rest and moving, jittered times, Unix-epoch ns."""
     rng = np.random.default_rng(seed)
-    window = ImuWindow(4.0, RestLimits())
+    window = ImuWindow(4.0, RestLimits(), core=native.core)
     t = 1_700_000_000_000_000_000 + int(rng.integers(0, 10**12))
     still = rng.random() < 0.5
     level = rng.normal(0, 0.01 if still else 3.0, 6) + np.array([0, 0, 9.81, 0, 0, 0])
@@ -620,8 +622,10 @@ def test_the_rest_tests_moments_match_numpys(seed: int, count: int, span_s: floa
         assert fast == (tuple(mean.tolist()),
                         tuple(np.sqrt((dev * dev).sum(axis=0) / len(recent)).tolist()))
     verdict = window.static(span_s)
-    with native.pure_python():
-        assert ImuWindow._judge(window, span_s) == verdict
+    reference = ImuWindow(4.0, RestLimits(), core=None)
+    for row in window.samples:
+        reference.add(int(row[0]), row[1:4], row[4:7])  # type: ignore[arg-type]
+    assert reference.static(span_s) == verdict
 
 
 @needs_core
@@ -689,20 +693,24 @@ def test_the_c_cores_state_is_read_only_and_seen_without_copies() -> None:
 def test_a_state_of_the_wrong_shape_is_refused_with_what_is_wrong() -> None:
     noise = ImuNoise()
     with pytest.raises(ValueError, match="P0 must be 16x16"):
-        CoreEskf((0, 0, 0), (0, 0, 0), (1, 0, 0, 0), np.eye(15), noise, 1)
+        CoreEskf((0, 0, 0), (0, 0, 0), (1, 0, 0, 0), np.eye(15), noise, 1, core=native.core)
     with pytest.raises(ValueError, match="b_r must hold 2 numbers"):
-        CoreEskf((0, 0, 0), (0, 0, 0), (1, 0, 0, 0), np.eye(17), noise, 2, b_r=(0.0,))
+        CoreEskf((0, 0, 0), (0, 0, 0), (1, 0, 0, 0), np.eye(17), noise, 2, b_r=(0.0,),
+                 core=native.core)
     assert native.core is not None
     with pytest.raises(ValueError, match="q: 4 numbers expected"):
         native.core.State((0, 0, 0), (0, 0, 0), (1, 0, 0), (0, 0, 0), (0, 0, 0), (),
                           np.eye(15), [0.0] * 15, (), (), 9.8)
 
 
-def test_new_eskf_runs_the_c_core_unless_it_is_switched_off() -> None:
+def test_new_eskf_runs_the_core_it_is_handed_and_a_filter_chooses_once() -> None:
     args = ((0, 0, 0), (0, 0, 0), (1.0, 0.0, 0.0, 0.0), np.eye(N_CORE), ImuNoise())
-    assert type(new_eskf(*args)) is (Eskf if native.core is None else CoreEskf)
+    assert type(new_eskf(native.core, *args)) is (Eskf if native.core is None else CoreEskf)
+    assert type(new_eskf(None, *args)) is Eskf
     with native.pure_python():
-        assert type(new_eskf(*args)) is Eskf
+        chosen = Filter(FilterConfig())
+    assert chosen.core is None  # made in the block: the reference, outside it too
+    assert chosen.imu.check.__class__ is ImuCheck and chosen.window._core is None
 
 
 @needs_core

@@ -154,11 +154,11 @@ def test_least_squares_finds_the_tag_and_rejects_one_outlier() -> None:
     anchors = np.array(SimConfig().anchors_m)
     tag = np.array([3.0, -2.0, 1.0])
     d = np.linalg.norm(anchors - tag, axis=1)
-    fix = multilaterate(anchors, d)
+    fix = multilaterate(anchors, d, core=native.core)
     assert fix is not None and np.allclose(fix.position_m, tag, atol=1e-3)
     d_bad = d.copy()
     d_bad[2] += 2.0  # one NLOS range
-    fix = multilaterate(anchors, d_bad, sigma_m=0.05)
+    fix = multilaterate(anchors, d_bad, sigma_m=0.05, core=native.core)
     assert fix is not None and not fix.used[2]
     assert np.allclose(fix.position_m, tag, atol=1e-3)
 
@@ -167,7 +167,8 @@ def test_coplanar_anchors_use_the_known_height() -> None:
     anchors = np.array([[0, 0, 2.0], [10, 0, 2.0], [10, 10, 2.0], [0, 10, 2.0]])
     assert coplanar(anchors)
     tag = np.array([4.0, 6.0, 0.5])
-    fix = multilaterate(anchors, np.linalg.norm(anchors - tag, axis=1), fixed_z=0.5)
+    fix = multilaterate(anchors, np.linalg.norm(anchors - tag, axis=1), fixed_z=0.5,
+                        core=native.core)
     assert fix is not None and np.allclose(fix.position_m, tag, atol=1e-3)
 
 
@@ -179,7 +180,8 @@ def test_filter_beats_least_squares_and_is_consistent(sim: Simulation, mode: Mod
     acc = score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=9)
     anchors = np.array(sim.config.anchors_m)
     fixes = [(e.t_ns, multilaterate(anchors[[r.anchor_id for r in e.ranges]],
-                                    np.array([r.range_m for r in e.ranges]))) for e in sim.uwb]
+                                    np.array([r.range_m for r in e.ranges]), core=native.core))
+             for e in sim.uwb]
     ls = score(np.array([t for t, f in fixes if f]), np.array([f.position_m for _, f in fixes
                                                               if f]),
                sim.truth_t_ns, sim.truth_p_m, skip_s=9)

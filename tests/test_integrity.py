@@ -28,6 +28,7 @@ from uwbd.fusion.checks.anchor_consistency import (
     ConsistencyLimits,
 )
 from uwbd.fusion.checks.gating import chi2_quantile
+from uwbd.fusion.core import native
 from uwbd.fusion.core.layout import N_CORE
 from uwbd.fusion.core.lsq import multilaterate
 from uwbd.fusion.core.rotation import Array
@@ -202,14 +203,14 @@ def test_a_wrong_side_hint_is_obeyed_and_the_data_overrule_a_wrong_default() -> 
     assert np.median(z) > 3.0  # configured: the hint wins, however wrong
     # anchors at 1.2-1.45 m (default: tag below, as under a ceiling) with the tag above
     anchors = np.array([[0, 0, 1.45], [8, 0, 1.2], [8, 6, 1.4], [0, 6, 1.25]], dtype=float)
-    side = MirrorSide(anchors)
+    side = MirrorSide(anchors, core=native.core)
     assert side.ambiguous and side.sign == -1 and side.unresolved
     rng = np.random.default_rng(1)
     flipped = False
     for _ in range(200):
         tag = np.array([rng.uniform(1, 7), rng.uniform(1, 5), 2.6])
         ranges = np.linalg.norm(anchors - tag, axis=1) + rng.normal(0, 0.05, 4)
-        fix = multilaterate(anchors, ranges, 0.05, None, None, side=side.sign)
+        fix = multilaterate(anchors, ranges, 0.05, None, None, side=side.sign, core=native.core)
         assert fix is not None
         side.weigh(anchors, ranges, fix, 0.05, None)
         flipped |= side.take_flip()
@@ -217,10 +218,11 @@ def test_a_wrong_side_hint_is_obeyed_and_the_data_overrule_a_wrong_default() -> 
 
 
 def test_floor_anchors_put_the_tag_above_them() -> None:
-    side = MirrorSide(np.array([[0, 0, 0.1], [8, 0, 0.0], [8, 6, 0.2], [0, 6, 0.0]], dtype=float))
+    side = MirrorSide(np.array([[0, 0, 0.1], [8, 0, 0.0], [8, 6, 0.2], [0, 6, 0.0]], dtype=float),
+                      core=native.core)
     assert side.ambiguous and side.sign == 1
     assert MirrorSide(np.array([[0, 0, 0], [8, 0, 2.5], [8, 6, 0], [0, 6, 2.5]],
-                               dtype=float)).resolved  # not coplanar: no mirror
+                               dtype=float), core=native.core).resolved  # not coplanar: no mirror
 
 
 # -- asynchronous single ranges --------------------------------------------------------------
@@ -360,13 +362,14 @@ def test_anchors_on_one_wall_have_a_mirror_that_the_data_resolve() -> None:
     """All anchors on the wall x ≈ 0 (within a few cm), the tag in the room at x < 0: the
     default side (+x) is wrong, the ranges flip it."""
     anchors = np.array([[0.0, 0, 0.5], [0.1, 6, 0.5], [-0.05, 6, 2.5], [0.08, 0, 2.5]])
-    side = MirrorSide(anchors)
+    side = MirrorSide(anchors, core=native.core)
     assert side.ambiguous and side.sign == 1 and abs(side.normal[0]) > 0.9
     rng = np.random.default_rng(3)
     for _ in range(300):
         tag = np.array([rng.uniform(-5, -2), rng.uniform(1, 5), rng.uniform(0.5, 2.0)])
         ranges = np.linalg.norm(anchors - tag, axis=1) + rng.normal(0, 0.03, 4)
-        fix = multilaterate(anchors, ranges, 0.03, side.start_point(), None, side=side.sign)
+        fix = multilaterate(anchors, ranges, 0.03, side.start_point(), None, side=side.sign,
+                            core=native.core)
         if fix is not None:
             side.weigh(anchors, ranges, fix, 0.03, None)
         side.take_flip()

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 
+from uwbd.fusion.core import native
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.policy.alignment import HeadingAligner
 from uwbd.fusion.policy.fixes import RangeWindow
@@ -179,7 +180,8 @@ def test_a_start_at_rest_solves_its_epochs_together_and_leaves_out_the_one_ancho
     def epochs(extra: np.ndarray) -> list[tuple[list[int], np.ndarray]]:
         return [(list(anchors), true + extra + rng.normal(0, 0.1, 6)) for _ in range(40)]
 
-    window = RangeWindow(1.0, 0.2, 0.1, MirrorSide(np.array(list(anchors.values()))), None)
+    window = RangeWindow(1.0, 0.2, 0.1, MirrorSide(np.array(list(anchors.values())),
+                                                   core=native.core), None, core=native.core)
     solved = window.rest_fix(epochs(np.zeros(6)), anchors, 0.03)
     assert solved is not None and solved[1] is None
     assert np.linalg.norm(solved[0].position_m - tag) < 0.05

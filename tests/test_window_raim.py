@@ -14,6 +14,7 @@ from truth import position_errors
 from drivers.frames import ImuSample
 from uwbd.config import parse
 from uwbd.fusion.checks.window_raim import RaimLimits, WindowRaim
+from uwbd.fusion.core import native
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.policy.health import HealthMonitor
 from uwbd.fusion.settings import HealthLimits
@@ -37,7 +38,7 @@ def test_ranges_that_agree_pass_and_one_biased_anchor_is_the_candidate() -> None
     it within the window, with anchor 2 the only candidate and an inflation well above 1;
     once they agree again the window passes again; a restart forgets."""
     rng = np.random.default_rng(4)
-    quiet, check = WindowRaim(RaimLimits()), WindowRaim(RaimLimits())
+    quiet, check = WindowRaim(RaimLimits(), native.core), WindowRaim(RaimLimits(), native.core)
     ids = [0, 1, 2, 3, 4, 5]
     var = np.full(6, 0.1**2)
     failed_at = None
@@ -62,7 +63,7 @@ def test_single_ranges_make_snapshots_of_each_anchors_latest() -> None:
     """One range a message, 8 anchors in turn at 160 Hz: the window gathers them and
     finds anchor 5's offset as it does an epoch's."""
     rng = np.random.default_rng(5)
-    check = WindowRaim(RaimLimits())
+    check = WindowRaim(RaimLimits(), native.core)
     for k in range(160 * 20):
         t_ns = EPOCH_NS + k * NS // 160
         a = k % 8

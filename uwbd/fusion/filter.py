@@ -57,6 +57,8 @@ import numpy as np
 
 from drivers.frames import AnchorRanges, ImuSample, UwbRanges
 from uwbd.fusion.checks.gating import GatingCounters, gate
+from uwbd.fusion.checks.window_raim import RaimLimits, WindowRaim
+from uwbd.fusion.core import native
 from uwbd.fusion.core.eskf import Eskf
 from uwbd.fusion.core.layout import BA_, BG_, N_CORE, TH_
 from uwbd.fusion.core.lsq import LsqFix
@@ -90,22 +92,26 @@ class Filter:
         """``record``: keep every epoch's prior and posterior for :mod:`.core.smoother` (offline;
         about 13 kB an epoch with 8 anchors)."""
         self.cfg = config
+        # the implementation of the numbers, chosen once: the C core, or the pure-Python
+        # reference (UWBD_PURE_PYTHON=1); every part below is handed it
+        core = self.core = native.core
         self.records: list[EpochRecord] | None = [] if record else None
         self.gating = GatingCounters()
         monitor = HealthMonitor(config.health)
         monitor.range_model_held = config.range_model.enabled  # until the heading is known
         self.ranges = RangeWindow(config.range_window_s, config.fix_interval_s,
-                                  config.range_sigma_m, MirrorSide(np.zeros((0, 3))), None)
-        self.installation = Installation(config, self.ranges)
+                                  config.range_sigma_m, MirrorSide(np.zeros((0, 3)), core=core),
+                                  None, core=core)
+        self.installation = Installation(config, self.ranges, core)
         self.est = Estimate(monitor, new_aligner(config), self.installation.plain_lever,
                             record)
-        self.findings = Findings()
+        self.findings = Findings(WindowRaim(RaimLimits(), core))
         self.window = ImuWindow(max(config.static_window_s, config.init_static_s), config.rest,
-                                config.gravity_mps2)
+                                config.gravity_mps2, core=core)
         self.stillness = UwbStillness()
         self.recovery = Recovery(config, self.est, self.installation, self.findings,
-                                 self.window, self.ranges, self.stillness)
-        self.imu = ImuPropagation(config, self.est, self.window, self.recovery)
+                                 self.window, self.ranges, self.stillness, core)
+        self.imu = ImuPropagation(config, self.est, self.window, self.recovery, core)
         self.fusion = EpochFusion(config, self.est, self.installation, self.findings,
                                   self.imu.fresh)
         self._lever = tuple(float(c) for c in config.lever_arm_m)

@@ -26,6 +26,7 @@ from filterpy.kalman import KalmanFilter
 from scipy.signal import butter, sosfilt_zi
 
 from drivers.frames import ImuSample, UwbRanges
+from uwbd.fusion.core import native
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.core.noise import GRAVITY_MPS2
 from uwbd.fusion.core.rotation import (
@@ -120,9 +121,10 @@ class UwbLeastSquares:
         self.anchors = dict(config.anchors_m)
         self.sigma_m = config.range_sigma_m
         known = np.array(list(self.anchors.values()), dtype=float).reshape(-1, 3)
+        core = native.core  # the least squares' implementation, for this baseline
         self.window = RangeWindow(0.1, 0.1, self.sigma_m,
-                                  MirrorSide(known, config.tag_side, config.height_range_m),
-                                  None)
+                                  MirrorSide(known, config.tag_side, config.height_range_m,
+                                             core=core), None, core=core)
         self.fix: LsqFix | None = None  # the fix of the latest message, if it made one
         self._last: Array | None = None
 
@@ -167,7 +169,7 @@ class StaticPoints:
         self.lsq = UwbLeastSquares(config)
         self.C_bs = np.array(config.mounting_rotation, dtype=float)
         self.span_s = config.static_window_s
-        self.window = ImuWindow(config.static_window_s, config.rest)
+        self.window = ImuWindow(config.static_window_s, config.rest, core=native.core)
         self.stillness = UwbStillness() if uwb_check else None
         self.point: Array | None = None  # the latest output: the mean at rest, else the fix
         self.at_rest = False
@@ -324,7 +326,7 @@ class Kf4:
         self.kf: KalmanFilter | None = None
         self.rejected = 0
         self.span_s = config.static_window_s
-        self.rest = ImuWindow(config.static_window_s, config.rest)
+        self.rest = ImuWindow(config.static_window_s, config.rest, core=native.core)
         self.start_samples = 0  # IMU samples averaged over the still start
         self._start_rest = True
         self._gyro_sum = np.zeros(3)

@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 
 from uwbd.fusion.checks.intrinsics import BodyMaps
-from uwbd.fusion.core import native
 from uwbd.fusion.core.layout import IMU_LIMITS, IMU_MAPS
+from uwbd.fusion.core.native import Core
 
 # why a sample is rejected: the health's words, handed to the C front as they are
 NOT_FINITE, SATURATED, JUMP = "imu_not_finite", "imu_saturated", "imu_jump"
@@ -95,12 +95,12 @@ class ImuCheck:
         return ""
 
 
-def new_imu_check(limits: ImuLimits, maps: BodyMaps) -> Any:
-    """An :class:`ImuCheck`, or on the C core its twin, the IMU front (``core/_imu.c``: the
-    same screen with the same methods, which also maps a good sample with ``maps`` and
-    integrates it in the same call, ``step``: :mod:`~uwbd.fusion.policy.propagation`)."""
+def new_imu_check(limits: ImuLimits, maps: BodyMaps, core: Core) -> Any:
+    """An :class:`ImuCheck` (``core`` None), or on the C core its twin, the IMU front
+    (``core/_imu.c``: the same screen with the same methods, which also maps a good sample
+    with ``maps`` and integrates it in the same call, ``step``:
+    :mod:`~uwbd.fusion.policy.propagation`)."""
     check = ImuCheck(limits)
-    core = native.core
     if core is None:
         return check
     screen = {"acc_clip": check.acc_clip, "gyro_clip": check.gyro_clip,

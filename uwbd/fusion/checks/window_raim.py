@@ -34,7 +34,7 @@ from statistics import NormalDist
 
 import numpy as np
 
-from uwbd.fusion.core import native
+from uwbd.fusion.core.native import Core
 from uwbd.fusion.core.rotation import Array
 
 Vec3 = tuple[float, float, float]
@@ -64,8 +64,9 @@ class RaimLimits:
 class WindowRaim:
     """The window of snapshots and its test (see module doc)."""
 
-    def __init__(self, limits: RaimLimits) -> None:
+    def __init__(self, limits: RaimLimits, core: Core) -> None:
         self.limits = limits
+        self._core = core  # the snapshot's least squares: C, or the reference (None)
         self._latest: dict[int, tuple[int, float, float, float, float, float]] = {}  # t, y,
         # 1/var, u
         self._snapshot_ns = -(2**63)
@@ -137,7 +138,7 @@ class WindowRaim:
                   rows: list[tuple[int, float, float, float, float, float]]) -> None:
         if len(rows) < MIN_ANCHORS:
             return
-        core = native.core
+        core = self._core
         solved = (core.raim_snapshot(rows) if core is not None else solve_snapshot(rows))
         if solved is None:
             return

@@ -14,8 +14,9 @@ solves ``(JᵀJ) δ = −Jᵀ r``; the covariance of the fix is ``σ² (JᵀJ)�
   uncalibrated antenna delays bias good ranges by 0.1-0.25 m, which 3 σ (at σ = 0.1 m)
   would throw away, weakening the geometry (measured: worse on the real flight).
 
-The iteration and the leverages run in the C core when it is built (:mod:`.native`); the
-code here is the reference it translates.
+The iteration and the leverages run in the C core, the ``core`` each caller hands over (the
+one chosen when its filter or tool was made, :mod:`.native`); the code here is the reference
+it translates, which runs with ``core`` None.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from uwbd.fusion.core import native
+from uwbd.fusion.core.native import Core
 from uwbd.fusion.core.rotation import Array
 
 MAX_ITERATIONS = 20
@@ -56,17 +57,17 @@ def coplanar(anchors_m: Array, tolerance_m: float = 0.3) -> bool:
 
 def multilaterate(anchors_m: Array, ranges_m: Array, sigma_m: float = 0.1,
                   x0: Array | None = None, fixed_z: float | None = None,
-                  outlier_sigma: float = 5.0, side: int = 1) -> LsqFix | None:
+                  outlier_sigma: float = 5.0, side: int = 1, *, core: Core) -> LsqFix | None:
     """Solve for the tag position; ``None`` when there are too few ranges or no convergence.
     ``side`` (+1 above, −1 below) is where to start when the anchors are coplanar and no
     ``x0`` is given (:mod:`uwbd.fusion.policy.mirror` decides it)."""
     dims = 2 if fixed_z is not None else 3
     used = np.ones(len(ranges_m), dtype=bool)
-    fix = _solve(anchors_m, ranges_m, used, sigma_m, x0, fixed_z, side)
+    fix = _solve(anchors_m, ranges_m, used, sigma_m, x0, fixed_z, side, core)
     if fix is None or used.sum() <= dims + 1:
         return fix
     # studentised residuals: r_i / (σ √(1 − h_ii)), h_ii the leverage of range i
-    lev = _leverages(anchors_m[used], fix.position_m, dims)
+    lev = _leverages(anchors_m[used], fix.position_m, dims, core)
     if lev is None:  # JᵀJ singular at the fix: no leverages, no outlier test
         return fix
     student = np.abs(fix.residuals_m[used]) / (sigma_m * np.sqrt(np.clip(1 - lev, 1e-6, None)))
@@ -74,12 +75,12 @@ def multilaterate(anchors_m: Array, ranges_m: Array, sigma_m: float = 0.1,
     if student[worst] <= outlier_sigma:
         return fix
     used[np.flatnonzero(used)[worst]] = False
-    return _solve(anchors_m, ranges_m, used, sigma_m, fix.position_m, fixed_z, side) or fix
+    return _solve(anchors_m, ranges_m, used, sigma_m, fix.position_m, fixed_z, side,
+                  core) or fix
 
 
-def _leverages(anchors: Array, x: Array, dims: int) -> Array | None:
+def _leverages(anchors: Array, x: Array, dims: int, core: Core) -> Array | None:
     """``h_ii = J_i (JᵀJ)⁻¹ J_iᵀ`` of each range at ``x``; None where ``JᵀJ`` is singular."""
-    core = native.core
     if core is not None:
         lev = core.leverages(np.ascontiguousarray(anchors, dtype=float),
                              np.ascontiguousarray(x, dtype=float), dims)
@@ -110,7 +111,7 @@ def _initial_guess(anchors: Array, ranges: Array, fixed_z: float | None, side: i
 
 
 def _solve(anchors_all: Array, ranges_all: Array, used: Array, sigma_m: float,
-           x0: Array | None, fixed_z: float | None, side: int) -> LsqFix | None:
+           x0: Array | None, fixed_z: float | None, side: int, core: Core) -> LsqFix | None:
     dims = 2 if fixed_z is not None else 3
     anchors, ranges = anchors_all[used], ranges_all[used]
     if len(ranges) < dims:
@@ -119,7 +120,6 @@ def _solve(anchors_all: Array, ranges_all: Array, used: Array, sigma_m: float,
                  dtype=float)
     if fixed_z is not None:
         x[2] = fixed_z
-    core = native.core
     if core is not None:
         inverse = np.zeros((3, 3))
         iteration = core.gauss_newton(np.ascontiguousarray(anchors, dtype=float),

@@ -13,6 +13,8 @@ import os
 from collections.abc import Iterator
 from types import ModuleType
 
+Core = ModuleType | None  # the C core's module, or None: the pure-Python reference
+
 PURE_PYTHON_ENV = "UWBD_PURE_PYTHON"
 
 

@@ -14,20 +14,21 @@ from typing import Any
 
 import numpy as np
 
-from uwbd.fusion.core import native
 from uwbd.fusion.core.eskf import Eskf, PoseNumbers, Vector
 from uwbd.fusion.core.layout import N_CORE, NOMINAL, NOMINAL_AUX
+from uwbd.fusion.core.native import Core
 from uwbd.fusion.core.noise import GRAVITY_MPS2, ImuNoise, process_noise
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.core.weights import RawRow, Row, RowPolicy
 
 
-def new_eskf(p: Vector, v: Vector, q: Vector, P0: Array, noise: ImuNoise,
+def new_eskf(core: Core, p: Vector, v: Vector, q: Vector, P0: Array, noise: ImuNoise,
              n_range_bias: int = 0, **kwargs: Any) -> Eskf:
-    """A filter state on the C core where it is built and on (:mod:`.native`), else the
-    pure-Python reference; the arguments are :class:`Eskf`'s."""
-    cls = Eskf if native.core is None else CoreEskf
-    return cls(p, v, q, P0, noise, n_range_bias, **kwargs)
+    """A filter state on ``core`` (the C core), or with None the pure-Python reference;
+    the other arguments are :class:`Eskf`'s."""
+    if core is None:
+        return Eskf(p, v, q, P0, noise, n_range_bias, **kwargs)
+    return CoreEskf(p, v, q, P0, noise, n_range_bias, core=core, **kwargs)
 
 
 class CoreEskf(Eskf):
@@ -40,11 +41,10 @@ class CoreEskf(Eskf):
                  n_range_bias: int = 0, b_g: Vector = (0.0, 0.0, 0.0),
                  b_a: Vector = (0.0, 0.0, 0.0), aux_tau_s: Array | None = None,
                  aux_sigma: Array | None = None, gravity_mps2: float = GRAVITY_MPS2,
-                 b_r: Vector | None = None) -> None:
-        core = native.core
+                 b_r: Vector | None = None, *, core: Core) -> None:
         if core is None:
-            raise RuntimeError("CoreEskf: the C core is not built or is switched off "
-                               "(uwbd --version says which)")
+            raise RuntimeError("CoreEskf: no C core given (uwbd --version says whether it "
+                               "is built)")
         n = N_CORE + n_range_bias
         P0 = np.ascontiguousarray(P0, dtype=float)
         if P0.shape != (n, n):

@@ -36,6 +36,7 @@ import numpy as np
 
 from uwbd.fusion.checks.window_raim import ratio_quantile
 from uwbd.fusion.core.lsq import LsqFix, common_offset, multilaterate
+from uwbd.fusion.core.native import Core
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.policy.mirror import MirrorSide
 
@@ -47,8 +48,9 @@ REST_MIN_RANGES = 5  # an anchor's ranges the rest's average needs
 
 class RangeWindow:
     def __init__(self, window_s: float, min_interval_s: float, sigma_m: float,
-                 side: MirrorSide, fixed_z: float | None) -> None:
+                 side: MirrorSide, fixed_z: float | None, *, core: Core) -> None:
         self.window_ns = int(window_s * NS)
+        self._core = core  # the fixes' least squares: C, or the reference (None)
         self.min_interval_ns = int(min_interval_s * NS)
         self.sigma_m = sigma_m
         self.side = side
@@ -125,7 +127,8 @@ class RangeWindow:
             x0 = self.side.start_point() if self.side.ambiguous and self.fixed_z is None \
                 else None
             fix = multilaterate(anchors[keep], ranges[keep], float(np.max(sigma)), x0,
-                                self.fixed_z, outlier_sigma=math.inf, side=self.side.sign)
+                                self.fixed_z, outlier_sigma=math.inf, side=self.side.sign,
+                                core=self._core)
             if fix is None:
                 return None
             dof = int(keep.sum()) - dims
@@ -162,7 +165,7 @@ class RangeWindow:
         if x0 is None and self.side.ambiguous and self.fixed_z is None:
             x0 = self.side.start_point()
         fix = multilaterate(anchors, ranges, self.sigma_m, x0, self.fixed_z,
-                            side=self.side.sign)
+                            side=self.side.sign, core=self._core)
         if fix is not None and weigh:
             self.side.weigh(anchors, ranges, fix, self.sigma_m, self.fixed_z)
         return fix

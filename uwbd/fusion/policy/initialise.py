@@ -27,6 +27,7 @@ import numpy as np
 from uwbd.fusion.core.eskf import Eskf
 from uwbd.fusion.core.layout import N_CORE
 from uwbd.fusion.core.lsq import LsqFix
+from uwbd.fusion.core.native import Core
 from uwbd.fusion.core.rotation import Array, quat_from_euler, quat_to_matrix
 from uwbd.fusion.core.state import new_eskf
 from uwbd.fusion.policy.alignment import velocity_fit
@@ -57,7 +58,7 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
                 recent: list[tuple[int, Array]], fixes: list[tuple[int, Array]],
                 waited_long: bool, carry: Start | None, n_bias: int,
                 lever_m: Array, n_multipath: int = 0, n_lever: int = 0,
-                rest_m: Array | None = None) -> tuple[Eskf, str] | None:
+                rest_m: Array | None = None, *, core: Core) -> tuple[Eskf, str] | None:
     """The new filter state and how it started (``rest``, ``moving``, ``carried``), or
     ``None`` while the evidence is not enough yet. ``recent``: fixes of the last
     ``init_static_s``; ``fixes``: all kept ones (time-ordered); ``rest_m``: their epochs
@@ -126,6 +127,6 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
     sigma = np.concatenate([np.zeros(n_bias), np.full(n_multipath, cfg.multipath_sigma_m),
                             np.zeros(n_lever)])
     b_r = carry.b_r_m if carry is not None and len(carry.b_r_m) == n_aux else None
-    ekf = new_eskf(p, v, q, P0, cfg.imu_noise, n_aux, b_g=bg, b_a=ba, aux_tau_s=tau,
+    ekf = new_eskf(core, p, v, q, P0, cfg.imu_noise, n_aux, b_g=bg, b_a=ba, aux_tau_s=tau,
                    aux_sigma=sigma, gravity_mps2=cfg.gravity_mps2, b_r=b_r)
     return ekf, how

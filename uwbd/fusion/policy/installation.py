@@ -12,6 +12,7 @@ from drivers.frames import UwbRanges
 from uwbd.fusion.checks.gating import GatingCounters
 from uwbd.fusion.core.layout import N_CORE
 from uwbd.fusion.core.lsq import coplanar
+from uwbd.fusion.core.native import Core
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.policy.fixes import RangeWindow
 from uwbd.fusion.policy.mirror import WALL_NORMAL_Z, MirrorSide
@@ -28,8 +29,9 @@ class Installation:
     """The anchors (configured, and those the device reports) and the state layout they
     give; laid out again before a start when the device has reported a new one."""
 
-    def __init__(self, cfg: FilterConfig, ranges: RangeWindow) -> None:
+    def __init__(self, cfg: FilterConfig, ranges: RangeWindow, core: Core) -> None:
         self.cfg = cfg
+        self._core = core  # the mirror side's least squares: C, or the reference (None)
         self.ranges = ranges  # told the mirror side and the held height
         self.anchors: dict[int, Vec3] = dict(cfg.anchors_m)
         # the configured anchors whose every coordinate is finite and in range (resolve)
@@ -41,7 +43,7 @@ class Installation:
         # centre's (EpochFusion.apply_range_model)
         self.plain_lever = np.array(cfg.lever_arm_m, dtype=float)
         self.model_lever = self.plain_lever + cfg.range_model.phase_centre_m()
-        self.mirror = MirrorSide(np.zeros((0, 3)))
+        self.mirror = ranges.side
         self.fixed_z: float | None = None
         self.bias_index: dict[int, int] = {}
         self.mp_index: dict[int, int] = {}
@@ -55,7 +57,8 @@ class Installation:
         held over coplanar ones, and one antenna-delay and one multipath state each."""
         cfg = self.cfg
         anchors = np.array(list(self.anchors.values()), dtype=float).reshape(-1, 3)
-        old, self.mirror = self.mirror, MirrorSide(anchors, cfg.tag_side, cfg.height_range_m)
+        old, self.mirror = self.mirror, MirrorSide(anchors, cfg.tag_side, cfg.height_range_m,
+                                                   core=self._core)
         if old.decided_by.startswith("ranges") and self.mirror.ambiguous:
             # what the ranges told about the side still holds with one anchor more
             self.mirror.sign, self.mirror.resolved = old.sign, old.resolved

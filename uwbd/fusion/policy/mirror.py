@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from uwbd.fusion.core.lsq import LsqFix, coplanar, multilaterate
+from uwbd.fusion.core.native import Core
 from uwbd.fusion.core.rotation import Array
 
 CEILING_MIN_M = 1.0  # anchors this high or higher: the tag is below them by default
@@ -38,7 +39,8 @@ WALL_NORMAL_Z = 0.5  # a plane whose normal is flatter than this is a wall: no f
 class MirrorSide:
     def __init__(self, anchors_m: Array, hint: str = "auto",
                  height_range_m: tuple[float, float] | None = None,
-                 threshold: float = 10.0) -> None:
+                 threshold: float = 10.0, *, core: Core) -> None:
+        self._core = core  # the mirror image's least squares: C, or the reference (None)
         if hint not in ("auto", "below", "above"):
             raise ValueError(f"tag side must be auto, below or above, got {hint!r}")
         self.ambiguous = len(anchors_m) >= 3 and coplanar(anchors_m)
@@ -90,7 +92,7 @@ class MirrorSide:
         if self.resolved or fixed_z is not None or len(ranges) < 4:
             return
         other = multilaterate(anchors, ranges, sigma_m, self.reflect(fix.position_m), None,
-                              side=-self.sign)
+                              side=-self.sign, core=self._core)
         if other is None or self.side_of(other.position_m) * self.sign > 0:
             return  # it fell back to this side: this fix does not tell the two apart
         chi2_here = float(np.nansum(fix.residuals_m**2)) / sigma_m**2

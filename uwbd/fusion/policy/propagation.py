@@ -14,6 +14,7 @@ import numpy as np
 from drivers.frames import ImuSample
 from uwbd.fusion.checks.imu_check import ImuCheck, new_imu_check
 from uwbd.fusion.checks.intrinsics import body_maps, to_body
+from uwbd.fusion.core.native import Core
 from uwbd.fusion.policy.estimate import Estimate
 from uwbd.fusion.policy.recovery import (
     COAST_ACCEL_SIGMA_MPS2,
@@ -33,7 +34,7 @@ class ImuPropagation:
     """IMU samples in, the nominal state and its covariance propagated (see module doc)."""
 
     def __init__(self, cfg: FilterConfig, est: Estimate, window: ImuWindow,
-                 recovery: Recovery) -> None:
+                 recovery: Recovery, core: Core) -> None:
         self.cfg, self.est, self.window, self.recovery = cfg, est, window, recovery
         C_bs = np.array(cfg.mounting_rotation, dtype=float)
         if not np.allclose(C_bs @ C_bs.T, np.eye(3), atol=1e-6) or np.linalg.det(C_bs) < 0:
@@ -47,7 +48,7 @@ class ImuPropagation:
         self.gyro_to_body: Callable[[Vec3], Vec3]
         self.acc_to_body, self.gyro_to_body = to_body(rows, cfg.imu_intrinsics, self.to_body)
         self.intrinsics_applied = not cfg.imu_intrinsics.is_identity
-        self.check = new_imu_check(cfg.imu_limits, body_maps(rows, cfg.imu_intrinsics))
+        self.check = new_imu_check(cfg.imu_limits, body_maps(rows, cfg.imu_intrinsics), core)
         # on the C core, a good sample while tracking is judged, mapped and integrated in one
         # call (ImuFront.step)
         self._front_steps = not isinstance(self.check, ImuCheck)

@@ -19,6 +19,7 @@ import numpy as np
 from uwbd.fusion.core.eskf import Eskf
 from uwbd.fusion.core.layout import P_, TH_, V_
 from uwbd.fusion.core.lsq import LsqFix
+from uwbd.fusion.core.native import Core
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.policy.estimate import Estimate, Findings, new_aligner
 from uwbd.fusion.policy.fixes import RangeWindow, consistent
@@ -46,8 +47,9 @@ class Recovery:
 
     def __init__(self, cfg: FilterConfig, est: Estimate, installation: Installation,
                  findings: Findings, window: ImuWindow, ranges: RangeWindow,
-                 stillness: UwbStillness) -> None:
+                 stillness: UwbStillness, core: Core) -> None:
         self.cfg, self.est, self.installation, self.findings = cfg, est, installation, findings
+        self._core = core  # the states it starts: on the C core, or the reference (None)
         self.window, self.ranges, self.stillness = window, ranges, stillness
         self.first_t_ns: int | None = None  # the first frame's time
         self.fixes: collections.deque[tuple[int, Array]] = collections.deque(maxlen=100)
@@ -85,7 +87,8 @@ class Recovery:
                                         self.installation.anchors, self._offset_sigma())
         start = start_state(cfg, self.window, fix, recent, list(self.fixes), waited_long,
                             self._carry, *self._state_sizes(),
-                            rest_m=rest[0].position_m if rest is not None else None)
+                            rest_m=rest[0].position_m if rest is not None else None,
+                            core=self._core)
         if start is None:
             return
         self._begin(start, t_ns)
@@ -150,7 +153,7 @@ class Recovery:
         fix = LsqFix(antenna, np.diag(np.diag(ekf.P)[P_]), np.zeros(0), np.zeros(0, bool),
                      0.0, 0)
         start = start_state(self.cfg, self.window, fix, [], [], True, carry,
-                            *self._state_sizes())
+                            *self._state_sizes(), core=self._core)
         if start is not None:
             self.est.relevel = None
             self.est.monitor.imu_gap = False

@@ -15,8 +15,8 @@ import math
 
 import numpy as np
 
-from uwbd.fusion.core import native
 from uwbd.fusion.core.lsq import LsqFix
+from uwbd.fusion.core.native import Core
 from uwbd.fusion.core.noise import GRAVITY_MPS2
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.settings import RestLimits
@@ -26,9 +26,10 @@ JUDGE_EVERY_NS = 20_000_000
 
 
 class ImuWindow:
-    def __init__(self, length_s: float, limits: RestLimits,
-                 gravity_mps2: float = GRAVITY_MPS2) -> None:
+    def __init__(self, length_s: float, limits: RestLimits, gravity_mps2: float = GRAVITY_MPS2,
+                 *, core: Core) -> None:
         self.length_ns = int(length_s * 1e9)
+        self._core = core  # the window's moments: C, or the reference (None)
         self.limits = limits
         self.gravity_mps2 = gravity_mps2
         self._samples: collections.deque[tuple[float, ...]] = collections.deque()
@@ -117,7 +118,7 @@ class ImuWindow:
         samples = self._samples
         if not samples or (samples[-1][0] - samples[0][0]) < 0.9 * span_s * 1e9:
             return False
-        core = native.core
+        core = self._core
         if core is not None:  # the same numbers, from the rows themselves
             moments = core.window_moments(samples, span_s * 1e9)
             if moments is None:

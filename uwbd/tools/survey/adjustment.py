@@ -16,6 +16,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from drivers.frames import UwbRanges
+from uwbd.fusion.core import native
 from uwbd.fusion.core.lsq import coplanar, multilaterate
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.policy.mirror import MirrorSide
@@ -312,7 +313,8 @@ def tag_data(messages: list[tuple[int, list[tuple[int, float]]]], A: Array,
               settings: Settings) -> TagData | None:
     """Tag positions to solve for, and each range's place between them; the positions
     start from multilateration against the starting anchors."""
-    mirror = MirrorSide(A, settings.tag_side, settings.height_range_m)
+    core = native.core  # the least squares' implementation, for this survey
+    mirror = MirrorSide(A, settings.tag_side, settings.height_range_m, core=core)
     side = mirror.sign if mirror.ambiguous else 1
     flat = coplanar(A) if len(A) >= 4 else True
     sizes = [len(kept) for _, kept in messages]
@@ -342,14 +344,15 @@ def tag_data(messages: list[tuple[int, list[tuple[int, float]]]], A: Array,
         start = previous if previous is not None else (
             mirror.start_point() if mirror.ambiguous else None)
         fix = multilaterate(A[rows], ranges, settings.range_sigma_m, x0=start,
-                            side=side)
+                            side=side, core=core)
         if fix is None or (not flat and fix.rms_m > 10 * settings.range_sigma_m):
-            fix = multilaterate(A[rows], ranges, settings.range_sigma_m, side=side)
+            fix = multilaterate(A[rows], ranges, settings.range_sigma_m, side=side, core=core)
         if fix is None or not np.all(np.isfinite(fix.position_m)):
             continue
         if mirror.ambiguous and mirror.side_of(fix.position_m) * side < 0:
             fix = multilaterate(A[rows], ranges, settings.range_sigma_m,
-                                x0=mirror.reflect(fix.position_m), side=side) or fix
+                                x0=mirror.reflect(fix.position_m), side=side,
+                                core=core) or fix
         previous = fix.position_m.copy()
         knots.append(fix.position_m.copy())
         times.append(t)

@@ -10,6 +10,7 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.frames import AnchorRanges
+from uwbd.fusion.core import native
 from uwbd.fusion.core.lsq import multilaterate
 from uwbd.fusion.core.rotation import Array
 from uwbd.tools.survey.model import (
@@ -90,7 +91,8 @@ def _place(ids: list[int], h: Mapping[tuple[int, int], float]) -> dict[int, Arra
         rows = near
         fix = multilaterate(np.array([[*placed[n], 0.0] for n in rows]),
                             np.array([h[(a, n)] for n in rows]), 0.01,
-                            x0=np.array([*guess, 0.0]), fixed_z=0.0, outlier_sigma=1e9)
+                            x0=np.array([*guess, 0.0]), fixed_z=0.0, outlier_sigma=1e9,
+                            core=native.core)
         placed[a] = fix.position_m[:2] if fix is not None else guess
 
 
