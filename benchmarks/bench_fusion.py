@@ -146,11 +146,13 @@ def run_reads(cfg: FilterConfig, frames: list[Frame]) -> int:
     flt = Filter(cfg)
     due_ns, poses = -(2**63), 0
     read: list[ImuSample] = []
-    per_read = 0
+    per_read, first_ns = 0, None
     for frame in frames:
         if isinstance(frame, ImuSample):
-            if not per_read and read:  # the IMU's rate from its first two samples
-                per_read = max(1, POSE_PERIOD_NS // max(frame.t_ns - read[0].t_ns, 1))
+            if not per_read:  # the IMU's rate from its first two samples (one a read till then)
+                if first_ns is not None:
+                    per_read = max(1, POSE_PERIOD_NS // max(frame.t_ns - first_ns, 1))
+                first_ns = frame.t_ns
             read.append(frame)
             if len(read) < per_read:
                 continue
