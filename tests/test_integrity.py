@@ -34,6 +34,7 @@ from uwbd.fusion.core.lsq import multilaterate
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.policy.mirror import MirrorSide
+from uwbd.fusion.policy.recovery import plausible_height
 from uwbd.fusion.settings import FilterConfig, Mode, RobustPolicy
 from uwbd.fusion.types import Phase, Pose
 from uwbd.service.pipeline import Pipeline, PoseList
@@ -656,6 +657,17 @@ def test_nlos_on_every_anchor_moves_the_state_to_no_fix_it_then_trusts(seed: int
     err = np.linalg.norm(position_errors(poses, sim), axis=1)
     never_tracking_when_far(poses, err)
     assert flt.counters["fix_height_implausible"] > 0
+
+
+def test_a_fix_at_a_ground_robots_height_under_a_high_ceiling_is_plausible() -> None:
+    """Campaign seed 8 (#43): anchors on a 3.8 m ceiling, the robot at 0.4 m; every reset's
+    fix was refused as 'implausible' and the estimate ran 200 m away. The floor bounds it now;
+    metres above the anchors or below the floor stays refused."""
+    ceiling = [3.8, 3.82, 3.77, 3.85]
+    assert plausible_height(0.4, None, ceiling) and plausible_height(0.4, None, [8.0] * 4)
+    assert not plausible_height(-3.5, None, ceiling) and not plausible_height(7.0, None, ceiling)
+    assert plausible_height(1.0, (0.5, 1.5), ceiling) and not plausible_height(0.4, (0.5, 1.5),
+                                                                              ceiling)
 
 
 @pytest.mark.parametrize(("turn_deg", "found"), [(90.0, True), (-30.0, True), (0.0, False)])

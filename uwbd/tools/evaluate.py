@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import heapq
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -28,12 +28,14 @@ def merge(imu: Iterable[ImuSample], uwb: Iterable[UwbRanges]) -> Iterator[Frame]
 
 
 def run_filter(config: FilterConfig, frames: Iterable[Frame], record: bool = False,
-               pose_period_ns: int | None = None
+               pose_period_ns: int | None = None,
+               watch: Callable[[Filter], None] | None = None
                ) -> tuple[list[Pose], list[FusionReport], Filter]:
     """The filter over ``frames``; a pose after every UWB message, or with
     ``pose_period_ns`` as the daemon brings them out (:mod:`uwbd.service.pipeline`): after
     every epoch of several ranges, and from the IMU samples and single ranges once a period
-    has passed (``record``: for smoothing)."""
+    has passed (``record``: for smoothing; ``watch``: called with the filter after every
+    UWB message)."""
     flt = Filter(config, record)
     poses: list[Pose] = []
     reports: list[FusionReport] = []
@@ -45,6 +47,8 @@ def run_filter(config: FilterConfig, frames: Iterable[Frame], record: bool = Fal
                 continue
         else:
             reports += flt.update(frame)
+            if watch is not None:
+                watch(flt)
             if pose_period_ns is not None and isinstance(frame, UwbRanges) and \
                     len(frame.ranges) < 2 and frame.t_ns - last_ns < pose_period_ns:
                 continue  # a single range: the next pose is due later

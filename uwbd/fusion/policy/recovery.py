@@ -38,7 +38,8 @@ FADE_PER_S = 1.0  # variance growth rate while the innovations are inconsistent
 SLOW_FADE_PER_S = 0.25
 MAX_FADE_STEP_NS = NS // 5
 REPEATED_RESET_NS = 10 * NS  # a second divergence this soon after a position reset restarts
-FIX_HEIGHT_MARGIN_M = 3.0  # a reset's fix this far above or below every anchor is refused
+FIX_HEIGHT_MARGIN_M = 3.0  # a reset's fix this far above every anchor, or below every anchor
+# and the floor (z 0), is refused
 MAX_REST_TILT_DEG = 30.0  # gravity this far from body up at a start at rest: said
 
 
@@ -330,16 +331,8 @@ class Recovery:
                           self.ranges.needed)
 
     def _plausible_height(self, fix: LsqFix) -> bool:
-        """The fix's height within ``height_range_m``, or else within the anchors' heights
-        widened by ``FIX_HEIGHT_MARGIN_M``: NLOS on every anchor at once leaves residuals
-        as small as a true fix's, at a place metres above or below any the tag can be."""
-        z = float(fix.position_m[2])
-        if self.cfg.height_range_m is not None:
-            low, high = self.cfg.height_range_m
-            return low <= z <= high
-        heights = [pos[2] for pos in self.installation.anchors.values()]
-        return not heights or (min(heights) - FIX_HEIGHT_MARGIN_M <= z
-                               <= max(heights) + FIX_HEIGHT_MARGIN_M)
+        return plausible_height(float(fix.position_m[2]), self.cfg.height_range_m,
+                                [pos[2] for pos in self.installation.anchors.values()])
 
     def inflate(self, velocity_mps: float, attitude_rad: float, position_m: float = 0.0) -> None:
         ekf = self.est.ekf
@@ -349,3 +342,17 @@ class Recovery:
         d[V_] = velocity_mps**2
         d[TH_] = attitude_rad**2
         ekf.add_variances(d)
+
+
+def plausible_height(z: float, height_range_m: tuple[float, float] | None,
+                     anchor_heights: list[float]) -> bool:
+    """A fix's height ``z`` within ``height_range_m``, or else between the floor or the
+    lowest anchor, whichever is lower, and the highest anchor, widened by
+    ``FIX_HEIGHT_MARGIN_M``: NLOS on every anchor at once leaves residuals as small as a true
+    fix's, at a place metres above or below any the tag can be. (A ground robot under
+    anchors on a high ceiling is far below every anchor, but not below the floor.)"""
+    if height_range_m is not None:
+        low, high = height_range_m
+        return low <= z <= high
+    return not anchor_heights or (min(*anchor_heights, 0.0) - FIX_HEIGHT_MARGIN_M <= z
+                                  <= max(anchor_heights) + FIX_HEIGHT_MARGIN_M)

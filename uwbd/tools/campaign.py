@@ -1,0 +1,236 @@
+"""Random installations, each run fault-free and with one thing wrong: the campaign that says
+whether the installation checks and the protection levels hold on set-ups they were not
+developed on (issue #43).
+
+A case is drawn from its seed alone (:func:`draw_case`):
+
+* a room 6–40 m on a side; 4–10 anchors around its walls (and, with more than six, some
+  inside), their heights in one of three styles: ``flat`` (a ceiling, all within a few cm),
+  ``mixed`` (anywhere from the floor to the ceiling) and ``few_high`` (low anchors with one
+  or two high);
+* a vehicle: a ``ground`` robot (tag 0.3–0.6 m up, no sideways motion, NHC on), a
+  ``handheld`` tag (walked at ~1.2 m, pauses) or a ``drone`` (climbs and descends 0.6–2.6 m),
+  driving a rounded loop of the room with stops;
+* one fault: an anchor surveyed 0.3–2 m off in any direction (``anchor_position``), one
+  anchor's ranges 0.2–1 m long or short (``range_offset``), the lever arm 0.1–0.5 m off
+  (``lever_arm``), or (ground robots) the IMU's mounting typed turned 15–180° about the
+  vertical (``mounting``).
+
+The simulated sensors are always right; the fault is in what the filter is told (or, for a
+range offset, in the ranges). :func:`score` compares the poses with the truth against the
+issue's alert limits (0.5 m horizontal, 1.0 m vertical). Seeds 0–999 are the set to tune on;
+1000 and up the set to report.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.frames import UwbRanges
+from uwbd.config import parse
+from uwbd.fusion.filter import Filter
+from uwbd.fusion.settings import FilterConfig
+from uwbd.fusion.types import Pose
+from uwbd.tools.evaluate import merge, run_filter
+from uwbd.tools.logtools import simulation_toml
+from uwbd.tools.simulator import SimConfig, Simulation, simulate
+
+NS = 1_000_000_000
+FAULTS = ("anchor_position", "range_offset", "lever_arm", "mounting")
+STYLES = ("flat", "mixed", "few_high")
+VEHICLES = ("ground", "handheld", "drone")
+HORIZONTAL_ALERT_M, VERTICAL_ALERT_M = 0.5, 1.0
+REPORT_SEEDS_FROM = 1000  # seeds below: the tuning set; from here: the reported set
+WARM_UP_S = 10.0  # a start may be unhealthy until its tests have one window
+
+
+@dataclass(frozen=True)
+class Case:
+    """One installation, its run, and the fault drawn for it."""
+
+    seed: int
+    room_m: tuple[float, float]
+    style: str
+    vehicle: str
+    sim: SimConfig
+    fault: str
+    anchor: int  # the anchor at fault (position, offset), else -1
+    size: float  # the fault's size: m, or the mounting's turn in degrees
+    direction: tuple[float, float, float]  # of a position or lever-arm fault (unit)
+
+
+def _anchors(rng: np.random.Generator, w: float, depth: float, style: str
+             ) -> tuple[tuple[float, float, float], ...]:
+    n = int(rng.integers(4, 11))
+    ceiling = float(rng.uniform(2.5, 4.0))
+    spots: list[tuple[float, float]] = []
+    while len(spots) < n:
+        i = len(spots)
+        if i >= 6 and rng.random() < 0.5:  # a pillar inside the room
+            x, y = rng.uniform(0.3 * w, 0.7 * w), rng.uniform(0.3 * depth, 0.7 * depth)
+        else:  # on a wall: the walls in turn, anywhere along them
+            wall, s = i % 4, float(rng.uniform(0.05, 0.95))
+            x, y = ((s * w, 0.1), (w - 0.1, s * depth), (s * w, depth - 0.1),
+                    (0.1, s * depth))[wall]
+        if all(math.hypot(x - a, y - b) >= 1.0 for a, b in spots):  # a metre apart at least
+            spots.append((float(x), float(y)))
+    if style == "flat":
+        z = ceiling + rng.uniform(-0.05, 0.05, n)
+    elif style == "mixed":
+        z = rng.uniform(0.3, ceiling, n)
+    else:
+        z = rng.uniform(0.2, 1.2, n)
+        z[rng.choice(n, size=int(rng.integers(1, 3)), replace=False)] = \
+            rng.uniform(2.5, ceiling, 1)[0]
+    return tuple((x, y, float(h)) for (x, y), h in zip(spots, z, strict=True))
+
+
+def _loop(rng: np.random.Generator, w: float, depth: float, vehicle: str
+          ) -> tuple[tuple[float, float, float], tuple[tuple[float, float, float, float], ...]]:
+    """A start and segments ``(duration, speed, yaw rate, climb)``: twice round a rounded
+    loop, anticlockwise, a metre or more from the walls (in a large room a part of it, each
+    side at most 6 s long: about a minute and a half in all), with a still start and
+    stops."""
+    speed = float(rng.uniform(*{"ground": (0.3, 1.0), "handheld": (0.3, 0.6),
+                                "drone": (0.5, 1.5)}[vehicle]))
+    rate = 0.5
+    radius = speed / rate
+    margin = max(1.0, 0.1 * min(w, depth))
+    sx = min(max(w - 2 * margin - 2 * radius, 0.5), 6.0 * speed)
+    sy = min(max(depth - 2 * margin - 2 * radius, 0.5), 6.0 * speed)
+    x0 = float(rng.uniform(margin + radius, max(w - margin - radius - sx, margin + radius)))
+    y0 = float(rng.uniform(margin, max(depth - margin - 2 * radius - sy, margin)))
+    z0 = {"ground": float(rng.uniform(0.3, 0.6)), "handheld": float(rng.uniform(1.0, 1.4)),
+          "drone": 0.6}[vehicle]
+    segs: list[tuple[float, float, float, float]] = [(5.0, 0.0, 0.0, 0.0)]  # at rest
+    turn = (math.pi / 2 / rate, speed, rate, 0.0)
+    climb = 0.0
+    for lap in range(2):
+        for k, side in enumerate((sx, sy, sx, sy)):
+            if vehicle == "drone":  # up on the first lap, down on the second
+                climb = (0.25 if lap == 0 else -0.25) * (1.0 if k % 2 == 0 else 0.6)
+            segs.append((side / speed, speed, 0.0, climb))
+            segs.append(turn)
+            if rng.random() < 0.3:
+                segs.append((float(rng.uniform(1.0, 4.0)), 0.0, 0.0, 0.0))  # a stop
+    segs.append((3.0, 0.0, 0.0, 0.0))
+    return (x0, y0, z0), tuple(segs)
+
+
+def draw_case(seed: int) -> Case:
+    """The installation, run and fault of ``seed`` (see module doc)."""
+    rng = np.random.default_rng(seed)
+    w, depth = (float(v) for v in rng.uniform(6.0, 40.0, 2))
+    style = STYLES[int(rng.integers(len(STYLES)))]
+    vehicle = VEHICLES[int(rng.integers(len(VEHICLES)))]
+    anchors = _anchors(rng, w, depth, style)
+    start, segments = _loop(rng, w, depth, vehicle)
+    lever = (0.0, 0.0, float(rng.uniform(0.1, 0.4)))
+    sim = SimConfig(segments=segments, start_m=start, anchors_m=anchors, lever_arm_m=lever,
+                    ground_vehicle=vehicle == "ground", seed=seed)
+    kinds = FAULTS if vehicle == "ground" else FAULTS[:3]
+    fault = kinds[int(rng.integers(len(kinds)))]
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    size = float({"anchor_position": rng.uniform(0.3, 2.0),
+                  "range_offset": rng.choice((-1.0, 1.0)) * rng.uniform(0.2, 1.0),
+                  "lever_arm": rng.uniform(0.1, 0.5),
+                  "mounting": rng.choice((-1.0, 1.0)) * rng.uniform(15.0, 180.0)}[fault])
+    anchor = int(rng.integers(len(anchors))) if fault in FAULTS[:2] else -1
+    dx, dy, dz = (float(c) for c in direction)
+    return Case(seed, (w, depth), style, vehicle, sim, fault, anchor, size, (dx, dy, dz))
+
+
+def told(case: Case, sim: Simulation, faulty: bool) -> FilterConfig:
+    """What the filter is told: the datasheet config ``uwbd simulate`` writes (NHC for a
+    ground robot), with the case's fault in it when ``faulty``."""
+    # (a Nooploop tag has 8 slots: more anchors through a DWM1001's ids)
+    driver = "nlink" if len(case.sim.anchors_m) <= 8 else "dwm1001"
+    cfg = dataclasses.replace(parse(simulation_toml(sim, driver)).filter_config(),
+                              nhc=case.vehicle == "ground")
+    if not faulty:
+        return cfg
+    d = np.array(case.direction)
+    if case.fault == "anchor_position":
+        anchors = dict(cfg.anchors_m)
+        x, y, z = (np.array(anchors[case.anchor]) + case.size * d).tolist()
+        anchors[case.anchor] = (x, y, z)
+        return dataclasses.replace(cfg, anchors_m=anchors)
+    if case.fault == "lever_arm":
+        x, y, z = (np.array(cfg.lever_arm_m) + case.size * d).tolist()
+        return dataclasses.replace(cfg, lever_arm_m=(x, y, z))
+    if case.fault == "mounting":
+        a = math.radians(case.size)
+        turn = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0],
+                         [0.0, 0.0, 1.0]])
+        r = (turn @ np.array(cfg.mounting_rotation)).tolist()
+        return dataclasses.replace(cfg, mounting_rotation=(
+            (r[0][0], r[0][1], r[0][2]), (r[1][0], r[1][1], r[1][2]), (r[2][0], r[2][1], r[2][2])))
+    return cfg  # a range offset is in the ranges, not in the config
+
+
+def ranges_of(case: Case, sim: Simulation, faulty: bool) -> list[UwbRanges]:
+    """The tag's messages, with the case's range offset in them when ``faulty``."""
+    if not (faulty and case.fault == "range_offset"):
+        return list(sim.uwb)
+    return [dataclasses.replace(e, ranges=tuple(
+        dataclasses.replace(r, range_m=r.range_m + case.size) if r.anchor_id == case.anchor
+        else r for r in e.ranges)) for e in sim.uwb]
+
+
+@dataclass(frozen=True)
+class Score:
+    """One run against its truth, the poses after the warm-up."""
+
+    poses: int
+    beyond_pl: int  # horizontal error over the HPL, or vertical over the VPL
+    healthy_beyond_alert: int  # healthy while over an alert limit (0.5 m h, 1.0 m v)
+    healthy: int
+    detected: bool  # the run said a fault or a finding at some point
+    named: bool  # the faulted anchor named (anchor faults), the lever arm or mounting said
+    rmse_3d_m: float
+
+
+def score(case: Case, sim: Simulation, poses: list[Pose], findings: list[int],
+          mounting_said: bool) -> Score:
+    """``findings``: the anchors the filter named at any time; ``mounting_said``: whether
+    it said the mounting (a finding or the fault)."""
+    t0 = sim.truth_t_ns[0] + WARM_UP_S * NS
+    poses = [q for q in poses if q.t_ns >= t0]
+    if not poses:
+        return Score(0, 0, 0, 0, False, False, math.nan)
+    t = np.array([q.t_ns for q in poses])
+    p = np.array([q.position_m for q in poses])
+    truth = np.column_stack([np.interp(t, sim.truth_t_ns, sim.truth_p_m[:, i])
+                             for i in range(3)])
+    eh = np.linalg.norm(p[:, :2] - truth[:, :2], axis=1)
+    ev = np.abs(p[:, 2] - truth[:, 2])
+    hpl = np.array([q.health.horizontal_protection_m or math.inf for q in poses])
+    vpl = np.array([q.health.vertical_protection_m or math.inf for q in poses])
+    healthy = np.array([q.health.healthy for q in poses])
+    beyond_alert = (eh > HORIZONTAL_ALERT_M) | (ev > VERTICAL_ALERT_M)
+    detected = any(q.health.faults for q in poses) or bool(findings) or mounting_said
+    named = (case.anchor in findings) if case.anchor >= 0 else mounting_said \
+        if case.fault == "mounting" else False
+    return Score(len(poses), int(((eh > hpl) | (ev > vpl)).sum()),
+                 int((healthy & beyond_alert).sum()), int(healthy.sum()), detected, named,
+                 float(np.sqrt(np.mean(eh**2 + ev**2))))
+
+
+def run_case(case: Case, faulty: bool) -> Score:
+    """One run of the case, fault-free or with its fault, scored."""
+    sim = simulate(case.sim)
+    cfg = told(case, sim, faulty)
+    named: set[int] = set()
+
+    def watch(flt: Filter) -> None:  # the anchors named at any time, not only at the end
+        named.update(flt.findings.consistency.findings)
+
+    poses, _, _ = run_filter(cfg, merge(sim.imu, ranges_of(case, sim, faulty)),
+                             pose_period_ns=NS // 10, watch=watch)
+    mounting = any("mounting" in f for q in poses for f in (*q.health.faults, *q.health.notes))
+    return score(case, sim, poses, sorted(named), mounting)
