@@ -31,6 +31,12 @@ about z. Printed: 3D RMSE, how many poses carried each installation fault, how o
 protection levels bounded the error (and their median), how many poses said healthy while
 more than 0.5 m off, how often an anchor was excluded, and the anchors named at the end.
 The real runs' rows say the same of theirs (both are taken as installed right).
+
+Random installations (``--only campaign``, :mod:`uwbd.tools.campaign`): ``--cases`` (60)
+seeded layouts, vehicles and faults, each run fault-free and with its fault; per fault kind
+the poses beyond the protection levels, those healthy while beyond the alert limits, the
+fault-free availability, how often the fault was detected and named, and the RMSE against
+the fault-free run. Seeds 0.. are the set to tune on; ``--report`` runs the set from 1000.
 """
 
 from __future__ import annotations
@@ -51,6 +57,13 @@ from uwbd.config.overrides import to_toml, write_toml
 from uwbd.fusion.settings import IDENTITY3, Z_DOWN, FilterConfig
 from uwbd.fusion.types import Pose
 from uwbd.tools.baselines import UwbLeastSquares
+from uwbd.tools.campaign import (
+    HORIZONTAL_ALERT_M,
+    REPORT_SEEDS_FROM,
+    VERTICAL_ALERT_M,
+    WARM_UP_S,
+    campaign,
+)
 from uwbd.tools.evaluate import merge, run_filter, run_method, score, truth_spikes
 from uwbd.tools.importer import INROL_LEVER_ARM_M, INROL_MOUNTING, Dataset, load_iasl, load_inrol
 from uwbd.tools.logtools import simulation_toml
@@ -278,18 +291,46 @@ def wrong_installation(seeds: int) -> None:
                   f"{sorted(flt.findings.consistency.findings) or 'none'})")
 
 
+def random_installations(cases: int, report: bool) -> None:
+    """The campaign of :mod:`uwbd.tools.campaign`, one line per fault kind."""
+    first = REPORT_SEEDS_FROM if report else 0
+    t0 = time.perf_counter()
+    rows = campaign(range(first, first + cases))
+    print(f"random installations: seeds {first}..{first + cases - 1} ("
+          f"{'report' if report else 'tuning'} set), each fault-free and with its fault; "
+          f"poses after the first {WARM_UP_S:.0f} s; alert limits {HORIZONTAL_ALERT_M} m h, "
+          f"{VERTICAL_ALERT_M} m v; {time.perf_counter() - t0:.0f} s")
+    print(f"  {'fault':<16} {'cases':>5} {'>PL faulty':>10} {'>PL free':>9} "
+          f"{'healthy>AL faulty':>17} {'free':>5} {'avail free':>10} {'detected':>8} "
+          f"{'named':>6} {'RMSE x med':>10} {'max':>6}")
+    for r in rows:
+        print(f"  {r.kind:<16} {r.cases:>5} {r.beyond_pl:>10.1%} {r.free_beyond_pl:>9.1%} "
+              f"{r.healthy_beyond_alert:>17} {r.free_healthy_beyond_alert:>5} "
+              f"{r.availability:>10.1%} {r.detected:>8.0%} {r.named:>6.0%} "
+              f"{r.rmse_ratio_median:>10.2f} {r.rmse_ratio_max:>6.1f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--data", type=Path, default=DATA)
-    ap.add_argument("--only", help="one case: a preset, a dataset, 'faults' or 'installation'")
+    ap.add_argument("--only", help="one case: a preset, a dataset, 'faults', 'installation' "
+                    "or 'campaign'")
+    ap.add_argument("--cases", type=int, default=60, help="random installations (campaign)")
+    ap.add_argument("--report", action="store_true",
+                    help="the campaign's report seeds (from 1000), not its tuning seeds")
     args = ap.parse_args()
+    if args.only == "campaign":
+        random_installations(args.cases, args.report)
+        return
     accuracy_sims(args.seeds, args.only)
     accuracy_real(args.data, args.only)
     if args.only in (None, "faults"):
         faults()
     if args.only in (None, "installation"):
         wrong_installation(args.seeds)
+    if args.only is None:
+        random_installations(args.cases, args.report)
 
 
 if __name__ == "__main__":

@@ -234,3 +234,44 @@ def run_case(case: Case, faulty: bool) -> Score:
                              pose_period_ns=NS // 10, watch=watch)
     mounting = any("mounting" in f for q in poses for f in (*q.health.faults, *q.health.notes))
     return score(case, sim, poses, sorted(named), mounting)
+
+
+@dataclass(frozen=True)
+class KindRow:
+    """A fault kind over its cases: what the campaign prints."""
+
+    kind: str
+    cases: int
+    beyond_pl: float  # of the faulty runs' poses
+    free_beyond_pl: float  # of the fault-free runs' poses
+    healthy_beyond_alert: int  # poses, faulty runs
+    free_healthy_beyond_alert: int  # poses, fault-free runs
+    availability: float  # fault-free poses healthy
+    detected: float  # of the faulty runs
+    named: float  # of the faulty runs (anchor faults: the anchor; mounting: said)
+    rmse_ratio_median: float  # faulty over fault-free, 3D
+    rmse_ratio_max: float
+
+
+def campaign(seeds: range) -> list[KindRow]:
+    """Every case of ``seeds`` fault-free and faulty, summed per fault kind."""
+    runs: dict[str, list[tuple[Score, Score]]] = {kind: [] for kind in FAULTS}
+    for seed in seeds:
+        case = draw_case(seed)
+        runs[case.fault].append((run_case(case, False), run_case(case, True)))
+    rows = []
+    for kind, pairs in runs.items():
+        if not pairs:
+            continue
+        free = [a for a, _ in pairs]
+        bad = [b for _, b in pairs]
+        ratios = [b.rmse_3d_m / a.rmse_3d_m for a, b in pairs if a.rmse_3d_m > 0]
+        rows.append(KindRow(
+            kind, len(pairs), sum(b.beyond_pl for b in bad) / max(sum(b.poses for b in bad), 1),
+            sum(a.beyond_pl for a in free) / max(sum(a.poses for a in free), 1),
+            sum(b.healthy_beyond_alert for b in bad), sum(a.healthy_beyond_alert for a in free),
+            sum(a.healthy for a in free) / max(sum(a.poses for a in free), 1),
+            sum(b.detected for b in bad) / len(bad), sum(b.named for b in bad) / len(bad),
+            float(np.median(ratios)) if ratios else math.nan,
+            max(ratios) if ratios else math.nan))
+    return rows
