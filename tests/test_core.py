@@ -116,9 +116,9 @@ def test_predict_and_propagate_match_the_reference(seed: int, n_aux: int) -> Non
 @given(st.integers(0, 2**31), st.integers(0, 4), st.sampled_from(["none", "scale", "band"]))
 def test_the_imu_front_step_is_judge_map_predict_propagate(seed: int, n_aux: int,
                                                           intrinsics: str) -> None:
-    """ImuFront.step on the C State: ImuCheck's verdict, to_body's maps (a mounting, scale
-    and offsets, a gyro dead-band), Eskf.predict, and Eskf.propagate once the interval
-    reaches 0.1 s; a rejected sample integrates nothing."""
+    """ImuFront.step_many on the C State, a sample at a time: ImuCheck's verdict, to_body's
+    maps (a mounting, scale and offsets, a gyro dead-band), Eskf.predict, and
+    Eskf.propagate once the interval reaches 0.1 s; a rejected sample integrates nothing."""
     rng = np.random.default_rng(seed)
     C = tuple(tuple(r) for r in Z_DOWN)
     intr = {"none": ImuIntrinsics(),
@@ -137,16 +137,17 @@ def test_the_imu_front_step_is_judge_map_predict_propagate(seed: int, n_aux: int
     stream[30] = ((math.nan, 0.0, 9.8), stream[30][1])
     stream[50] = ((0.0, 0.0, 9.8 + 150.0), stream[50][1])
     for k, (acc, gyro) in enumerate(stream):
-        t_ns = (k + 1) * 5_000_000
-        dt = float(rng.uniform(0.004, 0.006))
-        judged = front.step(fast.core_state, t_ns, acc, gyro, dt, 0.1)
+        t_ns = (k + 1) * 10_000_000
+        dt_ns = int(rng.integers(4_000_000, 6_000_000))  # since the state's time
+        rows, judged = front.step_many(fast.core_state, [(t_ns, acc, gyro)], t_ns - dt_ns,
+                                       t_ns - dt_ns, 0.25, 0.1)
         reason = check.judge(t_ns, acc, gyro)
         if reason:
-            assert judged == reason
+            assert judged == reason and rows == []
         else:
             body = (acc_map(acc), gyro_map(gyro))
-            assert judged == body
-            slow.predict(*body, dt)
+            assert judged is None and rows == [(t_ns, *body[0], *body[1])]
+            slow.predict(*body, dt_ns / 1e9)
             if slow.interval_s >= 0.1:
                 slow.propagate()
         # the same sums in another order may round 1 ulp apart (seed 151: 1.7e-18 in a bias)
@@ -162,7 +163,7 @@ def test_the_imu_front_step_is_judge_map_predict_propagate(seed: int, n_aux: int
 def test_the_imu_fronts_step_over_a_read_is_step_on_each_sample(seed: int, count: int,
                                                                  odd: str) -> None:
     """ImuFront.step_many over a read's samples: the same rows, screen and state, bit for
-    bit, as step() sample by sample, up to the first sample that is not the common one
+    bit, as over each sample alone, up to the first sample that is not the common one
     (rejected: judged, its reason said; a gap or out of order: not judged, no reason)."""
     rng = np.random.default_rng(seed)
     C = tuple(tuple(r) for r in Z_DOWN)
@@ -186,11 +187,12 @@ def test_the_imu_fronts_step_over_a_read_is_step_on_each_sample(seed: int, count
     for t_ns, acc, gyro in samples:
         if t_ns <= last or (t_ns - last) / 1e9 > 0.25:
             break
-        judged = fronts[1].step(slow.core_state, t_ns, acc, gyro, (t_ns - last) / 1e9, 0.1)
-        if judged.__class__ is not tuple:
+        one, judged = fronts[1].step_many(slow.core_state, [(t_ns, acc, gyro)], last, last,
+                                          0.25, 0.1)
+        if not one:
             why = judged
             break
-        want.append((t_ns, *judged[0], *judged[1]))
+        want += one
         last = t_ns
     assert rows == want and reason == why
     assert (len(rows) == count) == (odd == "none")

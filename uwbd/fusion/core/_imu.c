@@ -3,19 +3,19 @@
  *
  * The references are Python: the screen is checks/imu_check.ImuCheck (judge, burst_s,
  * last_good: this type has the same methods and replaces it on the C core), the maps are
- * checks/intrinsics.to_body's (BodyMaps' numbers, the same arithmetic in the same order),
- * and step() is the branch of ImuPropagation._predict for a good sample while tracking.
+ * checks/intrinsics.to_body's (BodyMaps' numbers, the same arithmetic in the same order).
+ * Which sample is the common one (after the last and the state, no gap) is decided here
+ * alone: ImuPropagation.predict_many hands every sample while tracking to step_many.
  *
  *   ImuFront(limits, maps, reasons)
  *     limits:  the screen's, in layout.IMU_LIMITS' order (LIMIT_* in _layout.h)
  *     maps:    BodyMaps' numbers in layout.IMU_MAPS' order (MAPS_*; matrices row-major)
  *     reasons: the policy's words for not finite, saturated, jump, and a good sample
  *   .judge(t_ns, acc, gyro) -> "" or the reason     .burst_s(t_ns)     .last_good
- *   .step(state, t_ns, acc, gyro, dt, propagate_every_s) -> (acc_b, gyro_b) or the reason:
- *     judged; when good, mapped, State.predict over dt and State.propagate when the interval
- *     reaches propagate_every_s; a rejected sample changes nothing but the screen.
  *   .step_many(state, samples, last_ns, state_ns, max_gap_s, propagate_every_s)
- *     -> (rows, reason): step over a read's samples while each is the common one.
+ *     -> (rows, reason): over a read's samples while each is the common one: judged; when
+ *     good, mapped, State.predict since the state's time and State.propagate when the
+ *     interval reaches propagate_every_s; a rejected sample changes nothing but the screen.
  *
  * The jump test's distance is sqrt of the sum of squares where ImuCheck has math.dist (more
  * careful rounding): the two can differ at one rounding exactly at the limit, never else. */
@@ -130,37 +130,8 @@ static PyObject *front_judge(ImuFront *s, PyObject *const *args, Py_ssize_t narg
     return Py_NewRef(s->reasons[r < 0 ? 3 : r]);
 }
 
-static PyObject *front_step(ImuFront *s, PyObject *const *args, Py_ssize_t nargs)
-{
-    long long t_ns;
-    double a[3], g[3];
-    if (nargs != 6 || !PyObject_TypeCheck(args[0], &UwbdStateType)) {
-        PyErr_SetString(PyExc_TypeError,
-                        "step(state, t_ns, acc, gyro, dt, propagate_every_s): a State first");
-        return NULL;
-    }
-    if (sample_args(args + 1, &t_ns, a, g) < 0)
-        return NULL;
-    double dt = PyFloat_AsDouble(args[4]), every = PyFloat_AsDouble(args[5]);
-    if ((dt == -1.0 || every == -1.0) && PyErr_Occurred())
-        return NULL;
-    int r = judge(s, t_ns, a, g);
-    if (r >= 0)
-        return Py_NewRef(s->reasons[r]);
-    double ab[3], gb[3];
-    to_body(s, a, g, ab, gb);
-    uwbd_state_predict(args[0], ab, gb, dt);
-    if (uwbd_state_interval(args[0]) >= every)
-        uwbd_state_propagate(args[0]);
-    PyObject *acc_b = uwbd_floats(ab, 3, 0), *gyro_b = acc_b ? uwbd_floats(gb, 3, 0) : NULL;
-    PyObject *out = gyro_b ? PyTuple_Pack(2, acc_b, gyro_b) : NULL;
-    Py_XDECREF(acc_b);
-    Py_XDECREF(gyro_b);
-    return out;
-}
-
 /* step_many(state, samples, last_ns, state_ns, max_gap_s, propagate_every_s)
- *     -> (rows, reason): step() over a read's samples, (t_ns, acc, gyro) tuples in time
+ *     -> (rows, reason): over a read's samples, (t_ns, acc, gyro) tuples in time
  * order, while each is the common sample: later than the last (last_ns, then the one
  * before it) by at most max_gap_s and later than the state (state_ns). rows: the samples
  * integrated, (t_ns, acc_b..., gyro_b...) each, as the rest window keeps them; it stops at
@@ -291,10 +262,9 @@ int uwbd_imu_front_ready(void)
 static PyMethodDef front_methods[] = {
     METHOD(judge, "judge(t_ns, acc, gyro) -> '' when the sample may be used, else the reason."),
     METHOD(burst_s, "burst_s(t_ns): how long samples have been rejected without a break."),
-    METHOD(step, "step(state, t_ns, acc, gyro, dt, propagate_every_s) -> (acc_b, gyro_b) "
-                 "when judged good and integrated, else the reason."),
     METHOD(step_many, "step_many(state, samples, last_ns, state_ns, max_gap_s, "
-                      "propagate_every_s) -> (rows, reason): step over a read's samples."),
+                      "propagate_every_s) -> (rows, reason): the common samples of a read "
+                      "judged, mapped and integrated."),
     {NULL, NULL, 0, NULL},
 };
 

@@ -50,7 +50,7 @@ class ImuPropagation:
         self.intrinsics_applied = not cfg.imu_intrinsics.is_identity
         self.check = new_imu_check(cfg.imu_limits, body_maps(rows, cfg.imu_intrinsics), core)
         # on the C core, a good sample while tracking is judged, mapped and integrated in one
-        # call (ImuFront.step)
+        # call (ImuFront.step_many)
         self._front_steps = not isinstance(self.check, ImuCheck)
         self.imu_t_ns: int | None = None  # the last sample's, of any kind
         self.good_imu_ns: int | None = None  # the last sample that passed the checks
@@ -59,69 +59,49 @@ class ImuPropagation:
 
     def predict(self, imu: ImuSample) -> None:
         """Integrate one IMU sample (sensor axes); bad samples are counted, never used."""
-        try:
-            self._predict(imu)
-        except NUMERICAL_ERRORS as err:
-            self.recovery.internal_error(imu.t_ns, err)
-
-    def _predict(self, imu: ImuSample) -> None:
-        t_ns = imu.t_ns
-        prev = self.imu_t_ns
-        if prev is not None and t_ns <= prev:  # judged no further: it changes nothing
-            a, g = imu.acc_mps2, imu.gyro_rps
-            finite = math.isfinite(a[0] + a[1] + a[2] + g[0] + g[1] + g[2])
-            self.est.counters["imu_out_of_order" if finite else "imu_not_finite"] += 1
-            return
-        ekf = self.est.ekf
-        if (self._front_steps and ekf is not None and ekf.core_state is not None
-                and self.est.relevel is None and prev is not None and self.est.t_ns is not None
-                and (t_ns - prev) / NS <= self.cfg.max_imu_gap_s and t_ns > self.est.t_ns):
-            # the common sample (good, no gap, tracking): all of the steps below in one call
-            # of the C IMU front, or only the judging when it is rejected
-            judged = self.check.step(ekf.core_state, t_ns, imu.acc_mps2, imu.gyro_rps,
-                                         (t_ns - self.est.t_ns) / NS, PROPAGATE_EVERY_S)
-            if judged.__class__ is tuple:
-                self.imu_t_ns = self.good_imu_ns = self.est.t_ns = t_ns
-                self.window.add(t_ns, *judged)
-                self.last_imu = judged
-                return
-            reason = judged
-        else:
-            reason = self.check.judge(t_ns, imu.acc_mps2, imu.gyro_rps)
-        self._judged(imu, reason)
+        self.predict_many((imu,))
 
     def predict_many(self, samples: Sequence[ImuSample]) -> None:
-        """A read's samples, in time order: what :meth:`predict` does to each, the common
-        ones (good, no gap, tracking) stepped by the C IMU front in one call
-        (``ImuFront.step_many``), the others one by one."""
+        """A read's samples, in time order, each integrated or counted. While tracking, the
+        C IMU front steps over the common ones (judged good, no gap, after the state) in one
+        call (``ImuFront.step_many``: the rule is the front's); the policy takes each other
+        sample, one at a time (:meth:`_one`)."""
         k, n = 0, len(samples)
         while k < n:
             ekf, prev, t_state = self.est.ekf, self.imu_t_ns, self.est.t_ns
-            if not (self._front_steps and n - k > 1 and ekf is not None
-                    and ekf.core_state is not None and self.est.relevel is None
-                    and prev is not None and t_state is not None):
-                self.predict(samples[k])
-                k += 1
-                continue
-            rows, reason = self.check.step_many(
-                ekf.core_state, [(s.t_ns, s.acc_mps2, s.gyro_rps) for s in samples[k:]],
-                prev, t_state, self.cfg.max_imu_gap_s, PROPAGATE_EVERY_S)
-            if rows:
-                last = rows[-1]
-                self.imu_t_ns = self.good_imu_ns = self.est.t_ns = last[0]
-                self.window.add_rows(rows)
-                self.last_imu = (last[1:4], last[4:7])
-                k += len(rows)
-            if k == n:
-                return
-            if reason is None:  # not the common sample: the whole policy takes it
-                self.predict(samples[k])
-            else:  # judged and rejected: the policy takes it from there
-                try:
-                    self._judged(samples[k], reason)
-                except NUMERICAL_ERRORS as err:
-                    self.recovery.internal_error(samples[k].t_ns, err)
+            if (self._front_steps and ekf is not None and ekf.core_state is not None
+                    and self.est.relevel is None and prev is not None and t_state is not None):
+                rows, reason = self.check.step_many(
+                    ekf.core_state, [(s.t_ns, s.acc_mps2, s.gyro_rps) for s in samples[k:]],
+                    prev, t_state, self.cfg.max_imu_gap_s, PROPAGATE_EVERY_S)
+                if rows:
+                    last = rows[-1]
+                    self.imu_t_ns = self.good_imu_ns = self.est.t_ns = last[0]
+                    self.window.add_rows(rows)
+                    self.last_imu = (last[1:4], last[4:7])
+                    k += len(rows)
+                if k == n:
+                    return
+            else:
+                reason = None
+            self._one(samples[k], reason)  # judged and rejected, or not the common sample
             k += 1
+
+    def _one(self, imu: ImuSample, reason: str | None) -> None:
+        """One sample the policy takes: ``reason``, why the front rejected it, or None where
+        it is not the common one (then judged here)."""
+        try:
+            t_ns, prev = imu.t_ns, self.imu_t_ns
+            if reason is None and prev is not None and t_ns <= prev:
+                a, g = imu.acc_mps2, imu.gyro_rps  # judged no further: it changes nothing
+                finite = math.isfinite(a[0] + a[1] + a[2] + g[0] + g[1] + g[2])
+                self.est.counters["imu_out_of_order" if finite else "imu_not_finite"] += 1
+                return
+            if reason is None:
+                reason = self.check.judge(t_ns, imu.acc_mps2, imu.gyro_rps)
+            self._judged(imu, reason)
+        except NUMERICAL_ERRORS as err:
+            self.recovery.internal_error(imu.t_ns, err)
 
     def _judged(self, imu: ImuSample, reason: str) -> None:
         """A sample after the IMU check (``reason``: why it is rejected, or ""): counted,
