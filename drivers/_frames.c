@@ -21,16 +21,50 @@
 
 #include "_wit.h"
 
-#define FRAME_LEN 128
 #define N_SLOTS 8
-/* TagFrame0's offsets (drivers/nlink.py TAG_FRAME0, docs/wire-formats.md) */
-#define OFF_ID 2
-#define OFF_POS 4
-#define OFF_VEL 13
-#define OFF_DIS 22
-#define OFF_SYSTEM_TIME 112
-#define OFF_EOP 117
 enum { UWB_FIELDS = 8, RANGE_FIELDS = 6 };
+
+/* TagFrame0's layout, as drivers/nlink.py hands it from TAG_FRAME0 (the one table): the
+ * frame's size, its header and mark bytes, the offsets of id, pos_m, vel_mps, dis_m,
+ * system_time_ms and eop_m, and the divisors of pos_m, vel_mps, dis_m and eop_m. */
+enum { TAG0_INTS = 9, TAG0_DIVS = 4 };
+typedef struct {
+    Py_ssize_t size, header, mark, id, pos, vel, dis, system_time, eop;
+    double pos_div, vel_div, dis_div, eop_div;
+} Tag0Layout;
+
+static int tag0_layout(PyObject *numbers, Tag0Layout *l)
+{
+    static PyObject *seen; /* the tuple last read (the same object every call) */
+    static Tag0Layout cached;
+    if (numbers == seen) {
+        *l = cached;
+        return 0;
+    }
+    if (!PyTuple_Check(numbers) || PyTuple_GET_SIZE(numbers) != TAG0_INTS + TAG0_DIVS) {
+        PyErr_SetString(PyExc_TypeError, "tag_frame0: the layout is 9 integers, 4 divisors");
+        return -1;
+    }
+    Py_ssize_t at[TAG0_INTS];
+    double div[TAG0_DIVS];
+    for (int i = 0; i < TAG0_INTS; i++)
+        at[i] = PyLong_AsSsize_t(PyTuple_GET_ITEM(numbers, i));
+    for (int i = 0; i < TAG0_DIVS; i++)
+        div[i] = PyFloat_AsDouble(PyTuple_GET_ITEM(numbers, TAG0_INTS + i));
+    if (PyErr_Occurred())
+        return -1;
+    Tag0Layout got = {at[0], at[1], at[2], at[3], at[4], at[5], at[6], at[7], at[8],
+                      div[0], div[1], div[2], div[3]};
+    if (got.size < 3 || got.id >= got.size || got.dis + 3 * N_SLOTS > got.size ||
+        got.system_time + 4 > got.size ||
+        got.eop + 3 > got.size || got.pos + 9 > got.size || got.vel + 9 > got.size) {
+        PyErr_SetString(PyExc_ValueError, "tag_frame0: a field beyond the frame");
+        return -1;
+    }
+    Py_XSETREF(seen, Py_NewRef(numbers));
+    cached = *l = got;
+    return 0;
+}
 
 static long i24(const unsigned char *b)
 {
@@ -73,10 +107,13 @@ static PyObject *triple(const unsigned char *b, int size, double div)
 static PyObject *tag_frame0(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)self;
-    if (nargs != 3 || !PyTuple_Check(args[2]) || PyTuple_GET_SIZE(args[2]) != 4) {
+    Tag0Layout l;
+    if (nargs != 3 || !PyTuple_Check(args[2]) || PyTuple_GET_SIZE(args[2]) != 5) {
         PyErr_SetString(PyExc_TypeError, "tag_frame0(data, t_ns, parts)");
         return NULL;
     }
+    if (tag0_layout(PyTuple_GET_ITEM(args[2], 4), &l) < 0)
+        return NULL;
     PyObject *uwb_type = PyTuple_GET_ITEM(args[2], 0), *uwb_fields = PyTuple_GET_ITEM(args[2], 1);
     PyObject *range_type = PyTuple_GET_ITEM(args[2], 2);
     PyObject *range_fields = PyTuple_GET_ITEM(args[2], 3);
@@ -92,19 +129,20 @@ static PyObject *tag_frame0(PyObject *self, PyObject *const *args, Py_ssize_t na
         return NULL;
     const unsigned char *b = view.buf;
     unsigned sum = 0;
-    if (view.len == FRAME_LEN && b[0] == 0x55 && b[1] == 0x01)
-        for (int i = 0; i < FRAME_LEN - 1; i++)
+    int whole = view.len == l.size && b[0] == l.header && b[1] == l.mark;
+    if (whole)
+        for (Py_ssize_t i = 0; i < l.size - 1; i++)
             sum += b[i];
-    if (view.len != FRAME_LEN || b[0] != 0x55 || b[1] != 0x01 ||
-        (sum & 0xFF) != b[FRAME_LEN - 1]) {
+    if (!whole || (sum & 0xFF) != b[l.size - 1]) {
         PyBuffer_Release(&view);
         Py_RETURN_NONE; /* not one whole TagFrame0: the parser's own scan says what it is */
     }
     PyObject *ranges = PyList_New(0), *out = NULL;
     for (int k = 0; k < N_SLOTS && ranges != NULL; k++) {
-        double d = (double)i24(b + OFF_DIS + 3 * k) / 1000.0;
+        double d = (double)i24(b + l.dis + 3 * k) / l.dis_div;
         if (d == 0.0)
             continue; /* 0 is "no range" */
+        /* anchor_id, range_m, then the fields the frame does not carry (nlink._FILLS) */
         PyObject *values[RANGE_FIELDS] = {PyLong_FromLong(k), PyFloat_FromDouble(d),
                                           Py_NewRef(Py_None), Py_NewRef(Py_None),
                                           Py_NewRef(Py_None), Py_NewRef(Py_None)};
@@ -114,15 +152,15 @@ static PyObject *tag_frame0(PyObject *self, PyObject *const *args, Py_ssize_t na
         Py_XDECREF(r);
     }
     if (ranges != NULL) {
-        uint32_t ms = (uint32_t)b[OFF_SYSTEM_TIME] | ((uint32_t)b[OFF_SYSTEM_TIME + 1] << 8) |
-                      ((uint32_t)b[OFF_SYSTEM_TIME + 2] << 16) |
-                      ((uint32_t)b[OFF_SYSTEM_TIME + 3] << 24);
-        /* t_ns, ranges, tag_position_m, quality, tag_velocity_mps, tag_position_error_m,
-         * tag_id, device_time_ms */
+        const unsigned char *st = b + l.system_time;
+        uint32_t ms = (uint32_t)st[0] | ((uint32_t)st[1] << 8) | ((uint32_t)st[2] << 16) |
+                      ((uint32_t)st[3] << 24);
+        /* in the order nlink._FILLS names: t_ns, ranges, tag_position_m, quality,
+         * tag_velocity_mps, tag_position_error_m, tag_id, device_time_ms */
         PyObject *values[UWB_FIELDS] = {
-            Py_NewRef(args[1]), PyList_AsTuple(ranges), triple(b + OFF_POS, 3, 1000.0),
-            Py_NewRef(Py_None), triple(b + OFF_VEL, 3, 10000.0), triple(b + OFF_EOP, 1, 100.0),
-            PyLong_FromLong(b[OFF_ID]), PyLong_FromUnsignedLong(ms)};
+            Py_NewRef(args[1]), PyList_AsTuple(ranges), triple(b + l.pos, 3, l.pos_div),
+            Py_NewRef(Py_None), triple(b + l.vel, 3, l.vel_div), triple(b + l.eop, 1, l.eop_div),
+            PyLong_FromLong(b[l.id]), PyLong_FromUnsignedLong(ms)};
         Py_DECREF(ranges);
         out = drivers_make(uwb_type, uwb_fields, values, UWB_FIELDS);
     }

@@ -6,9 +6,10 @@
  * ImuSample frames and the same counters. The scaling of each field is not written here: the
  * divisors come from wit.PAYLOADS (the one table) when the stream is made.
  *
- *   WitStream(sample_type, slots, divisors)
- *     sample_type: drivers.frames.ImuSample; slots: its 8 slot descriptors in field order;
- *     divisors: (acc, gyro, temperature, angle, quaternion)
+ *   WitStream(sample_type, slots, divisors, layout)
+ *     sample_type: drivers.frames.ImuSample; slots: its 8 slot descriptors in the order
+ *     make_sample fills them (wit._FILLS names them); divisors: (acc, gyro, temperature,
+ *     angle, quaternion); layout: the packet's, from wit.py (read_layout)
  *   .feed(data, t_ns) -> list[ImuSample]   .flush() -> list[ImuSample]
  *   .counts -> (frames, bytes_in, bytes_skipped, checksum_errors, unknown_types, dropped)
  *   .errors() -> [stream offset of a checksum mismatch, ...] since the last call (<= 16)
@@ -21,11 +22,9 @@
 
 #include "_wit.h"
 
-#define HEADER 0x55
-#define PACKET_LEN 11
 #define MAX_ERRORS 16
-enum { TIME = 0x50, ACC = 0x51, GYRO = 0x52, ANGLE = 0x53, MAG = 0x54, QUAT = 0x59,
-       READBACK = 0x5F };
+/* what each packet type is, by wit.py's table (init's layout): the kinds this file decodes */
+enum { K_NONE, TIME, ACC, GYRO, ANGLE, MAG, QUAT, READBACK, N_KINDS };
 enum { N_SLOTS = 8 };
 enum { DIV_ACC, DIV_GYRO, DIV_TEMP, DIV_ANGLE, DIV_QUAT, N_DIVS };
 
@@ -49,9 +48,9 @@ typedef struct {
     long long frames, bytes_in, bytes_skipped, checksum_errors, unknown_types, dropped;
     long long errors[MAX_ERRORS];
     int n_errors, error_head;
+    int header, packet_len, temp_word; /* the layout handed at init (wit.py's table) */
+    unsigned char kind[256], known[256]; /* per type byte: its kind; whether it is known */
 } WitStream;
-
-static int known_type(int t) { return (t >= 0x50 && t <= 0x5A) || t == READBACK; }
 
 static int16_t i16(const unsigned char *b) { return (int16_t)(b[0] | (b[1] << 8)); }
 
@@ -142,7 +141,8 @@ static int close_cycle(WitStream *s, PyObject *out)
 static void decode(WitStream *s, int ptype, const unsigned char *d)
 {
     Cycle *c = &s->cycle;
-    switch (ptype) {
+    int tw = s->temp_word; /* the temperature's byte offset in the payload */
+    switch (s->kind[ptype]) {
     case TIME:
         c->has_time = 1;
         c->time_valid = device_time(d, &c->time_ns);
@@ -151,17 +151,17 @@ static void decode(WitStream *s, int ptype, const unsigned char *d)
     case GYRO:
     case ANGLE:
     case QUAT: {
-        double div = s->div[ptype == ACC ? DIV_ACC : ptype == GYRO ? DIV_GYRO
-                            : ptype == ANGLE ? DIV_ANGLE : DIV_QUAT];
-        double *dst = ptype == ACC ? c->acc : ptype == GYRO ? c->gyro
-                      : ptype == ANGLE ? c->angle : c->quat;
-        for (int i = 0; i < (ptype == QUAT ? 4 : 3); i++)
+        int k = s->kind[ptype];
+        double div = s->div[k == ACC ? DIV_ACC : k == GYRO ? DIV_GYRO
+                            : k == ANGLE ? DIV_ANGLE : DIV_QUAT];
+        double *dst = k == ACC ? c->acc : k == GYRO ? c->gyro : k == ANGLE ? c->angle : c->quat;
+        for (int i = 0; i < (k == QUAT ? 4 : 3); i++)
             dst[i] = (double)i16(d + 2 * i) / div;
-        *(ptype == ACC ? &c->has_acc : ptype == GYRO ? &c->has_gyro
-          : ptype == ANGLE ? &c->has_angle : &c->has_quat) = 1;
-        if (ptype == ACC || ptype == GYRO) {
+        *(k == ACC ? &c->has_acc : k == GYRO ? &c->has_gyro
+          : k == ANGLE ? &c->has_angle : &c->has_quat) = 1;
+        if (k == ACC || k == GYRO) {
             c->has_temp = 1;
-            c->temp = (double)i16(d + 6) / s->div[DIV_TEMP];
+            c->temp = (double)i16(d + tw) / s->div[DIV_TEMP];
         }
         return;
     }
@@ -170,7 +170,7 @@ static void decode(WitStream *s, int ptype, const unsigned char *d)
             c->mag[i] = i16(d + 2 * i);
         c->has_mag = 1;
         c->has_temp = 1;
-        c->temp = (double)i16(d + 6) / s->div[DIV_TEMP];
+        c->temp = (double)i16(d + tw) / s->div[DIV_TEMP];
         return;
     default:
         return; /* a known type without a layout: part of the cycle, no fields */
@@ -181,7 +181,7 @@ static void decode(WitStream *s, int ptype, const unsigned char *d)
 static int packet(WitStream *s, int ptype, const unsigned char *payload, long long t_ns,
                   PyObject *out)
 {
-    if (ptype == READBACK)
+    if (s->kind[ptype] == READBACK)
         return 0;
     if (ptype <= s->last_type) {
         if (s->cycle_max >= 0 && close_cycle(s, out) < 0)
@@ -202,11 +202,12 @@ static int packet(WitStream *s, int ptype, const unsigned char *payload, long lo
     return 0;
 }
 
-static Py_ssize_t find_header(const unsigned char *b, Py_ssize_t from, Py_ssize_t len)
+static Py_ssize_t find_header(int header, const unsigned char *b, Py_ssize_t from,
+                              Py_ssize_t len)
 {
     if (from >= len)
         return -1;
-    const unsigned char *p = memchr(b + from, HEADER, (size_t)(len - from));
+    const unsigned char *p = memchr(b + from, header, (size_t)(len - from));
     return p == NULL ? -1 : p - b;
 }
 
@@ -215,32 +216,33 @@ static Py_ssize_t find_header(const unsigned char *b, Py_ssize_t from, Py_ssize_
 static int scan(WitStream *s, const unsigned char *b, Py_ssize_t len, long long t_ns,
                 PyObject *out)
 {
-    Py_ssize_t last = len - PACKET_LEN, end = 0, n_starts = 0;
-    Py_ssize_t p = find_header(b, 0, len);
+    const int h = s->header, n = s->packet_len;
+    Py_ssize_t last = len - n, end = 0, n_starts = 0;
+    Py_ssize_t p = find_header(h, b, 0, len);
     while (p >= 0 && p <= last) {
-        if (!known_type(b[p + 1])) {
+        if (!s->known[b[p + 1]]) {
             s->unknown_types++;
         } else {
             unsigned sum = 0;
-            for (int i = 0; i < PACKET_LEN - 1; i++)
+            for (int i = 0; i < n - 1; i++)
                 sum += b[p + i];
-            if ((sum & 0xFF) == b[p + PACKET_LEN - 1]) {
+            if ((sum & 0xFF) == b[p + n - 1]) {
                 if (packet(s, b[p + 1], b + p + 2, t_ns, out) < 0)
                     return -1;
                 n_starts++;
-                end = p + PACKET_LEN;
-                p = find_header(b, end, len);
+                end = p + n;
+                p = find_header(h, b, end, len);
                 continue;
             }
             s->checksum_errors++;
             note_error(s, s->base + p);
         }
-        p = find_header(b, p + 1, len);
+        p = find_header(h, b, p + 1, len);
     }
-    Py_ssize_t from = end > len - PACKET_LEN + 1 ? end : len - PACKET_LEN + 1;
-    Py_ssize_t tail = find_header(b, from > 0 ? from : 0, len);
+    Py_ssize_t from = end > len - n + 1 ? end : len - n + 1;
+    Py_ssize_t tail = find_header(h, b, from > 0 ? from : 0, len);
     Py_ssize_t keep = tail >= 0 ? tail : len;
-    s->bytes_skipped += keep - n_starts * PACKET_LEN;
+    s->bytes_skipped += keep - n_starts * n;
     s->base += keep;
     Py_ssize_t rest = len - keep;
     if (rest > s->cap) {
@@ -335,12 +337,55 @@ static PyObject *get_pending(WitStream *s, void *closure)
     return PyBytes_FromStringAndSize((const char *)s->buf, s->len);
 }
 
+/* init's layout: (header, packet length, temperature offset, the types of time, acc, gyro,
+ * angle, mag, quaternion and read-back, and every known type as a tuple) */
+static int read_layout(WitStream *s, PyObject *layout)
+{
+    enum { SCALARS = 3, TYPES = N_KINDS - 1 };
+    if (!PyTuple_Check(layout) || PyTuple_GET_SIZE(layout) != SCALARS + TYPES + 1 ||
+        !PyTuple_Check(PyTuple_GET_ITEM(layout, SCALARS + TYPES))) {
+        PyErr_SetString(PyExc_TypeError, "WitStream: layout (header, packet length, "
+                        "temperature offset, 7 packet types, the known types) expected");
+        return -1;
+    }
+    long v[SCALARS + TYPES];
+    for (int i = 0; i < SCALARS + TYPES; i++)
+        v[i] = PyLong_AsLong(PyTuple_GET_ITEM(layout, i));
+    if (PyErr_Occurred())
+        return -1;
+    s->header = (int)v[0];
+    s->packet_len = (int)v[1];
+    s->temp_word = (int)v[2];
+    memset(s->kind, K_NONE, sizeof s->kind);
+    memset(s->known, 0, sizeof s->known);
+    for (int k = 0; k < TYPES; k++)
+        if (v[SCALARS + k] >= 0 && v[SCALARS + k] < 256)
+            s->kind[v[SCALARS + k]] = (unsigned char)(TIME + k);
+    PyObject *known = PyTuple_GET_ITEM(layout, SCALARS + TYPES);
+    for (Py_ssize_t i = 0; i < PyTuple_GET_SIZE(known); i++) {
+        long t = PyLong_AsLong(PyTuple_GET_ITEM(known, i));
+        if (t < 0 || t > 255) {
+            if (!PyErr_Occurred())
+                PyErr_SetString(PyExc_ValueError, "WitStream: a packet type is a byte");
+            return -1;
+        }
+        s->known[t] = 1;
+    }
+    if (s->header < 0 || s->header > 255 || s->packet_len < 4 || s->temp_word < 0 ||
+        s->temp_word + 2 > s->packet_len - 3) {
+        PyErr_SetString(PyExc_ValueError, "WitStream: the layout does not fit a packet");
+        return -1;
+    }
+    return 0;
+}
+
 static int init(WitStream *s, PyObject *args, PyObject *kwds)
 {
-    PyObject *type, *slots, *divs;
-    static char *names[] = {"sample_type", "slots", "divisors", NULL};
-    if (!PyArg_ParseTupleAndKeywords(args, kwds, "O!O!O!", names, &PyType_Type, &type,
-                                     &PyTuple_Type, &slots, &PyTuple_Type, &divs))
+    PyObject *type, *slots, *divs, *layout;
+    static char *names[] = {"sample_type", "slots", "divisors", "layout", NULL};
+    if (!PyArg_ParseTupleAndKeywords(args, kwds, "O!O!O!O", names, &PyType_Type, &type,
+                                     &PyTuple_Type, &slots, &PyTuple_Type, &divs, &layout) ||
+        read_layout(s, layout) < 0)
         return -1;
     if (PyTuple_GET_SIZE(slots) != N_SLOTS || PyTuple_GET_SIZE(divs) != N_DIVS) {
         PyErr_SetString(PyExc_TypeError, "WitStream: 8 slots and 5 divisors expected");

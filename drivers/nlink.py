@@ -50,9 +50,22 @@ FRAME_LEN = TAG_FRAME0.size
 assert FRAME_LEN == 128
 
 _KNOWN = frozenset({MARK_TAG_FRAME0})
-# what accel's tag_frame0 makes its frames of: the dataclasses and their slots, in order
-_FAST_PARTS = tuple(x for cls in (UwbRanges, AnchorRange) for x in (
-    cls, tuple(cls.__dict__[f.name] for f in dataclasses.fields(cls))))
+# what accel's tag_frame0 (drivers/_frames.c) is handed: the fields it fills, by name, in the
+# order it fills them (every field of each dataclass), and the frame's layout from TAG_FRAME0
+# (the one table): its size, header and mark, the offsets it reads, then their divisors
+_FILLS = {UwbRanges: ("t_ns", "ranges", "tag_position_m", "quality", "tag_velocity_mps",
+                      "tag_position_error_m", "tag_id", "device_time_ms"),
+          AnchorRange: ("anchor_id", "range_m", "quality", "fp_rssi_dbm", "rx_rssi_dbm",
+                        "anchor_position_m")}
+assert all(set(names) == {f.name for f in dataclasses.fields(cls)}
+           for cls, names in _FILLS.items()), "a frame field accel.tag_frame0 does not fill"
+_READS = ("id", "pos_m", "vel_mps", "dis_m", "system_time_ms", "eop_m")
+_FAST_PARTS = (
+    *(x for cls, names in _FILLS.items()
+      for x in (cls, tuple(cls.__dict__[name] for name in names))),
+    (TAG_FRAME0.size, HEADER, MARK_TAG_FRAME0, *(TAG_FRAME0.offsets[name] for name in _READS),
+     *(float(next(f.div or 1 for f in TAG_FRAME0.fields if f.name == name))
+       for name in ("pos_m", "vel_mps", "dis_m", "eop_m"))))
 
 
 def encode(frame: UwbRanges, imu: ImuSample | None = None) -> bytes:

@@ -198,8 +198,17 @@ _DIVISORS = (_divisor(ACC, "acc_mps2"), _divisor(GYRO, "gyro_rps"),
              _divisor(ACC, "temperature_c"), _divisor(ANGLE, "angle_deg"),
              _divisor(QUAT, "quaternion_wire"))
 assert {_divisor(p, "temperature_c") for p in (ACC, GYRO, MAG)} == {_DIVISORS[2]}
-# what it makes its samples of: ImuSample's slots, in field order
-_SLOTS = tuple(getattr(ImuSample, f.name) for f in dataclasses.fields(ImuSample))
+# what it makes its samples of: ImuSample's slots, in the order drivers/_wit.c fills them
+_FILLS = ("t_ns", "acc_mps2", "gyro_rps", "temperature_c", "angle_deg", "mag_raw",
+          "quaternion_wire", "device_time_ns")
+assert set(_FILLS) == {f.name for f in dataclasses.fields(ImuSample)}, \
+    "an ImuSample field the C parser does not fill"
+_SLOTS = tuple(getattr(ImuSample, name) for name in _FILLS)
+# and the packet's layout, from the tables above: header, length, the temperature's byte in
+# the payload, the packet types it decodes, and every type it knows
+(_TEMPERATURE_AT,) = {PAYLOADS[p].offsets["temperature_c"] for p in (ACC, GYRO, MAG)}
+_LAYOUT = (HEADER, PACKET_LEN, _TEMPERATURE_AT, TIME, ACC, GYRO, ANGLE, MAG, QUAT, READBACK,
+           tuple(sorted(KNOWN_TYPES)))
 
 
 class CWitParser:
@@ -208,7 +217,7 @@ class CWitParser:
 
     def __init__(self) -> None:
         assert accel.frames is not None
-        self._stream = accel.frames.WitStream(ImuSample, _SLOTS, _DIVISORS)
+        self._stream = accel.frames.WitStream(ImuSample, _SLOTS, _DIVISORS, _LAYOUT)
         self._stats = ParserStats()
 
     def feed(self, data: bytes, t_ns: int = 0) -> list[ImuSample]:
