@@ -34,6 +34,11 @@ def write_layout_header() -> None:
         lines.append(f"#define MAPS_{name.upper()} {at}")
         at += count
     lines.append(f"#define N_MAPS {at}")
+    at = 0
+    for name, count in table["RANGE_CHECK"].items():
+        lines.append(f"#define CHECK_{name.upper()} {at}")
+        at += count
+    lines.append(f"#define CHECK_PER_RANGE {at}")
     for i, field in enumerate(table["RowPolicy"]._fields):
         lines.append(f"#define POLICY_{field.upper()} {i}")
     lines += [f"#define POLICY_FIELDS {len(table['RowPolicy']._fields)}",

@@ -611,7 +611,7 @@ done:
     return out;
 }
 
-/* range_check(lever, anchors (k×3), ranges (k), var (k) or None, columns, out (6k))
+/* range_check(lever, anchors (k×3), ranges (k), var (k) or None, columns, out)
  *     -> None, or whether the single-fault estimates were made
  * The epoch's ranges before their update, for the installation checks (§6): into out, the
  * unit vectors anchor → antenna U (k×3), the innovations y (k) and, with var, Baarda's
@@ -635,7 +635,7 @@ static PyObject *state_range_check(State *self, PyObject *const *args, Py_ssize_
     if (uwbd_get_doubles(args[1], &view[1], 3 * k, 0, "anchors") < 0)
         goto done;
     got = 2;
-    if (uwbd_get_doubles(args[5], &view[2], 6 * k, 1, "out") < 0)
+    if (uwbd_get_doubles(args[5], &view[2], CHECK_PER_RANGE * k, 1, "out") < 0)
         goto done;
     got = 3;
     if (with_var) {
@@ -657,9 +657,9 @@ static PyObject *state_range_check(State *self, PyObject *const *args, Py_ssize_
             result = Py_NewRef(Py_None);
             goto done;
         }
-    for (Py_ssize_t a = 0; a < k; a++) {
-        memcpy(out + 3 * a, H + a * n, sizeof(double) * 3);
-        out[3 * k + a] = y[a];
+    for (Py_ssize_t a = 0; a < k; a++) { /* the blocks of layout.RANGE_CHECK */
+        memcpy(out + CHECK_U * k + 3 * a, H + a * n, sizeof(double) * 3);
+        out[CHECK_Y * k + a] = y[a];
     }
     int made = 0;
     if (with_var) {
@@ -678,7 +678,7 @@ static PyObject *state_range_check(State *self, PyObject *const *args, Py_ssize_
                     s += HP[a * n + j] * H[c * n + j];
                 S[a * k + c] = s + (a == c ? var[a] : 0.0);
             }
-        made = uwbd_single_faults(S, y, k, out + 4 * k, out + 5 * k, Si) == 0;
+        made = uwbd_single_faults(S, y, k, out + CHECK_B * k, out + CHECK_D * k, Si) == 0;
     }
     result = PyBool_FromLong(made);
 done:

@@ -16,3 +16,7 @@ NOMINAL_AUX = 16
 # (a matrix row-major), with how many numbers each takes
 IMU_LIMITS = ("acc_clip", "gyro_clip", "max_acc_jump", "max_gyro_jump", "max_jump_run")
 IMU_MAPS = {"acc_M": 9, "acc_b": 3, "gyro_M": 9, "gyro_b": 3, "gyro_offset": 3, "gyro_band": 1}
+# State.range_check's output for k ranges: each block k × its numbers per range, in this
+# order (the unit vectors anchor → antenna, the innovations, the single-fault estimates and
+# their weights; measurements.range_check reads it by the same table)
+RANGE_CHECK = {"U": 3, "y": 1, "b": 1, "d": 1}

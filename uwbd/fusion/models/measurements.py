@@ -14,7 +14,7 @@ import numpy as np
 
 from uwbd.fusion.checks.anchor_consistency import single_fault_estimates
 from uwbd.fusion.core.eskf import Eskf
-from uwbd.fusion.core.layout import N_CORE, P_, TH_, V_
+from uwbd.fusion.core.layout import N_CORE, P_, RANGE_CHECK, TH_, V_
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.core.rotation import Array, skew
 
@@ -104,14 +104,18 @@ def range_check(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array, range
     (``State.range_check``); this is its reference."""
     core: Any = ekf.core_state
     if core is not None:
-        out = np.empty(6 * len(ids))
+        k = len(ids)
+        out = np.empty(sum(RANGE_CHECK.values()) * k)
         made = core.range_check(lever_m, anchors, ranges, var,
                                 tuple([columns.get(a, ()) for a in ids]), out)
         if made is None:
             return None
-        k = len(ids)
-        U, y = out[:3 * k].reshape(k, 3), out[3 * k:4 * k]
-        return RangeCheck(U, y, out[4 * k:5 * k], out[5 * k:]) if made else \
+        blocks, at = {}, 0  # layout.RANGE_CHECK's blocks, as the C wrote them
+        for name, count in RANGE_CHECK.items():
+            blocks[name] = out[at * k:(at + count) * k]
+            at += count
+        U, y = blocks["U"].reshape(k, 3), blocks["y"]
+        return RangeCheck(U, y, blocks["b"], blocks["d"]) if made else \
             RangeCheck(U, y, None, None)
     U, y, keep = range_innovations(ekf, lever_m, ids, anchors, ranges, columns)
     if not keep.all():
