@@ -56,3 +56,14 @@ def test_a_case_runs_and_is_scored_against_its_truth() -> None:
     assert free.poses > 500 and faulty.poses > 500
     assert free.rmse_3d_m < 0.2 and free.healthy > 0.9 * free.poses
     assert faulty.detected and faulty.named  # named: the anchor test finds this one
+
+
+def test_fault_free_runs_the_campaign_once_lost_stay_honest() -> None:
+    """Two fault-free campaign cases that failed (#43): seed 37, ten anchors on a 3 m
+    ceiling within ±5 cm of a plane, whose side the ranges 'decided' wrongly (4.3 m off in
+    height, 'tracking'), and seed 8, a robot 3.4 m below its anchors whose every reset's fix
+    was refused as too low (72 m RMSE)."""
+    ceiling = run_case(draw_case(37), False)
+    assert ceiling.healthy_beyond_alert == 0 and ceiling.rmse_3d_m < 0.2
+    low = run_case(draw_case(8), False)
+    assert low.healthy_beyond_alert == 0 and low.rmse_3d_m < 1.0

@@ -15,7 +15,13 @@ starts from. :class:`MirrorSide` holds the two hypotheses:
    cannot decide) is summed. At +``threshold`` the side is resolved; at −``threshold`` it
    flips and the filter restarts on the other side. Until then the side is ``unresolved``
    (said in the status). Over exactly coplanar anchors the two χ² are equal and the ratio
-   stays at 0: the default or hint is kept, and the status says so.
+   stays at 0: the default or hint is kept, and the status says so. A fix counts only
+   where the two solutions' ranges differ by more than the errors that do not average out
+   could make them (each anchor's delay and the slow multipath, ``bias_sigma_m``; all
+   ranges together, ``DISTINCT_Z`` σ): over anchors a few centimetres off one plane, a
+   constant delay or an NLOS burst otherwise "decides" the side, wrongly as often as not
+   (a campaign case, ten anchors within ±5 cm of a 3 m ceiling: the tag put 4.3 m too high
+   and said tracking).
 
 Anchors that are not coplanar have no mirror: nothing to decide. The plane may be tilted
 (anchors on one wall): its normal, oriented up (on a wall, towards +x or +y), tells the
@@ -33,14 +39,18 @@ from uwbd.fusion.core.rotation import Array
 
 CEILING_MIN_M = 1.0  # anchors this high or higher: the tag is below them by default
 STEP_CLIP = 3.0
+DISTINCT_Z = 3.0  # the sides' predicted ranges this many bias σ apart (all ranges together)
 WALL_NORMAL_Z = 0.5  # a plane whose normal is flatter than this is a wall: no floor rule
 
 
 class MirrorSide:
     def __init__(self, anchors_m: Array, hint: str = "auto",
                  height_range_m: tuple[float, float] | None = None,
-                 threshold: float = 10.0, *, core: Core) -> None:
+                 threshold: float = 10.0, bias_sigma_m: float = 0.0, *, core: Core) -> None:
         self._core = core  # the mirror image's least squares: C, or the reference (None)
+        # what the ranges' errors that do not average out may be (each anchor's delay, the
+        # slow multipath), 1 σ: a mirror image they could explain tells the sides nothing
+        self.bias_sigma_m = bias_sigma_m
         if hint not in ("auto", "below", "above"):
             raise ValueError(f"tag side must be auto, below or above, got {hint!r}")
         self.ambiguous = len(anchors_m) >= 3 and coplanar(anchors_m)
@@ -95,6 +105,10 @@ class MirrorSide:
                               side=-self.sign, core=self._core)
         if other is None or self.side_of(other.position_m) * self.sign > 0:
             return  # it fell back to this side: this fix does not tell the two apart
+        if self.bias_sigma_m > 0:  # the two sides' ranges apart by less than the biases
+            apart = other.residuals_m - fix.residuals_m
+            if float(np.nansum(apart**2)) < DISTINCT_Z**2 * self.bias_sigma_m**2:
+                return
         chi2_here = float(np.nansum(fix.residuals_m**2)) / sigma_m**2
         chi2_there = float(np.nansum(other.residuals_m**2)) / sigma_m**2
         self.llr += float(np.clip((chi2_there - chi2_here) / 2, -STEP_CLIP, STEP_CLIP))
