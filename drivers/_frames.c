@@ -48,13 +48,24 @@ static int tag0_layout(PyObject *numbers, Tag0Layout *l)
     Py_ssize_t at[TAG0_INTS];
     double div[TAG0_DIVS];
     for (int i = 0; i < TAG0_INTS; i++)
-        at[i] = PyLong_AsSsize_t(PyTuple_GET_ITEM(numbers, i));
+        if ((at[i] = PyLong_AsSsize_t(PyTuple_GET_ITEM(numbers, i))) == -1 && PyErr_Occurred())
+            return -1;
     for (int i = 0; i < TAG0_DIVS; i++)
-        div[i] = PyFloat_AsDouble(PyTuple_GET_ITEM(numbers, TAG0_INTS + i));
-    if (PyErr_Occurred())
-        return -1;
+        if ((div[i] = PyFloat_AsDouble(PyTuple_GET_ITEM(numbers, TAG0_INTS + i))) == -1.0 &&
+            PyErr_Occurred())
+            return -1;
     Tag0Layout got = {at[0], at[1], at[2], at[3], at[4], at[5], at[6], at[7], at[8],
                       div[0], div[1], div[2], div[3]};
+    for (int i = 3; i < TAG0_INTS; i++)
+        if (at[i] < 2) {
+            PyErr_SetString(PyExc_ValueError, "tag_frame0: an offset inside the header");
+            return -1;
+        }
+    for (int i = 0; i < TAG0_DIVS; i++)
+        if (!(div[i] > 0.0)) {
+            PyErr_SetString(PyExc_ValueError, "tag_frame0: a divisor not positive");
+            return -1;
+        }
     if (got.size < 3 || got.id >= got.size || got.dis + 3 * N_SLOTS > got.size ||
         got.system_time + 4 > got.size ||
         got.eop + 3 > got.size || got.pos + 9 > got.size || got.vel + 9 > got.size) {

@@ -350,17 +350,20 @@ static int read_layout(WitStream *s, PyObject *layout)
     }
     long v[SCALARS + TYPES];
     for (int i = 0; i < SCALARS + TYPES; i++)
-        v[i] = PyLong_AsLong(PyTuple_GET_ITEM(layout, i));
-    if (PyErr_Occurred())
-        return -1;
+        if ((v[i] = PyLong_AsLong(PyTuple_GET_ITEM(layout, i))) == -1 && PyErr_Occurred())
+            return -1;
+    for (int k = 0; k < TYPES; k++)
+        if (v[SCALARS + k] < 0 || v[SCALARS + k] > 255) {
+            PyErr_SetString(PyExc_ValueError, "WitStream: a packet type is a byte");
+            return -1;
+        }
     s->header = (int)v[0];
     s->packet_len = (int)v[1];
     s->temp_word = (int)v[2];
     memset(s->kind, K_NONE, sizeof s->kind);
     memset(s->known, 0, sizeof s->known);
     for (int k = 0; k < TYPES; k++)
-        if (v[SCALARS + k] >= 0 && v[SCALARS + k] < 256)
-            s->kind[v[SCALARS + k]] = (unsigned char)(TIME + k);
+        s->kind[v[SCALARS + k]] = (unsigned char)(TIME + k);
     PyObject *known = PyTuple_GET_ITEM(layout, SCALARS + TYPES);
     for (Py_ssize_t i = 0; i < PyTuple_GET_SIZE(known); i++) {
         long t = PyLong_AsLong(PyTuple_GET_ITEM(known, i));
@@ -371,7 +374,8 @@ static int read_layout(WitStream *s, PyObject *layout)
         }
         s->known[t] = 1;
     }
-    if (s->header < 0 || s->header > 255 || s->packet_len < 4 || s->temp_word < 0 ||
+    /* header, type, 8 payload bytes (four words: TIME and QUAT read them all), checksum */
+    if (s->header < 0 || s->header > 255 || s->packet_len < 11 || s->temp_word < 0 ||
         s->temp_word + 2 > s->packet_len - 3) {
         PyErr_SetString(PyExc_ValueError, "WitStream: the layout does not fit a packet");
         return -1;

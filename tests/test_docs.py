@@ -5,7 +5,6 @@ guides runs as written, or names what runs it, or says why it cannot run here.""
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import re
 import subprocess
@@ -15,7 +14,9 @@ from pathlib import Path
 import pytest
 
 from uwbd.config import parse, reference
+from uwbd.config.model import LOG_DIRECTORY, ROTATE_MB, ROTATE_MINUTES
 from uwbd.config.schema import TABLES
+from uwbd.config.zenoh_session import ZENOH_PATHS, session_config
 
 ROOT = Path(__file__).resolve().parent.parent
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -53,7 +54,13 @@ def test_the_template_passes_check_config_and_holds_the_defaults() -> None:
     for prop in ("pose_period_ns", "status_period_ns", "aligner_wait_ns", "zenoh_prefix",
                  "nav_frame_id", "body_frame_id", "ros2_settings"):
         assert getattr(full, prop) == getattr(defaults, prop), prop
-    assert dataclasses.replace(full.range_model_settings()) == defaults.range_model_settings()
+    assert full.range_model_settings() == defaults.range_model_settings()
+    for key in ("listen", "connect", "mode", "multicast_scouting"):  # the same Zenoh session
+        where = ZENOH_PATHS[key]
+        assert session_config(full.zenoh).get_json(where) == \
+            session_config(defaults.zenoh).get_json(where), key
+    assert full.log == {"directory": LOG_DIRECTORY, "rotate_mb": ROTATE_MB,  # as run reads them
+                        "rotate_minutes": ROTATE_MINUTES}
 
 
 def test_the_readme_is_short_and_every_link_resolves() -> None:

@@ -666,6 +666,8 @@ def test_a_fix_at_a_ground_robots_height_under_a_high_ceiling_is_plausible() -> 
     ceiling = [3.8, 3.82, 3.77, 3.85]
     assert plausible_height(0.4, None, ceiling) and plausible_height(0.4, None, [8.0] * 4)
     assert not plausible_height(-3.5, None, ceiling) and not plausible_height(7.0, None, ceiling)
+    # under a 2.5 m ceiling as before: down to 3 m below the anchors (the floor, less 0.5 m)
+    assert plausible_height(-0.4, None, [2.5] * 4) and not plausible_height(-0.6, None, [2.5] * 4)
     assert plausible_height(1.0, (0.5, 1.5), ceiling) and not plausible_height(0.4, (0.5, 1.5),
                                                                               ceiling)
 

@@ -117,11 +117,13 @@ REFERENCE: dict[str, dict[str, Entry]] = {
                               "(`uwbd calibrate-ranges` writes it)",
                               f"{RobustPolicy.c_long} × `range_sigma_m`"),
         "tag_side": Entry(_F.tag_side, "for anchors on one plane: `below`, `above`, or "
-                          "`auto` (below anchors 1 m or higher, above lower ones, and the "
-                          "ranges decide where the anchors are not exactly coplanar)"),
+                          "`auto` (below anchors 1 m or higher, above lower ones; the ranges "
+                          "decide where the anchors are far enough off one plane that their "
+                          "delays could not fake the other side)"),
         "height_range_m": Entry(None, "`[lowest, highest]` the tag can be: settles the side "
                                 "of a plane of anchors, and a fix outside it is refused",
-                                "the anchors' heights ± 3 m"),
+                                "up to 3 m above the highest anchor, down to 3 m below the "
+                                "lowest or 0.5 m below z 0 (the floor), whichever is lower"),
         "zupt": Entry(_F.zupt, "zero-velocity updates at rest"),
         "nhc": Entry(_F.nhc, "non-holonomic constraints: a ground vehicle does not move "
                      "sideways or vertically in body axes"),
@@ -179,10 +181,10 @@ REFERENCE: dict[str, dict[str, Entry]] = {
     "zenoh": {
         "enabled": Entry(True, "publish over Zenoh"),
         "mode": Entry(UWBD_DEFAULTS["mode"], "`peer`, `client` (behind a router) or `router`"),
-        "connect": Entry(UWBD_DEFAULTS["connect"], "endpoints to dial "
-                         "(`\"tls/router.local:7447\"`)"),
-        "listen": Entry(None, "endpoints to listen on", f"`[\"{THIS_HOST_LISTEN}\"]` where "
-                        "no `connect` is given either (this host only), else none"),
+        "connect": Entry(None, "endpoints to dial (`\"tls/router.local:7447\"`)", "none"),
+        "listen": Entry(None, "endpoints to listen on (`[]`: none)", f"`[\"{THIS_HOST_LISTEN}\"]`"
+                        " (this host only) where neither `connect` nor `listen` is given, not "
+                        "even empty, nor set in the Zenoh file; else none"),
         "multicast_scouting": Entry(UWBD_DEFAULTS["multicast_scouting"], "find and be found "
                                     "on the LAN by multicast (a warning without a Zenoh "
                                     "file)"),

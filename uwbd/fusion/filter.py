@@ -359,7 +359,7 @@ class Filter:
             if still_imu and self.stillness.still(allow_noise=True):
                 self.recovery.check_tilt_against_gravity()
             else:
-                self._tilt_bad_ns = None
+                self.recovery.tilt_unchecked()
         self.fusion.at_rest = bool(cfg.zupt and slow and still_imu and self.est.relevel is None)
         if self.fusion.at_rest:
             self.est.counters["zupt"] += 1

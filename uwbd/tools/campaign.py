@@ -43,7 +43,10 @@ NS = 1_000_000_000
 FAULTS = ("anchor_position", "range_offset", "lever_arm", "mounting")
 STYLES = ("flat", "mixed", "few_high")
 VEHICLES = ("ground", "handheld", "drone")
-HORIZONTAL_ALERT_M, VERTICAL_ALERT_M = 0.5, 1.0
+HORIZONTAL_ALERT_M, VERTICAL_ALERT_M = 0.5, 1.0  # the filter is told them too (told)
+# the faults that say the installation is wrong (not the estimate's own state)
+INSTALLATION_FAULTS = frozenset({"anchor_inconsistent", "ranges_inconsistent",
+                                 "mounting_inconsistent"})
 REPORT_SEEDS_FROM = 1000  # seeds below: the tuning set; from here: the reported set
 WARM_UP_S = 10.0  # a start may be unhealthy until its tests have one window
 
@@ -147,11 +150,14 @@ def draw_case(seed: int) -> Case:
 
 def told(case: Case, sim: Simulation, faulty: bool) -> FilterConfig:
     """What the filter is told: the datasheet config ``uwbd simulate`` writes (NHC for a
-    ground robot), with the case's fault in it when ``faulty``."""
+    ground robot; the alert limits the runs are scored by), with the case's fault in it when
+    ``faulty``."""
     # (a Nooploop tag has 8 slots: more anchors through a DWM1001's ids)
     driver = "nlink" if len(case.sim.anchors_m) <= 8 else "dwm1001"
-    cfg = dataclasses.replace(parse(simulation_toml(sim, driver)).filter_config(),
-                              nhc=case.vehicle == "ground")
+    cfg = parse(simulation_toml(sim, driver)).filter_config()
+    cfg = dataclasses.replace(cfg, nhc=case.vehicle == "ground", health=dataclasses.replace(
+        cfg.health, horizontal_alert_limit_m=HORIZONTAL_ALERT_M,
+        vertical_alert_limit_m=VERTICAL_ALERT_M))
     if not faulty:
         return cfg
     d = np.array(case.direction)
@@ -190,8 +196,9 @@ class Score:
     beyond_pl: int  # horizontal error over the HPL, or vertical over the VPL
     healthy_beyond_alert: int  # healthy while over an alert limit (0.5 m h, 1.0 m v)
     healthy: int
-    detected: bool  # the run said a fault or a finding at some point
-    named: bool  # the faulted anchor named (anchor faults), the lever arm or mounting said
+    detected: bool  # an installation check fired: a finding, or one of INSTALLATION_FAULTS
+    named: bool  # the faulted anchor named (anchor faults), or the mounting said; a lever
+    # arm is never named (no lever-arm test yet)
     rmse_3d_m: float
 
 
@@ -213,7 +220,8 @@ def score(case: Case, sim: Simulation, poses: list[Pose], findings: list[int],
     vpl = np.array([q.health.vertical_protection_m or math.inf for q in poses])
     healthy = np.array([q.health.healthy for q in poses])
     beyond_alert = (eh > HORIZONTAL_ALERT_M) | (ev > VERTICAL_ALERT_M)
-    detected = any(q.health.faults for q in poses) or bool(findings) or mounting_said
+    detected = bool(findings) or mounting_said or any(
+        f in INSTALLATION_FAULTS for q in poses for f in q.health.faults)
     named = (case.anchor in findings) if case.anchor >= 0 else mounting_said \
         if case.fault == "mounting" else False
     return Score(len(poses), int(((eh > hpl) | (ev > vpl)).sum()),
@@ -226,13 +234,16 @@ def run_case(case: Case, faulty: bool) -> Score:
     sim = simulate(case.sim)
     cfg = told(case, sim, faulty)
     named: set[int] = set()
+    after_ns = sim.truth_t_ns[0] + WARM_UP_S * NS
 
-    def watch(flt: Filter) -> None:  # the anchors named at any time, not only at the end
-        named.update(flt.findings.consistency.findings)
+    def watch(flt: Filter) -> None:  # the anchors named after the warm-up, not only at the end
+        if flt.t_ns is not None and flt.t_ns >= after_ns:
+            named.update(flt.findings.consistency.findings)
 
     poses, _, _ = run_filter(cfg, merge(sim.imu, ranges_of(case, sim, faulty)),
                              pose_period_ns=NS // 10, watch=watch)
-    mounting = any("mounting" in f for q in poses for f in (*q.health.faults, *q.health.notes))
+    mounting = any("mounting" in f for q in poses if q.t_ns >= after_ns
+                   for f in (*q.health.faults, *q.health.notes))
     return score(case, sim, poses, sorted(named), mounting)
 
 
@@ -248,6 +259,7 @@ class KindRow:
     free_healthy_beyond_alert: int  # poses, fault-free runs
     availability: float  # fault-free poses healthy
     detected: float  # of the faulty runs
+    false_alarm: float  # of the fault-free runs: an installation check fired
     named: float  # of the faulty runs (anchor faults: the anchor; mounting: said)
     rmse_ratio_median: float  # faulty over fault-free, 3D
     rmse_ratio_max: float
@@ -271,7 +283,8 @@ def campaign(seeds: range) -> list[KindRow]:
             sum(a.beyond_pl for a in free) / max(sum(a.poses for a in free), 1),
             sum(b.healthy_beyond_alert for b in bad), sum(a.healthy_beyond_alert for a in free),
             sum(a.healthy for a in free) / max(sum(a.poses for a in free), 1),
-            sum(b.detected for b in bad) / len(bad), sum(b.named for b in bad) / len(bad),
+            sum(b.detected for b in bad) / len(bad), sum(a.detected for a in free) / len(free),
+            sum(b.named for b in bad) / len(bad),
             float(np.median(ratios)) if ratios else math.nan,
             max(ratios) if ratios else math.nan))
     return rows

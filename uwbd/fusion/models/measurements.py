@@ -48,8 +48,8 @@ def range_rows(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array, ranges
     columns ``columns`` gives the anchor (antenna delay, multipath; none if absent), and,
     with ``lever_columns`` (the lever arm's error states, ``l`` already holding them),
     ``H_δl = uᵀ R`` on those. The
-    reference of the C core's tight epoch (:meth:`Eskf.fuse_ranges`), and the rows where
-    that declines: a range whose antenna is within 1 mm of its anchor is dropped here."""
+    reference of the C core's tight epoch (:meth:`Eskf.fuse_ranges`): a range whose
+    antenna is within 1 mm of its anchor is dropped here (the C core fuses a zero row)."""
     keys = range_keys(ids)
     U, y, keep = range_innovations(ekf, lever_m, ids, anchors, ranges, columns)
     if not keep.all():

@@ -107,8 +107,7 @@ class EpochFusion:
                     r_scale: Array, fix: LsqFix | None,
                     constraints: list[Rows]) -> list[FusionReport]:
         """The epoch's rows fused: tight, on the C core, in one call (:meth:`Eskf.fuse_ranges`);
-        else (the reference, or where that call declines) built here and fused by
-        :meth:`_fuse`."""
+        else (loose, or the pure-Python reference) built here and fused by :meth:`_fuse`."""
         ekf = self.est.ekf
         assert ekf is not None
         if ids and self.cfg.mode is Mode.TIGHT and ekf.fuses_ranges:

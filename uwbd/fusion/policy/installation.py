@@ -57,7 +57,7 @@ class Installation:
         held over coplanar ones, and one antenna-delay and one multipath state each."""
         cfg = self.cfg
         anchors = np.array(list(self.anchors.values()), dtype=float).reshape(-1, 3)
-        bias_sigma_m = math.hypot(cfg.range_bias_sigma_m,
+        bias_sigma_m = math.hypot(cfg.range_bias_sigma_m, cfg.tag_delay_sigma_m,
                                   cfg.multipath_sigma_m if cfg.multipath_states else 0.0)
         old, self.mirror = self.mirror, MirrorSide(anchors, cfg.tag_side, cfg.height_range_m,
                                                    bias_sigma_m=bias_sigma_m, core=self._core)

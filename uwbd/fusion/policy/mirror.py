@@ -17,7 +17,7 @@ starts from. :class:`MirrorSide` holds the two hypotheses:
    (said in the status). Over exactly coplanar anchors the two χ² are equal and the ratio
    stays at 0: the default or hint is kept, and the status says so. A fix counts only
    where the two solutions' ranges differ by more than the errors that do not average out
-   could make them (each anchor's delay and the slow multipath, ``bias_sigma_m``; all
+   could make them (each anchor's delay, the tag's, the slow multipath: ``bias_sigma_m``; all
    ranges together, ``DISTINCT_Z`` σ): over anchors a few centimetres off one plane, a
    constant delay or an NLOS burst otherwise "decides" the side, wrongly as often as not
    (a campaign case, ten anchors within ±5 cm of a 3 m ceiling: the tag put 4.3 m too high
@@ -49,7 +49,7 @@ class MirrorSide:
                  threshold: float = 10.0, bias_sigma_m: float = 0.0, *, core: Core) -> None:
         self._core = core  # the mirror image's least squares: C, or the reference (None)
         # what the ranges' errors that do not average out may be (each anchor's delay, the
-        # slow multipath), 1 σ: a mirror image they could explain tells the sides nothing
+        # tag's, the slow multipath), 1 σ: a mirror image they could explain tells nothing
         self.bias_sigma_m = bias_sigma_m
         if hint not in ("auto", "below", "above"):
             raise ValueError(f"tag side must be auto, below or above, got {hint!r}")

@@ -71,9 +71,14 @@ class ImuPropagation:
             ekf, prev, t_state = self.est.ekf, self.imu_t_ns, self.est.t_ns
             if (self._front_steps and ekf is not None and ekf.core_state is not None
                     and self.est.relevel is None and prev is not None and t_state is not None):
-                rows, reason = self.check.step_many(
-                    ekf.core_state, [(s.t_ns, s.acc_mps2, s.gyro_rps) for s in samples[k:]],
-                    prev, t_state, self.cfg.max_imu_gap_s, PROPAGATE_EVERY_S)
+                try:
+                    rows, reason = self.check.step_many(
+                        ekf.core_state, [(s.t_ns, s.acc_mps2, s.gyro_rps) for s in samples[k:]],
+                        prev, t_state, self.cfg.max_imu_gap_s, PROPAGATE_EVERY_S)
+                except NUMERICAL_ERRORS as err:  # (a time C cannot hold, say)
+                    self.recovery.internal_error(samples[k].t_ns, err)
+                    k += 1
+                    continue
                 if rows:
                     last = rows[-1]
                     self.imu_t_ns = self.good_imu_ns = self.est.t_ns = last[0]

@@ -39,7 +39,8 @@ SLOW_FADE_PER_S = 0.25
 MAX_FADE_STEP_NS = NS // 5
 REPEATED_RESET_NS = 10 * NS  # a second divergence this soon after a position reset restarts
 FIX_HEIGHT_MARGIN_M = 3.0  # a reset's fix this far above every anchor, or below every anchor
-# and the floor (z 0), is refused
+# and below the floor by FLOOR_MARGIN_M (the navigation frame's z 0 taken as the floor), is refused
+FLOOR_MARGIN_M = 0.5
 MAX_REST_TILT_DEG = 30.0  # gravity this far from body up at a start at rest: said
 
 
@@ -244,6 +245,10 @@ class Recovery:
             self.restart(t_ns, "state not finite")
 
     # -- when the evidence says the state is wrong ---------------------------------------
+    def tilt_unchecked(self) -> None:
+        """Not at rest at a tilt check: gravity's disagreement must start again."""
+        self._tilt_bad_ns = None
+
     def check_tilt_against_gravity(self) -> None:
         """At rest the mean specific force is gravity's reaction: an attitude more than 10°
         from it for a second is wrong (the EKF can be confidently wrong about tilt after a
@@ -346,13 +351,15 @@ class Recovery:
 
 def plausible_height(z: float, height_range_m: tuple[float, float] | None,
                      anchor_heights: list[float]) -> bool:
-    """A fix's height ``z`` within ``height_range_m``, or else between the floor or the
-    lowest anchor, whichever is lower, and the highest anchor, widened by
-    ``FIX_HEIGHT_MARGIN_M``: NLOS on every anchor at once leaves residuals as small as a true
-    fix's, at a place metres above or below any the tag can be. (A ground robot under
-    anchors on a high ceiling is far below every anchor, but not below the floor.)"""
+    """A fix's height ``z`` within ``height_range_m``; or else at most
+    ``FIX_HEIGHT_MARGIN_M`` above the highest anchor, and no lower than that margin below the
+    lowest anchor or ``FLOOR_MARGIN_M`` below the floor (z 0), whichever is lower: NLOS on
+    every anchor at once leaves residuals as small as a true fix's, at a place metres above
+    or below any the tag can be, and a ground robot under anchors on a high ceiling is far
+    below every anchor but not below the floor."""
     if height_range_m is not None:
         low, high = height_range_m
         return low <= z <= high
-    return not anchor_heights or (min(*anchor_heights, 0.0) - FIX_HEIGHT_MARGIN_M <= z
-                                  <= max(anchor_heights) + FIX_HEIGHT_MARGIN_M)
+    low = min(min(anchor_heights) - FIX_HEIGHT_MARGIN_M, -FLOOR_MARGIN_M) if anchor_heights \
+        else -math.inf
+    return not anchor_heights or low <= z <= max(anchor_heights) + FIX_HEIGHT_MARGIN_M
