@@ -49,6 +49,7 @@ Without ranges the state coasts and its covariance grows.
 
 from __future__ import annotations
 
+import collections
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -130,8 +131,8 @@ class Filter:
         return self.est.t_ns
 
     @property
-    def counters(self) -> Any:
-        """What happened, counted (a ``collections.Counter``)."""
+    def counters(self) -> collections.Counter[str]:
+        """What happened, counted."""
         return self.est.counters
 
     # -- inputs ---------------------------------------------------------------------------

@@ -7,6 +7,7 @@ use which is the filter's policy, not theirs.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Mapping
 from typing import Any, NamedTuple
 
@@ -85,6 +86,13 @@ def range_innovations(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array,
     return U, ranges - h, keep
 
 
+# layout.RANGE_CHECK's blocks (U, y, b, d) as per-range [start, end), as the C writes them
+_CHECK_ENDS = tuple(itertools.accumulate(RANGE_CHECK.values()))
+_CHECK_BLOCKS = tuple(zip((0, *_CHECK_ENDS[:-1]), _CHECK_ENDS, strict=True))
+_CHECK_PER_RANGE = _CHECK_ENDS[-1]
+assert tuple(RANGE_CHECK) == ("U", "y", "b", "d")
+
+
 class RangeCheck(NamedTuple):
     """An epoch's ranges before their update, as the installation checks take them: unit
     vectors anchor → antenna (k×3), innovations (k), and, when asked, Baarda's single-fault
@@ -105,17 +113,15 @@ def range_check(ekf: Eskf, lever_m: Array, ids: list[int], anchors: Array, range
     core: Any = ekf.core_state
     if core is not None:
         k = len(ids)
-        out = np.empty(sum(RANGE_CHECK.values()) * k)
+        out = np.empty(_CHECK_PER_RANGE * k)
         made = core.range_check(lever_m, anchors, ranges, var,
                                 tuple([columns.get(a, ()) for a in ids]), out)
         if made is None:
             return None
-        blocks, at = {}, 0  # layout.RANGE_CHECK's blocks, as the C wrote them
-        for name, count in RANGE_CHECK.items():
-            blocks[name] = out[at * k:(at + count) * k]
-            at += count
-        U, y = blocks["U"].reshape(k, 3), blocks["y"]
-        return RangeCheck(U, y, blocks["b"], blocks["d"]) if made else \
+        (u0, u1), (y0, y1), (b0, b1), (d0, d1) = (
+            (k * start, k * end) for start, end in _CHECK_BLOCKS)
+        U, y = out[u0:u1].reshape(k, 3), out[y0:y1]
+        return RangeCheck(U, y, out[b0:b1], out[d0:d1]) if made else \
             RangeCheck(U, y, None, None)
     U, y, keep = range_innovations(ekf, lever_m, ids, anchors, ranges, columns)
     if not keep.all():

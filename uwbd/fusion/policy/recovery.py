@@ -360,6 +360,7 @@ def plausible_height(z: float, height_range_m: tuple[float, float] | None,
     if height_range_m is not None:
         low, high = height_range_m
         return low <= z <= high
-    low = min(min(anchor_heights) - FIX_HEIGHT_MARGIN_M, -FLOOR_MARGIN_M) if anchor_heights \
-        else -math.inf
-    return not anchor_heights or low <= z <= max(anchor_heights) + FIX_HEIGHT_MARGIN_M
+    if not anchor_heights:
+        return True
+    low = min(min(anchor_heights) - FIX_HEIGHT_MARGIN_M, -FLOOR_MARGIN_M)
+    return low <= z <= max(anchor_heights) + FIX_HEIGHT_MARGIN_M
