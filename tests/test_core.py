@@ -48,9 +48,10 @@ needs_core = pytest.mark.skipif(native.core is None, reason=f"C core: {native.im
 POSITION_TOLERANCE_M = 1e-9
 
 
-def twin(n_aux: int, seed: int, broken: str | None = None) -> tuple[CoreEskf, Eskf]:
+def twin(n_aux: int, seed: int, broken: str | None = None, bank: tuple[int, ...] = ()
+         ) -> tuple[CoreEskf, Eskf]:
     """Two filters in the same random state, one on the C core, one on the reference
-    (``broken``: that part made not finite)."""
+    (``broken``: that part made not finite; ``bank``: their sub-filters' anchors)."""
     rng = np.random.default_rng(seed)
     n = N_CORE + n_aux
     A = rng.normal(size=(n, n)) * 0.1
@@ -68,7 +69,7 @@ def twin(n_aux: int, seed: int, broken: str | None = None) -> tuple[CoreEskf, Es
     kwargs = dict(b_g=rng.normal(size=3) * 1e-3, b_a=rng.normal(size=3) * 0.05,
                   b_r=rng.normal(size=n_aux) * 0.1,
                   aux_tau_s=np.where(np.arange(n_aux) % 2 == 0, np.inf, 3.0),
-                  aux_sigma=np.full(n_aux, 0.1))
+                  aux_sigma=np.full(n_aux, 0.1), bank=bank)
     return (CoreEskf(*args, **kwargs, core=native.core),  # type: ignore[arg-type]
             Eskf(*args, **kwargs))  # type: ignore[arg-type]
 
@@ -421,6 +422,89 @@ def test_a_tight_epoch_in_one_call_matches_rows_then_update(seed: int, k: int, e
 
 
 @needs_core
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**31), st.booleans(), st.sampled_from([None, slice(6, 12)]))
+def test_the_bank_advances_with_the_main_filter_in_c_as_in_the_reference(
+        seed: int, robust: bool, considered: slice | None) -> None:
+    """Each sub-filter's offset and covariance through every operation that moves P, C
+    against the reference: propagation, a tight epoch (its anchor's rows left out, the main
+    filter's weights), rows of no anchor, coasting, the repairs; and a turn of the heading
+    starts the bank anew."""
+    bank = (0, 2, 3, 5, 7)
+    fast, slow = twin(2 * 8, seed, bank=bank)
+    rng = np.random.default_rng(seed)
+    columns = {a: (N_CORE + a, N_CORE + 8 + a) for a in range(8)}
+
+    def same_bank() -> None:
+        same_state(fast, slow)
+        assert fast.bank == slow.bank == bank
+        np.testing.assert_allclose(fast.bank_d, slow.bank_d, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(fast.bank_P, slow.bank_P, rtol=1e-9, atol=1e-12)
+
+    for _ in range(4):
+        for f in (fast, slow):
+            for _ in range(5):
+                f.predict(np.array([0.1, -0.2, 9.8]), np.array([0.01, 0.02, -0.03]), 0.01)
+            f.propagate()
+        same_bank()
+        k = int(rng.integers(3, 9))
+        ids = [int(a) for a in rng.choice(8, size=k, replace=False)]
+        anchors = rng.uniform(-10, 10, size=(k, 3))
+        ranges = np.linalg.norm(anchors - fast.p, axis=1) + rng.normal(size=k) * 0.3
+        var = rng.uniform(0.001, 0.1, size=k)
+        H_extra = rng.normal(size=(2, fast.n))
+        y_extra, R_extra = rng.normal(size=2) * 0.1, rng.uniform(0.001, 0.1, size=2)
+        policy = RobustPolicy(enabled=robust).rows(b"r" * k + b"zz", 6.63, True)
+        fast.fuse_ranges(np.zeros(3), anchors, ranges, var, tuple(columns[a] for a in ids),
+                         (), (H_extra, y_extra, R_extra), policy, considered, ids)
+        with native.pure_python():
+            reference = range_rows(slow, np.zeros(3), ids, anchors, ranges, var, columns)
+        slow.sequential_update(np.vstack([reference.H, H_extra]),
+                               np.concatenate([reference.y, y_extra]),
+                               np.concatenate([reference.R, R_extra]), policy, considered,
+                               ids)
+        same_bank()
+        assert np.abs(fast.bank_d).max() > 0  # the sub-filters moved apart
+        for f in (fast, slow):  # rows of no anchor (ZUPT, NHC): every sub-filter's
+            f.sequential_update(np.eye(3, f.n, 3), np.full(3, 0.01), np.full(3, 1e-4),
+                                RobustPolicy().rows(b"zzz", 6.63, True), None, None)
+        same_bank()
+        for f in (fast, slow):
+            f.coast(0.05, 0.5, 0.01, 0.001)
+            f.add_variances(np.full(f.n, 1e-4))
+            f.widen(slice(3, 6), 1.5)
+            f.clamp_covariance(np.full(N_CORE, 0.5), 0.3)
+        same_bank()
+    for f in (fast, slow):
+        f.rotate_heading(0.3, 0.1)
+        assert not np.abs(f.bank_d).any()
+        assert np.array_equal(f.bank_P, np.repeat(f.P[None], len(bank), axis=0))
+
+
+@pytest.mark.parametrize("core", [None, native.core], ids=["reference", "C"])
+def test_a_sub_filter_is_the_filter_that_never_saw_its_anchor(core: object) -> None:
+    """Linear rows on the position: sub-filter k's state (nominal + offset) and covariance
+    are exactly those of a filter fed the same rows without anchor k's."""
+    if core is None and native.core is None:
+        pytest.skip("the reference alone: nothing to compare against")
+    rng = np.random.default_rng(3)
+    P0 = np.diag(np.full(N_CORE, 0.5))
+    args = (rng.normal(size=3), np.zeros(3), (1.0, 0.0, 0.0, 0.0), P0, ImuNoise(), 0)
+    main = new_eskf(core, *args, bank=(4, 6))  # type: ignore[arg-type]
+    H = np.zeros((3, N_CORE))
+    H[np.arange(3), [0, 1, 2]] = 1.0
+    y, R = rng.normal(size=3), np.full(3, 0.04)
+    main.sequential_update(H, y, R, lambda i, nu, s: 1.0, None, [4, 5, 6])
+    for k, left_out in enumerate((4, 6)):
+        keep = [i for i, a in enumerate((4, 5, 6)) if a != left_out]
+        alone = new_eskf(core, *args)  # type: ignore[arg-type]
+        alone.sequential_update(H[keep], y[keep], R[keep], lambda i, nu, s: 1.0, None)
+        np.testing.assert_allclose(np.asarray(main.p) + main.bank_d[k, :3], alone.p,
+                                   rtol=0, atol=1e-12)
+        np.testing.assert_allclose(main.bank_P[k], alone.P, rtol=0, atol=1e-12)
+
+
+@needs_core
 def test_a_range_with_its_antenna_on_its_anchor_is_left_out_as_the_reference_drops_it(
         ) -> None:
     """No line to linearise: that range's row is None and the update is the other range's
@@ -702,7 +786,7 @@ def test_a_state_of_the_wrong_shape_is_refused_with_what_is_wrong() -> None:
     assert native.core is not None
     with pytest.raises(ValueError, match="q: 4 numbers expected"):
         native.core.State((0, 0, 0), (0, 0, 0), (1, 0, 0), (0, 0, 0), (0, 0, 0), (),
-                          np.eye(15), [0.0] * 15, (), (), 9.8)
+                          np.eye(15), [0.0] * 15, (), (), 9.8, ())
 
 
 def test_new_eskf_runs_the_core_it_is_handed_and_a_filter_chooses_once() -> None:

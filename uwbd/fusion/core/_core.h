@@ -42,11 +42,19 @@ typedef struct {
 /* A RowPolicy tuple read into pol (1), a callable to call back per row (0), or -1. */
 int uwbd_get_decide(PyObject *decide, UwbdRowPolicy *pol);
 /* The rows of Eskf.sequential_update on P (n×n) and dx (n) in place; work: 3n doubles.
- * Returns the list of (ν, S, w, numerical) rows and in *fused whether any was fused. */
+ * Returns the list of (ν, S, w, numerical) rows and in *fused whether any was fused; each
+ * row's weight into weights (m, or NULL), 0 where it was not fused. */
 PyObject *uwbd_scalar_rows(double *P, double *dx, Py_ssize_t n, const double *H,
                            const double *y, const double *Rv, Py_ssize_t m, PyObject *decide,
                            const UwbdRowPolicy *pol, Py_ssize_t c0, Py_ssize_t c1,
-                           double *work, int *fused);
+                           double *work, int *fused, double *weights);
+/* The same rows on a sub-filter of the bank (P_k n×n, its offset e n, in place), each with
+ * the weight the main filter gave it (weights; rows of weight 0 and rows of the anchor it
+ * leaves out, row_anchor[i] == left_out, skipped); work: 3n doubles. */
+void uwbd_bank_rows(double *P, double *e, Py_ssize_t n, const double *H, const double *y,
+                    const double *Rv, Py_ssize_t m, const double *weights,
+                    const long long *row_anchor, long long left_out, Py_ssize_t c0,
+                    Py_ssize_t c1, double *work);
 
 /* -- the range model's rows (mm_range.c) ------------------------------------------------ */
 /* The rows of the ranges (measurements.range_rows) into H (k×n, zeroed) and y, each

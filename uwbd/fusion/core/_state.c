@@ -13,8 +13,14 @@
  *
  * The state is one block of doubles, exported read-only through the buffer protocol:
  * p (3), v (3), q (4: w x y z), b_g (3), b_a (3), b_r (m), P (n×n, row-major), last_dx (n),
- * with n = 15 + m. Python reads it as numpy views (eskf.CoreEskf) and changes it only
- * through the operations. The reference is eskf.Eskf, in pure Python. */
+ * with n = 15 + m; then the bank (§6, integrity): K sub-filters, each leaving one anchor's
+ * ranges out, as their offsets from the nominal state d_k (K×n) and covariances P_k
+ * (K×n×n). Every operation above advances the bank with the main filter: the same Φ and
+ * Q, the same rows with the main filter's weights (its decisions), but anchor k's rows
+ * left out of sub-filter k; a turn of the heading, a restore or a move starts the bank
+ * anew from the main filter (d_k = 0, P_k = P). Python reads the block as numpy views
+ * (eskf.CoreEskf) and changes it only through the operations. The reference is eskf.Eskf,
+ * in pure Python. */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
@@ -37,6 +43,9 @@ typedef struct {
     double *work;            /* n×n + 15 n + 4 n doubles */
     double *rows;            /* range rows: H (k×n), y, R; grown as needed */
     Py_ssize_t rows_cap;
+    Py_ssize_t bank;         /* K sub-filters: */
+    long long *bank_anchor;  /* the anchor each leaves out */
+    double *bank_d, *bank_P; /* in the exported block: d_k (K×n), P_k (K×n×n) */
 } State;
 
 static void set_identity(double *A, Py_ssize_t n)
@@ -46,12 +55,22 @@ static void set_identity(double *A, Py_ssize_t n)
         A[i * n + i] = 1.0;
 }
 
-/* State(p, v, q, b_g, b_a, b_r, P0, q_rate, tau, markov_var, gravity): n from P0 (n×n),
- * m = n − 15 range-model states: b_r, tau (inf: a random walk, else Gauss–Markov with τ)
- * and markov_var (their stationary variances) m each, q_rate n. */
+/* The bank started anew from the main filter: d_k = 0, P_k = P. */
+static void bank_reset(State *self)
+{
+    Py_ssize_t n = self->n;
+    memset(self->bank_d, 0, sizeof(double) * (size_t)(self->bank * n));
+    for (Py_ssize_t k = 0; k < self->bank; k++)
+        memcpy(self->bank_P + k * n * n, self->P, sizeof(double) * (size_t)(n * n));
+}
+
+/* State(p, v, q, b_g, b_a, b_r, P0, q_rate, tau, markov_var, gravity, bank): n from P0
+ * (n×n), m = n − 15 range-model states: b_r, tau (inf: a random walk, else Gauss–Markov
+ * with τ) and markov_var (their stationary variances) m each, q_rate n; bank: the anchor
+ * each sub-filter leaves out (a sequence of ints, maybe empty). */
 static int state_init(State *self, PyObject *args, PyObject *kwds)
 {
-    PyObject *po, *vo, *qo, *bgo, *bao, *bro, *P0, *qro, *tauo, *varo;
+    PyObject *po, *vo, *qo, *bgo, *bao, *bro, *P0, *qro, *tauo, *varo, *banko;
     double gravity;
     if (kwds != NULL && PyDict_GET_SIZE(kwds)) {
         PyErr_SetString(PyExc_TypeError, "State takes no keyword arguments");
@@ -61,9 +80,25 @@ static int state_init(State *self, PyObject *args, PyObject *kwds)
         PyErr_SetString(PyExc_TypeError, "a State is made once");
         return -1;
     }
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOOd", &po, &vo, &qo, &bgo, &bao, &bro, &P0, &qro,
-                          &tauo, &varo, &gravity))
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOdO", &po, &vo, &qo, &bgo, &bao, &bro, &P0, &qro,
+                          &tauo, &varo, &gravity, &banko))
         return -1;
+    PyObject *bank_seq = PySequence_Fast(banko, "bank: a sequence of anchor ids");
+    if (bank_seq == NULL)
+        return -1;
+    Py_ssize_t K = PySequence_Fast_GET_SIZE(bank_seq);
+    self->bank_anchor = PyMem_Calloc((size_t)(K + 1), sizeof(long long));
+    if (self->bank_anchor == NULL) {
+        Py_DECREF(bank_seq);
+        PyErr_NoMemory();
+        return -1;
+    }
+    for (Py_ssize_t k = 0; k < K; k++)
+        self->bank_anchor[k] = PyLong_AsLongLong(PySequence_Fast_GET_ITEM(bank_seq, k));
+    Py_DECREF(bank_seq);
+    if (PyErr_Occurred())
+        return -1;
+    self->bank = K;
     Py_buffer Pb;
     if (uwbd_get_doubles(P0, &Pb, -1, 0, "P0") < 0)
         return -1;
@@ -76,7 +111,7 @@ static int state_init(State *self, PyObject *args, PyObject *kwds)
     Py_ssize_t m = n - N_CORE;
     self->n = n;
     self->m = m;
-    self->len = NOM_AUX + m + n * n + n;
+    self->len = NOM_AUX + m + n * n + n + K * (n + n * n);
     self->x = PyMem_Calloc((size_t)self->len, sizeof(double));
     self->decay_epoch = PyMem_Calloc((size_t)(m + 1), sizeof(double));
     self->q_rate = PyMem_Calloc((size_t)n, sizeof(double));
@@ -94,8 +129,11 @@ static int state_init(State *self, PyObject *args, PyObject *kwds)
     self->p = x + NOM_P, self->v = x + NOM_V, self->q = x + NOM_Q, self->bg = x + NOM_BG;
     self->ba = x + NOM_BA, self->br = x + NOM_AUX, self->P = x + NOM_AUX + m;
     self->last_dx = self->P + n * n;
+    self->bank_d = self->last_dx + n;
+    self->bank_P = self->bank_d + K * n;
     memcpy(self->P, Pb.buf, sizeof(double) * n * n);
     PyBuffer_Release(&Pb);
+    bank_reset(self);
     double *tau = PyMem_Calloc((size_t)(2 * m + 1), sizeof(double)), *var = tau + m;
     if (tau == NULL) {
         PyErr_NoMemory();
@@ -134,6 +172,7 @@ static void state_dealloc(State *self)
     PyMem_Free(self->markov_tau);
     PyMem_Free(self->work);
     PyMem_Free(self->rows);
+    PyMem_Free(self->bank_anchor);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
@@ -218,27 +257,78 @@ static void nonzeros(const double M[N_CORE][N_CORE], int nz[N_CORE][N_CORE], int
     }
 }
 
-/* The Gauss–Markov states over T: m ← φ m, P ← φ P φ on their rows and columns, plus
- * σ² (1 − φ²) on the diagonal; φ = e^(−T/τ). The epoch's decays follow when kept. */
-static void markov_step(State *self, double T)
+/* The Gauss–Markov states' decays over T: φ = e^(−T/τ), one per state (phi: n_markov). */
+static void markov_decays(const State *self, double T, double *phi)
+{
+    for (Py_ssize_t a = 0; a < self->n_markov; a++)
+        phi[a] = exp(-T / self->markov_tau[a]);
+}
+
+/* Their step on one filter's covariance P and offsets x (the nominal b_r, or a sub-filter's
+ * d_k, both indexed by column): x ← φ x, P ← φ P φ on their rows and columns, plus
+ * σ² (1 − φ²) on the diagonal. */
+static void markov_apply(const State *self, double *P, double *x, const double *phi)
 {
     Py_ssize_t n = self->n;
-    double *P = self->P;
-    if (self->n_markov == 0)
-        return;
-    self->epoch_propagated = 1;
     for (Py_ssize_t a = 0; a < self->n_markov; a++) {
         Py_ssize_t c = self->markov_cols[a];
-        double phi = exp(-T / self->markov_tau[a]);
         for (Py_ssize_t j = 0; j < n; j++)
-            P[c * n + j] *= phi;
+            P[c * n + j] *= phi[a];
         for (Py_ssize_t i = 0; i < n; i++)
-            P[i * n + c] *= phi;
-        P[c * n + c] += self->markov_var[a] * (1.0 - phi * phi);
-        self->br[c - N_CORE] *= phi;
-        if (self->keep_transition)
-            self->decay_epoch[c - N_CORE] *= phi;
+            P[i * n + c] *= phi[a];
+        P[c * n + c] += self->markov_var[a] * (1.0 - phi[a] * phi[a]);
+        x[c] *= phi[a];
     }
+}
+
+/* The Gauss–Markov step over T on the main filter (the epoch's decays follow when kept)
+ * and on every sub-filter of the bank. */
+static void markov_step(State *self, double T)
+{
+    if (self->n_markov == 0)
+        return;
+    Py_ssize_t n = self->n;
+    double *phi = self->work + n * n; /* (propagate's rows use only the first 15 n) */
+    markov_decays(self, T, phi);
+    self->epoch_propagated = 1;
+    markov_apply(self, self->P, self->br - N_CORE, phi);
+    if (self->keep_transition)
+        for (Py_ssize_t a = 0; a < self->n_markov; a++)
+            self->decay_epoch[self->markov_cols[a] - N_CORE] *= phi[a];
+    for (Py_ssize_t k = 0; k < self->bank; k++)
+        markov_apply(self, self->bank_P + k * n * n, self->bank_d + k * n, phi);
+}
+
+/* P[:15, :] ← Φ P[:15, :], then P[:, :15] ← P[:, :15] Φᵀ, along rows, over Φ's nonzero
+ * terms (nz, count); rows: 15 n doubles of scratch. */
+static void phi_apply(double *P, Py_ssize_t n, const double Phi[N_CORE][N_CORE],
+                      const int nz[N_CORE][N_CORE], const int count[N_CORE], double *rows)
+{
+    for (int i = 0; i < N_CORE; i++) {
+        double *restrict out = rows + i * n;
+        for (Py_ssize_t j = 0; j < n; j++)
+            out[j] = 0.0;
+        for (int c = 0; c < count[i]; c++) {
+            const double g = Phi[i][nz[i][c]], *restrict in = P + nz[i][c] * n;
+            for (Py_ssize_t j = 0; j < n; j++)
+                out[j] += g * in[j];
+        }
+    }
+    memcpy(P, rows, sizeof(double) * N_CORE * n);
+    for (int j = 0; j < N_CORE; j++) {
+        double *restrict out = rows + j * n;
+        for (Py_ssize_t i = 0; i < n; i++)
+            out[i] = 0.0;
+        for (int c = 0; c < count[j]; c++) {
+            const int k = nz[j][c];
+            const double g = Phi[j][k];
+            for (Py_ssize_t i = 0; i < n; i++)
+                out[i] += P[i * n + k] * g;
+        }
+    }
+    for (Py_ssize_t i = 0; i < n; i++)
+        for (int j = 0; j < N_CORE; j++)
+            P[i * n + j] = rows[j * n + i];
 }
 
 /* propagate(): F from the interval's mean specific force and rate, Φ = I + A + A²/2 with
@@ -303,37 +393,27 @@ void uwbd_state_propagate(PyObject *state)
             }
         memcpy(self->Phi_epoch, tmp, sizeof tmp);
     }
-    /* P[:15, :] ← Φ P[:15, :], then P[:, :15] ← P[:, :15] Φᵀ, along rows */
     double *rows = self->work;
-    for (int i = 0; i < N_CORE; i++) {
-        double *restrict out = rows + i * n;
-        for (Py_ssize_t j = 0; j < n; j++)
-            out[j] = 0.0;
-        for (int c = 0; c < count[i]; c++) {
-            const double g = Phi[i][nz[i][c]], *restrict in = P + nz[i][c] * n;
-            for (Py_ssize_t j = 0; j < n; j++)
-                out[j] += g * in[j];
-        }
-    }
-    memcpy(P, rows, sizeof(double) * N_CORE * n);
-    for (int j = 0; j < N_CORE; j++) {
-        double *restrict out = rows + j * n;
-        for (Py_ssize_t i = 0; i < n; i++)
-            out[i] = 0.0;
-        for (int c = 0; c < count[j]; c++) {
-            const int k = nz[j][c];
-            const double g = Phi[j][k];
-            for (Py_ssize_t i = 0; i < n; i++)
-                out[i] += P[i * n + k] * g;
-        }
-    }
-    for (Py_ssize_t i = 0; i < n; i++)
-        for (int j = 0; j < N_CORE; j++)
-            P[i * n + j] = rows[j * n + i];
+    phi_apply(P, n, Phi, nz, count, rows);
     for (Py_ssize_t i = 0; i < n; i++)
         P[i * n + i] += self->q_rate[i] * T;
+    for (Py_ssize_t k = 0; k < self->bank; k++) { /* the sub-filters: the same Φ and Q */
+        double *Pk = self->bank_P + k * n * n, *d = self->bank_d + k * n, dc[N_CORE];
+        phi_apply(Pk, n, Phi, nz, count, rows);
+        for (Py_ssize_t i = 0; i < n; i++)
+            Pk[i * n + i] += self->q_rate[i] * T;
+        for (int i = 0; i < N_CORE; i++) {
+            double s = 0.0;
+            for (int c = 0; c < count[i]; c++)
+                s += Phi[i][nz[i][c]] * d[nz[i][c]];
+            dc[i] = s;
+        }
+        memcpy(d, dc, sizeof dc);
+    }
     markov_step(self, T);
     uwbd_symmetrise(P, n);
+    for (Py_ssize_t k = 0; k < self->bank; k++)
+        uwbd_symmetrise(self->bank_P + k * n * n, n);
     self->T = 0.0;
     memset(self->sum_fn, 0, sizeof self->sum_fn);
     memset(self->sum_w, 0, sizeof self->sum_w);
@@ -385,23 +465,11 @@ static PyObject *state_take_epoch(State *self, PyObject *const *args, Py_ssize_t
     return Py_BuildValue("(NNN)", phi, decay, dv);
 }
 
-/* coast(dt, accel_sigma, yaw_rate_sigma, tilt_rate_sigma): no IMU, constant velocity:
- * p += v dt; Φ = [[I, dt I], [0, I]] on (δp, δv); white acceleration on (δp, δv); the
- * range-model random walks and Gauss–Markov decays; the attitude's σ grows about the
- * vertical at the yaw rate, about the horizontal at the tilt rate. */
-static PyObject *state_coast(State *self, PyObject *const *args, Py_ssize_t nargs)
+/* coast's covariance step on one filter's P before the Gauss–Markov step: Φ = [[I, dt I],
+ * [0, I]] on (δp, δv), white acceleration of variance qa on them, the random walks. */
+static void coast_P(const State *self, double *P, double dt, double qa)
 {
-    double a[4];
-    if (check_args(nargs, 4, "coast"))
-        return NULL;
-    for (int i = 0; i < 4; i++)
-        if ((a[i] = PyFloat_AsDouble(args[i])) == -1.0 && PyErr_Occurred())
-            return NULL;
-    double dt = a[0], qa = a[1] * a[1], yaw2 = a[2] * a[2], tilt2 = a[3] * a[3];
     Py_ssize_t n = self->n;
-    double *P = self->P;
-    for (int i = 0; i < 3; i++)
-        self->p[i] += self->v[i] * dt;
     for (int i = 0; i < 3; i++)
         for (Py_ssize_t j = 0; j < n; j++)
             P[i * n + j] += dt * P[(3 + i) * n + j];
@@ -416,15 +484,43 @@ static PyObject *state_coast(State *self, PyObject *const *args, Py_ssize_t narg
     }
     for (Py_ssize_t i = N_CORE; i < n; i++)
         P[i * n + i] += self->q_rate[i] * dt;
-    markov_step(self, dt);
+}
+
+/* coast(dt, accel_sigma, yaw_rate_sigma, tilt_rate_sigma): no IMU, constant velocity:
+ * p += v dt; Φ = [[I, dt I], [0, I]] on (δp, δv); white acceleration on (δp, δv); the
+ * range-model random walks and Gauss–Markov decays; the attitude's σ grows about the
+ * vertical at the yaw rate, about the horizontal at the tilt rate. */
+static PyObject *state_coast(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double a[4];
+    if (check_args(nargs, 4, "coast"))
+        return NULL;
+    for (int i = 0; i < 4; i++)
+        if ((a[i] = PyFloat_AsDouble(args[i])) == -1.0 && PyErr_Occurred())
+            return NULL;
+    double dt = a[0], qa = a[1] * a[1], yaw2 = a[2] * a[2], tilt2 = a[3] * a[3];
+    Py_ssize_t n = self->n;
+    for (int i = 0; i < 3; i++)
+        self->p[i] += self->v[i] * dt;
     double R[3][3];
     uwbd_quat_to_matrix(self->q, R);
+    coast_P(self, self->P, dt, qa);
+    for (Py_ssize_t k = 0; k < self->bank; k++) {
+        double *d = self->bank_d + k * n;
+        for (int i = 0; i < 3; i++)
+            d[i] += dt * d[3 + i];
+        coast_P(self, self->bank_P + k * n * n, dt, qa);
+    }
+    markov_step(self, dt);
     const double *up = R[2]; /* the navigation z axis in body axes (Rᵀ e_z) */
-    for (int i = 0; i < 3; i++)
-        for (int j = 0; j < 3; j++)
-            P[(TH0 + i) * n + TH0 + j] +=
-                (yaw2 - tilt2) * dt * (up[i] * up[j]) + (i == j ? tilt2 * dt : 0.0);
-    uwbd_symmetrise(P, n);
+    for (Py_ssize_t k = -1; k < self->bank; k++) {
+        double *P = k < 0 ? self->P : self->bank_P + k * n * n;
+        for (int i = 0; i < 3; i++)
+            for (int j = 0; j < 3; j++)
+                P[(TH0 + i) * n + TH0 + j] += (yaw2 - tilt2) * dt * (up[i] * up[j]) +
+                                              (i == j ? tilt2 * dt : 0.0);
+        uwbd_symmetrise(P, n);
+    }
     Py_RETURN_NONE;
 }
 
@@ -452,12 +548,22 @@ static void inject(State *self, const double *Pw, const double *dx)
                       {-0.5 * dx[TH0 + 2], 1.0, 0.5 * dx[TH0]},
                       {0.5 * dx[TH0 + 1], -0.5 * dx[TH0], 1.0}};
     uwbd_transform_attitude(self->P, n, G);
+    for (Py_ssize_t k = 0; k < self->bank; k++) {
+        double *Pk = self->bank_P + k * n * n;
+        uwbd_symmetrise(Pk, n);
+        uwbd_transform_attitude(Pk, n, G);
+    }
     memcpy(self->last_dx, dx, sizeof(double) * n);
 }
 
-/* The rows (H m×n, y, R) fused on a copy of P; injected when any row was fused. */
+/* The rows (H m×n, y, R) fused on a copy of P; injected when any row was fused. With a
+ * bank, each sub-filter takes the same rows with the main filter's weights but those of
+ * its anchor (row_anchor: each row's anchor, −1 for none), from its
+ * offset d_k; then d_k ← d_k − δx (the nominal state moved by δx) and P_k is reset by the
+ * main filter's G. */
 static PyObject *fuse_rows(State *self, const double *H, const double *y, const double *Rv,
-                           Py_ssize_t m, PyObject *decide, Py_ssize_t c0, Py_ssize_t c1)
+                           Py_ssize_t m, PyObject *decide, Py_ssize_t c0, Py_ssize_t c1,
+                           const long long *row_anchor)
 {
     UwbdRowPolicy policy;
     int got = uwbd_get_decide(decide, &policy);
@@ -465,13 +571,25 @@ static PyObject *fuse_rows(State *self, const double *H, const double *y, const 
         return NULL;
     Py_ssize_t n = self->n;
     double *Pw = self->work, *dx = Pw + n * n, *scratch = dx + n;
+    double *weights = NULL;
+    if (self->bank && (weights = PyMem_Malloc(sizeof(double) * (size_t)(m + 1))) == NULL)
+        return PyErr_NoMemory();
     memcpy(Pw, self->P, sizeof(double) * n * n);
     memset(dx, 0, sizeof(double) * n);
     int fused;
     PyObject *rows = uwbd_scalar_rows(Pw, dx, n, H, y, Rv, m, decide, got ? &policy : NULL,
-                                      c0, c1, scratch, &fused);
-    if (rows != NULL && fused)
+                                      c0, c1, scratch, &fused, weights);
+    if (rows != NULL && fused) {
+        for (Py_ssize_t k = 0; k < self->bank; k++) {
+            double *Pk = self->bank_P + k * n * n, *d = self->bank_d + k * n;
+            uwbd_bank_rows(Pk, d, n, H, y, Rv, m, weights, row_anchor, self->bank_anchor[k],
+                           c0, c1, scratch);
+            for (Py_ssize_t a = 0; a < n; a++)
+                d[a] -= dx[a];
+        }
         inject(self, Pw, dx);
+    }
+    PyMem_Free(weights);
     return rows;
 }
 
@@ -514,21 +632,57 @@ static void release_rows(Py_buffer view[3])
         PyBuffer_Release(&view[i]);
 }
 
-/* update(H, y, R, decide, c0, c1) -> [(ν, S, w, numerical)]: the rows H (m×n) with
+/* Each row's anchor, for the bank: the first rows' from ids (a sequence of ints, or None:
+ * no row has one), the rest −1; a new array of m (free with PyMem_Free), or NULL with an
+ * error set. */
+static long long *row_anchors(PyObject *ids, Py_ssize_t m)
+{
+    long long *out = PyMem_Malloc(sizeof(long long) * (size_t)(m + 1));
+    if (out == NULL)
+        return (long long *)PyErr_NoMemory();
+    for (Py_ssize_t i = 0; i < m; i++)
+        out[i] = -1;
+    if (ids == Py_None)
+        return out;
+    PyObject *seq = PySequence_Fast(ids, "anchor ids: a sequence of ints or None");
+    if (seq == NULL || PySequence_Fast_GET_SIZE(seq) > m) {
+        if (seq != NULL)
+            PyErr_SetString(PyExc_ValueError, "anchor ids: at most one per row");
+        Py_XDECREF(seq);
+        PyMem_Free(out);
+        return NULL;
+    }
+    for (Py_ssize_t i = 0; i < PySequence_Fast_GET_SIZE(seq); i++)
+        out[i] = PyLong_AsLongLong(PySequence_Fast_GET_ITEM(seq, i));
+    Py_DECREF(seq);
+    if (PyErr_Occurred()) {
+        PyMem_Free(out);
+        return NULL;
+    }
+    return out;
+}
+
+/* update(H, y, R, decide, c0, c1, ids) -> [(ν, S, w, numerical)]: the rows H (m×n) with
  * residuals y at the prior and variances R fused one scalar at a time (§5), the weights
  * by `decide` (a RowPolicy tuple, or a callable called back per row), states [c0, c1)
- * considered (not corrected); then injected and reset. */
+ * considered (not corrected); then injected and reset. ids: the first rows' anchors, for
+ * the bank (None: no row is an anchor's). */
 static PyObject *state_update(State *self, PyObject *const *args, Py_ssize_t nargs)
 {
     Py_ssize_t c0, c1, n = self->n;
-    if (check_args(nargs, 6, "update") || considered(args + 4, n, &c0, &c1) < 0)
+    if (check_args(nargs, 7, "update") || considered(args + 4, n, &c0, &c1) < 0)
         return NULL;
     Py_buffer view[3];
     Py_ssize_t m;
     static const char *const names[3] = {"y", "H", "R"};
     if (get_rows(args[0], args[1], args[2], n, view, &m, names) < 0)
         return NULL;
-    PyObject *out = fuse_rows(self, view[1].buf, view[0].buf, view[2].buf, m, args[3], c0, c1);
+    PyObject *out = NULL;
+    long long *anchor = row_anchors(args[6], m);
+    if (anchor != NULL)
+        out = fuse_rows(self, view[1].buf, view[0].buf, view[2].buf, m, args[3], c0, c1,
+                        anchor);
+    PyMem_Free(anchor);
     release_rows(view);
     return out;
 }
@@ -549,7 +703,7 @@ static int rows_room(State *self, Py_ssize_t need)
 }
 
 /* fuse_ranges(lever, anchors (k×3), ranges (k), var (k), columns, lever_columns, H_extra,
- *             y_extra, R_extra, decide, c0, c1) -> rows
+ *             y_extra, R_extra, decide, c0, c1, ids) -> rows
  * A tight epoch: the range rows (mm_range.c), then the extra rows (ZUPT, NHC, height), as
  * update fuses them; one row per range and extra row, in order. A range whose antenna is
  * within 1 mm of its anchor, or whose distance is not a number, has no line to linearise:
@@ -559,7 +713,7 @@ static PyObject *state_fuse_ranges(State *self, PyObject *const *args, Py_ssize_
 {
     Py_ssize_t c0, c1, n = self->n;
     double lever[3];
-    if (check_args(nargs, 12, "fuse_ranges") || considered(args + 10, n, &c0, &c1) < 0 ||
+    if (check_args(nargs, 13, "fuse_ranges") || considered(args + 10, n, &c0, &c1) < 0 ||
         uwbd_get_vec(args[0], lever, 3, "lever"))
         return NULL;
     Py_buffer view[3], extra[3]; /* ranges, anchors, var; y, H, R of the extra rows */
@@ -598,7 +752,11 @@ static PyObject *state_fuse_ranges(State *self, PyObject *const *args, Py_ssize_
     memcpy(H + k * n, extra[1].buf, sizeof(double) * e * n);
     memcpy(y + k, extra[0].buf, sizeof(double) * e);
     memcpy(R + k, extra[2].buf, sizeof(double) * e);
-    out = fuse_rows(self, H, y, R, m, args[9], c0, c1);
+    long long *anchor = row_anchors(args[12], m); /* (ids: the ranges' anchors) */
+    if (anchor == NULL)
+        goto done;
+    out = fuse_rows(self, H, y, R, m, args[9], c0, c1, anchor);
+    PyMem_Free(anchor);
     if (out != NULL && lineless) /* and its row is None */
         for (Py_ssize_t a = 0; a < k; a++)
             if (!UWBD_LINE_OF(dist[a]))
@@ -717,20 +875,14 @@ static PyObject *state_rotate_heading(State *self, PyObject *const *args, Py_ssi
         P[k * n + j] = P[j * n + k] = 0.0;
     P[k * n + k] = sigma * sigma;
     uwbd_transform_attitude(P, n, Rt);
+    bank_reset(self);
     Py_RETURN_NONE;
 }
 
-/* clamp(limit) -> bool: every variance within its limit (n variances) and none negative;
- * a row and its column scaled by √(limit/P_ii), which keeps P positive semi-definite;
- * True when anything was clamped. */
-static PyObject *state_clamp(State *self, PyObject *const *args, Py_ssize_t nargs)
+/* One filter's P (n×n) with every variance within its limit L and none negative (scale:
+ * n doubles of scratch); 1 when anything was clamped. */
+static int clamp_P(double *P, Py_ssize_t n, const double *L, double *scale)
 {
-    Py_ssize_t n = self->n;
-    Py_buffer Lb;
-    if (check_args(nargs, 1, "clamp") || uwbd_get_doubles(args[0], &Lb, n, 0, "limit") < 0)
-        return NULL;
-    const double *L = Lb.buf;
-    double *P = self->P, *scale = self->work;
     int out = 0;
     for (Py_ssize_t i = 0; i < n && !out; i++)
         out = P[i * n + i] > L[i] || P[i * n + i] < 0.0; /* (NaN is neither) */
@@ -747,6 +899,22 @@ static PyObject *state_clamp(State *self, PyObject *const *args, Py_ssize_t narg
             if (P[i * n + i] < 0.0)
                 P[i * n + i] = 1e-9;
     }
+    return out;
+}
+
+/* clamp(limit) -> bool: every variance within its limit (n variances) and none negative;
+ * a row and its column scaled by √(limit/P_ii), which keeps P positive semi-definite;
+ * True when anything was clamped (the main filter's; each sub-filter's is clamped on its
+ * own). */
+static PyObject *state_clamp(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_ssize_t n = self->n;
+    Py_buffer Lb;
+    if (check_args(nargs, 1, "clamp") || uwbd_get_doubles(args[0], &Lb, n, 0, "limit") < 0)
+        return NULL;
+    int out = clamp_P(self->P, n, Lb.buf, self->work);
+    for (Py_ssize_t k = 0; k < self->bank; k++)
+        clamp_P(self->bank_P + k * n * n, n, Lb.buf, self->work);
     PyBuffer_Release(&Lb);
     return PyBool_FromLong(out);
 }
@@ -761,11 +929,13 @@ static PyObject *state_widen(State *self, PyObject *const *args, Py_ssize_t narg
     double f = PyFloat_AsDouble(args[2]);
     if (f == -1.0 && PyErr_Occurred())
         return NULL;
-    double *P = self->P;
-    for (Py_ssize_t i = 0; i < n; i++)
-        for (Py_ssize_t j = 0; j < n; j++)
-            P[i * n + j] = P[i * n + j] * (i >= c0 && i < c1 ? f : 1.0) *
-                           (j >= c0 && j < c1 ? f : 1.0);
+    for (Py_ssize_t k = -1; k < self->bank; k++) {
+        double *P = k < 0 ? self->P : self->bank_P + k * n * n;
+        for (Py_ssize_t i = 0; i < n; i++)
+            for (Py_ssize_t j = 0; j < n; j++)
+                P[i * n + j] = P[i * n + j] * (i >= c0 && i < c1 ? f : 1.0) *
+                               (j >= c0 && j < c1 ? f : 1.0);
+    }
     Py_RETURN_NONE;
 }
 
@@ -776,12 +946,15 @@ static PyObject *state_add_variances(State *self, PyObject *const *args, Py_ssiz
     double *d = self->work;
     if (check_args(nargs, 1, "add_variances") || uwbd_get_vec(args[0], d, n, "variances"))
         return NULL;
-    for (Py_ssize_t i = 0; i < n; i++)
-        self->P[i * n + i] += d[i];
+    for (Py_ssize_t k = -1; k < self->bank; k++) {
+        double *P = k < 0 ? self->P : self->bank_P + k * n * n;
+        for (Py_ssize_t i = 0; i < n; i++)
+            P[i * n + i] += d[i];
+    }
     Py_RETURN_NONE;
 }
 
-/* set_covariance(P): P taken as given (n×n; a restore). */
+/* set_covariance(P): P taken as given (n×n; a restore); the bank anew. */
 static PyObject *state_set_covariance(State *self, PyObject *const *args, Py_ssize_t nargs)
 {
     Py_ssize_t n = self->n;
@@ -791,10 +964,12 @@ static PyObject *state_set_covariance(State *self, PyObject *const *args, Py_ssi
         return NULL;
     memcpy(self->P, Pb.buf, sizeof(double) * n * n);
     PyBuffer_Release(&Pb);
+    bank_reset(self);
     Py_RETURN_NONE;
 }
 
-/* move_to(p, v): the position and velocity set (a position reset to a UWB fix). */
+/* move_to(p, v): the position and velocity set (a position reset to a UWB fix); the bank
+ * anew. */
 static PyObject *state_move_to(State *self, PyObject *const *args, Py_ssize_t nargs)
 {
     double p[3], v[3];
@@ -803,6 +978,7 @@ static PyObject *state_move_to(State *self, PyObject *const *args, Py_ssize_t na
         return NULL;
     memcpy(self->p, p, sizeof p);
     memcpy(self->v, v, sizeof v);
+    bank_reset(self);
     Py_RETURN_NONE;
 }
 
@@ -878,6 +1054,20 @@ static PyObject *get_n(State *self, void *c)
     return PyLong_FromSsize_t(self->n);
 }
 
+static PyObject *get_bank(State *self, void *c)
+{
+    (void)c;
+    PyObject *out = PyTuple_New(self->bank);
+    for (Py_ssize_t k = 0; out != NULL && k < self->bank; k++) {
+        PyObject *a = PyLong_FromLongLong(self->bank_anchor[k]);
+        if (a == NULL)
+            Py_CLEAR(out);
+        else
+            PyTuple_SET_ITEM(out, k, a);
+    }
+    return out;
+}
+
 static PyObject *get_keep(State *self, void *c)
 {
     (void)c;
@@ -901,6 +1091,8 @@ static PyGetSetDef state_getset[] = {
     {"interval_s", (getter)get_interval, NULL, "Time integrated since the last propagate.",
      NULL},
     {"n", (getter)get_n, NULL, "The error state's size.", NULL},
+    {"bank", (getter)get_bank, NULL, "The anchor each sub-filter of the bank leaves out.",
+     NULL},
     {"keep_transition", (getter)get_keep, (setter)set_keep,
      "Φ kept over the epoch for take_epoch(with_phi) (smoothing); off, not multiplied.", NULL},
     {NULL, NULL, NULL, NULL, NULL},
@@ -914,9 +1106,10 @@ static PyMethodDef state_methods[] = {
     METHOD(propagate, "propagate(): P over the interval integrated, §3."),
     METHOD(take_epoch, "take_epoch(with_phi) -> (Φ_core or None, decays or None, Σ R f Δt)."),
     METHOD(coast, "coast(dt, accel_sigma, yaw_rate_sigma, tilt_rate_sigma): no IMU, §3."),
-    METHOD(update, "update(H, y, R, decide, c0, c1) -> rows: fused, injected, reset, §5."),
-    METHOD(fuse_ranges, "fuse_ranges(lever, anchors, ranges, var, columns, H, y, R, decide, "
-                        "c0, c1) -> rows or None: a tight epoch, §4-5."),
+    METHOD(update, "update(H, y, R, decide, c0, c1, ids) -> rows: fused, injected, reset, "
+                   "§5."),
+    METHOD(fuse_ranges, "fuse_ranges(lever, anchors, ranges, var, columns, lever_columns, H, "
+                        "y, R, decide, c0, c1, ids) -> rows: a tight epoch, §4-5."),
     METHOD(range_check, "range_check(lever, anchors, ranges, var, columns, out) -> None or "
                         "bool: U, y and single-fault estimates for the checks, §6."),
     METHOD(rotate_heading, "rotate_heading(dpsi, yaw_sigma): the coarse heading's turn."),
@@ -933,7 +1126,8 @@ PyTypeObject UwbdStateType = {
     PyVarObject_HEAD_INIT(NULL, 0)
     .tp_name = "uwbd.fusion.core._core.State",
     .tp_doc = "The error-state EKF's numbers and the operations on them (docs/ekf.md); "
-              "read-only through the buffer protocol: p v q b_g b_a b_r P last_dx.",
+              "read-only through the buffer protocol: p v q b_g b_a b_r P last_dx, then the "
+              "bank's d_k and P_k.",
     .tp_basicsize = sizeof(State),
     .tp_flags = Py_TPFLAGS_DEFAULT,
     .tp_new = PyType_GenericNew,

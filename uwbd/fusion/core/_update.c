@@ -54,13 +54,44 @@ static double policy_weight(const UwbdRowPolicy *pol, Py_ssize_t i, double nu, d
     return w * w;
 }
 
+/* u = P h (P n×n). */
+static void times(const double *P, const double *h, Py_ssize_t n, double *u)
+{
+    for (Py_ssize_t a = 0; a < n; a++) {
+        double s = 0.0;
+        for (Py_ssize_t b = 0; b < n; b++)
+            s += P[a * n + b] * h[b];
+        u[a] = s;
+    }
+}
+
+/* One row fused with weight w > 0 (u = P h, S = h u + r, innovation ν): k = u / (S +
+ * r (1/w − 1)), zero on [c0, c1); x += k ν; P ← P − M − Mᵀ with M = k (u − S k / 2)ᵀ. */
+static void fuse_row(double *P, double *x, Py_ssize_t n, const double *u, double *k,
+                     double *g, double nu, double s, double r, double w, Py_ssize_t c0,
+                     Py_ssize_t c1)
+{
+    double denom = s + r * (1.0 / w - 1.0);
+    for (Py_ssize_t a = 0; a < n; a++)
+        k[a] = (a >= c0 && a < c1) ? 0.0 : u[a] / denom;
+    for (Py_ssize_t a = 0; a < n; a++)
+        x[a] += k[a] * nu;
+    double half_s = 0.5 * s;
+    for (Py_ssize_t a = 0; a < n; a++)
+        g[a] = u[a] - half_s * k[a];
+    for (Py_ssize_t a = 0; a < n; a++)
+        for (Py_ssize_t b = 0; b < n; b++)
+            P[a * n + b] = (P[a * n + b] - k[a] * g[b]) - k[b] * g[a];
+}
+
 /* For each row: u = P h, S = h u + R_i, ν = y_i − h dx; the weight w from the policy (or
  * `decide(i, ν, S)`); k = u / (S + R_i (1/w − 1)), zero on [c0, c1) (considered states);
- * dx += k ν; P ← P − M − Mᵀ with M = k (u − S k / 2)ᵀ. */
+ * dx += k ν; P ← P − M − Mᵀ with M = k (u − S k / 2)ᵀ. Each row's weight into weights
+ * (unless NULL; 0 where the row was not fused). */
 PyObject *uwbd_scalar_rows(double *P, double *dx, Py_ssize_t n, const double *H,
                            const double *y, const double *Rv, Py_ssize_t m, PyObject *decide,
                            const UwbdRowPolicy *pol, Py_ssize_t c0, Py_ssize_t c1,
-                           double *work, int *fused)
+                           double *work, int *fused, double *weights)
 {
     *fused = 0;
     if (pol != NULL && pol->count != m) {
@@ -73,12 +104,7 @@ PyObject *uwbd_scalar_rows(double *P, double *dx, Py_ssize_t n, const double *H,
     double *u = work, *k = work + n, *g = work + 2 * n;
     for (Py_ssize_t i = 0; i < m; i++) {
         const double *h = H + i * n;
-        for (Py_ssize_t a = 0; a < n; a++) {
-            double s = 0.0;
-            for (Py_ssize_t b = 0; b < n; b++)
-                s += P[a * n + b] * h[b];
-            u[a] = s;
-        }
+        times(P, h, n, u);
         double r = Rv[i];
         double hu = 0.0, hdx = 0.0;
         for (Py_ssize_t a = 0; a < n; a++) {
@@ -111,20 +137,42 @@ PyObject *uwbd_scalar_rows(double *P, double *dx, Py_ssize_t n, const double *H,
             break;
         }
         PyList_SET_ITEM(rows, i, row);
-        if (numerical || !(weight > 0.0)) /* 0, negative or NaN: not fused */
+        if (numerical || !(weight > 0.0)) { /* 0, negative or NaN: not fused */
+            if (weights != NULL)
+                weights[i] = 0.0;
             continue;
+        }
+        if (weights != NULL)
+            weights[i] = weight;
         *fused = 1;
-        double denom = s + r * (1.0 / weight - 1.0);
-        for (Py_ssize_t a = 0; a < n; a++)
-            k[a] = (a >= c0 && a < c1) ? 0.0 : u[a] / denom;
-        for (Py_ssize_t a = 0; a < n; a++)
-            dx[a] += k[a] * nu;
-        double half_s = 0.5 * s;
-        for (Py_ssize_t a = 0; a < n; a++)
-            g[a] = u[a] - half_s * k[a];
-        for (Py_ssize_t a = 0; a < n; a++)
-            for (Py_ssize_t b = 0; b < n; b++)
-                P[a * n + b] = (P[a * n + b] - k[a] * g[b]) - k[b] * g[a];
+        fuse_row(P, dx, n, u, k, g, nu, s, r, weight, c0, c1);
     }
     return rows;
+}
+
+/* The rows on sub-filter k (see _core.h): ν = y_i − h e, S = h P_k h + R_i, the main
+ * filter's weight, the same gain and Joseph form as above; a row whose S is not finite or
+ * below R_i is skipped here alone. */
+void uwbd_bank_rows(double *P, double *e, Py_ssize_t n, const double *H, const double *y,
+                    const double *Rv, Py_ssize_t m, const double *weights,
+                    const long long *row_anchor, long long left_out, Py_ssize_t c0,
+                    Py_ssize_t c1, double *work)
+{
+    double *u = work, *k = work + n, *g = work + 2 * n;
+    for (Py_ssize_t i = 0; i < m; i++) {
+        double weight = weights[i];
+        if (!(weight > 0.0) || row_anchor[i] == left_out)
+            continue;
+        const double *h = H + i * n;
+        times(P, h, n, u);
+        double r = Rv[i], hu = 0.0, he = 0.0;
+        for (Py_ssize_t a = 0; a < n; a++) {
+            hu += h[a] * u[a];
+            he += h[a] * e[a];
+        }
+        double s = hu + r, nu = y[i] - he;
+        if (!(isfinite(s) && isfinite(nu)) || s < r * (1 - 1e-9))
+            continue;
+        fuse_row(P, e, n, u, k, g, nu, s, r, weight, c0, c1);
+    }
 }

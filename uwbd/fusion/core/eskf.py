@@ -15,6 +15,7 @@ import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
+import numpy.typing as npt
 
 from uwbd.fusion.core.layout import BA_, BG_, N_CORE, P_, TH_, V_
 from uwbd.fusion.core.noise import GRAVITY_MPS2, ImuNoise, process_noise
@@ -45,11 +46,18 @@ class Eskf:
                  b_g: Vector = (0.0, 0.0, 0.0),
                  b_a: Vector = (0.0, 0.0, 0.0), aux_tau_s: Array | None = None,
                  aux_sigma: Array | None = None, gravity_mps2: float = GRAVITY_MPS2,
-                 b_r: Vector | None = None) -> None:
+                 b_r: Vector | None = None, bank: Sequence[int] = ()) -> None:
         """``n_range_bias`` range-model states follow ``P0`` (their values ``b_r``, zeros
         by default): by default random walks (``noise.range_bias``); where ``aux_tau_s`` is
         finite, first-order Gauss–Markov processes with time constant ``τ`` and stationary σ
-        ``aux_sigma`` (§3). ``gravity_mps2``: the local gravity the INS subtracts."""
+        ``aux_sigma`` (§3). ``gravity_mps2``: the local gravity the INS subtracts.
+
+        ``bank``: the anchor each sub-filter of the bank leaves out (§6, integrity). A
+        sub-filter is kept as its offset from the nominal state ``bank_d[k]`` and its
+        covariance ``bank_P[k]``; every operation advances it with the main filter (the same
+        Φ and Q, the same rows and weights, but its anchor's rows left out), and a turn of
+        the heading, a restored covariance or a moved state starts the bank anew from the
+        main filter."""
         self.gravity_mps2 = float(gravity_mps2)
         self.n = N_CORE + n_range_bias
         if P0.shape != (self.n, self.n):
@@ -60,6 +68,10 @@ class Eskf:
         if self.b_r.shape != (n_range_bias,):
             raise ValueError(f"b_r must hold {n_range_bias} numbers, got {self.b_r.shape}")
         self.P = P0.astype(float).copy()
+        self.bank = tuple(int(a) for a in bank)
+        self._bank_anchor = np.array(self.bank, dtype=np.int64)
+        self.bank_d = np.zeros((len(self.bank), self.n))
+        self.bank_P = np.repeat(self.P[None], len(self.bank), axis=0)
         self.noise = noise
         self._reset_interval()
         self.last_dx = np.zeros(self.n)
@@ -165,6 +177,12 @@ class Eskf:
         P[:, k] = 0.0
         P[k, k] = yaw_sigma_rad**2
         self.P = T.T @ P @ T
+        self._bank_reset()
+
+    def _bank_reset(self) -> None:
+        """The bank started anew from the main filter: ``d_k = 0``, ``P_k = P``."""
+        self.bank_d[:] = 0.0
+        self.bank_P[:] = self.P
 
     def propagate(self) -> None:
         """``P ← Φ P Φᵀ + Q_d`` over the interval accumulated by :meth:`predict` (§3).
@@ -193,12 +211,19 @@ class Eskf:
         P[:N_CORE, :] = Phi @ P[:N_CORE, :]
         P[:, :N_CORE] = P[:, :N_CORE] @ Phi.T
         P[self._diag] += self._q_rate * T
+        Pk, d = self.bank_P, self.bank_d  # the sub-filters: the same Φ and Q
+        Pk[:, :N_CORE, :] = Phi @ Pk[:, :N_CORE, :]
+        Pk[:, :, :N_CORE] = Pk[:, :, :N_CORE] @ Phi.T
+        Pk[:, self._diag[0], self._diag[1]] += self._q_rate * T
+        d[:, :N_CORE] = d[:, :N_CORE] @ Phi.T
         self._markov_step(P, T)
         self.P = 0.5 * (P + P.T)
+        self.bank_P = 0.5 * (Pk + Pk.transpose(0, 2, 1))
         self._reset_interval()
 
     def _markov_step(self, P: Array, T: float) -> None:
-        """Gauss–Markov states decay towards 0 over ``T``; Q keeps their σ stationary."""
+        """Gauss–Markov states decay towards 0 over ``T``; Q keeps their σ stationary; on
+        the main filter's ``P`` and every sub-filter's."""
         m = self._markov
         if not len(m):
             return
@@ -208,6 +233,11 @@ class Eskf:
         P[k, :] *= phi[:, None]
         P[:, k] *= phi[None, :]
         P[k, k] += self._markov_var * (1.0 - phi * phi)
+        Pk = self.bank_P
+        Pk[:, k, :] *= phi[None, :, None]
+        Pk[:, :, k] *= phi[None, None, :]
+        Pk[:, k, k] += self._markov_var * (1.0 - phi * phi)
+        self.bank_d[:, k] *= phi
         self.b_r[m] *= phi
         if self.keep_transition:
             self._decay_epoch[m] *= phi
@@ -221,22 +251,27 @@ class Eskf:
         p, v = self.p, self.v
         for i in range(3):
             p[i] += v[i] * dt
-        P = self.P
-        P[P_, :] += dt * P[V_, :]
-        P[:, P_] += dt * P[:, V_]
-        qa = accel_sigma_mps2**2
-        for i in range(3):
-            P[i, i] += qa * dt**3 / 3
-            P[i, 3 + i] += qa * dt**2 / 2
-            P[3 + i, i] += qa * dt**2 / 2
-            P[3 + i, 3 + i] += qa * dt
-        aux = self._diag[0][N_CORE:]
-        P[aux, aux] += self._q_rate[N_CORE:] * dt  # the range-model random walks
+        self.bank_d[:, P_] += dt * self.bank_d[:, V_]
+        P, Pk = self.P, self.bank_P
+        for Q in (P, *Pk):  # the main filter's, then each sub-filter's
+            Q[P_, :] += dt * Q[V_, :]
+            Q[:, P_] += dt * Q[:, V_]
+            qa = accel_sigma_mps2**2
+            for i in range(3):
+                Q[i, i] += qa * dt**3 / 3
+                Q[i, 3 + i] += qa * dt**2 / 2
+                Q[3 + i, i] += qa * dt**2 / 2
+                Q[3 + i, 3 + i] += qa * dt
+            aux = self._diag[0][N_CORE:]
+            Q[aux, aux] += self._q_rate[N_CORE:] * dt  # the range-model random walks
         self._markov_step(P, dt)
         up_b = self.R[2]  # the navigation z axis in body axes (Rᵀ e_z)
-        P[TH_, TH_] += (yaw_rate_sigma_rps**2 - tilt_rate_sigma_rps**2) * dt * np.outer(
+        turn = (yaw_rate_sigma_rps**2 - tilt_rate_sigma_rps**2) * dt * np.outer(
             up_b, up_b) + tilt_rate_sigma_rps**2 * dt * np.eye(3)
+        P[TH_, TH_] += turn
+        Pk[:, TH_, TH_] += turn
         self.P = 0.5 * (P + P.T)
+        self.bank_P = 0.5 * (Pk + Pk.transpose(0, 2, 1))
 
     def tilt_from_gravity_rad(self, f_body: Array) -> float:
         """Angle between the vertical and a specific force measured at rest, turned into the
@@ -258,9 +293,12 @@ class Eskf:
     # -- measurement update --------------------------------------------------------------
     def sequential_update(self, H: Array, y: Array, R: Array,
                           decide: Callable[[int, float, float], float] | RowPolicy,
-                          considered: slice | None = None) -> list[Row]:
+                          considered: slice | None = None,
+                          ids: Sequence[int] | None = None) -> list[Row]:
         """Fuse rows ``H`` (m×n), residuals ``y`` at the prior, noise variances ``R``, one
-        scalar at a time (docs/ekf.md §5), then inject and reset.
+        scalar at a time (docs/ekf.md §5), then inject and reset. ``ids``: the first rows'
+        anchors (the bank's sub-filter of an anchor leaves its rows out; None: no row is an
+        anchor's).
 
         For row ``i``, at the state the rows before it left: innovation ``ν = y_i − H_i δx``
         with variance ``S = H_i P H_iᵀ + R_i``; ``decide(i, ν, S)`` returns the weight ``w``
@@ -276,6 +314,10 @@ class Eskf:
 
         A row whose ``S`` is not finite or falls below ``R_i`` (``P`` lost its positive
         semi-definiteness along ``h``) is skipped and marked ``numerical``.
+
+        The bank's sub-filters take the same rows from their offsets, each with the weight
+        the main filter gave it (its decision), but the rows of the anchor they leave out;
+        then ``d_k ← d_k − δx``.
         """
         P = self.P
         dx = np.zeros(self.n)
@@ -301,14 +343,46 @@ class Eskf:
             dx += k * nu
             P = P - np.outer(k, u) - np.outer(u, k) + s * np.outer(k, k)
         if fused:
+            if len(self.bank):
+                anchors = np.full(len(y), -1, dtype=np.int64)
+                if ids is not None:
+                    anchors[:len(ids)] = ids
+                self._bank_rows(H, y, R, [r.weight for r in rows], anchors, considered)
+                self.bank_d -= dx
             self.P = 0.5 * (P + P.T)
             self.inject(dx)
         return rows
 
+    def _bank_rows(self, H: Array, y: Array, R: Array, weights: Sequence[float],
+                   anchors: npt.NDArray[np.int64], considered: slice | None) -> None:
+        """The rows on every sub-filter at once (see :meth:`sequential_update`)."""
+        Pk, e = self.bank_P, self.bank_d
+        for i, w in enumerate(weights):
+            if not w > 0.0:
+                continue
+            h, r = H[i], float(R[i])
+            U = Pk @ h  # (K, n)
+            S = U @ h + r
+            nu = y[i] - e @ h
+            with np.errstate(invalid="ignore"):
+                ok = (self._bank_anchor != anchors[i]) & np.isfinite(S) & np.isfinite(nu) \
+                    & ~(r * (1 - 1e-9) > S)
+            j = np.flatnonzero(ok)
+            if not len(j):
+                continue
+            U, S, nu = U[j], S[j], nu[j]
+            k = U / (S + r * (1.0 / w - 1.0))[:, None]
+            if considered is not None:
+                k[:, considered] = 0.0
+            e[j] += k * nu[:, None]
+            g = U - 0.5 * S[:, None] * k
+            Pk[j] -= k[:, :, None] * g[:, None, :] + g[:, :, None] * k[:, None, :]
+
     def fuse_ranges(self, lever_m: Array, anchors: Array, ranges: Array, var: Array,
                     columns: tuple[tuple[int, ...], ...], lever_columns: tuple[int, ...],
                     extra: tuple[Array, Array, Array], decide: RowPolicy,
-                    considered: slice | None) -> list[RawRow | None] | None:
+                    considered: slice | None, ids: Sequence[int] = ()
+                    ) -> list[RawRow | None] | None:
         """A tight epoch in one call on the C core (:class:`CoreEskf`): the rows of
         :func:`uwbd.fusion.models.measurements.range_rows` (``columns``: each range's
         range-model state columns; ``lever_columns``: the lever arm's error states, or
@@ -341,20 +415,22 @@ class Eskf:
         P = self.P
         P[TH_, :] = G_th @ P[TH_, :]
         P[:, TH_] = P[:, TH_] @ G_th.T
+        if len(self.bank):
+            Pk = self.bank_P = 0.5 * (self.bank_P + self.bank_P.transpose(0, 2, 1))
+            Pk[:, TH_, :] = G_th @ Pk[:, TH_, :]
+            Pk[:, :, TH_] = Pk[:, :, TH_] @ G_th.T
 
     # -- keeping P sane, repairs ----------------------------------------------------------
     def clamp_covariance(self, max_core_sigma: Array, max_aux_sigma: float) -> bool:
         """Variances within bounds and none negative; True if anything was clamped. Scaling
         a row and its column keeps ``P`` positive semi-definite."""
         limit = self._clamp_limit_of(max_core_sigma, max_aux_sigma)
-        d = np.diag(self.P)
-        if not ((d > limit).any() or (d < 0).any()):
+        for k in range(len(self.bank)):  # (each sub-filter on its own)
+            self.bank_P[k] = _clamped(self.bank_P[k], limit)
+        P = _clamped(self.P, limit)
+        if P is self.P:
             return False
-        scale = np.sqrt(np.minimum(1.0, limit / np.maximum(d, 1e-300)))
-        self.P = self.P * scale[:, None] * scale[None, :]
-        negative = np.diag(self.P) < 0
-        if negative.any():
-            self.P[self._diag] = np.where(negative, 1e-9, np.diag(self.P))
+        self.P = P
         return True
 
     def _clamp_limit_of(self, max_core_sigma: Array, max_aux_sigma: float) -> Array:
@@ -371,18 +447,22 @@ class Eskf:
         d = np.ones(self.n)
         d[states] = sigma_factor
         self.P = self.P * d[:, None] * d[None, :]
+        self.bank_P = self.bank_P * d[None, :, None] * d[None, None, :]
 
     def add_variances(self, d: Array) -> None:
         """``P_ii += d_i``: what a step did not see (an unseen interval, a held heading)."""
         self.P[self._diag] += d
+        self.bank_P[:, self._diag[0], self._diag[1]] += d
 
     def set_covariance(self, P: Array) -> None:
-        """``P`` restored (the last finite one, widened)."""
+        """``P`` restored (the last finite one, widened); the bank anew."""
         self.P = np.array(P, dtype=float).reshape(self.n, self.n)
+        self._bank_reset()
 
     def move_to(self, p: Vector, v: Vector) -> None:
-        """Position and velocity set (a position reset to a UWB fix)."""
+        """Position and velocity set (a position reset to a UWB fix); the bank anew."""
         self.p, self.v = [float(c) for c in p], [float(c) for c in v]
+        self._bank_reset()
 
     def pose_numbers(self, aligned: bool) -> PoseNumbers | None:
         """The pose's covariance, horizontal σ, position, velocity and orientation (x, y, z,
@@ -418,6 +498,20 @@ class Eskf:
         w, x, y, z = self.q
         r = np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
         return math.sqrt(max(float(r @ self.P[TH_, TH_] @ r), 0.0))
+
+
+def _clamped(P: Array, limit: Array) -> Array:
+    """``P`` with every variance within ``limit`` and none negative (a row and its column
+    scaled, which keeps it positive semi-definite); ``P`` itself when nothing was out."""
+    d = np.diag(P)
+    if not ((d > limit).any() or (d < 0).any()):
+        return P
+    scale = np.sqrt(np.minimum(1.0, limit / np.maximum(d, 1e-300)))
+    P = P * scale[:, None] * scale[None, :]
+    negative = np.diag(P) < 0
+    if negative.any():
+        P[np.diag_indices(len(P))] = np.where(negative, 1e-9, np.diag(P))
+    return P
 
 
 def _turned(q: Vector, tx: float, ty: float, tz: float) -> list[float]:

@@ -9,7 +9,7 @@ reference: ``UWBD_PURE_PYTHON=1`` runs it, and tests/test_core.py holds the two 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -41,7 +41,7 @@ class CoreEskf(Eskf):
                  n_range_bias: int = 0, b_g: Vector = (0.0, 0.0, 0.0),
                  b_a: Vector = (0.0, 0.0, 0.0), aux_tau_s: Array | None = None,
                  aux_sigma: Array | None = None, gravity_mps2: float = GRAVITY_MPS2,
-                 b_r: Vector | None = None, *, core: Core) -> None:
+                 b_r: Vector | None = None, bank: Sequence[int] = (), *, core: Core) -> None:
         if core is None:
             raise RuntimeError("CoreEskf: no C core given (uwbd --version says whether it "
                                "is built)")
@@ -59,14 +59,20 @@ class CoreEskf(Eskf):
         self._state = self.core_state = state = core.State(
             [float(c) for c in p], [float(c) for c in v], [float(c) for c in q],
             [float(c) for c in b_g], [float(c) for c in b_a], b_r.tolist(), P0,
-            q_rate.tolist(), tau.tolist(), var.tolist(), self.gravity_mps2)
+            q_rate.tolist(), tau.tolist(), var.tolist(), self.gravity_mps2,
+            [int(a) for a in bank])
         x = np.frombuffer(state, dtype=float)  # the C type's memory, read-only
         m = n_range_bias
         (self.p, self.v, self.q, self.b_g, self.b_a) = (
             x[start:stop] for start, stop in NOMINAL.values())
         self.b_r = x[NOMINAL_AUX:NOMINAL_AUX + m]
         self.P = x[NOMINAL_AUX + m:NOMINAL_AUX + m + n * n].reshape(n, n)
-        self.last_dx = x[NOMINAL_AUX + m + n * n:]
+        end = NOMINAL_AUX + m + n * n + n
+        self.last_dx = x[end - n:end]
+        self.bank = tuple(state.bank)
+        k = len(self.bank)
+        self.bank_d = x[end:end + k * n].reshape(k, n)
+        self.bank_P = x[end + k * n:].reshape(k, n, n)
         self._clamp_key: tuple[Array, float] | None = None
         self._clamp_limit = np.zeros(0)
         # the hot operations, bound once
@@ -112,17 +118,19 @@ class CoreEskf(Eskf):
 
     def sequential_update(self, H: Array, y: Array, R: Array,
                           decide: Callable[[int, float, float], float] | RowPolicy,
-                          considered: slice | None = None) -> list[Row]:
+                          considered: slice | None = None,
+                          ids: Sequence[int] | None = None) -> list[Row]:
         c0, c1 = _columns(considered, self.n)
         rows = self._update(np.ascontiguousarray(H, dtype=float),
                             np.ascontiguousarray(y, dtype=float),
-                            np.ascontiguousarray(R, dtype=float), decide, c0, c1)
+                            np.ascontiguousarray(R, dtype=float), decide, c0, c1, ids)
         return [Row(*r) for r in rows]
 
     def fuse_ranges(self, lever_m: Array, anchors: Array, ranges: Array, var: Array,
                     columns: tuple[tuple[int, ...], ...], lever_columns: tuple[int, ...],
                     extra: tuple[Array, Array, Array], decide: RowPolicy,
-                    considered: slice | None) -> list[RawRow | None] | None:
+                    considered: slice | None, ids: Sequence[int] = ()
+                    ) -> list[RawRow | None] | None:
         c0, c1 = _columns(considered, self.n)
         H, y, R = extra
         rows: list[RawRow | None] = self._fuse_ranges(
@@ -130,7 +138,7 @@ class CoreEskf(Eskf):
             np.ascontiguousarray(ranges, dtype=float), np.ascontiguousarray(var, dtype=float),
             columns, lever_columns, np.ascontiguousarray(H, dtype=float),
             np.ascontiguousarray(y, dtype=float), np.ascontiguousarray(R, dtype=float), decide,
-            c0, c1)
+            c0, c1, ids)
         return rows
 
     def inject(self, dx: Array) -> None:

@@ -117,7 +117,7 @@ class EpochFusion:
                 self.est.lever, anchors, ranges, self.cfg.range_sigma_m**2 * r_scale,
                 tuple(self.installation.range_columns.get(a, ()) for a in ids),
                 self.installation.lever_index, extra[:3], self._row_policy(keys, True),
-                self._considered())
+                self._considered(), ids)
             assert outcome is not None  # (fuses_ranges: the C core's, which always fuses)
             if None in outcome:  # ranges with no line to linearise: left out, unreported
                 keys = [k for k, o in zip(keys, outcome, strict=True) if o is not None]
@@ -145,8 +145,9 @@ class EpochFusion:
                 fix_ok = float(y[idx] @ np.linalg.solve(Sl, y[idx])) <= self._gate_3
             except np.linalg.LinAlgError:
                 fix_ok = False
+        anchor_of_row = [int(key) if kind == "range" else -1 for kind, key in keys]
         outcome = ekf.sequential_update(H, y, R, self._row_policy(keys, fix_ok),
-                                        self._considered())
+                                        self._considered(), anchor_of_row)
         return self._outcomes(t_ns, keys, outcome)
 
     def check_anchors(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,

@@ -20,6 +20,7 @@ moves.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -58,12 +59,14 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
                 recent: list[tuple[int, Array]], fixes: list[tuple[int, Array]],
                 waited_long: bool, carry: Start | None, n_bias: int,
                 lever_m: Array, n_multipath: int = 0, n_lever: int = 0,
-                rest_m: Array | None = None, *, core: Core) -> tuple[Eskf, str] | None:
+                rest_m: Array | None = None, bank: Sequence[int] = (), *, core: Core
+                ) -> tuple[Eskf, str] | None:
     """The new filter state and how it started (``rest``, ``moving``, ``carried``), or
     ``None`` while the evidence is not enough yet. ``recent``: fixes of the last
     ``init_static_s``; ``fixes``: all kept ones (time-ordered); ``rest_m``: their epochs
     solved together (:meth:`~uwbd.fusion.policy.fixes.RangeWindow.rest_fix`), the position
-    at rest where given, else the fixes' mean."""
+    at rest where given, else the fixes' mean; ``bank``: the anchors the bank's sub-filters
+    each leave out."""
     means = window.means()
     if means is None:
         return None
@@ -128,5 +131,5 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
                             np.zeros(n_lever)])
     b_r = carry.b_r_m if carry is not None and len(carry.b_r_m) == n_aux else None
     ekf = new_eskf(core, p, v, q, P0, cfg.imu_noise, n_aux, b_g=bg, b_a=ba, aux_tau_s=tau,
-                   aux_sigma=sigma, gravity_mps2=cfg.gravity_mps2, b_r=b_r)
+                   aux_sigma=sigma, gravity_mps2=cfg.gravity_mps2, b_r=b_r, bank=bank)
     return ekf, how

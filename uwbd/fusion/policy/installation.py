@@ -49,6 +49,7 @@ class Installation:
         self.mp_index: dict[int, int] = {}
         self.range_columns: dict[int, tuple[int, ...]] = {}
         self.lever_index: tuple[int, ...] = ()  # the lever arm's error states (none: off)
+        self.bank: tuple[int, ...] = ()  # the anchors the bank's sub-filters leave out
         self.new_anchors = False  # reported since the last start: laid out before the next
         self.lay_out()
 
@@ -82,6 +83,9 @@ class Installation:
         last = first + len(self.mp_index)
         self.lever_index = (last, last + 1, last + 2) if cfg.lever_arm_sigma_m > 0 and tight \
             else ()
+        # the bank's sub-filters, one leaving each anchor out (integrity): tight only, where
+        # each range is a row of its own
+        self.bank = tuple(ids) if tight else ()
         # each anchor's range-model state columns, for its range rows
         self.range_columns = {a: tuple(c for index in (self.bias_index, self.mp_index)
                                        if (c := index.get(a)) is not None) for a in ids}
