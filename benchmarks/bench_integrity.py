@@ -44,6 +44,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import os
 import time
 import traceback
 from collections.abc import Callable
@@ -108,9 +109,11 @@ def findings(poses: list[Pose], truth_t_ns: np.ndarray | None = None,
                     else q.health.vertical_protection_m for q in poses])
     healthy = np.array([q.health.healthy for q in poses])
     off = np.linalg.norm(e, axis=1) > 0.5
-    return (text + f"; HPL covers {np.mean(np.hypot(e[:, 0], e[:, 1]) <= hpl):.2%} "
-            f"(median {np.nanmedian(hpl):.2f} m), VPL {np.mean(np.abs(e[:, 2]) <= vpl):.2%} "
-            f"(median {np.nanmedian(vpl):.2f} m); healthy {healthy.mean():.0%}, "
+    known = np.isfinite(hpl) & np.isfinite(vpl)
+    beyond = known & ((np.hypot(e[:, 0], e[:, 1]) > hpl) | (np.abs(e[:, 2]) > vpl))
+    return (text + f"; error beyond the PL {beyond.mean():.2%} (PL unknown "
+            f"{1 - known.mean():.1%}; median HPL {np.nanmedian(hpl):.2f} m, VPL "
+            f"{np.nanmedian(vpl):.2f} m); healthy {healthy.mean():.0%}, "
             f"healthy while >0.5 m off {int((healthy & off).sum())}")
 
 
@@ -295,7 +298,7 @@ def random_installations(cases: int, report: bool) -> None:
     """The campaign of :mod:`uwbd.tools.campaign`, one line per fault kind."""
     first = REPORT_SEEDS_FROM if report else 0
     t0 = time.perf_counter()
-    rows = campaign(range(first, first + cases))
+    rows = campaign(range(first, first + cases), workers=os.cpu_count() or 1)
     print(f"random installations: seeds {first}..{first + cases - 1} ("
           f"{'report' if report else 'tuning'} set), each fault-free and with its fault; "
           f"poses after the first {WARM_UP_S:.0f} s; alert limits {HORIZONTAL_ALERT_M} m h, "

@@ -429,7 +429,7 @@ def test_the_bank_advances_with_the_main_filter_in_c_as_in_the_reference(
     """Each sub-filter's offset and covariance through every operation that moves P, C
     against the reference: propagation, a tight epoch (its anchor's rows left out, the main
     filter's weights), rows of no anchor, coasting, the repairs; and a turn of the heading
-    starts the bank anew."""
+    turns the bank too, and a move starts it anew."""
     bank = (0, 2, 3, 5, 7)
     fast, slow = twin(2 * 8, seed, bank=bank)
     rng = np.random.default_rng(seed)
@@ -477,6 +477,12 @@ def test_the_bank_advances_with_the_main_filter_in_c_as_in_the_reference(
         same_bank()
     for f in (fast, slow):
         f.rotate_heading(0.3, 0.1)
+    same_bank()
+    R = fast.R
+    assert np.abs(fast.bank_d[:, TH_] @ R[2]).max() < 1e-12  # no heading offset left
+    assert np.abs(fast.bank_d[:, :3]).max() > 0  # what they know of the position kept
+    for f in (fast, slow):
+        f.move_to(f.p, f.v)
         assert not np.abs(f.bank_d).any()
         assert np.array_equal(f.bank_P, np.repeat(f.P[None], len(bank), axis=0))
 

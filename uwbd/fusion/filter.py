@@ -24,6 +24,8 @@ the sequence it runs; each step's policy has a module of its own:
 * :mod:`.policy.propagation` — each IMU sample judged, kept and integrated;
 * :mod:`.policy.recovery` — the start, the restarts and what triggers them;
 * :mod:`.policy.fusing` — one epoch's rows fused and each row's outcome;
+* :mod:`.policy.integrity` — the bank's solution separation (:mod:`.checks.separation`):
+  protection levels over each anchor's fault, and which anchor's separation is too large;
 * :mod:`.policy.outputs` — the pose, the health record, the diagnostics;
 * :mod:`.core.eskf` — the algebra (docs/ekf.md).
 
@@ -72,6 +74,7 @@ from uwbd.fusion.policy.fixes import RangeWindow
 from uwbd.fusion.policy.fusing import EpochFusion
 from uwbd.fusion.policy.health import HealthMonitor
 from uwbd.fusion.policy.installation import Installation
+from uwbd.fusion.policy.integrity import Integrity
 from uwbd.fusion.policy.mirror import MirrorSide
 from uwbd.fusion.policy.propagation import NUMERICAL_ERRORS, ImuPropagation
 from uwbd.fusion.policy.recovery import NS, Recovery
@@ -115,6 +118,7 @@ class Filter:
         self.imu = ImuPropagation(config, self.est, self.window, self.recovery, core)
         self.fusion = EpochFusion(config, self.est, self.installation, self.findings,
                                   self.imu.fresh)
+        self.integrity = Integrity(config.health, config.range_sigma_m, self.est, self.findings)
         self._lever = tuple(float(c) for c in config.lever_arm_m)
         self._constraints_ns = -(2**63)  # when ZUPT, NHC and height rows were last added
         self._tilt_check_ns = -(2**63)
@@ -271,6 +275,7 @@ class Filter:
         ids, anchors, ranges, r_scale = self.fusion.exclude_findings(t_ns, ids, anchors,
                                                                      ranges, r_scale, reports)
         reports += self.fusion.fuse_epoch(t_ns, ids, anchors, ranges, r_scale, fix, constraints)
+        self.integrity.after_update(t_ns)
         self.recovery.fade(t_ns, ids, anchors, ranges)
         if self.recovery.check_divergence(t_ns, ids, anchors, ranges):
             linked = False

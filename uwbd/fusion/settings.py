@@ -29,6 +29,8 @@ class HealthLimits:
     vertical_alert_limit_m: float = 1.5
     # each range's unmodelled bias at most (ARAIM's nominal bias): antenna patterns, delays
     range_bias_bound_m: float = 0.05
+    # the solution-separation test's false alerts, shared over the anchors, per test
+    false_alert_probability: float = 1e-4
     window_count: int = 12  # innovations judged over the last this many UWB measurements
     max_rejected_fraction: float = 0.5
     max_mean_nis: float = 6.0  # of the window's NIS, each clipped at 25

@@ -24,6 +24,7 @@ issue's alert limits (0.5 m horizontal, 1.0 m vertical). Seeds 0–999 are the s
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -265,12 +266,23 @@ class KindRow:
     rmse_ratio_max: float
 
 
-def campaign(seeds: range) -> list[KindRow]:
-    """Every case of ``seeds`` fault-free and faulty, summed per fault kind."""
+def run_pair(seed: int) -> tuple[str, Score, Score]:
+    """A case's fault kind, its fault-free and its faulty run."""
+    case = draw_case(seed)
+    return case.fault, run_case(case, False), run_case(case, True)
+
+
+def campaign(seeds: range, workers: int = 1) -> list[KindRow]:
+    """Every case of ``seeds`` fault-free and faulty, summed per fault kind; over
+    ``workers`` processes."""
     runs: dict[str, list[tuple[Score, Score]]] = {kind: [] for kind in FAULTS}
-    for seed in seeds:
-        case = draw_case(seed)
-        runs[case.fault].append((run_case(case, False), run_case(case, True)))
+    if workers > 1:
+        with concurrent.futures.ProcessPoolExecutor(workers) as pool:
+            pairs = list(pool.map(run_pair, seeds))
+    else:
+        pairs = [run_pair(seed) for seed in seeds]
+    for kind, free, bad in pairs:
+        runs[kind].append((free, bad))
     rows = []
     for kind, pairs in runs.items():
         if not pairs:

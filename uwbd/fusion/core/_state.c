@@ -9,6 +9,7 @@
  *   range_check    §6   an epoch's innovations and single-fault estimates, for the checks
  *   rotate_heading §6   the coarse heading alignment's turn
  *   clamp, widen, add_variances, set_covariance, move_to: §6's covariance and state repairs
+ *   adopt          §6   the main filter becomes one of the bank's sub-filters
  *   pose_numbers        the pose's numbers
  *
  * The state is one block of doubles, exported read-only through the buffer protocol:
@@ -17,8 +18,8 @@
  * ranges out, as their offsets from the nominal state d_k (K×n) and covariances P_k
  * (K×n×n). Every operation above advances the bank with the main filter: the same Φ and
  * Q, the same rows with the main filter's weights (its decisions), but anchor k's rows
- * left out of sub-filter k; a turn of the heading, a restore or a move starts the bank
- * anew from the main filter (d_k = 0, P_k = P). Python reads the block as numpy views
+ * left out of sub-filter k; the heading's turn turns them too; a restore or a move starts
+ * the bank anew from the main filter (d_k = 0, P_k = P). Python reads the block as numpy views
  * (eskf.CoreEskf) and changes it only through the operations. The reference is eskf.Eskf,
  * in pure Python. */
 #define PY_SSIZE_T_CLEAN
@@ -849,7 +850,9 @@ done:
 
 /* rotate_heading(dpsi, yaw_sigma): q turned by dpsi about the navigation z axis; the
  * heading's variance restarted at yaw_sigma², uncorrelated; roll and pitch kept (the
- * attitude error turned into the navigation frame for it, and back). */
+ * attitude error turned into the navigation frame for it, and back). The same on each
+ * sub-filter of the bank, whose heading offset is dropped (the heading is the aligner's,
+ * for all): the rest of what it knows, without its anchor, is kept. */
 static PyObject *state_rotate_heading(State *self, PyObject *const *args, Py_ssize_t nargs)
 {
     if (check_args(nargs, 2, "rotate_heading"))
@@ -869,13 +872,20 @@ static PyObject *state_rotate_heading(State *self, PyObject *const *args, Py_ssi
         for (int j = 0; j < 3; j++)
             Rt[i][j] = R[j][i];
     Py_ssize_t n = self->n, k = TH0 + 2; /* the navigation-frame yaw error */
-    double *P = self->P;
-    uwbd_transform_attitude(P, n, R);
-    for (Py_ssize_t j = 0; j < n; j++)
-        P[k * n + j] = P[j * n + k] = 0.0;
-    P[k * n + k] = sigma * sigma;
-    uwbd_transform_attitude(P, n, Rt);
-    bank_reset(self);
+    for (Py_ssize_t b = -1; b < self->bank; b++) { /* the main filter, then each sub-filter */
+        double *P = b < 0 ? self->P : self->bank_P + b * n * n;
+        uwbd_transform_attitude(P, n, R);
+        for (Py_ssize_t j = 0; j < n; j++)
+            P[k * n + j] = P[j * n + k] = 0.0;
+        P[k * n + k] = sigma * sigma;
+        uwbd_transform_attitude(P, n, Rt);
+        if (b < 0)
+            continue;
+        double *th = self->bank_d + b * n + TH0; /* its heading offset dropped: R δθ's z */
+        double yaw = R[2][0] * th[0] + R[2][1] * th[1] + R[2][2] * th[2];
+        for (int i = 0; i < 3; i++)
+            th[i] -= Rt[i][2] * yaw;
+    }
     Py_RETURN_NONE;
 }
 
@@ -964,6 +974,28 @@ static PyObject *state_set_covariance(State *self, PyObject *const *args, Py_ssi
         return NULL;
     memcpy(self->P, Pb.buf, sizeof(double) * n * n);
     PyBuffer_Release(&Pb);
+    bank_reset(self);
+    Py_RETURN_NONE;
+}
+
+/* adopt(k): the main filter becomes sub-filter k (an anchor's fault found and excluded,
+ * §6): the nominal state corrected by d_k as an update would inject it, P ← P_k reset by
+ * its G; then the bank anew. */
+static PyObject *state_adopt(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (check_args(nargs, 1, "adopt"))
+        return NULL;
+    Py_ssize_t k = PyLong_AsSsize_t(args[0]), n = self->n;
+    if (k == -1 && PyErr_Occurred())
+        return NULL;
+    if (k < 0 || k >= self->bank) {
+        PyErr_Format(PyExc_IndexError, "adopt: sub-filter %zd of %zd", k, self->bank);
+        return NULL;
+    }
+    double *Pw = self->work, *dx = Pw + n * n;
+    memcpy(Pw, self->bank_P + k * n * n, sizeof(double) * (size_t)(n * n));
+    memcpy(dx, self->bank_d + k * n, sizeof(double) * (size_t)n);
+    inject(self, Pw, dx);
     bank_reset(self);
     Py_RETURN_NONE;
 }
@@ -1118,6 +1150,7 @@ static PyMethodDef state_methods[] = {
     METHOD(add_variances, "add_variances(d): P_ii += d_i."),
     METHOD(set_covariance, "set_covariance(P): P restored."),
     METHOD(move_to, "move_to(p, v): position and velocity set."),
+    METHOD(adopt, "adopt(k): the main filter becomes sub-filter k; the bank anew."),
     METHOD(pose_numbers, "pose_numbers(aligned) -> the pose's numbers or None."),
     {NULL, NULL, 0, NULL},
 };

@@ -33,6 +33,7 @@ class Eskf:
     """The filter's state and the algebra on it; policy (gating, modes) lives in ``Filter``."""
 
     fuses_ranges = False  # fuse_ranges takes a tight epoch in one call (CoreEskf)
+    bank_resets = 0  # how often the bank started anew (a turn, a restore, a move)
     core_state: object = None  # CoreEskf's C State, which the C IMU front integrates into
     # lists of floats here, numpy views of the C core's memory in CoreEskf
     p: list[float] | Array
@@ -55,9 +56,9 @@ class Eskf:
         ``bank``: the anchor each sub-filter of the bank leaves out (§6, integrity). A
         sub-filter is kept as its offset from the nominal state ``bank_d[k]`` and its
         covariance ``bank_P[k]``; every operation advances it with the main filter (the same
-        Φ and Q, the same rows and weights, but its anchor's rows left out), and a turn of
-        the heading, a restored covariance or a moved state starts the bank anew from the
-        main filter."""
+        Φ and Q, the same rows and weights, but its anchor's rows left out; a turn of the
+        heading turns them too, their heading offsets dropped), and a restored covariance or
+        a moved state starts the bank anew from the main filter."""
         self.gravity_mps2 = float(gravity_mps2)
         self.n = N_CORE + n_range_bias
         if P0.shape != (self.n, self.n):
@@ -170,17 +171,24 @@ class Eskf:
         q = np.array((c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w))
         self.q = (q / np.linalg.norm(q)).tolist()
         T = self._I.copy()  # body-frame attitude error -> nav-frame attitude error
-        T[TH_, TH_] = self.R
-        P = T @ self.P @ T.T
+        R = T[TH_, TH_] = self.R
         k = TH_.start + 2  # nav-frame yaw error
-        P[k, :] = 0.0
-        P[:, k] = 0.0
-        P[k, k] = yaw_sigma_rad**2
-        self.P = T.T @ P @ T
-        self._bank_reset()
+        for i, Q in enumerate((self.P, *self.bank_P)):  # the main filter, each sub-filter
+            P = T @ Q @ T.T
+            P[k, :] = 0.0
+            P[:, k] = 0.0
+            P[k, k] = yaw_sigma_rad**2
+            if i == 0:
+                self.P = T.T @ P @ T
+            else:
+                self.bank_P[i - 1] = T.T @ P @ T
+        # the sub-filters' heading offsets dropped (the heading is the aligner's, for all)
+        th = self.bank_d[:, TH_]
+        th -= np.outer(th @ R[2], R[2])
 
     def _bank_reset(self) -> None:
         """The bank started anew from the main filter: ``d_k = 0``, ``P_k = P``."""
+        self.bank_resets += 1
         self.bank_d[:] = 0.0
         self.bank_P[:] = self.P
 
@@ -462,6 +470,16 @@ class Eskf:
     def move_to(self, p: Vector, v: Vector) -> None:
         """Position and velocity set (a position reset to a UWB fix); the bank anew."""
         self.p, self.v = [float(c) for c in p], [float(c) for c in v]
+        self._bank_reset()
+
+    def adopt(self, k: int) -> None:
+        """The main filter becomes the bank's sub-filter ``k`` (its anchor's fault found and
+        excluded): the nominal state corrected by ``d_k`` as an update injects, ``P ←
+        P_k``; then the bank anew."""
+        if not 0 <= k < len(self.bank):
+            raise IndexError(f"adopt: sub-filter {k} of {len(self.bank)}")
+        self.P = self.bank_P[k].copy()
+        self.inject(self.bank_d[k].copy())
         self._bank_reset()
 
     def pose_numbers(self, aligned: bool) -> PoseNumbers | None:

@@ -157,9 +157,15 @@ class CoreEskf(Eskf):
 
     def set_covariance(self, P: Array) -> None:
         self._state.set_covariance(np.ascontiguousarray(P, dtype=float))
+        self.bank_resets += 1
 
     def move_to(self, p: Vector, v: Vector) -> None:
         self._state.move_to([float(c) for c in p], [float(c) for c in v])
+        self.bank_resets += 1
+
+    def adopt(self, k: int) -> None:
+        self._state.adopt(k)
+        self.bank_resets += 1
 
     def pose_numbers(self, aligned: bool) -> PoseNumbers | None:
         numbers: PoseNumbers | None = self._state.pose_numbers(aligned)

@@ -52,12 +52,15 @@ class Findings:
     mounting_yaw: MountingYaw = field(default_factory=MountingYaw)
     mounting_finding: str = ""  # what the start at rest said of the mounting ("": nothing)
     excluded: set[int] = field(default_factory=set)  # the anchors left out of the last update
+    # the anchors the bank's separation left out (policy.integrity): until when
+    separated: dict[int, int] = field(default_factory=dict)
     anchor_stats: dict[int, AnchorStats] = field(default_factory=dict)
 
     def forget(self) -> None:
         """At a restart: the evidence was against the old estimate."""
         self.consistency.clear()
         self.raim.clear()
+        self.separated.clear()
         self.mounting_yaw.clear()  # (the body velocity was the old heading's)
 
 

@@ -192,24 +192,30 @@ class EpochFusion:
     def exclude_findings(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                           r_scale: Array, reports: list[FusionReport]
                           ) -> tuple[list[int], Array, Array, Array]:
-        """The ranges of the anchors the consistency test has found wrong are left out of
-        the update (each reported, ``anchor_excluded``), as long as four others remain; the
-        test goes on judging them against the state, and they return once they agree."""
+        """The ranges of the anchors the consistency test has found wrong (or the bank's
+        separation, :mod:`.integrity`) are left out of the update (each reported,
+        ``anchor_excluded``), as long as four other anchors remain; the test goes on judging
+        them against the state, and they return once they agree."""
         found = self.findings.consistency.findings
-        if not found or not any(a in found for a in ids):
+        separated = self.findings.separated
+        if not (found or separated) or not any(a in found or a in separated for a in ids):
             return ids, anchors, ranges, r_scale
-        keep = np.array([a not in found for a in ids])
-        if keep.sum() < MIN_KEPT_ANCHORS:
+        if len(self.installation.anchors) - len(found.keys() | separated.keys()) \
+                < MIN_KEPT_ANCHORS:
+            found = {}  # (the separation's are left out only while enough remain)
+        keep = np.array([a not in found and a not in separated for a in ids])
+        if keep.all():
             return ids, anchors, ranges, r_scale
         for a in ids:
-            if a in found:
+            if a in found or a in separated:
                 if a not in self.findings.excluded:
                     self._newly_excluded(a, found[a].bias_m)
                 self.est.counters["range_excluded"] += 1
                 reports.append(FusionReport(t_ns, "range", str(a), math.nan, math.nan,
                                             math.nan, False, "anchor_excluded"))
-        self.findings.excluded = {a for a in self.findings.excluded if a in found} | {
-            a for a in ids if a in found}
+        self.findings.excluded = {a for a in self.findings.excluded
+                                  if a in found or a in separated} | {
+            a for a in ids if a in found or a in separated}
         return ([a for a, k in zip(ids, keep, strict=True) if k], anchors[keep], ranges[keep],
                 r_scale[keep])
 

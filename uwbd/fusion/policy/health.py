@@ -46,6 +46,7 @@ import collections
 import math
 from statistics import NormalDist
 
+from uwbd.fusion.checks.separation import Separation
 from uwbd.fusion.settings import HealthLimits
 from uwbd.fusion.types import Health, Phase
 
@@ -79,6 +80,11 @@ class HealthMonitor:
         self.inflation = 1.0
         self.offset_m = (0.0, 0.0, 0.0)  # and its mean offset of the state (m, ENU)
         self.bias_gain = (0.0, 0.0)  # and its position error per metre of range bias (h, v)
+        # the bank's solution separation (checks.separation, policy.integrity): its last
+        # test, and whether the bank has run long enough since it started anew to judge by
+        self.separation: Separation | None = None
+        self.separation_warm = False
+        self.separated: tuple[int, ...] = ()  # the anchors it left out
         risk = limits.integrity_risk
         self._k_horizontal = math.sqrt(-2.0 * math.log(risk))  # Rayleigh, on the major axis
         self._k_vertical = NormalDist().inv_cdf(1.0 - risk / 2.0)  # two-sided
@@ -140,6 +146,7 @@ class HealthMonitor:
         self.anchor_suspects = self.ranges_inconsistent = ()
         self.inflation = 1.0
         self.offset_m = (0.0, 0.0, 0.0)
+        self.separation, self.separation_warm, self.separated = None, False, ()
         self._after_reset = True  # recovering until a window of innovations agrees
 
     # -- judgements -----------------------------------------------------------------------
@@ -197,16 +204,26 @@ class HealthMonitor:
                    else self._k_horizontal * k * major + math.hypot(dx, dy) + gh * b)
             vpl = (None if vertical_sigma_m is None
                    else self._k_vertical * k * vertical_sigma_m + abs(dz) + gv * b)
+            sep = self.separation
+            if sep is not None and (not self.separation_warm or sep.suspect is not None):
+                # the levels over the anchors' faults: not known yet, or an anchor's fault
+                # found and not yet left out (no level holds then)
+                hpl = vpl = None
+            elif sep is not None:  # and the levels over each anchor's fault
+                hpl = None if hpl is None else max(hpl, sep.horizontal_m + gh * b)
+                vpl = None if vpl is None else max(vpl, sep.vertical_m + gv * b)
             if (hpl is None or not hpl <= lim.horizontal_alert_limit_m
                     or vpl is None or not vpl <= lim.vertical_alert_limit_m):
                 faults.append("position_uncertain")
-            if self.anchor_suspects:
+            if self.anchor_suspects or (sep is not None and self.separation_warm
+                                        and sep.suspect is not None):
                 faults.append("anchor_inconsistent")
             if self.ranges_inconsistent:
                 faults.append("ranges_inconsistent")
             if self.mounting_inconsistent:
                 faults.append("mounting_inconsistent")
-        notes = (("mirror_unresolved",) if self.mirror_unresolved else ()) + (
+        notes = (("anchor_excluded",) if self.separated else ()) + (
+            ("mirror_unresolved",) if self.mirror_unresolved else ()) + (
             ("mounting_suspect",) if self.mounting_suspect else ()) + (
             ("range_model_held",) if self.range_model_held else ())
         if running and faults:

@@ -62,6 +62,8 @@ def diagnostics(health: Health, mirror: MirrorSide, findings: Findings,
                                 sorted(findings.consistency.findings.items())],
             # the snapshot test fails: the anchors it suspects (checks.window_raim)
             "ranges_inconsistent": list(findings.raim.inconsistent),
+            # the bank's separation left these out, and takes each back then (t_ns)
+            "anchors_excluded": {str(a): until for a, until in sorted(findings.separated.items())},
             # with [fusion] lever_arm_sigma_m: where the data put the antenna (body, m)
             **({"lever_arm_estimate_m": [round(float(c), 4) for c in lever_estimate_m]}
                if lever_estimate_m is not None else {}),

@@ -1,0 +1,101 @@
+"""The bank's solution-separation test run as the filter goes (:mod:`..checks.separation`):
+after an update, at most every ``EVERY_NS``, its protection levels and each anchor's test
+statistic handed to the health monitor; and the exclusion.
+
+**Exclusion.** An anchor whose separation is over its threshold in ``EXCLUDE_AFTER``
+tests in a row is the likely fault: the main filter becomes that anchor's sub-filter (the
+estimate that never took its ranges, :meth:`~uwbd.fusion.core.eskf.Eskf.adopt`) and the
+anchor is left out (``Findings.separated``), as long as ``MIN_KEPT_ANCHORS`` others remain.
+After ``HOLD_S`` (doubled at each exclusion of the same anchor) it is taken back on
+trial: its sub-filter has not seen it since, so the bank tests it afresh, and a fault that
+is still there is found and left out again. With too few anchors to leave one out, the
+fault stays found: no protection level holds then, and the monitor says so.
+
+The bank starts anew with the main filter (a start, a restored covariance, a position
+reset, an exclusion): its separations then say nothing yet, so for ``WARM_S`` after that
+the levels over the anchors' faults are not known (the monitor says so).
+"""
+
+from __future__ import annotations
+
+from uwbd.fusion.checks.separation import SeparationTest
+from uwbd.fusion.core.eskf import Eskf
+from uwbd.fusion.policy.estimate import Estimate, Findings
+from uwbd.fusion.settings import HealthLimits
+
+NS = 1_000_000_000
+EVERY_NS = 50_000_000  # the test at most 20 times a second
+WARM_S = 5.0  # after the bank starts anew, its separations are judged this much later
+EXCLUDE_AFTER = 3  # tests in a row naming the same anchor
+MIN_KEPT_ANCHORS = 4  # an anchor is left out only while this many others remain
+HOLD_S = 10.0  # an anchor left out is tried again after this (doubled each time, to MAX)
+MAX_HOLD_S = 300.0
+
+
+class Integrity:
+    """The separation test and the exclusion over the filter's life (see module doc)."""
+
+    def __init__(self, limits: HealthLimits, range_sigma_m: float, est: Estimate,
+                 findings: Findings) -> None:
+        self.limits, self.est, self.findings = limits, est, findings
+        self._bias_per_sigma = limits.range_bias_bound_m / range_sigma_m
+        self._tests: dict[int, SeparationTest] = {}  # by the bank's size
+        self._ekf: Eskf | None = None  # the state the bank below is of
+        self._resets = 0
+        self._since_ns = 0  # the bank started anew
+        self._last_ns = -(2**63)
+        self._run: tuple[int, int] = (-1, 0)  # the anchor named by the last tests, how often
+        self._strikes: dict[int, int] = {}  # how often each anchor was left out
+
+    def after_update(self, t_ns: int) -> None:
+        """The test, when due, on the state's bank; the exclusion it calls for; the anchors
+        left out whose time is up taken back."""
+        ekf, monitor = self.est.ekf, self.est.monitor
+        separated = self.findings.separated
+        for anchor, until_ns in list(separated.items()):
+            if t_ns >= until_ns:
+                del separated[anchor]
+                self.findings.excluded.discard(anchor)
+        monitor.separated = tuple(sorted(separated))
+        if ekf is not None and (ekf is not self._ekf or ekf.bank_resets != self._resets):
+            self._ekf, self._resets, self._since_ns = ekf, ekf.bank_resets, t_ns
+            self._run = (-1, 0)
+        if ekf is None or not ekf.bank:
+            monitor.separation = None
+            monitor.separation_warm = False
+            return
+        if t_ns - self._last_ns < EVERY_NS:
+            return
+        self._last_ns = t_ns
+        count = len(ekf.bank)
+        test = self._tests.get(count)
+        if test is None:
+            test = self._tests[count] = SeparationTest(
+                count, self.limits.integrity_risk, self.limits.false_alert_probability,
+                self._bias_per_sigma)
+        sep = monitor.separation = test.test(ekf.bank, ekf.P, ekf.bank_d, ekf.bank_P)
+        monitor.separation_warm = warm = t_ns - self._since_ns >= WARM_S * NS
+        suspect = sep.suspect if warm else None
+        if suspect is None:
+            self._run = (-1, 0)
+            return
+        anchor, tests = self._run
+        self._run = (suspect, tests + 1 if anchor == suspect else 1)
+        if self._run[1] >= EXCLUDE_AFTER:
+            self._exclude(t_ns, ekf, suspect)
+
+    def _exclude(self, t_ns: int, ekf: Eskf, anchor: int) -> None:
+        findings = self.findings
+        left = set(ekf.bank) - set(findings.separated) - set(findings.consistency.findings)
+        if len(left - {anchor}) < MIN_KEPT_ANCHORS:
+            return  # too few to leave one out: found, not excluded
+        ekf.adopt(ekf.bank.index(anchor))
+        strikes = self._strikes[anchor] = self._strikes.get(anchor, 0) + 1
+        hold_s = min(HOLD_S * 2 ** (strikes - 1), MAX_HOLD_S)
+        findings.separated[anchor] = t_ns + int(hold_s * NS)
+        findings.excluded.add(anchor)  # (its state's share is gone with the adoption)
+        self.est.monitor.separated = tuple(sorted(findings.separated))
+        self.est.counters["anchors_excluded"] += 1
+        self.est.counters["anchors_separated"] += 1
+        self.est.monitor.separation = None
+        self.est.monitor.separation_warm = False
