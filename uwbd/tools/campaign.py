@@ -278,11 +278,11 @@ def campaign(seeds: range, workers: int = 1) -> list[KindRow]:
     runs: dict[str, list[tuple[Score, Score]]] = {kind: [] for kind in FAULTS}
     if workers > 1:
         with concurrent.futures.ProcessPoolExecutor(workers) as pool:
-            pairs = list(pool.map(run_pair, seeds))
+            done = list(pool.map(run_pair, seeds))
     else:
-        pairs = [run_pair(seed) for seed in seeds]
-    for kind, free, bad in pairs:
-        runs[kind].append((free, bad))
+        done = [run_pair(seed) for seed in seeds]
+    for kind, free_run, faulty_run in done:
+        runs[kind].append((free_run, faulty_run))
     rows = []
     for kind, pairs in runs.items():
         if not pairs:
