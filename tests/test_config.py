@@ -137,7 +137,7 @@ def test_type_errors_say_the_type_expected(body: str, message: str) -> None:
 
 @pytest.mark.parametrize(("text", "message"), [
     (with_section("fusion", "zuptt = true"), "fusion.zuptt: unknown key (did you mean zupt? "
-                                             "known: gate_probability,"),
+                                             "known: false_alert_probability,"),
     (with_section("fusoin", "zupt = true"), "fusoin: unknown key (did you mean fusion? known: "),
     (with_section("fusion", "speed_of_light = 3"), "fusion.speed_of_light: unknown key (known: "),
     (GOOD.replace('baud = 921600\n\n[[sources]]', 'baud = 921600\nbaudrate = 1\n\n[[sources]]'),

@@ -34,9 +34,10 @@ STATUS_PERIOD_S = 1.0
 ALIGNER_WAIT_MS = 0.0
 STALL_AFTER_S = 1.0  # no byte this long: the port is stalled
 # [fusion] keys that are HealthLimits fields (the same names): the protection levels' risk
-# and alert limits, and the ranges' bias bound
+# and alert limits, whether the height counts, the ranges' bias bound, the separation
+# test's false alerts
 _HEALTH_KEYS = ("integrity_risk", "horizontal_alert_limit_m", "vertical_alert_limit_m",
-                "range_bias_bound_m")
+                "height_needed", "range_bias_bound_m", "false_alert_probability")
 # [fusion] keys that are FilterConfig fields (the same names), taken as they are
 _FILTER_KEYS = ("lever_arm_sigma_m", "range_sigma_m", "range_bias_states", "range_bias_sigma_m",
                 "tag_delay_sigma_m", "multipath_tau_s", "tag_side", "zupt", "nhc",

@@ -140,8 +140,15 @@ REFERENCE: dict[str, dict[str, Entry]] = {
                                           "within this"),
         "vertical_alert_limit_m": Entry(_H.vertical_alert_limit_m, "and its vertical one "
                                         "within this"),
+        "height_needed": Entry(_H.height_needed, "false: the robot needs no height (a ground "
+                              "robot): healthy follows the horizontal alone, and a vertical "
+                              "level over its limit is the note `height_uncertain`"),
         "range_bias_bound_m": Entry(_H.range_bias_bound_m, "each range's unmodelled bias at "
-                                    "most, in the protection levels"),
+                                    "most, in the protection levels and the separation "
+                                    "test's thresholds"),
+        "false_alert_probability": Entry(_H.false_alert_probability, "the separation test's "
+                                         "(docs/ekf.md §6) false alerts per test, shared "
+                                         "over the anchors"),
         "lever_arm_sigma_m": Entry(_F.lever_arm_sigma_m, "> 0: the lever arm's error "
                                    "estimated as three states with this prior σ per axis "
                                    "(the status's `lever_arm_estimate_m`); 0: as given"),

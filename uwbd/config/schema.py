@@ -153,7 +153,9 @@ _FUSION_SPEC = {
     "integrity_risk": Key(NUMBER, Range(1e-9, 0.5)),
     "horizontal_alert_limit_m": Key(NUMBER, _LENGTH_M),
     "vertical_alert_limit_m": Key(NUMBER, _LENGTH_M),
+    "height_needed": Key(BOOL),
     "range_bias_bound_m": Key(NUMBER, Range(0.0, 5.0, lo_closed=True)),
+    "false_alert_probability": Key(NUMBER, Range(1e-12, 0.1)),
     # > 0: the lever arm's error estimated as states, with this prior σ per axis
     "lever_arm_sigma_m": Key(NUMBER, Range(0.0, 2.0, lo_closed=True)),
 }

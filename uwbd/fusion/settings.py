@@ -25,8 +25,10 @@ class HealthLimits:
     range_timeout_s: float = 5.0
     # a pose is healthy only while its protection levels, at this risk, are within these
     integrity_risk: float = 1e-3
-    horizontal_alert_limit_m: float = 1.0
-    vertical_alert_limit_m: float = 1.5
+    horizontal_alert_limit_m: float = 0.5
+    vertical_alert_limit_m: float = 1.0
+    # a robot that needs no height (a ground robot) is healthy by the horizontal alone
+    height_needed: bool = True
     # each range's unmodelled bias at most (ARAIM's nominal bias): antenna patterns, delays
     range_bias_bound_m: float = 0.05
     # the solution-separation test's false alerts, shared over the anchors, per test

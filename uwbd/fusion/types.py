@@ -32,6 +32,9 @@ class Health(NamedTuple):
     last_reset_t_ns: int | None = None
     last_reset_reason: str = ""
     last_reset_jump_m: float | None = None  # how far the position moved at that reset
+    # each protection level known and within its alert limit
+    horizontal_available: bool = False
+    vertical_available: bool = False
 
     @property
     def healthy(self) -> bool:
@@ -61,6 +64,8 @@ class Health(NamedTuple):
                 "position_sigma_m": num(self.position_sigma_m),
                 "horizontal_protection_m": num(self.horizontal_protection_m),
                 "vertical_protection_m": num(self.vertical_protection_m),
+                "horizontal_available": self.horizontal_available,
+                "vertical_available": self.vertical_available,
                 "resets": self.resets,
                 "last_reset_t_ns": self.last_reset_t_ns,
                 "last_reset_reason": self.last_reset_reason,
@@ -78,7 +83,8 @@ def health_from_dict(d: dict[str, Any]) -> Health:
                   tuple(d.get("notes") or ()), num("since_range_s"), num("position_sigma_m"),
                   num("horizontal_protection_m"), num("vertical_protection_m"),
                   int(d.get("resets") or 0), None if reset_t is None else int(reset_t),
-                  str(d.get("last_reset_reason") or ""), num("last_reset_jump_m"))
+                  str(d.get("last_reset_reason") or ""), num("last_reset_jump_m"),
+                  bool(d.get("horizontal_available")), bool(d.get("vertical_available")))
 
 
 def _rounded(x: float | None) -> float | None:

@@ -237,7 +237,9 @@ def diagnostics_msg(t_ns: int, h: Health, hardware_id: str) -> DiagnosticArray:
     values = [("phase", h.phase.value), ("faults", ",".join(h.faults)),
               ("notes", ",".join(h.notes)), ("position_sigma_m", text(h.position_sigma_m)),
               ("horizontal_protection_m", text(h.horizontal_protection_m)),
-              ("vertical_protection_m", text(h.vertical_protection_m))]
+              ("vertical_protection_m", text(h.vertical_protection_m)),
+              ("horizontal_available", str(h.horizontal_available).lower()),
+              ("vertical_available", str(h.vertical_available).lower())]
     return DiagnosticArray(header=_header(t_ns, ""), status=[DiagnosticStatus(
         level=level, name="uwbd: filter", message=h.summary(),
         hardware_id=hardware_id, values=[KeyValue(key=k, value=v) for k, v in values])])

@@ -150,15 +150,16 @@ def draw_case(seed: int) -> Case:
 
 
 def told(case: Case, sim: Simulation, faulty: bool) -> FilterConfig:
-    """What the filter is told: the datasheet config ``uwbd simulate`` writes (NHC for a
-    ground robot; the alert limits the runs are scored by), with the case's fault in it when
-    ``faulty``."""
+    """What the filter is told: the datasheet config ``uwbd simulate`` writes (NHC and no
+    height needed for a ground robot; the alert limits the runs are scored by), with the
+    case's fault in it when ``faulty``."""
     # (a Nooploop tag has 8 slots: more anchors through a DWM1001's ids)
     driver = "nlink" if len(case.sim.anchors_m) <= 8 else "dwm1001"
     cfg = parse(simulation_toml(sim, driver)).filter_config()
-    cfg = dataclasses.replace(cfg, nhc=case.vehicle == "ground", health=dataclasses.replace(
+    ground = case.vehicle == "ground"  # on a floor: NHC, and no height needed
+    cfg = dataclasses.replace(cfg, nhc=ground, health=dataclasses.replace(
         cfg.health, horizontal_alert_limit_m=HORIZONTAL_ALERT_M,
-        vertical_alert_limit_m=VERTICAL_ALERT_M))
+        vertical_alert_limit_m=VERTICAL_ALERT_M, height_needed=not ground))
     if not faulty:
         return cfg
     d = np.array(case.direction)
@@ -197,6 +198,7 @@ class Score:
     beyond_pl: int  # horizontal error over the HPL, or vertical over the VPL
     healthy_beyond_alert: int  # healthy while over an alert limit (0.5 m h, 1.0 m v)
     healthy: int
+    redundant: bool  # the layout sees the height without any one anchor (vertically_redundant)
     detected: bool  # an installation check fired: a finding, or one of INSTALLATION_FAULTS
     named: bool  # the faulted anchor named (anchor faults), or the mounting said; a lever
     # arm is never named (no lever-arm test yet)
@@ -209,8 +211,9 @@ def score(case: Case, sim: Simulation, poses: list[Pose], findings: list[int],
     it said the mounting (a finding or the fault)."""
     t0 = sim.truth_t_ns[0] + WARM_UP_S * NS
     poses = [q for q in poses if q.t_ns >= t0]
+    redundant = vertically_redundant(case.sim.anchors_m, sim.truth_p_m)
     if not poses:
-        return Score(0, 0, 0, 0, False, False, math.nan)
+        return Score(0, 0, 0, 0, redundant, False, False, math.nan)
     t = np.array([q.t_ns for q in poses])
     p = np.array([q.position_m for q in poses])
     truth = np.column_stack([np.interp(t, sim.truth_t_ns, sim.truth_p_m[:, i])
@@ -220,14 +223,40 @@ def score(case: Case, sim: Simulation, poses: list[Pose], findings: list[int],
     hpl = np.array([q.health.horizontal_protection_m or math.inf for q in poses])
     vpl = np.array([q.health.vertical_protection_m or math.inf for q in poses])
     healthy = np.array([q.health.healthy for q in poses])
-    beyond_alert = (eh > HORIZONTAL_ALERT_M) | (ev > VERTICAL_ALERT_M)
+    # (a ground robot needs no height: told so, its health follows the horizontal)
+    beyond_alert = (eh > HORIZONTAL_ALERT_M) | ((ev > VERTICAL_ALERT_M)
+                                                & (case.vehicle != "ground"))
     detected = bool(findings) or mounting_said or any(
         f in INSTALLATION_FAULTS for q in poses for f in q.health.faults)
     named = (case.anchor in findings) if case.anchor >= 0 else mounting_said \
         if case.fault == "mounting" else False
     return Score(len(poses), int(((eh > hpl) | (ev > vpl)).sum()),
-                 int((healthy & beyond_alert).sum()), int(healthy.sum()), detected, named,
+                 int((healthy & beyond_alert).sum()), int(healthy.sum()), redundant, detected,
+                 named,
                  float(np.sqrt(np.mean(eh**2 + ev**2))))
+
+
+def vertically_redundant(anchors_m: tuple[tuple[float, float, float], ...],
+                         path_m: np.ndarray, max_vdop: float = 2.5) -> bool:
+    """Whether the layout sees the height without any one of its anchors: along the path
+    (20 points), the vertical dilution of precision of every set that leaves one anchor out,
+    ``√[(HᵀH)⁻¹]_zz``, at most ``max_vdop`` at the median point (σz ≤ 2.5 σ_range, which a
+    vertical alert limit of 1 m can hold at 0.1 m ranges)."""
+    a = np.array(anchors_m)
+    points = path_m[np.linspace(0, len(path_m) - 1, 20).astype(int)]
+    for k in range(len(a)):
+        rest = np.delete(a, k, axis=0)
+        vdop = []
+        for x in points:
+            u = x - rest
+            H = u / np.linalg.norm(u, axis=1)[:, None]
+            try:
+                vdop.append(math.sqrt(max(float(np.linalg.inv(H.T @ H)[2, 2]), 0.0)))
+            except np.linalg.LinAlgError:
+                vdop.append(math.inf)
+        if not float(np.median(vdop)) <= max_vdop:
+            return False
+    return True
 
 
 def run_case(case: Case, faulty: bool) -> Score:
@@ -240,6 +269,7 @@ def run_case(case: Case, faulty: bool) -> Score:
     def watch(flt: Filter) -> None:  # the anchors named after the warm-up, not only at the end
         if flt.t_ns is not None and flt.t_ns >= after_ns:
             named.update(flt.findings.consistency.findings)
+            named.update(flt.findings.separated)  # (the bank's separation left it out)
 
     poses, _, _ = run_filter(cfg, merge(sim.imu, ranges_of(case, sim, faulty)),
                              pose_period_ns=NS // 10, watch=watch)
@@ -259,6 +289,7 @@ class KindRow:
     healthy_beyond_alert: int  # poses, faulty runs
     free_healthy_beyond_alert: int  # poses, fault-free runs
     availability: float  # fault-free poses healthy
+    availability_redundant: float  # the same, on vertically redundant layouts only (NaN: none)
     detected: float  # of the faulty runs
     false_alarm: float  # of the fault-free runs: an installation check fired
     named: float  # of the faulty runs (anchor faults: the anchor; mounting: said)
@@ -295,6 +326,9 @@ def campaign(seeds: range, workers: int = 1) -> list[KindRow]:
             sum(a.beyond_pl for a in free) / max(sum(a.poses for a in free), 1),
             sum(b.healthy_beyond_alert for b in bad), sum(a.healthy_beyond_alert for a in free),
             sum(a.healthy for a in free) / max(sum(a.poses for a in free), 1),
+            (sum(a.healthy for a in free if a.redundant)
+             / sum(a.poses for a in free if a.redundant)
+             if any(a.redundant and a.poses for a in free) else math.nan),
             sum(b.detected for b in bad) / len(bad), sum(a.detected for a in free) / len(free),
             sum(b.named for b in bad) / len(bad),
             float(np.median(ratios)) if ratios else math.nan,

@@ -15,25 +15,22 @@ import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
-import numpy.typing as npt
 
+from uwbd.fusion.core.bank import bank_update, clamped, symmetric
 from uwbd.fusion.core.layout import BA_, BG_, N_CORE, P_, TH_, V_
 from uwbd.fusion.core.noise import GRAVITY_MPS2, ImuNoise, process_noise
-from uwbd.fusion.core.rotation import Array, quat_to_matrix, skew
+from uwbd.fusion.core.pose import PoseNumbers, pose_numbers
+from uwbd.fusion.core.rotation import Array, quat_to_matrix, skew, turned
 from uwbd.fusion.core.weights import RawRow, Row, RowPolicy, full_weight
 
 Vector = Sequence[float] | Array
-# a pose's covariance (6×6 row-major over p and the nav-frame attitude), σ_xy, position,
-# velocity, orientation (x, y, z, w)
-PoseNumbers = tuple[tuple[float, ...], float, tuple[float, float, float],
-                    tuple[float, float, float], tuple[float, float, float, float]]
 
 
 class Eskf:
     """The filter's state and the algebra on it; policy (gating, modes) lives in ``Filter``."""
 
     fuses_ranges = False  # fuse_ranges takes a tight epoch in one call (CoreEskf)
-    bank_resets = 0  # how often the bank started anew (a turn, a restore, a move)
+    bank_resets = 0  # how often the bank started anew (a restore, a move, an adoption)
     core_state: object = None  # CoreEskf's C State, which the C IMU front integrates into
     # lists of floats here, numpy views of the C core's memory in CoreEskf
     p: list[float] | Array
@@ -53,12 +50,10 @@ class Eskf:
         finite, first-order Gauss–Markov processes with time constant ``τ`` and stationary σ
         ``aux_sigma`` (§3). ``gravity_mps2``: the local gravity the INS subtracts.
 
-        ``bank``: the anchor each sub-filter of the bank leaves out (§6, integrity). A
-        sub-filter is kept as its offset from the nominal state ``bank_d[k]`` and its
-        covariance ``bank_P[k]``; every operation advances it with the main filter (the same
-        Φ and Q, the same rows and weights, but its anchor's rows left out; a turn of the
-        heading turns them too, their heading offsets dropped), and a restored covariance or
-        a moved state starts the bank anew from the main filter."""
+        ``bank``: the anchor each sub-filter of the bank leaves out (§6): its offset from
+        the nominal state ``bank_d[k]`` and covariance ``bank_P[k]`` advance with the main
+        filter (its Φ, Q, rows and weights, its anchor's rows left out; a heading's turn
+        turns them, dropping their heading offsets); a restore or a move starts it anew."""
         self.gravity_mps2 = float(gravity_mps2)
         self.n = N_CORE + n_range_bias
         if P0.shape != (self.n, self.n):
@@ -126,7 +121,7 @@ class Eskf:
         v[0] += ax * dt
         v[1] += ay * dt
         v[2] += az * dt
-        self.q = _turned(self.q, wx, wy, wz)
+        self.q = turned(self.q, wx, wy, wz)
 
     # -- covariance propagation: once per update interval --------------------------------
     def _reset_interval(self) -> None:
@@ -173,15 +168,15 @@ class Eskf:
         T = self._I.copy()  # body-frame attitude error -> nav-frame attitude error
         R = T[TH_, TH_] = self.R
         k = TH_.start + 2  # nav-frame yaw error
-        for i, Q in enumerate((self.P, *self.bank_P)):  # the main filter, each sub-filter
-            P = T @ Q @ T.T
-            P[k, :] = 0.0
-            P[:, k] = 0.0
-            P[k, k] = yaw_sigma_rad**2
-            if i == 0:
+        for main in (True, False):  # the main filter, the sub-filters
+            P = T @ (self.P if main else self.bank_P) @ T.T
+            P[..., k, :] = 0.0
+            P[..., :, k] = 0.0
+            P[..., k, k] = yaw_sigma_rad**2
+            if main:
                 self.P = T.T @ P @ T
             else:
-                self.bank_P[i - 1] = T.T @ P @ T
+                self.bank_P = T.T @ P @ T
         # the sub-filters' heading offsets dropped (the heading is the aligner's, for all)
         th = self.bank_d[:, TH_]
         th -= np.outer(th @ R[2], R[2])
@@ -215,36 +210,28 @@ class Eskf:
         Phi = self._I_core + A + 0.5 * (A @ A)
         if self.keep_transition:
             self._Phi_epoch = Phi @ self._Phi_epoch
-        P = self.P
-        P[:N_CORE, :] = Phi @ P[:N_CORE, :]
-        P[:, :N_CORE] = P[:, :N_CORE] @ Phi.T
-        P[self._diag] += self._q_rate * T
-        Pk, d = self.bank_P, self.bank_d  # the sub-filters: the same Φ and Q
-        Pk[:, :N_CORE, :] = Phi @ Pk[:, :N_CORE, :]
-        Pk[:, :, :N_CORE] = Pk[:, :, :N_CORE] @ Phi.T
-        Pk[:, self._diag[0], self._diag[1]] += self._q_rate * T
-        d[:, :N_CORE] = d[:, :N_CORE] @ Phi.T
-        self._markov_step(P, T)
-        self.P = 0.5 * (P + P.T)
-        self.bank_P = 0.5 * (Pk + Pk.transpose(0, 2, 1))
+        for P in (self.P, self.bank_P):  # the main filter, the sub-filters: the same Φ and Q
+            P[..., :N_CORE, :] = Phi @ P[..., :N_CORE, :]
+            P[..., :, :N_CORE] = P[..., :, :N_CORE] @ Phi.T
+            P[..., self._diag[0], self._diag[1]] += self._q_rate * T
+        self.bank_d[:, :N_CORE] = self.bank_d[:, :N_CORE] @ Phi.T
+        self._markov_step(T)
+        self.P, self.bank_P = symmetric(self.P), symmetric(self.bank_P)
         self._reset_interval()
 
-    def _markov_step(self, P: Array, T: float) -> None:
+    def _markov_step(self, T: float) -> None:
         """Gauss–Markov states decay towards 0 over ``T``; Q keeps their σ stationary; on
-        the main filter's ``P`` and every sub-filter's."""
+        the main filter and every sub-filter."""
         m = self._markov
         if not len(m):
             return
         self._epoch_propagated = True  # the decays are no longer ones
         phi = np.exp(-T / self._tau[m])
         k = N_CORE + m
-        P[k, :] *= phi[:, None]
-        P[:, k] *= phi[None, :]
-        P[k, k] += self._markov_var * (1.0 - phi * phi)
-        Pk = self.bank_P
-        Pk[:, k, :] *= phi[None, :, None]
-        Pk[:, :, k] *= phi[None, None, :]
-        Pk[:, k, k] += self._markov_var * (1.0 - phi * phi)
+        for P in (self.P, self.bank_P):
+            P[..., k, :] *= phi[:, None]
+            P[..., :, k] *= phi[None, :]
+            P[..., k, k] += self._markov_var * (1.0 - phi * phi)
         self.bank_d[:, k] *= phi
         self.b_r[m] *= phi
         if self.keep_transition:
@@ -257,29 +244,25 @@ class Eskf:
         ``accel_sigma_mps2`` and turns about the vertical of σ ``yaw_rate_sigma_rps`` (per
         √s) widen ``P``; roll and pitch, which gravity bounds, by ``tilt_rate_sigma_rps``."""
         p, v = self.p, self.v
-        for i in range(3):
-            p[i] += v[i] * dt
+        for c in range(3):
+            p[c] += v[c] * dt
         self.bank_d[:, P_] += dt * self.bank_d[:, V_]
-        P, Pk = self.P, self.bank_P
-        for Q in (P, *Pk):  # the main filter's, then each sub-filter's
-            Q[P_, :] += dt * Q[V_, :]
-            Q[:, P_] += dt * Q[:, V_]
-            qa = accel_sigma_mps2**2
-            for i in range(3):
-                Q[i, i] += qa * dt**3 / 3
-                Q[i, 3 + i] += qa * dt**2 / 2
-                Q[3 + i, i] += qa * dt**2 / 2
-                Q[3 + i, 3 + i] += qa * dt
-            aux = self._diag[0][N_CORE:]
-            Q[aux, aux] += self._q_rate[N_CORE:] * dt  # the range-model random walks
-        self._markov_step(P, dt)
+        qa, i, aux = accel_sigma_mps2**2, np.arange(3), self._diag[0][N_CORE:]
+        for P in (self.P, self.bank_P):  # the main filter, the sub-filters
+            P[..., P_, :] += dt * P[..., V_, :]
+            P[..., :, P_] += dt * P[..., :, V_]
+            P[..., i, i] += qa * dt**3 / 3
+            P[..., i, 3 + i] += qa * dt**2 / 2
+            P[..., 3 + i, i] += qa * dt**2 / 2
+            P[..., 3 + i, 3 + i] += qa * dt
+            P[..., aux, aux] += self._q_rate[N_CORE:] * dt  # the range-model random walks
+        self._markov_step(dt)
         up_b = self.R[2]  # the navigation z axis in body axes (Rᵀ e_z)
         turn = (yaw_rate_sigma_rps**2 - tilt_rate_sigma_rps**2) * dt * np.outer(
             up_b, up_b) + tilt_rate_sigma_rps**2 * dt * np.eye(3)
-        P[TH_, TH_] += turn
-        Pk[:, TH_, TH_] += turn
-        self.P = 0.5 * (P + P.T)
-        self.bank_P = 0.5 * (Pk + Pk.transpose(0, 2, 1))
+        self.P[TH_, TH_] += turn
+        self.bank_P[:, TH_, TH_] += turn
+        self.P, self.bank_P = symmetric(self.P), symmetric(self.bank_P)
 
     def tilt_from_gravity_rad(self, f_body: Array) -> float:
         """Angle between the vertical and a specific force measured at rest, turned into the
@@ -323,9 +306,7 @@ class Eskf:
         A row whose ``S`` is not finite or falls below ``R_i`` (``P`` lost its positive
         semi-definiteness along ``h``) is skipped and marked ``numerical``.
 
-        The bank's sub-filters take the same rows from their offsets, each with the weight
-        the main filter gave it (its decision), but the rows of the anchor they leave out;
-        then ``d_k ← d_k − δx``.
+        The bank takes the same rows with the weights given here (:func:`.bank.bank_update`).
         """
         P = self.P
         dx = np.zeros(self.n)
@@ -351,40 +332,11 @@ class Eskf:
             dx += k * nu
             P = P - np.outer(k, u) - np.outer(u, k) + s * np.outer(k, k)
         if fused:
-            if len(self.bank):
-                anchors = np.full(len(y), -1, dtype=np.int64)
-                if ids is not None:
-                    anchors[:len(ids)] = ids
-                self._bank_rows(H, y, R, [r.weight for r in rows], anchors, considered)
-                self.bank_d -= dx
+            bank_update(self.bank_P, self.bank_d, self._bank_anchor, H, y, R,
+                        [r.weight for r in rows], ids, considered, dx)
             self.P = 0.5 * (P + P.T)
             self.inject(dx)
         return rows
-
-    def _bank_rows(self, H: Array, y: Array, R: Array, weights: Sequence[float],
-                   anchors: npt.NDArray[np.int64], considered: slice | None) -> None:
-        """The rows on every sub-filter at once (see :meth:`sequential_update`)."""
-        Pk, e = self.bank_P, self.bank_d
-        for i, w in enumerate(weights):
-            if not w > 0.0:
-                continue
-            h, r = H[i], float(R[i])
-            U = Pk @ h  # (K, n)
-            S = U @ h + r
-            nu = y[i] - e @ h
-            with np.errstate(invalid="ignore"):
-                ok = (self._bank_anchor != anchors[i]) & np.isfinite(S) & np.isfinite(nu) \
-                    & ~(r * (1 - 1e-9) > S)
-            j = np.flatnonzero(ok)
-            if not len(j):
-                continue
-            U, S, nu = U[j], S[j], nu[j]
-            k = U / (S + r * (1.0 / w - 1.0))[:, None]
-            if considered is not None:
-                k[:, considered] = 0.0
-            e[j] += k * nu[:, None]
-            g = U - 0.5 * S[:, None] * k
-            Pk[j] -= k[:, :, None] * g[:, None, :] + g[:, :, None] * k[:, None, :]
 
     def fuse_ranges(self, lever_m: Array, anchors: Array, ranges: Array, var: Array,
                     columns: tuple[tuple[int, ...], ...], lever_columns: tuple[int, ...],
@@ -392,12 +344,10 @@ class Eskf:
                     considered: slice | None, ids: Sequence[int] = ()
                     ) -> list[RawRow | None] | None:
         """A tight epoch in one call on the C core (:class:`CoreEskf`): the rows of
-        :func:`uwbd.fusion.models.measurements.range_rows` (``columns``: each range's
-        range-model state columns; ``lever_columns``: the lever arm's error states, or
-        ``()``), then ``extra`` rows ``(H, y, R)``, through :meth:`sequential_update`; one
-        row each, ``None`` for a range with no line to linearise (its antenna within 1 mm
-        of its anchor), which is left out. This reference has no such call (``None``): its
-        caller builds the rows (``fuses_ranges`` says which, per class)."""
+        ``measurements.range_rows`` (``columns``: each range's range-model states;
+        ``lever_columns``: the lever arm's, or ``()``; ``ids``: their anchors), then
+        ``extra`` rows ``(H, y, R)``, as :meth:`sequential_update` fuses them; ``None`` for
+        a range with no line to linearise. The reference has no such call (``None``)."""
         return None
 
     def update(self, H: Array, y: Array, R: Array) -> Array:
@@ -417,14 +367,14 @@ class Eskf:
             b_g[i] += d[9 + i]
             b_a[i] += d[12 + i]
         self.b_r += dx[N_CORE:]
-        self.q = _turned(self.q, d[6], d[7], d[8])
+        self.q = turned(self.q, d[6], d[7], d[8])
         # G = I except its attitude block I − ½[δθ]×: only those rows and columns change
         G_th = np.eye(3) - 0.5 * skew(dx[TH_])
         P = self.P
         P[TH_, :] = G_th @ P[TH_, :]
         P[:, TH_] = P[:, TH_] @ G_th.T
         if len(self.bank):
-            Pk = self.bank_P = 0.5 * (self.bank_P + self.bank_P.transpose(0, 2, 1))
+            Pk = self.bank_P = symmetric(self.bank_P)
             Pk[:, TH_, :] = G_th @ Pk[:, TH_, :]
             Pk[:, :, TH_] = Pk[:, :, TH_] @ G_th.T
 
@@ -434,8 +384,8 @@ class Eskf:
         a row and its column keeps ``P`` positive semi-definite."""
         limit = self._clamp_limit_of(max_core_sigma, max_aux_sigma)
         for k in range(len(self.bank)):  # (each sub-filter on its own)
-            self.bank_P[k] = _clamped(self.bank_P[k], limit)
-        P = _clamped(self.P, limit)
+            self.bank_P[k] = clamped(self.bank_P[k], limit)
+        P = clamped(self.P, limit)
         if P is self.P:
             return False
         self.P = P
@@ -483,27 +433,8 @@ class Eskf:
         self._bank_reset()
 
     def pose_numbers(self, aligned: bool) -> PoseNumbers | None:
-        """The pose's covariance, horizontal σ, position, velocity and orientation (x, y, z,
-        w); ``None`` when a number is not finite.
-
-        The covariance is over position and the attitude error turned into the navigation
-        frame, ``T P Tᵀ`` with ``T = [[I, 0, 0], [0, 0, R]]`` over (p, v, θ), made
-        symmetric; while the heading is not ``aligned`` its σ is a placeholder, so yaw is
-        given the variance π², uncorrelated: to a subscriber it is unknown."""
-        T = np.zeros((6, TH_.stop))
-        T[:3, P_] = np.eye(3)
-        T[3:, TH_] = self.R
-        M = T @ self.P[:TH_.stop, :TH_.stop] @ T.T
-        cov = 0.5 * (M + M.T)
-        if not aligned:
-            cov[5, :] = 0.0
-            cov[:, 5] = 0.0
-            cov[5, 5] = math.pi**2
-        p, v, (w, x, y, z) = self.p, self.v, self.q
-        if not math.isfinite(sum(p) + sum(v) + w + x + y + z + float(cov.sum())):
-            return None
-        return (tuple(cov.ravel().tolist()), math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0)),
-                (p[0], p[1], p[2]), (v[0], v[1], v[2]), (x, y, z, w))
+        """The pose's numbers (:func:`~.pose.pose_numbers`)."""
+        return pose_numbers(self.p, self.v, self.q, self.R, self.P, aligned)
 
     # -- views ----------------------------------------------------------------------------
     @property
@@ -516,34 +447,3 @@ class Eskf:
         w, x, y, z = self.q
         r = np.array([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)])
         return math.sqrt(max(float(r @ self.P[TH_, TH_] @ r), 0.0))
-
-
-def _clamped(P: Array, limit: Array) -> Array:
-    """``P`` with every variance within ``limit`` and none negative (a row and its column
-    scaled, which keeps it positive semi-definite); ``P`` itself when nothing was out."""
-    d = np.diag(P)
-    if not ((d > limit).any() or (d < 0).any()):
-        return P
-    scale = np.sqrt(np.minimum(1.0, limit / np.maximum(d, 1e-300)))
-    P = P * scale[:, None] * scale[None, :]
-    negative = np.diag(P) < 0
-    if negative.any():
-        P[np.diag_indices(len(P))] = np.where(negative, 1e-9, np.diag(P))
-    return P
-
-
-def _turned(q: Vector, tx: float, ty: float, tz: float) -> list[float]:
-    """``q ⊗ Exp(θ)`` normalised, in plain floats (the per-IMU-sample attitude step)."""
-    angle = math.sqrt(tx * tx + ty * ty + tz * tz)
-    if angle < 1e-9:
-        dw, s = 1.0, 0.5
-    else:
-        dw, s = math.cos(0.5 * angle), math.sin(0.5 * angle) / angle
-    dx, dy, dz = s * tx, s * ty, s * tz
-    qw, qx, qy, qz = q
-    nw = qw * dw - qx * dx - qy * dy - qz * dz
-    nx = qw * dx + qx * dw + qy * dz - qz * dy
-    ny = qw * dy - qx * dz + qy * dw + qz * dx
-    nz = qw * dz + qx * dy - qy * dx + qz * dw
-    norm = math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
-    return [nw / norm, nx / norm, ny / norm, nz / norm]

@@ -4,6 +4,7 @@ rotates body vectors into the navigation frame: ``v_n = R(q) v_b`` (docs/ekf.md 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -72,3 +73,19 @@ def euler_from_quat(q: Array) -> tuple[float, float, float]:
     yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
     return roll, pitch, yaw
 
+
+def turned(q: Sequence[float] | Array, tx: float, ty: float, tz: float) -> list[float]:
+    """``q ⊗ Exp(θ)`` normalised, in plain floats (the per-IMU-sample attitude step)."""
+    angle = math.sqrt(tx * tx + ty * ty + tz * tz)
+    if angle < 1e-9:
+        dw, s = 1.0, 0.5
+    else:
+        dw, s = math.cos(0.5 * angle), math.sin(0.5 * angle) / angle
+    dx, dy, dz = s * tx, s * ty, s * tz
+    qw, qx, qy, qz = q
+    nw = qw * dw - qx * dx - qy * dy - qz * dz
+    nx = qw * dx + qx * dw + qy * dz - qz * dy
+    ny = qw * dy - qx * dz + qy * dw + qz * dx
+    nz = qw * dz + qx * dy - qy * dx + qz * dw
+    norm = math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
+    return [nw / norm, nx / norm, ny / norm, nz / norm]

@@ -14,10 +14,11 @@ from typing import Any
 
 import numpy as np
 
-from uwbd.fusion.core.eskf import Eskf, PoseNumbers, Vector
+from uwbd.fusion.core.eskf import Eskf, Vector
 from uwbd.fusion.core.layout import N_CORE, NOMINAL, NOMINAL_AUX
 from uwbd.fusion.core.native import Core
 from uwbd.fusion.core.noise import GRAVITY_MPS2, ImuNoise, process_noise
+from uwbd.fusion.core.pose import PoseNumbers
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.core.weights import RawRow, Row, RowPolicy
 

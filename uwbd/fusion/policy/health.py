@@ -194,6 +194,7 @@ class HealthMonitor:
         if running and since is not None and (since > lim.range_timeout_s or self._rejudging):
             faults.append("range_timeout")  # or just back, the state not yet judged again
         hpl = vpl = None
+        h_ok = v_ok = False
         if running:
             k = math.sqrt(self.inflation)
             major = position_sigma_m if major_sigma_m is None else major_sigma_m
@@ -212,8 +213,9 @@ class HealthMonitor:
             elif sep is not None:  # and the levels over each anchor's fault
                 hpl = None if hpl is None else max(hpl, sep.horizontal_m + gh * b)
                 vpl = None if vpl is None else max(vpl, sep.vertical_m + gv * b)
-            if (hpl is None or not hpl <= lim.horizontal_alert_limit_m
-                    or vpl is None or not vpl <= lim.vertical_alert_limit_m):
+            h_ok = hpl is not None and hpl <= lim.horizontal_alert_limit_m
+            v_ok = vpl is not None and vpl <= lim.vertical_alert_limit_m
+            if not h_ok or (lim.height_needed and not v_ok):
                 faults.append("position_uncertain")
             if self.anchor_suspects or (sep is not None and self.separation_warm
                                         and sep.suspect is not None):
@@ -223,6 +225,7 @@ class HealthMonitor:
             if self.mounting_inconsistent:
                 faults.append("mounting_inconsistent")
         notes = (("anchor_excluded",) if self.separated else ()) + (
+            ("height_uncertain",) if running and not lim.height_needed and not v_ok else ()) + (
             ("mirror_unresolved",) if self.mirror_unresolved else ()) + (
             ("mounting_suspect",) if self.mounting_suspect else ()) + (
             ("range_model_held",) if self.range_model_held else ())
@@ -247,4 +250,4 @@ class HealthMonitor:
         else:
             phase = Phase.TRACKING
         return Health(phase, tuple(faults), notes, since, position_sigma_m, hpl, vpl,
-                      self.resets, reset_t, reason, jump)
+                      self.resets, reset_t, reason, jump, h_ok, v_ok)

@@ -26,7 +26,7 @@ from uwbd.fusion.settings import HealthLimits
 NS = 1_000_000_000
 EVERY_NS = 50_000_000  # the test at most 20 times a second
 WARM_S = 5.0  # after the bank starts anew, its separations are judged this much later
-EXCLUDE_AFTER = 3  # tests in a row naming the same anchor
+EXCLUDE_AFTER = 20  # tests in a row naming the same anchor (a second: not a burst of NLOS)
 MIN_KEPT_ANCHORS = 4  # an anchor is left out only while this many others remain
 HOLD_S = 10.0  # an anchor left out is tried again after this (doubled each time, to MAX)
 MAX_HOLD_S = 300.0

@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from uwbd.fusion.core.eskf import PoseNumbers
+from uwbd.fusion.core.pose import PoseNumbers
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.policy.estimate import Estimate, Findings
 from uwbd.fusion.policy.mirror import MirrorSide

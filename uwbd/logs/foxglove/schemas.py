@@ -105,6 +105,9 @@ def _health_schema() -> Schema:
         "horizontal_protection_m": _num("horizontal protection level: the bound on the "
                                         "horizontal error at the integrity risk, m" + optional),
         "vertical_protection_m": _num("vertical protection level, m" + optional),
+        "horizontal_available": {"type": "boolean", "description": "the horizontal "
+                                 "protection level known and within its alert limit"},
+        "vertical_available": {"type": "boolean", "description": "the vertical one too"},
         "resets": {"type": "integer", "description": "filter restarts so far"},
         "last_reset_t_ns": {"type": "integer",
                             "description": "time of the last restart, ns" + optional},
