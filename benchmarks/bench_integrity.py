@@ -305,12 +305,14 @@ def random_installations(cases: int, report: bool) -> None:
           f"{VERTICAL_ALERT_M} m v; {time.perf_counter() - t0:.0f} s")
     print(f"  {'fault':<16} {'cases':>5} {'>PL faulty':>10} {'>PL free':>9} "
           f"{'healthy>AL faulty':>17} {'free':>5} {'avail free':>10} {'redundant':>9} "
+          f"{'faulty':>6} "
           f"{'detected':>8} "
           f"{'false alarm':>11} {'named':>6} {'RMSE x med':>10} {'max':>6}")
     for r in rows:
         print(f"  {r.kind:<16} {r.cases:>5} {r.beyond_pl:>10.1%} {r.free_beyond_pl:>9.1%} "
               f"{r.healthy_beyond_alert:>17} {r.free_healthy_beyond_alert:>5} "
               f"{r.availability:>10.1%} {r.availability_redundant:>9.1%} "
+              f"{r.availability_faulty:>6.1%} "
               f"{r.detected:>8.0%} {r.false_alarm:>11.0%} "
               f"{r.named:>6.0%} {r.rmse_ratio_median:>10.2f} {r.rmse_ratio_max:>6.1f}")
 

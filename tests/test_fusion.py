@@ -9,7 +9,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 from scipy.stats import chi2
-from truth import position_errors
+from truth import WIDE_LIMITS, position_errors
 
 from drivers.frames import AnchorRange, ImuSample, UwbRanges
 from uwbd.fusion.checks.gating import chi2_quantile
@@ -48,8 +48,10 @@ def short_sim(**kw: object) -> Simulation:
 
 
 def config_for(sim: Simulation, **kw: object) -> FilterConfig:
-    """Generic defaults, but for the simulator's white range noise (no multipath states)."""
+    """Generic defaults, but for the simulator's white range noise (no multipath states) and
+    with wide alert limits (truth.WIDE_LIMITS)."""
     kw.setdefault("multipath_states", False)
+    kw.setdefault("health", WIDE_LIMITS)
     return FilterConfig(anchors_m=dict(enumerate(sim.config.anchors_m)),
                         mounting_rotation=sim.config.mounting,  # type: ignore[arg-type]
                         lever_arm_m=sim.config.lever_arm_m, **kw)  # type: ignore[arg-type]

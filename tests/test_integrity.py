@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from truth import position_errors
+from truth import WIDE_LIMITS, position_errors
 
 from drivers import nlink, wit
 from drivers.emulator.scenario import CircleScenario
@@ -127,7 +127,8 @@ def test_ranges_back_after_a_long_outage_are_judged_before_the_filter_says_track
     its covariance then claims more than it knows (measured: 1.4 m off, σ under 0.3 m). The
     health waits for a window of innovations since the ranges returned."""
     sim = simulate(SimConfig(seed=0, uwb_outages_s=((15.0, 20.0),)))
-    poses, _, _ = run_filter(datasheet(sim), merge(sim.imu, sim.uwb), pose_period_ns=NS // 10)
+    poses, _, _ = run_filter(datasheet(sim, health=WIDE_LIMITS), merge(sim.imu, sim.uwb),
+                             pose_period_ns=NS // 10)
     s, err, _ = errors(poses, sim)
     never_tracking_when_far(poses, err)
     back = [p.health for p, t in zip(poses, s, strict=True) if 35.0 <= t < 35.1]
@@ -325,7 +326,7 @@ def test_the_ranges_flip_a_wrong_default_side_in_the_filter() -> None:
 
 def test_health_is_tracking_again_after_the_imu_returns() -> None:
     sim = short(imu_gaps_s=((8.0, 5.0),))
-    poses, _, _ = run_filter(datasheet(sim), merge(sim.imu, sim.uwb))
+    poses, _, _ = run_filter(datasheet(sim, health=WIDE_LIMITS), merge(sim.imu, sim.uwb))
     s = np.array([(p.t_ns - sim.truth_t_ns[0]) / NS for p in poses])
     assert poses[-1].health.phase is Phase.TRACKING and poses[-1].health.resets == 1
     assert any(p.health.phase is Phase.COASTING or "imu_gap" in p.health.faults

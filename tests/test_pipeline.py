@@ -7,6 +7,7 @@ import itertools
 from pathlib import Path
 
 import numpy as np
+from truth import wide_limits_toml
 
 from drivers.emulator import ENCODERS
 from drivers.frames import ImuSample
@@ -133,7 +134,7 @@ def test_the_status_on_the_wall_clock_notices_silent_ports() -> None:
     sim = simulate(SimConfig(segments=((4.0, 0.0, 0.0, 0.0), (5.0, 1.5, 0.0, 0.0),
                                        (5.2, 1.5, 0.3, 0.0), (5.0, 1.2, 0.0, 0.2)), seed=3))
     sink = PoseList()
-    pipeline = Pipeline(parse(simulation_toml(sim)), [sink])
+    pipeline = Pipeline(parse(wide_limits_toml(simulation_toml(sim))), [sink])
     for frame in merge(sim.imu, sim.uwb):
         pipeline.on_frame(frame)
     last_ns = max(sim.imu[-1].t_ns, sim.uwb[-1].t_ns)

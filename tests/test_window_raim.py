@@ -100,14 +100,15 @@ def _run(sim_cfg: SimConfig, move_anchor: tuple[float, float, float] | None,
 
 def test_protection_levels_bound_the_error_of_a_right_installation() -> None:
     """Every pose carries both levels (in its JSON too); they bound the true error on
-    every pose of a fault-free run, and stay well under the alert limits there."""
+    every pose of a fault-free run. (Over each anchor's fault, on this layout of six
+    anchors and 0.1 m ranges, they are about 0.6 m and 0.9 m: measured.)"""
     poses, err = _run(SimConfig(seed=1), None)
     hpl = np.array([p.health.horizontal_protection_m for p in poses], dtype=float)
     vpl = np.array([p.health.vertical_protection_m for p in poses], dtype=float)
     assert np.isfinite(hpl).all() and np.isfinite(vpl).all()
     assert (np.hypot(err[:, 0], err[:, 1]) <= hpl).all()
     assert (np.abs(err[:, 2]) <= vpl).all()
-    assert np.median(hpl) < 0.5 and np.median(vpl) < 0.75
+    assert np.median(hpl) < 0.75 and np.median(vpl) < 1.25
     assert not any("ranges_inconsistent" in p.health.faults for p in poses)
     said = poses[-1].health.as_dict()
     assert said["horizontal_protection_m"] == pytest.approx(hpl[-1], abs=1e-4)
@@ -131,7 +132,8 @@ def test_the_protection_levels_widen_with_the_window_and_bound_its_offset() -> N
     """K √k σ + |δp| + g b: the Rayleigh and two-sided normal quantiles at the risk, widened
     by the window's χ² ratio, shifted by its offset and by what a bias of the bound on every
     range makes of its geometry; over an alert limit: uncertain."""
-    monitor = HealthMonitor(HealthLimits(integrity_risk=1e-3))
+    monitor = HealthMonitor(HealthLimits(integrity_risk=1e-3, horizontal_alert_limit_m=1.0,
+                                         vertical_alert_limit_m=1.5))
     monitor.uwb_outcome(EPOCH_NS, True, 1.0)
     h = monitor.assess(EPOCH_NS, True, True, 0.2, True, 0.1, False, 0.1)
     assert h.horizontal_protection_m == pytest.approx(math.sqrt(-2 * math.log(1e-3)) * 0.1)

@@ -118,7 +118,8 @@ class Filter:
         self.imu = ImuPropagation(config, self.est, self.window, self.recovery, core)
         self.fusion = EpochFusion(config, self.est, self.installation, self.findings,
                                   self.imu.fresh)
-        self.integrity = Integrity(config.health, config.range_sigma_m, self.est, self.findings)
+        self.integrity = Integrity(config.health, config.range_sigma_m, self.est,
+                                   self.findings, self.installation)
         self._lever = tuple(float(c) for c in config.lever_arm_m)
         self._constraints_ns = -(2**63)  # when ZUPT, NHC and height rows were last added
         self._tilt_check_ns = -(2**63)
@@ -242,6 +243,7 @@ class Filter:
                 self.installation.new_anchors = False
                 self.installation.lay_out()
             self.recovery.try_start(t_ns, fix)
+            self.integrity.after_update(t_ns)  # (a start: the bank's warm-up begins)
             return reports
         if self.est.t_ns is not None and t_ns < self.est.t_ns:
             self.est.counters["uwb_late"] += 1  # older than the state: the aligner's job

@@ -290,6 +290,7 @@ class KindRow:
     free_healthy_beyond_alert: int  # poses, fault-free runs
     availability: float  # fault-free poses healthy
     availability_redundant: float  # the same, on vertically redundant layouts only (NaN: none)
+    availability_faulty: float  # faulty runs' poses healthy
     detected: float  # of the faulty runs
     false_alarm: float  # of the fault-free runs: an installation check fired
     named: float  # of the faulty runs (anchor faults: the anchor; mounting: said)
@@ -329,6 +330,7 @@ def campaign(seeds: range, workers: int = 1) -> list[KindRow]:
             (sum(a.healthy for a in free if a.redundant)
              / sum(a.poses for a in free if a.redundant)
              if any(a.redundant and a.poses for a in free) else math.nan),
+            sum(b.healthy for b in bad) / max(sum(b.poses for b in bad), 1),
             sum(b.detected for b in bad) / len(bad), sum(a.detected for a in free) / len(free),
             sum(b.named for b in bad) / len(bad),
             float(np.median(ratios)) if ratios else math.nan,

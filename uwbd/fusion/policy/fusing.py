@@ -181,9 +181,13 @@ class EpochFusion:
             if b is not None and d is not None:
                 consistency.add_estimates(t_ns, ids, b, d)
             monitor.anchor_suspects = tuple(sorted(consistency.findings))
-        if snapshot:
-            raim.add(t_ns, ids, y, U,
-                     var + cfg.multipath_sigma_m**2 if cfg.multipath_states else var)
+        if snapshot:  # (of the anchors in use: one left out is the anchor test's to judge)
+            var = var + cfg.multipath_sigma_m**2 if cfg.multipath_states else var
+            out = self.findings.excluded
+            if out and any(a in out for a in ids):
+                keep = np.array([a not in out for a in ids])
+                ids, y, U, var = [a for a in ids if a not in out], y[keep], U[keep], var[keep]
+            raim.add(t_ns, ids, y, U, var)
             monitor.ranges_inconsistent = raim.inconsistent
             monitor.inflation = raim.ratio
             monitor.offset_m = raim.offset_m
@@ -216,21 +220,28 @@ class EpochFusion:
         self.findings.excluded = {a for a in self.findings.excluded
                                   if a in found or a in separated} | {
             a for a in ids if a in found or a in separated}
+        self.est.monitor.excluded = tuple(sorted(self.findings.excluded))
+        self.est.monitor.side_lost = self.installation.side_lost(self.findings.excluded)
         return ([a for a, k in zip(ids, keep, strict=True) if k], anchors[keep], ranges[keep],
                 r_scale[keep])
 
     def _newly_excluded(self, anchor: int, bias_m: float) -> None:
-        """The state has been pulled by this anchor's ranges: its position and the other
-        anchors' range-model states (which took part of the error) may move again."""
+        """The state has been pulled by this anchor's ranges: it becomes the bank's
+        sub-filter that never took them (:meth:`~uwbd.fusion.core.eskf.Eskf.adopt`); without
+        a bank, its position and the other anchors' range-model states (which took part of
+        the error) may move again."""
         ekf = self.est.ekf
         assert ekf is not None
+        self.est.counters["anchors_excluded"] += 1
+        if anchor in ekf.bank:
+            ekf.adopt(ekf.bank.index(anchor))
+            return
         d = np.zeros(ekf.n)
         d[P_] = bias_m**2
         for other, columns in self.installation.range_columns.items():
             if other != anchor:
                 d[list(columns)] += EXCLUSION_RANGE_STATE_VAR_M2
         ekf.add_variances(d)
-        self.est.counters["anchors_excluded"] += 1
 
     def _row_policy(self, keys: list[tuple[str, str]], fix_ok: bool) -> RowPolicy:
         # the first letter of each row's kind: "r"ange, "p"osition, any other gated plainly

@@ -84,7 +84,9 @@ class HealthMonitor:
         # test, and whether the bank has run long enough since it started anew to judge by
         self.separation: Separation | None = None
         self.separation_warm = False
-        self.separated: tuple[int, ...] = ()  # the anchors it left out
+        self.excluded: tuple[int, ...] = ()  # the anchors left out of the updates (either test)
+        self.side_lost = False  # and with them the side of the rest's plane: no height
+        self.separation_starting = False  # its warm-up is the start's (not a restart's)
         risk = limits.integrity_risk
         self._k_horizontal = math.sqrt(-2.0 * math.log(risk))  # Rayleigh, on the major axis
         self._k_vertical = NormalDist().inv_cdf(1.0 - risk / 2.0)  # two-sided
@@ -146,7 +148,9 @@ class HealthMonitor:
         self.anchor_suspects = self.ranges_inconsistent = ()
         self.inflation = 1.0
         self.offset_m = (0.0, 0.0, 0.0)
-        self.separation, self.separation_warm, self.separated = None, False, ()
+        self.separation, self.separation_warm, self.excluded = None, False, ()
+        self.side_lost = False
+        self.separation_starting = False
         self._after_reset = True  # recovering until a window of innovations agrees
 
     # -- judgements -----------------------------------------------------------------------
@@ -194,7 +198,7 @@ class HealthMonitor:
         if running and since is not None and (since > lim.range_timeout_s or self._rejudging):
             faults.append("range_timeout")  # or just back, the state not yet judged again
         hpl = vpl = None
-        h_ok = v_ok = False
+        h_ok = v_ok = starting = False
         if running:
             k = math.sqrt(self.inflation)
             major = position_sigma_m if major_sigma_m is None else major_sigma_m
@@ -206,25 +210,31 @@ class HealthMonitor:
             vpl = (None if vertical_sigma_m is None
                    else self._k_vertical * k * vertical_sigma_m + abs(dz) + gv * b)
             sep = self.separation
-            if sep is not None and (not self.separation_warm or sep.suspect is not None):
+            warming = sep is not None and not self.separation_warm
+            if warming or (sep is not None and sep.suspect is not None):
                 # the levels over the anchors' faults: not known yet, or an anchor's fault
                 # found and not yet left out (no level holds then)
                 hpl = vpl = None
-            elif sep is not None:  # and the levels over each anchor's fault
+            if sep is not None:  # and the levels over each anchor's fault
                 hpl = None if hpl is None else max(hpl, sep.horizontal_m + gh * b)
                 vpl = None if vpl is None else max(vpl, sep.vertical_m + gv * b)
+            if self.side_lost:  # the tag may be the mirror image: the height is not known
+                vpl = None
             h_ok = hpl is not None and hpl <= lim.horizontal_alert_limit_m
             v_ok = vpl is not None and vpl <= lim.vertical_alert_limit_m
-            if not h_ok or (lim.height_needed and not v_ok):
+            starting = warming and self.separation_starting  # (aligning, below)
+            if not starting and (not h_ok or (lim.height_needed and not v_ok)):
                 faults.append("position_uncertain")
-            if self.anchor_suspects or (sep is not None and self.separation_warm
-                                        and sep.suspect is not None):
+            # an anchor found wrong and not left out (too few others); one left out is a
+            # note, the rest judged by the levels
+            if set(self.anchor_suspects) - set(self.excluded) or (
+                    sep is not None and self.separation_warm and sep.suspect is not None):
                 faults.append("anchor_inconsistent")
             if self.ranges_inconsistent:
                 faults.append("ranges_inconsistent")
             if self.mounting_inconsistent:
                 faults.append("mounting_inconsistent")
-        notes = (("anchor_excluded",) if self.separated else ()) + (
+        notes = (("anchor_excluded",) if self.excluded else ()) + (
             ("height_uncertain",) if running and not lim.height_needed and not v_ok else ()) + (
             ("mirror_unresolved",) if self.mirror_unresolved else ()) + (
             ("mounting_suspect",) if self.mounting_suspect else ()) + (
@@ -245,7 +255,7 @@ class HealthMonitor:
             phase = Phase.COASTING
         elif faults or clearing:
             phase = Phase.DEGRADED
-        elif not heading_observable:
+        elif not heading_observable or starting:
             phase = Phase.ALIGNING
         else:
             phase = Phase.TRACKING

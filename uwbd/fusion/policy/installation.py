@@ -50,6 +50,7 @@ class Installation:
         self.range_columns: dict[int, tuple[int, ...]] = {}
         self.lever_index: tuple[int, ...] = ()  # the lever arm's error states (none: off)
         self.bank: tuple[int, ...] = ()  # the anchors the bank's sub-filters leave out
+        self._side_lost: dict[frozenset[int], bool] = {}  # side_lost's answers
         self.new_anchors = False  # reported since the last start: laid out before the next
         self.lay_out()
 
@@ -72,6 +73,7 @@ class Installation:
         self.fixed_z = (cfg.known_height_m
                         if len(anchors) and coplanar(anchors) and horizontal else None)
         self.ranges.side, self.ranges.fixed_z = self.mirror, self.fixed_z
+        self._side_lost.clear()
         ids = sorted(self.anchors)
         tight = cfg.mode is Mode.TIGHT  # the offsets are unobservable from loose fixes
         self.bias_index = ({a: N_CORE + i for i, a in enumerate(ids)}
@@ -89,6 +91,24 @@ class Installation:
         # each anchor's range-model state columns, for its range rows
         self.range_columns = {a: tuple(c for index in (self.bias_index, self.mp_index)
                                        if (c := index.get(a)) is not None) for a in ids}
+
+    def side_lost(self, excluded: set[int]) -> bool:
+        """Whether leaving ``excluded`` out loses the side of the anchors' plane: the whole
+        layout told it (it has no mirror, or the ranges decided it), the anchors left form a
+        horizontal plane (which has one), and no hint says it. The height is then not known
+        (the health says so)."""
+        told = not self.mirror.ambiguous or self.mirror.decided_by.startswith("ranges")
+        if not excluded or not told or self.cfg.tag_side != "auto" \
+                or self.cfg.height_range_m is not None:
+            return False
+        key = frozenset(excluded)
+        lost = self._side_lost.get(key)
+        if lost is None:
+            rest = np.array([p for a, p in self.anchors.items() if a not in excluded],
+                            dtype=float).reshape(-1, 3)
+            lost = self._side_lost[key] = len(rest) >= 3 and coplanar(rest) and \
+                abs(float(MirrorSide(rest, core=self._core).normal[2])) >= WALL_NORMAL_Z
+        return lost
 
     def resolve(self, epoch: UwbRanges, gating: GatingCounters,
                 reports: list[FusionReport]) -> Resolved:

@@ -13,7 +13,8 @@ fault stays found: no protection level holds then, and the monitor says so.
 
 The bank starts anew with the main filter (a start, a restored covariance, a position
 reset, an exclusion): its separations then say nothing yet, so for ``WARM_S`` after that
-the levels over the anchors' faults are not known (the monitor says so).
+the levels over the anchors' faults are not known (the monitor says so: after a start, as
+part of aligning; later, as ``position_uncertain``).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from __future__ import annotations
 from uwbd.fusion.checks.separation import SeparationTest
 from uwbd.fusion.core.eskf import Eskf
 from uwbd.fusion.policy.estimate import Estimate, Findings
+from uwbd.fusion.policy.installation import Installation
 from uwbd.fusion.settings import HealthLimits
 
 NS = 1_000_000_000
@@ -36,8 +38,9 @@ class Integrity:
     """The separation test and the exclusion over the filter's life (see module doc)."""
 
     def __init__(self, limits: HealthLimits, range_sigma_m: float, est: Estimate,
-                 findings: Findings) -> None:
+                 findings: Findings, installation: Installation) -> None:
         self.limits, self.est, self.findings = limits, est, findings
+        self.installation = installation
         self._bias_per_sigma = limits.range_bias_bound_m / range_sigma_m
         self._tests: dict[int, SeparationTest] = {}  # by the bank's size
         self._ekf: Eskf | None = None  # the state the bank below is of
@@ -56,8 +59,10 @@ class Integrity:
             if t_ns >= until_ns:
                 del separated[anchor]
                 self.findings.excluded.discard(anchor)
-        monitor.separated = tuple(sorted(separated))
+                self._said_excluded()
         if ekf is not None and (ekf is not self._ekf or ekf.bank_resets != self._resets):
+            # (a new state: the start's warm-up, which the health counts as aligning)
+            monitor.separation_starting = ekf is not self._ekf
             self._ekf, self._resets, self._since_ns = ekf, ekf.bank_resets, t_ns
             self._run = (-1, 0)
         if ekf is None or not ekf.bank:
@@ -94,8 +99,14 @@ class Integrity:
         hold_s = min(HOLD_S * 2 ** (strikes - 1), MAX_HOLD_S)
         findings.separated[anchor] = t_ns + int(hold_s * NS)
         findings.excluded.add(anchor)  # (its state's share is gone with the adoption)
-        self.est.monitor.separated = tuple(sorted(findings.separated))
+        self._said_excluded()
         self.est.counters["anchors_excluded"] += 1
         self.est.counters["anchors_separated"] += 1
         self.est.monitor.separation = None
         self.est.monitor.separation_warm = False
+
+    def _said_excluded(self) -> None:
+        """The anchors left out, and whether the height went with them, to the health."""
+        excluded = self.findings.excluded
+        self.est.monitor.excluded = tuple(sorted(excluded))
+        self.est.monitor.side_lost = self.installation.side_lost(excluded)
