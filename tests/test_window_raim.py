@@ -101,29 +101,30 @@ def _run(sim_cfg: SimConfig, move_anchor: tuple[float, float, float] | None,
 def test_protection_levels_bound_the_error_of_a_right_installation() -> None:
     """Every pose carries both levels (in its JSON too); they bound the true error on
     every pose of a fault-free run. (Over each anchor's fault, on this layout of six
-    anchors and 0.1 m ranges, they are about 0.6 m and 0.9 m: measured.)"""
+    anchors and 0.1 m ranges, they are about 0.6 m and 1.4 m: measured.)"""
     poses, err = _run(SimConfig(seed=1), None)
     hpl = np.array([p.health.horizontal_protection_m for p in poses], dtype=float)
     vpl = np.array([p.health.vertical_protection_m for p in poses], dtype=float)
     assert np.isfinite(hpl).all() and np.isfinite(vpl).all()
     assert (np.hypot(err[:, 0], err[:, 1]) <= hpl).all()
     assert (np.abs(err[:, 2]) <= vpl).all()
-    assert np.median(hpl) < 0.75 and np.median(vpl) < 1.25
+    assert np.median(hpl) < 0.75 and np.median(vpl) < 1.6
     assert not any("ranges_inconsistent" in p.health.faults for p in poses)
     said = poses[-1].health.as_dict()
     assert said["horizontal_protection_m"] == pytest.approx(hpl[-1], abs=1e-4)
     assert said["vertical_protection_m"] == pytest.approx(vpl[-1], abs=1e-4)
 
 
-def test_an_anchor_surveyed_off_makes_the_ranges_inconsistent() -> None:
-    """Anchor 3 1 m off sideways in the config: its ranges are in every snapshot (left out
-    of the update or not), and the snapshot test says the ranges disagree on a good share
-    of the poses (the status names the candidates), none of them healthy; fed nothing, it
-    says nothing."""
-    poses, _ = _run(SimConfig(seed=1), (1.0, 0.0, 0.0))
-    flagged = [p for p in poses if "ranges_inconsistent" in p.health.faults]
-    assert len(flagged) > len(poses) // 4, (len(flagged), len(poses))
-    assert not any(p.health.healthy for p in flagged)
+def test_an_anchor_surveyed_off_is_left_out_and_the_snapshot_test_judges_the_rest() -> None:
+    """Anchor 3 1 m off sideways in the config: it is left out (a note: the rest agree, and
+    the snapshot test, which judges the anchors in use, says nothing of them); no pose is
+    healthy while more than 0.5 m off. Fed nothing, the snapshot test says nothing."""
+    poses, err = _run(SimConfig(seed=1), (1.0, 0.0, 0.0))
+    left_out = [p for p in poses if "anchor_excluded" in p.health.notes]
+    assert len(left_out) > len(poses) // 2, (len(left_out), len(poses))
+    assert not any("ranges_inconsistent" in p.health.faults for p in left_out)
+    off = np.linalg.norm(err, axis=1) > 0.5
+    assert not any(p.health.healthy for p, o in zip(poses, off, strict=True) if o)
     quiet, _ = _run(SimConfig(seed=1), (1.0, 0.0, 0.0), raim=False)
     assert not any("ranges_inconsistent" in p.health.faults for p in quiet)
 

@@ -73,6 +73,7 @@ BLOCK_S = 10.0
 HOLDOUT_FRACTION = 0.3
 MIN_RANGES = 500
 MIN_SPAN_S = 30.0
+MIN_BIAS_RANGES = 50  # an anchor's held-out ranges that say what bias its calibration leaves
 MIN_CORRELATED_M = 0.01  # a correlated part smaller than this is not worth the states
 MIN_DISTANCE_SIGMAS = 3.0  # the distance term is written when this many σ from zero
 
@@ -247,6 +248,8 @@ class RangeCalibration:
     distance_fit: tuple[float, float]  # k and its σ as fitted, written or not
     # held-out σ of the fitted model without, then with, the anchors' term (None: not asked)
     anchor_held_out: tuple[float, ...] | None = None
+    # what the model leaves of a range's bias: the largest anchor's mean held-out residual
+    bias_bound_m: float | None = None
 
     def keys(self, anchor_delays: bool = True) -> dict[str, dict[str, object]]:
         """The config keys: ``[range_model]`` (the tag's term, the distance term, 0 where
@@ -275,6 +278,8 @@ class RangeCalibration:
                                         for a, o in zip(f.anchor_ids, f.offsets_m, strict=True)}
         # the delays known, or the states to estimate the robot's own (other units')
         fusion["range_bias_states"] = not anchor_delays
+        if self.bias_bound_m is not None:  # the protection levels' bias bound, calibrated
+            fusion["range_bias_bound_m"] = self.bias_bound_m
         return {"range_model": model, **({"fusion": fusion} if fusion else {})}
 
     def overrides(self, source: str, anchor_delays: bool = True) -> list[str]:
@@ -347,6 +352,9 @@ class RangeCalibration:
                          f"a range {tail.onset_m:.3f} m longer than predicted is likelier NLOS "
                          "than noise (fusion.nlos_onset_m)" if tail.onset_m is not None else
                          "nowhere likelier than noise: fusion.nlos_onset_m left to its default"))
+        if self.bias_bound_m is not None:
+            lines.append(f"bias left: each anchor's mean held-out residual {self.bias_bound_m:.2f} "
+                         "m at most (fusion.range_bias_bound_m: the protection levels' bound)")
         return "\n".join(lines)
 
 
@@ -414,4 +422,18 @@ def calibrate(s: RangeSamples, degree: int, oriented: bool = True,
     return RangeCalibration(model, noise_shape(s.t_ns, s.anchor, s.residual_m - model.delay_m(s)),
                             len(s.t_ns), span_s, len(model.anchor_ids), held_out,
                             robust_sigma(s.residual_m - before.delay_m(s)), distance,
-                            anchor_held_out)
+                            anchor_held_out, bias_bound(test, test.residual_m - fit(
+                                train, degree, with_distance, False, anchor_degree)
+                                .delay_m(test)))
+
+
+def bias_bound(s: RangeSamples, residual_m: Array) -> float | None:
+    """The bias a calibrated range keeps, for the protection levels
+    (``fusion.range_bias_bound_m``): the largest of the anchors' mean held-out residuals
+    (each over ``MIN_BIAS_RANGES`` ranges at least), up to the next centimetre, 1 cm at
+    least; None when no anchor has enough."""
+    means = [abs(float(np.mean(residual_m[s.anchor == a]))) for a in np.unique(s.anchor)
+             if int(np.sum(s.anchor == a)) >= MIN_BIAS_RANGES]
+    if not means:
+        return None
+    return max(math.ceil(max(means) * 100) / 100, 0.01)
