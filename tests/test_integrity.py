@@ -551,9 +551,9 @@ def test_an_anchor_surveyed_off_is_named_and_the_estimate_is_not_healthy() -> No
     """Anchor 3 of the seed layout 1 m off sideways in the config. The start at rest finds
     its ranges disagreeing with the others' and leaves it out (its fix alone would be 1-2 m
     off in height); the anchor test names anchor 3 and no other (the health's note, the
-    status's finding) and keeps it excluded: no pose is healthy while more than 0.5 m off (there were
-    ~100 before the start's check), few are that far off at all, and the last 20 s are within
-    0.3 m; with the true position nothing is found."""
+    status's finding) and keeps it excluded: no pose is healthy while more than 0.5 m off
+    (there were ~100 before the start's check), few are that far off at all, and the last
+    20 s are within 0.3 m; with the true position nothing is found."""
     sim = simulate(SimConfig(seed=1))
     right = datasheet(sim)
     anchors = dict(right.anchors_m)
