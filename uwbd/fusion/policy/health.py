@@ -87,6 +87,7 @@ class HealthMonitor:
         self.excluded: tuple[int, ...] = ()  # the anchors left out of the updates (either test)
         self.side_lost = False  # and with them the side of the rest's plane: no height
         self.separation_starting = False  # its warm-up is the start's (not a restart's)
+        self.separation_alarm = False  # an anchor's fault found, lately, and not left out
         risk = limits.integrity_risk
         self._k_horizontal = math.sqrt(-2.0 * math.log(risk))  # Rayleigh, on the major axis
         self._k_vertical = NormalDist().inv_cdf(1.0 - risk / 2.0)  # two-sided
@@ -149,6 +150,7 @@ class HealthMonitor:
         self.inflation = 1.0
         self.offset_m = (0.0, 0.0, 0.0)
         self.separation, self.separation_warm, self.excluded = None, False, ()
+        self.separation_alarm = False
         self.side_lost = False
         self.separation_starting = False
         self._after_reset = True  # recovering until a window of innovations agrees
@@ -211,7 +213,7 @@ class HealthMonitor:
                    else self._k_vertical * k * vertical_sigma_m + abs(dz) + gv * b)
             sep = self.separation
             warming = sep is not None and not self.separation_warm
-            if warming or (sep is not None and sep.suspect is not None):
+            if warming or (sep is not None and self.separation_alarm):
                 # the levels over the anchors' faults: not known yet, or an anchor's fault
                 # found and not yet left out (no level holds then)
                 hpl = vpl = None
@@ -228,7 +230,7 @@ class HealthMonitor:
             # an anchor found wrong and not left out (too few others); one left out is a
             # note, the rest judged by the levels
             if set(self.anchor_suspects) - set(self.excluded) or (
-                    sep is not None and self.separation_warm and sep.suspect is not None):
+                    sep is not None and self.separation_alarm):
                 faults.append("anchor_inconsistent")
             if self.ranges_inconsistent:
                 faults.append("ranges_inconsistent")

@@ -9,7 +9,9 @@ anchor is left out (``Findings.separated``), as long as ``MIN_KEPT_ANCHORS`` oth
 After ``HOLD_S`` (doubled at each exclusion of the same anchor) it is taken back on
 trial: its sub-filter has not seen it since, so the bank tests it afresh, and a fault that
 is still there is found and left out again. With too few anchors to leave one out, the
-fault stays found: no protection level holds then, and the monitor says so.
+fault stays found: no protection level holds then, and the monitor says so, until
+``ALARM_HOLD_S`` after the last test over its threshold (a fault a test or two misses
+between its detections is still there).
 
 The bank starts anew with the main filter (a start, a restored covariance, a position
 reset, an exclusion): its separations then say nothing yet, so for ``WARM_S`` after that
@@ -28,6 +30,7 @@ from uwbd.fusion.settings import HealthLimits
 NS = 1_000_000_000
 EVERY_NS = 50_000_000  # the test at most 20 times a second
 WARM_S = 5.0  # after the bank starts anew, its separations are judged this much later
+ALARM_HOLD_S = 5.0  # a fault found stands this long after its last test over the threshold
 EXCLUDE_AFTER = 20  # tests in a row naming the same anchor (a second: not a burst of NLOS)
 MIN_KEPT_ANCHORS = 4  # an anchor is left out only while this many others remain
 HOLD_S = 10.0  # an anchor left out is tried again after this (doubled each time, to MAX)
@@ -48,6 +51,7 @@ class Integrity:
         self._since_ns = 0  # the bank started anew
         self._last_ns = -(2**63)
         self._run: tuple[int, int] = (-1, 0)  # the anchor named by the last tests, how often
+        self._alarm_ns = -(2**63)  # the last test over its threshold
         self._strikes: dict[int, int] = {}  # how often each anchor was left out
 
     def after_update(self, t_ns: int) -> None:
@@ -64,10 +68,10 @@ class Integrity:
             # (a new state: the start's warm-up, which the health counts as aligning)
             monitor.separation_starting = ekf is not self._ekf
             self._ekf, self._resets, self._since_ns = ekf, ekf.bank_resets, t_ns
-            self._run = (-1, 0)
+            self._run, self._alarm_ns = (-1, 0), -(2**63)
         if ekf is None or not ekf.bank:
             monitor.separation = None
-            monitor.separation_warm = False
+            monitor.separation_warm = monitor.separation_alarm = False
             return
         if t_ns - self._last_ns < EVERY_NS:
             return
@@ -81,6 +85,9 @@ class Integrity:
         sep = monitor.separation = test.test(ekf.bank, ekf.P, ekf.bank_d, ekf.bank_P)
         monitor.separation_warm = warm = t_ns - self._since_ns >= WARM_S * NS
         suspect = sep.suspect if warm else None
+        if suspect is not None:
+            self._alarm_ns = t_ns
+        monitor.separation_alarm = warm and t_ns - self._alarm_ns < ALARM_HOLD_S * NS
         if suspect is None:
             self._run = (-1, 0)
             return
@@ -103,7 +110,7 @@ class Integrity:
         self.est.counters["anchors_excluded"] += 1
         self.est.counters["anchors_separated"] += 1
         self.est.monitor.separation = None
-        self.est.monitor.separation_warm = False
+        self.est.monitor.separation_warm = self.est.monitor.separation_alarm = False
 
     def _said_excluded(self) -> None:
         """The anchors left out, and whether the height went with them, to the health."""
