@@ -21,10 +21,10 @@
 #include <stdint.h>
 #include <string.h>
 
-#define OP_MESSAGE 0x05
-#define OP_MESSAGE_INDEX 0x07
-#define MESSAGE_HEAD 31 /* opcode, length u64, channel u16, sequence u32, 2 × time u64 */
-#define MESSAGE_FIXED 22 /* the record's content before its data */
+#include "_chunk_layout.h" /* the records' heads, generated from uwbd/logs/records.py */
+
+/* the record's content before its data: all of the head after its opcode and length */
+#define MESSAGE_FIXED (MESSAGE_HEAD - MESSAGE_CHANNEL_ID_AT)
 
 typedef struct {
     unsigned channel;
@@ -129,12 +129,13 @@ static PyObject *chunk_add(ChunkBuffer *s, PyObject *const *args, Py_ssize_t nar
     ix->pairs[2 * ix->count + 1] = (uint64_t)s->len;
     ix->count++;
     unsigned char *p = s->data + s->len;
-    p[0] = OP_MESSAGE;
-    put_le(p + 1, (uint64_t)(MESSAGE_FIXED + view.len), 8);
-    put_le(p + 9, channel, 2);
-    put_le(p + 11, sequence, 4);
-    put_le(p + 15, t, 8);
-    put_le(p + 23, t, 8);
+    put_le(p + MESSAGE_OPCODE_AT, OP_MESSAGE, MESSAGE_OPCODE_SIZE);
+    put_le(p + MESSAGE_RECORD_LENGTH_AT, (uint64_t)(MESSAGE_FIXED + view.len),
+           MESSAGE_RECORD_LENGTH_SIZE);
+    put_le(p + MESSAGE_CHANNEL_ID_AT, channel, MESSAGE_CHANNEL_ID_SIZE);
+    put_le(p + MESSAGE_SEQUENCE_AT, sequence, MESSAGE_SEQUENCE_SIZE);
+    put_le(p + MESSAGE_LOG_TIME_AT, t, MESSAGE_LOG_TIME_SIZE);
+    put_le(p + MESSAGE_PUBLISH_TIME_AT, t, MESSAGE_PUBLISH_TIME_SIZE);
     memcpy(p + MESSAGE_HEAD, view.buf, (size_t)view.len);
     s->len += MESSAGE_HEAD + view.len;
     PyBuffer_Release(&view);
@@ -161,16 +162,17 @@ static PyObject *chunk_append(ChunkBuffer *s, PyObject *record)
 static PyObject *index_record(const Index *ix)
 {
     Py_ssize_t size = 16 * ix->count;
-    PyObject *out = PyBytes_FromStringAndSize(NULL, 1 + 8 + 2 + 4 + size);
+    PyObject *out = PyBytes_FromStringAndSize(NULL, INDEX_HEAD + size);
     if (out == NULL)
         return NULL;
     unsigned char *p = (unsigned char *)PyBytes_AS_STRING(out);
-    p[0] = OP_MESSAGE_INDEX;
-    put_le(p + 1, (uint64_t)(2 + 4 + size), 8);
-    put_le(p + 9, ix->channel, 2);
-    put_le(p + 11, (uint64_t)size, 4);
+    put_le(p + INDEX_OPCODE_AT, OP_MESSAGE_INDEX, INDEX_OPCODE_SIZE);
+    put_le(p + INDEX_RECORD_LENGTH_AT, (uint64_t)(INDEX_HEAD - INDEX_CHANNEL_ID_AT + size),
+           INDEX_RECORD_LENGTH_SIZE);
+    put_le(p + INDEX_CHANNEL_ID_AT, ix->channel, INDEX_CHANNEL_ID_SIZE);
+    put_le(p + INDEX_ARRAY_BYTES_AT, (uint64_t)size, INDEX_ARRAY_BYTES_SIZE);
     for (Py_ssize_t k = 0; k < 2 * ix->count; k++)
-        put_le(p + 15 + 8 * k, ix->pairs[k], 8);
+        put_le(p + INDEX_HEAD + 8 * k, ix->pairs[k], 8);
     return out;
 }
 

@@ -35,14 +35,18 @@ from mcap.records import (
 )
 
 from uwbd.fusion.core import native
+from uwbd.logs import records
 
 # the file's first and last bytes (mcap.writer's MCAP0_MAGIC: that module is not imported,
 # it reads its package's version from the installed metadata at import, ~15 ms)
 MCAP0_MAGIC = b"\x89MCAP0\r\n"
-# opcode, record length, channel id, sequence, log time, publish time: then the data
-_MESSAGE = struct.Struct("<BQHIQQ")
+# the records' heads (records.py, which _chunk.c is generated from): then the data, or the
+# index's pairs
+_MESSAGE = struct.Struct(records.struct_format(records.MESSAGE_HEAD))
 _MESSAGE_FIXED = _MESSAGE.size - 9  # the record's content before its data
-_MESSAGE_INDEX = struct.Struct("<BQHI")  # opcode, record length, channel id, array bytes
+_MESSAGE_INDEX = struct.Struct(records.struct_format(records.MESSAGE_INDEX_HEAD))
+if (records.OP_MESSAGE, records.OP_MESSAGE_INDEX) != (Opcode.MESSAGE, Opcode.MESSAGE_INDEX):
+    raise ImportError("uwbd/logs/records.py: its opcodes are not the mcap package's")
 # zstd level 1: the same ratio as the default 3 on these logs (JSON and device bytes, ~6x)
 # at three quarters of the time (measured on 64 kB chunks)
 ZSTD_LEVEL = 1
