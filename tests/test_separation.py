@@ -157,3 +157,33 @@ def test_uncalibrated_real_ranges_leave_no_anchor_out_with_the_bias_bound() -> N
         vpl = np.array([q.health.vertical_protection_m or math.inf for q in kept])
         beyond = (np.hypot(err[:, 0], err[:, 1]) > hpl) | (np.abs(err[:, 2]) > vpl)
         assert beyond.mean() <= 1e-3, beyond.mean()
+
+
+def test_an_anchor_no_longer_found_is_taken_back_and_the_health_says_so() -> None:
+    """The anchors left out follow the findings, message by message: a finding that lapses
+    (cleared here) brings its anchor back into the update, and the note and the snapshot
+    test's exclusion go with it."""
+    case = draw_case(23)
+    sim = simulate(case.sim)
+    flt = Filter(told(case, sim, False))
+    frames = list(merge(sim.imu, ranges_of(case, sim, False)))
+    third = len(frames) // 3
+
+    def feed(part: list[object]) -> None:
+        for frame in part:
+            if isinstance(frame, ImuSample):
+                flt.predict(frame)
+            else:
+                flt.update(frame)  # type: ignore[arg-type]
+    feed(frames[:third])
+    assert flt.t_ns is not None
+    flt.findings.consistency.found(flt.t_ns, 2, 0.5, 0.05)
+    feed(frames[third:third + 200])
+    assert flt.findings.excluded == {2} and flt.est.monitor.excluded == (2,)
+    pose = flt.pose()
+    assert pose is not None and "anchor_excluded" in pose.health.notes
+    flt.findings.consistency.clear()  # (the finding lapses)
+    feed(frames[third + 200:2 * third])
+    assert not flt.findings.excluded and flt.est.monitor.excluded == ()
+    pose = flt.pose()
+    assert pose is not None and "anchor_excluded" not in pose.health.notes

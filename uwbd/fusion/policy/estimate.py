@@ -61,6 +61,7 @@ class Findings:
         self.consistency.clear()
         self.raim.clear()
         self.separated.clear()
+        self.excluded.clear()
         self.mounting_yaw.clear()  # (the body velocity was the old heading's)
 
 

@@ -200,48 +200,52 @@ class EpochFusion:
         separation, :mod:`.integrity`) are left out of the update (each reported,
         ``anchor_excluded``), as long as four other anchors remain; the test goes on judging
         them against the state, and they return once they agree."""
-        found = self.findings.consistency.findings
-        separated = self.findings.separated
-        if not (found or separated) or not any(a in found or a in separated for a in ids):
-            return ids, anchors, ranges, r_scale
+        findings = self.findings
+        found, separated = findings.consistency.findings, findings.separated
         if len(self.installation.anchors) - len(found.keys() | separated.keys()) \
                 < MIN_KEPT_ANCHORS:
             found = {}  # (the separation's are left out only while enough remain)
-        keep = np.array([a not in found and a not in separated for a in ids])
-        if keep.all():
+        # the anchors left out: those still found, and this message's found ones
+        out = {a for a in ids if a in found or a in separated}
+        excluded = {a for a in findings.excluded if a in found or a in separated} | out
+        adopted = False  # (one adoption a message: it starts the bank anew)
+        for a in sorted(out - findings.excluded):
+            adopted |= self._newly_excluded(a, found[a].bias_m if a in found else 0.0,
+                                            adopt=not adopted)
+        findings.excluded = excluded
+        said = tuple(sorted(excluded))
+        if said != self.est.monitor.excluded:  # (the health's view, refreshed on a change)
+            self.est.monitor.excluded = said
+            self.est.monitor.side_lost = self.installation.side_lost(excluded)
+        if not out:
             return ids, anchors, ranges, r_scale
-        for a in ids:
-            if a in found or a in separated:
-                if a not in self.findings.excluded:
-                    self._newly_excluded(a, found[a].bias_m)
-                self.est.counters["range_excluded"] += 1
-                reports.append(FusionReport(t_ns, "range", str(a), math.nan, math.nan,
-                                            math.nan, False, "anchor_excluded"))
-        self.findings.excluded = {a for a in self.findings.excluded
-                                  if a in found or a in separated} | {
-            a for a in ids if a in found or a in separated}
-        self.est.monitor.excluded = tuple(sorted(self.findings.excluded))
-        self.est.monitor.side_lost = self.installation.side_lost(self.findings.excluded)
+        left = [FusionReport(t_ns, "range", str(a), math.nan, math.nan, math.nan, False,
+                             "anchor_excluded") for a in ids if a in out]
+        self.est.counters["range_excluded"] += len(left)
+        reports += left
+        keep = np.array([a not in out for a in ids])
         return ([a for a, k in zip(ids, keep, strict=True) if k], anchors[keep], ranges[keep],
                 r_scale[keep])
 
-    def _newly_excluded(self, anchor: int, bias_m: float) -> None:
+    def _newly_excluded(self, anchor: int, bias_m: float, adopt: bool) -> bool:
         """The state has been pulled by this anchor's ranges: it becomes the bank's
-        sub-filter that never took them (:meth:`~uwbd.fusion.core.eskf.Eskf.adopt`); without
-        a bank, its position and the other anchors' range-model states (which took part of
-        the error) may move again."""
+        sub-filter that never took them (:meth:`~uwbd.fusion.core.eskf.Eskf.adopt`; with
+        ``adopt`` — once a message: the bank starts anew); else its position and the other
+        anchors' range-model states (which took part of the error) may move again. Whether
+        it adopted."""
         ekf = self.est.ekf
         assert ekf is not None
         self.est.counters["anchors_excluded"] += 1
-        if anchor in ekf.bank:
+        if adopt and anchor in ekf.bank:
             ekf.adopt(ekf.bank.index(anchor))
-            return
+            return True
         d = np.zeros(ekf.n)
         d[P_] = bias_m**2
         for other, columns in self.installation.range_columns.items():
             if other != anchor:
                 d[list(columns)] += EXCLUSION_RANGE_STATE_VAR_M2
         ekf.add_variances(d)
+        return False
 
     def _row_policy(self, keys: list[tuple[str, str]], fix_ok: bool) -> RowPolicy:
         # the first letter of each row's kind: "r"ange, "p"osition, any other gated plainly

@@ -149,9 +149,8 @@ class HealthMonitor:
         self.anchor_suspects = self.ranges_inconsistent = ()
         self.inflation = 1.0
         self.offset_m = (0.0, 0.0, 0.0)
-        self.separation, self.separation_warm, self.excluded = None, False, ()
-        self.separation_alarm = False
-        self.side_lost = False
+        # (the anchors left out, and the side lost with them, are the findings': kept)
+        self.separation, self.separation_warm, self.separation_alarm = None, False, False
         self.separation_starting = False
         self._after_reset = True  # recovering until a window of innovations agrees
 

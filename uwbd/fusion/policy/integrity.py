@@ -62,7 +62,8 @@ class Integrity:
         for anchor, until_ns in list(separated.items()):
             if t_ns >= until_ns:
                 del separated[anchor]
-                self.findings.excluded.discard(anchor)
+                if anchor not in self.findings.consistency.findings:  # (else still out)
+                    self.findings.excluded.discard(anchor)
                 self._said_excluded()
         if ekf is not None and (ekf is not self._ekf or ekf.bank_resets != self._resets):
             # (a new state: the start's warm-up, which the health counts as aligning)
