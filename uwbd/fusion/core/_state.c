@@ -88,6 +88,7 @@ static int state_init(State *self, PyObject *args, PyObject *kwds)
     if (bank_seq == NULL)
         return -1;
     Py_ssize_t K = PySequence_Fast_GET_SIZE(bank_seq);
+    PyMem_Free(self->bank_anchor); /* (an earlier call that failed before the block) */
     self->bank_anchor = PyMem_Calloc((size_t)(K + 1), sizeof(long long));
     if (self->bank_anchor == NULL) {
         Py_DECREF(bank_seq);
