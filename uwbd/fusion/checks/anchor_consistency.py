@@ -107,14 +107,6 @@ class AnchorConsistency:
         self.findings[anchor] = Finding(anchor, bias_m, sigma_m)
         self._found_ns[anchor] = t_ns
 
-    def average(self, anchor: int) -> tuple[float, float] | None:
-        """An anchor's window: its average ``b̂`` and that average's σ (None: too few
-        epochs of it to say)."""
-        window = self._windows.get(anchor)
-        if window is None or len(window.entries) < MIN_ENTRIES or not window.sum_w > 0:
-            return None
-        return window.sum_wb / window.sum_w, math.sqrt(CORRELATED_EPOCHS / window.sum_w)
-
     def clear(self) -> None:
         """A restart: the evidence was about the old estimate."""
         self._windows.clear()

@@ -18,10 +18,10 @@
  * ranges out, as their offsets from the nominal state d_k (K×n) and covariances P_k
  * (K×n×n). Every operation above advances the bank with the main filter: the same Φ and
  * Q, the same rows with the main filter's weights (its decisions), but anchor k's rows
- * left out of sub-filter k; the heading's turn turns them too; a restore or a move starts
- * the bank anew from the main filter (d_k = 0, P_k = P). Python reads the block as numpy views
- * (eskf.CoreEskf) and changes it only through the operations. The reference is eskf.Eskf,
- * in pure Python. */
+ * left out of sub-filter k; the heading's turn turns them too; a restore, a move or an
+ * adoption starts the bank anew from the main filter (d_k = 0, P_k = P). Python reads the
+ * block as numpy views (eskf.CoreEskf) and changes it only through the operations. The
+ * reference is eskf.Eskf, in pure Python. */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>

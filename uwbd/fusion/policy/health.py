@@ -20,18 +20,22 @@ positive definiteness along a measurement), ``innovations_inconsistent`` (most o
 ``window_count`` UWB measurements, or the last four, fail the gate, or their NIS is far
 above 1), ``imu_rejected`` (a sample was rejected within the last second), ``imu_gap``,
 ``range_timeout`` (no accepted range for ``range_timeout_s``), ``position_uncertain``
-(a protection level over its alert limit: ``K √k σ + |δp| + g b`` at ``integrity_risk``,
-σ the horizontal ellipse's major axis or σz, ``k`` the snapshot test's inflation, ``δp``
-its mean offset of the state and ``g`` its geometry's position error per metre of a bias
-``range_bias_bound_m`` on every range, horizontal or vertical),
-``anchor_inconsistent`` (an anchor's ranges disagree with the others':
-:mod:`uwbd.fusion.checks.anchor_consistency`; the status names it),
+(a protection level not known, or over its alert limit: the larger of the bank's solution
+separation's, :mod:`uwbd.fusion.checks.separation`, and ``K √k σ + |δp| + g b`` at
+``integrity_risk``, σ the horizontal ellipse's major axis or σz, ``k`` the snapshot test's
+inflation, ``δp`` its mean offset of the state and ``g`` its geometry's position error per
+metre of a bias ``range_bias_bound_m`` on every range, horizontal or vertical; with
+``height_needed`` off, the horizontal's alone), ``anchor_inconsistent`` (an anchor's
+ranges disagree with the others' and it is not left out:
+:mod:`uwbd.fusion.checks.anchor_consistency` or the separation; the status names it),
 ``ranges_inconsistent`` (the ranges disagree with each other beyond their noise:
 :mod:`uwbd.fusion.checks.window_raim`; the status names the candidates),
 ``mounting_inconsistent`` (with NHC on, the vehicle moves sideways in body axes: a
 mounting turned about z, :mod:`uwbd.fusion.checks.mounting_yaw`; the status's
 ``mounting_finding`` says by how much).
-Notes do not make the estimate unhealthy: ``mirror_unresolved`` (coplanar anchors, side
+Notes do not make the estimate unhealthy: ``anchor_excluded`` (an anchor found wrong is
+left out; the rest agree), ``height_uncertain`` (with ``height_needed`` off, the vertical
+level not known or over its limit), ``mirror_unresolved`` (coplanar anchors, side
 not yet told by the data, the configured or default side in use), ``mounting_suspect``
 (at the start at rest gravity was over 30° from the body's up axis: a wrong
 ``imu.mounting``, or a vehicle on a slope; the status's ``mounting_finding`` says which way),
@@ -212,7 +216,7 @@ class HealthMonitor:
                    else self._k_vertical * k * vertical_sigma_m + abs(dz) + gv * b)
             sep = self.separation
             warming = sep is not None and not self.separation_warm
-            if warming or (sep is not None and self.separation_alarm):
+            if warming or self.separation_alarm:
                 # the levels over the anchors' faults: not known yet, or an anchor's fault
                 # found and not yet left out (no level holds then)
                 hpl = vpl = None
@@ -228,8 +232,7 @@ class HealthMonitor:
                 faults.append("position_uncertain")
             # an anchor found wrong and not left out (too few others); one left out is a
             # note, the rest judged by the levels
-            if set(self.anchor_suspects) - set(self.excluded) or (
-                    sep is not None and self.separation_alarm):
+            if set(self.anchor_suspects) - set(self.excluded) or self.separation_alarm:
                 faults.append("anchor_inconsistent")
             if self.ranges_inconsistent:
                 faults.append("ranges_inconsistent")

@@ -24,6 +24,7 @@ from __future__ import annotations
 from uwbd.fusion.checks.separation import SeparationTest
 from uwbd.fusion.core.eskf import Eskf
 from uwbd.fusion.policy.estimate import Estimate, Findings
+from uwbd.fusion.policy.fusing import MIN_KEPT_ANCHORS
 from uwbd.fusion.policy.installation import Installation
 from uwbd.fusion.settings import HealthLimits
 
@@ -32,7 +33,6 @@ EVERY_NS = 50_000_000  # the test at most 20 times a second
 WARM_S = 5.0  # after the bank starts anew, its separations are judged this much later
 ALARM_HOLD_S = 5.0  # a fault found stands this long after its last test over the threshold
 EXCLUDE_AFTER = 20  # tests in a row naming the same anchor (a second: not a burst of NLOS)
-MIN_KEPT_ANCHORS = 4  # an anchor is left out only while this many others remain
 HOLD_S = 10.0  # an anchor left out is tried again after this (doubled each time, to MAX)
 MAX_HOLD_S = 300.0
 
