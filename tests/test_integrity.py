@@ -345,7 +345,8 @@ def test_anchors_the_device_reports_get_the_mirror_side_and_the_range_states() -
     config = datasheet(sim, anchors_m={})
     poses, _, flt = run_filter(config, merge(sim.imu, uwb))
     assert flt.installation.mirror.ambiguous and flt.installation.mirror.sign == -1
-    assert flt.ekf is not None and flt.ekf.n == N_CORE + len(where)  # one delay state each
+    # one delay state each, and the lever arm's three (the bank's lever member's)
+    assert flt.ekf is not None and flt.ekf.n == N_CORE + len(where) + 3
     assert score_poses(poses, sim.truth_t_ns, sim.truth_p_m, skip_s=4).rmse_z_m < 0.15
 
 

@@ -33,6 +33,7 @@ import numpy as np
 
 from drivers.frames import UwbRanges
 from uwbd.config import parse
+from uwbd.fusion.checks.separation import LEVER_MEMBER
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.settings import FilterConfig
 from uwbd.fusion.types import Pose
@@ -46,8 +47,8 @@ STYLES = ("flat", "mixed", "few_high")
 VEHICLES = ("ground", "handheld", "drone")
 HORIZONTAL_ALERT_M, VERTICAL_ALERT_M = 0.5, 1.0  # the filter is told them too (told)
 # the faults that say the installation is wrong (not the estimate's own state)
-INSTALLATION_FAULTS = frozenset({"anchor_inconsistent", "ranges_inconsistent",
-                                 "mounting_inconsistent"})
+INSTALLATION_FAULTS = frozenset({"anchor_inconsistent", "lever_arm_inconsistent",
+                                 "ranges_inconsistent", "mounting_inconsistent"})
 REPORT_SEEDS_FROM = 1000  # seeds below: the tuning set; from here: the reported set
 WARM_UP_S = 10.0  # a start may be unhealthy until its tests have one window
 
@@ -200,8 +201,8 @@ class Score:
     healthy: int
     redundant: bool  # the layout sees the height without any one anchor (vertically_redundant)
     detected: bool  # an installation check fired: a finding, or one of INSTALLATION_FAULTS
-    named: bool  # the faulted anchor named (anchor faults), or the mounting said; a lever
-    # arm is never named (no lever-arm test yet)
+    named: bool  # the faulted anchor named (anchor faults), the mounting said, or the
+    # lever arm (the lever-arm test fired)
     rmse_3d_m: float
 
 
@@ -229,7 +230,7 @@ def score(case: Case, sim: Simulation, poses: list[Pose], findings: list[int],
     detected = bool(findings) or mounting_said or any(
         f in INSTALLATION_FAULTS for q in poses for f in q.health.faults)
     named = (case.anchor in findings) if case.anchor >= 0 else mounting_said \
-        if case.fault == "mounting" else False
+        if case.fault == "mounting" else LEVER_MEMBER in findings
     return Score(len(poses), int(((eh > hpl) | (ev > vpl)).sum()),
                  int((healthy & beyond_alert).sum()), int(healthy.sum()), redundant, detected,
                  named,
@@ -270,6 +271,8 @@ def run_case(case: Case, faulty: bool) -> Score:
         if flt.t_ns is not None and flt.t_ns >= after_ns:
             named.update(flt.findings.consistency.findings)
             named.update(flt.findings.separated)  # (the bank's separation left it out)
+            if flt.findings.lever_arm_m is not None:  # the lever-arm test fired
+                named.add(LEVER_MEMBER)
 
     poses, _, _ = run_filter(cfg, merge(sim.imu, ranges_of(case, sim, faulty)),
                              pose_period_ns=NS // 10, watch=watch)

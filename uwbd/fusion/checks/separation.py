@@ -36,6 +36,9 @@ import numpy as np
 from uwbd.fusion.core.rotation import Array
 
 MIN_SEPARATION_SIGMA_M = 1e-3  # σ of a separation is at least this (just after a new start)
+# the bank's member that leaves no anchor out but estimates the lever arm, which the main
+# filter holds known: its separation shows a lever arm off (no anchor id is negative)
+LEVER_MEMBER = -2
 
 
 @dataclass(frozen=True)
@@ -60,11 +63,13 @@ class SeparationTest:
     """The multipliers for a bank of ``count`` sub-filters, made once; :meth:`test` per call."""
 
     def __init__(self, count: int, integrity_risk: float, false_alert: float,
-                 bias_per_sigma: float = 0.0) -> None:
-        """``bias_per_sigma``: each range's unmodelled bias bound over its noise's σ (the
-        ranges' nominal bias, which moves a separation without a fault)."""
+                 bias_per_sigma: float = 0.0, lever: bool = False) -> None:
+        """``count`` sub-filters, one of them the lever member if ``lever`` (tested, and not
+        a hypothesis of the levels); ``bias_per_sigma``: each range's unmodelled bias bound
+        over its noise's σ (the ranges' nominal bias, which moves a separation without a
+        fault)."""
         share_fa = false_alert / max(count, 1)
-        share_md = integrity_risk / (count + 1)
+        share_md = integrity_risk / (count + 1 - lever)
         # the horizontal: a norm against the major axis (Rayleigh, conservative); the
         # vertical: two-sided normal
         self.k_fa_h = math.sqrt(-2.0 * math.log(share_fa))
@@ -94,9 +99,12 @@ class SeparationTest:
         main_v = self.k_md_v * math.sqrt(max(float(P[2, 2]), 0.0))
         # a separation over its threshold: that sub-filter may be the fault-free one, and
         # the main filter as far from the truth as it is from it and its own error
+        # the levels over the anchors' faults (the lever member detects; an unobserved lever
+        # arm would make its level the prior's)
+        anchor = np.array(anchors) >= 0
         return Separation(
-            max(main_h, float(np.max(np.maximum(t_h, d_h) + own_h, initial=0.0))),
-            max(main_v, float(np.max(np.maximum(t_v, d_v) + own_v, initial=0.0))),
+            max(main_h, float(np.max((np.maximum(t_h, d_h) + own_h)[anchor], initial=0.0))),
+            max(main_v, float(np.max((np.maximum(t_v, d_v) + own_v)[anchor], initial=0.0))),
             dict(zip(anchors, ratio.tolist(), strict=True)))
 
 

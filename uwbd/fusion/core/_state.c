@@ -15,11 +15,13 @@
  * The state is one block of doubles, exported read-only through the buffer protocol:
  * p (3), v (3), q (4: w x y z), b_g (3), b_a (3), b_r (m), P (n×n, row-major), last_dx (n),
  * with n = 15 + m; then the bank (§6, integrity): K sub-filters, each leaving one anchor's
- * ranges out, as their offsets from the nominal state d_k (K×n) and covariances P_k
+ * ranges out (or, with variances of its own added at each start, estimating states the main
+ * filter holds known: the lever arm's), as their offsets from the nominal state d_k (K×n) and covariances P_k
  * (K×n×n). Every operation above advances the bank with the main filter: the same Φ and
  * Q, the same rows with the main filter's weights (its decisions), but anchor k's rows
  * left out of sub-filter k; the heading's turn turns them too; a restore, a move or an
- * adoption starts the bank anew from the main filter (d_k = 0, P_k = P). Python reads the
+ * adoption starts the bank anew from the main filter (d_k = 0, P_k = P + its variances).
+ * Python reads the
  * block as numpy views (eskf.CoreEskf) and changes it only through the operations. The
  * reference is eskf.Eskf, in pure Python. */
 #define PY_SSIZE_T_CLEAN
@@ -46,6 +48,7 @@ typedef struct {
     Py_ssize_t rows_cap;
     Py_ssize_t bank;         /* K sub-filters: */
     long long *bank_anchor;  /* the anchor each leaves out */
+    double *bank_var;        /* K×n: the variances each adds to P's diagonal at a start */
     double *bank_d, *bank_P; /* in the exported block: d_k (K×n), P_k (K×n×n) */
 } State;
 
@@ -56,22 +59,28 @@ static void set_identity(double *A, Py_ssize_t n)
         A[i * n + i] = 1.0;
 }
 
-/* The bank started anew from the main filter: d_k = 0, P_k = P. */
+/* The bank started anew from the main filter: d_k = 0, P_k = P + diag(bank_var_k). */
 static void bank_reset(State *self)
 {
     Py_ssize_t n = self->n;
     memset(self->bank_d, 0, sizeof(double) * (size_t)(self->bank * n));
-    for (Py_ssize_t k = 0; k < self->bank; k++)
-        memcpy(self->bank_P + k * n * n, self->P, sizeof(double) * (size_t)(n * n));
+    for (Py_ssize_t k = 0; k < self->bank; k++) {
+        double *Pk = self->bank_P + k * n * n;
+        memcpy(Pk, self->P, sizeof(double) * (size_t)(n * n));
+        for (Py_ssize_t i = 0; i < n; i++)
+            Pk[i * n + i] += self->bank_var[k * n + i];
+    }
 }
 
-/* State(p, v, q, b_g, b_a, b_r, P0, q_rate, tau, markov_var, gravity, bank): n from P0
- * (n×n), m = n − 15 range-model states: b_r, tau (inf: a random walk, else Gauss–Markov
- * with τ) and markov_var (their stationary variances) m each, q_rate n; bank: the anchor
- * each sub-filter leaves out (a sequence of ints, maybe empty). */
+/* State(p, v, q, b_g, b_a, b_r, P0, q_rate, tau, markov_var, gravity, bank, bank_var): n
+ * from P0 (n×n), m = n − 15 range-model states: b_r, tau (inf: a random walk, else
+ * Gauss–Markov with τ) and markov_var (their stationary variances) m each, q_rate n; bank:
+ * the anchor each sub-filter leaves out (a sequence of ints, maybe empty; one no row is
+ * of leaves none out); bank_var: K×n variances each sub-filter adds to the main filter's
+ * diagonal whenever the bank starts anew (states only it estimates). */
 static int state_init(State *self, PyObject *args, PyObject *kwds)
 {
-    PyObject *po, *vo, *qo, *bgo, *bao, *bro, *P0, *qro, *tauo, *varo, *banko;
+    PyObject *po, *vo, *qo, *bgo, *bao, *bro, *P0, *qro, *tauo, *varo, *banko, *bvaro;
     double gravity;
     if (kwds != NULL && PyDict_GET_SIZE(kwds)) {
         PyErr_SetString(PyExc_TypeError, "State takes no keyword arguments");
@@ -81,8 +90,8 @@ static int state_init(State *self, PyObject *args, PyObject *kwds)
         PyErr_SetString(PyExc_TypeError, "a State is made once");
         return -1;
     }
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOOdO", &po, &vo, &qo, &bgo, &bao, &bro, &P0, &qro,
-                          &tauo, &varo, &gravity, &banko))
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOdOO", &po, &vo, &qo, &bgo, &bao, &bro, &P0, &qro,
+                          &tauo, &varo, &gravity, &banko, &bvaro))
         return -1;
     PyObject *bank_seq = PySequence_Fast(banko, "bank: a sequence of anchor ids");
     if (bank_seq == NULL)
@@ -110,6 +119,21 @@ static int state_init(State *self, PyObject *args, PyObject *kwds)
         PyErr_SetString(PyExc_ValueError, "P0 must be square, at least 15x15");
         return -1;
     }
+    Py_buffer Vb;
+    if (uwbd_get_doubles(bvaro, &Vb, K * n, 0, "bank_var") < 0) {
+        PyBuffer_Release(&Pb);
+        return -1;
+    }
+    PyMem_Free(self->bank_var);
+    self->bank_var = PyMem_Calloc((size_t)(K * n + 1), sizeof(double));
+    if (self->bank_var == NULL) {
+        PyBuffer_Release(&Pb);
+        PyBuffer_Release(&Vb);
+        PyErr_NoMemory();
+        return -1;
+    }
+    memcpy(self->bank_var, Vb.buf, sizeof(double) * (size_t)(K * n));
+    PyBuffer_Release(&Vb);
     Py_ssize_t m = n - N_CORE;
     self->n = n;
     self->m = m;
@@ -175,6 +199,7 @@ static void state_dealloc(State *self)
     PyMem_Free(self->work);
     PyMem_Free(self->rows);
     PyMem_Free(self->bank_anchor);
+    PyMem_Free(self->bank_var);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 

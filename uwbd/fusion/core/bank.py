@@ -18,6 +18,26 @@ def symmetric(P: Array) -> Array:
     return 0.5 * (P + np.swapaxes(P, -1, -2))
 
 
+def bank_variances(bank_var: Array | None, count: int, n: int) -> Array:
+    """The variances each of ``count`` sub-filters adds at a start (``None``: none), checked
+    to be ``count × n``."""
+    if bank_var is None:
+        return np.zeros((count, n))
+    out = np.array(bank_var, dtype=float).reshape(-1)
+    if out.size != count * n:
+        raise ValueError(f"bank_var: {count * n} numbers expected, got {out.size}")
+    return out.reshape(count, n)
+
+
+def bank_started(P: Array, bank_var: Array) -> tuple[Array, Array]:
+    """The bank started anew from the main filter's ``P``: offsets ``d_k = 0``, covariances
+    ``P_k = P + diag(bank_var_k)``."""
+    count, n = bank_var.shape
+    Pk = np.repeat(P[None], count, axis=0)
+    Pk[:, np.arange(n), np.arange(n)] += bank_var
+    return np.zeros((count, n)), Pk
+
+
 def bank_update(Pk: Array, d: Array, left_out: npt.NDArray[np.int64], H: Array, y: Array,
                 R: Array, weights: Sequence[float], ids: Sequence[int] | None,
                 considered: slice | None, dx: Array) -> None:

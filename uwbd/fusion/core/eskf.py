@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from uwbd.fusion.core.bank import bank_update, clamped, symmetric
+from uwbd.fusion.core.bank import bank_started, bank_update, bank_variances, clamped, symmetric
 from uwbd.fusion.core.layout import BA_, BG_, N_CORE, P_, TH_, V_
 from uwbd.fusion.core.noise import GRAVITY_MPS2, ImuNoise, process_noise
 from uwbd.fusion.core.pose import PoseNumbers, pose_numbers
@@ -44,16 +44,18 @@ class Eskf:
                  b_g: Vector = (0.0, 0.0, 0.0),
                  b_a: Vector = (0.0, 0.0, 0.0), aux_tau_s: Array | None = None,
                  aux_sigma: Array | None = None, gravity_mps2: float = GRAVITY_MPS2,
-                 b_r: Vector | None = None, bank: Sequence[int] = ()) -> None:
+                 b_r: Vector | None = None, bank: Sequence[int] = (),
+                 bank_var: Array | None = None) -> None:
         """``n_range_bias`` range-model states follow ``P0`` (their values ``b_r``, zeros
         by default): by default random walks (``noise.range_bias``); where ``aux_tau_s`` is
-        finite, first-order Gauss–Markov processes with time constant ``τ`` and stationary σ
-        ``aux_sigma`` (§3). ``gravity_mps2``: the local gravity the INS subtracts.
+        finite, first-order Gauss–Markov processes with time constant ``τ``; ``aux_sigma``
+        their σ (``noise.process_noise``, §3). ``gravity_mps2``: the INS's gravity.
 
         ``bank``: the anchor each sub-filter of the bank leaves out (§6): its offset from
         the nominal state ``bank_d[k]`` and covariance ``bank_P[k]`` advance with the main
         filter (its Φ, Q, rows and weights, its anchor's rows left out; a heading's turn
-        turns them, dropping their heading offsets); a restore or a move starts it anew."""
+        turns them, dropping their heading offsets); a restore or a move starts it anew,
+        each adding its ``bank_var`` (K×n) to ``P``'s diagonal (the lever member's)."""
         self.gravity_mps2 = float(gravity_mps2)
         self.n = N_CORE + n_range_bias
         if P0.shape != (self.n, self.n):
@@ -66,8 +68,8 @@ class Eskf:
         self.P = P0.astype(float).copy()
         self.bank = tuple(int(a) for a in bank)
         self._bank_anchor = np.array(self.bank, dtype=np.int64)
-        self.bank_d = np.zeros((len(self.bank), self.n))
-        self.bank_P = np.repeat(self.P[None], len(self.bank), axis=0)
+        self.bank_var = bank_variances(bank_var, len(self.bank), self.n)
+        self.bank_d, self.bank_P = bank_started(self.P, self.bank_var)
         self.noise = noise
         self._reset_interval()
         self.last_dx = np.zeros(self.n)
@@ -182,10 +184,9 @@ class Eskf:
         th -= np.outer(th @ R[2], R[2])
 
     def _bank_reset(self) -> None:
-        """The bank started anew from the main filter: ``d_k = 0``, ``P_k = P``."""
+        """The bank started anew from the main filter (:func:`.bank.bank_started`)."""
         self.bank_resets += 1
-        self.bank_d[:] = 0.0
-        self.bank_P[:] = self.P
+        self.bank_d, self.bank_P = bank_started(self.P, self.bank_var)
 
     def propagate(self) -> None:
         """``P ← Φ P Φᵀ + Q_d`` over the interval accumulated by :meth:`predict` (§3).

@@ -34,17 +34,18 @@ def process_noise(noise: ImuNoise, n_range_bias: int, aux_tau_s: Array | None,
                   aux_sigma: Array | None) -> tuple[Array, Array, Array]:
     """What §3 takes for ``Q_d``: its diagonal per second (n), and per range-model state the
     Gauss–Markov time constant ``τ`` (inf: a random walk, whose rate the diagonal holds)
-    and stationary variance."""
+    and stationary variance. ``aux_sigma``: each state's stationary σ (Gauss–Markov) or σ
+    per √s (a random walk; 0: a constant); None: random walks at ``noise.range_bias``."""
     q_rate = np.zeros(N_CORE + n_range_bias)
     q_rate[V_] = noise.acc**2
     q_rate[TH_] = noise.gyro**2
     q_rate[BG_] = noise.gyro_bias**2
     q_rate[BA_] = noise.acc_bias**2
-    q_rate[N_CORE:] = noise.range_bias**2
     tau = (np.full(n_range_bias, np.inf) if aux_tau_s is None
            else np.asarray(aux_tau_s, dtype=float).reshape(n_range_bias))
     markov = np.isfinite(tau)
-    q_rate[N_CORE:][markov] = 0.0
-    var = (np.zeros(n_range_bias) if aux_sigma is None
-           else np.where(markov, np.asarray(aux_sigma, dtype=float) ** 2, 0.0))
-    return q_rate, tau, var
+    sigma = (np.full(n_range_bias, noise.range_bias) if aux_sigma is None
+             else np.asarray(aux_sigma, dtype=float).reshape(n_range_bias))
+    # a random walk's rate (0: a constant); a Gauss–Markov state's Q is its decay's
+    q_rate[N_CORE:] = np.where(markov, 0.0, sigma**2)
+    return q_rate, tau, np.where(markov, sigma**2, 0.0)

@@ -69,7 +69,12 @@ def smooth(records: list[EpochRecord]) -> list[tuple[int, Nominal, Array]]:
             continue  # the last epoch of a stretch: its filtered estimate is already final
         cur = records[k]
         _, x_next, P_next = out[k + 1]
-        C = np.linalg.solve(nxt.P_prior, nxt.Phi @ cur.P_post).T
+        # C = P_post Φᵀ P_prior⁻¹, on the states with a variance (one held known, at zero
+        # variance, as the lever arm's error by default, is not smoothed)
+        live = np.diag(nxt.P_prior) > 0.0
+        C = np.zeros_like(cur.P_post)
+        C[:, live] = np.linalg.solve(nxt.P_prior[np.ix_(live, live)],
+                                     (nxt.Phi @ cur.P_post)[live]).T
         dx = C @ x_next.minus(nxt.prior)
         P = cur.P_post + C @ (P_next - nxt.P_prior) @ C.T
         out[k] = (cur.t_ns, cur.post.plus(dx), 0.5 * (P + P.T))

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from uwbd.fusion.core.bank import bank_variances
 from uwbd.fusion.core.eskf import Eskf, Vector
 from uwbd.fusion.core.layout import N_CORE, NOMINAL, NOMINAL_AUX
 from uwbd.fusion.core.native import Core
@@ -42,7 +43,8 @@ class CoreEskf(Eskf):
                  n_range_bias: int = 0, b_g: Vector = (0.0, 0.0, 0.0),
                  b_a: Vector = (0.0, 0.0, 0.0), aux_tau_s: Array | None = None,
                  aux_sigma: Array | None = None, gravity_mps2: float = GRAVITY_MPS2,
-                 b_r: Vector | None = None, bank: Sequence[int] = (), *, core: Core) -> None:
+                 b_r: Vector | None = None, bank: Sequence[int] = (),
+                 bank_var: Array | None = None, *, core: Core) -> None:
         if core is None:
             raise RuntimeError("CoreEskf: no C core given (uwbd --version says whether it "
                                "is built)")
@@ -61,7 +63,7 @@ class CoreEskf(Eskf):
             [float(c) for c in p], [float(c) for c in v], [float(c) for c in q],
             [float(c) for c in b_g], [float(c) for c in b_a], b_r.tolist(), P0,
             q_rate.tolist(), tau.tolist(), var.tolist(), self.gravity_mps2,
-            [int(a) for a in bank])
+            [int(a) for a in bank], bank_variances(bank_var, len(bank), n))
         x = np.frombuffer(state, dtype=float)  # the C type's memory, read-only
         m = n_range_bias
         (self.p, self.v, self.q, self.b_g, self.b_a) = (

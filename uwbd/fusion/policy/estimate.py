@@ -55,6 +55,9 @@ class Findings:
     # the anchors the bank's separation left out (policy.integrity): until when
     separated: dict[int, int] = field(default_factory=dict)
     anchor_stats: dict[int, AnchorStats] = field(default_factory=dict)
+    # the lever-arm test's finding (policy.integrity): where its sub-filter puts the antenna
+    # (body, m)
+    lever_arm_m: Array | None = None
 
     def forget(self) -> None:
         """At a restart: the evidence was against the old estimate."""
@@ -62,6 +65,7 @@ class Findings:
         self.raim.clear()
         self.separated.clear()
         self.excluded.clear()
+        self.lever_arm_m = None
         self.mounting_yaw.clear()  # (the body velocity was the old heading's)
 
 

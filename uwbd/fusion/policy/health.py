@@ -50,7 +50,7 @@ import collections
 import math
 from statistics import NormalDist
 
-from uwbd.fusion.checks.separation import Separation
+from uwbd.fusion.checks.separation import LEVER_MEMBER, Separation
 from uwbd.fusion.settings import HealthLimits
 from uwbd.fusion.types import Health, Phase
 
@@ -92,6 +92,7 @@ class HealthMonitor:
         self.side_lost = False  # and with them the side of the rest's plane: no height
         self.separation_starting = False  # its warm-up is the start's (not a restart's)
         self.separation_alarm = False  # an anchor's fault found, lately, and not left out
+        self.separation_suspect: int | None = None  # the bank's member it named last
         risk = limits.integrity_risk
         self._k_horizontal = math.sqrt(-2.0 * math.log(risk))  # Rayleigh, on the major axis
         self._k_vertical = NormalDist().inv_cdf(1.0 - risk / 2.0)  # two-sided
@@ -232,8 +233,12 @@ class HealthMonitor:
                 faults.append("position_uncertain")
             # an anchor found wrong and not left out (too few others); one left out is a
             # note, the rest judged by the levels
-            if set(self.anchor_suspects) - set(self.excluded) or self.separation_alarm:
+            lever = self.separation_alarm and self.separation_suspect == LEVER_MEMBER
+            if set(self.anchor_suspects) - set(self.excluded) or \
+                    (self.separation_alarm and not lever):
                 faults.append("anchor_inconsistent")
+            if lever:
+                faults.append("lever_arm_inconsistent")
             if self.ranges_inconsistent:
                 faults.append("ranges_inconsistent")
             if self.mounting_inconsistent:

@@ -59,7 +59,8 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
                 recent: list[tuple[int, Array]], fixes: list[tuple[int, Array]],
                 waited_long: bool, carry: Start | None, n_bias: int,
                 lever_m: Array, n_multipath: int = 0, n_lever: int = 0,
-                rest_m: Array | None = None, bank: Sequence[int] = (), *, core: Core
+                rest_m: Array | None = None, bank: Sequence[int] = (),
+                bank_var: Array | None = None, *, core: Core
                 ) -> tuple[Eskf, str] | None:
     """The new filter state and how it started (``rest``, ``moving``, ``carried``), or
     ``None`` while the evidence is not enough yet. ``recent``: fixes of the last
@@ -127,9 +128,11 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
     P0[delays, delays] += cfg.tag_delay_sigma_m**2
     tau = np.concatenate([np.full(n_bias, np.inf), np.full(n_multipath, cfg.multipath_tau_s),
                           np.full(n_lever, np.inf)])  # the lever arm's error: a constant
-    sigma = np.concatenate([np.zeros(n_bias), np.full(n_multipath, cfg.multipath_sigma_m),
-                            np.zeros(n_lever)])
+    # the offsets' random walk, multipath's stationary σ; the lever arm's error: no noise
+    sigma = np.concatenate([np.full(n_bias, cfg.imu_noise.range_bias),
+                            np.full(n_multipath, cfg.multipath_sigma_m), np.zeros(n_lever)])
     b_r = carry.b_r_m if carry is not None and len(carry.b_r_m) == n_aux else None
     ekf = new_eskf(core, p, v, q, P0, cfg.imu_noise, n_aux, b_g=bg, b_a=ba, aux_tau_s=tau,
-                   aux_sigma=sigma, gravity_mps2=cfg.gravity_mps2, b_r=b_r, bank=bank)
+                   aux_sigma=sigma, gravity_mps2=cfg.gravity_mps2, b_r=b_r, bank=bank,
+                   bank_var=bank_var)
     return ekf, how

@@ -10,6 +10,7 @@ import numpy as np
 
 from drivers.frames import UwbRanges
 from uwbd.fusion.checks.gating import GatingCounters
+from uwbd.fusion.checks.separation import LEVER_MEMBER
 from uwbd.fusion.core.layout import N_CORE
 from uwbd.fusion.core.lsq import coplanar
 from uwbd.fusion.core.native import Core
@@ -23,6 +24,7 @@ from uwbd.fusion.types import FusionReport
 Vec3 = tuple[float, float, float]
 MAX_ANCHOR_COORD_M = 1e4  # a device-reported anchor farther out than this is garbage
 Resolved = tuple[list[int], Array, Array, Array]  # anchor ids, positions, ranges, r scales
+LEVER_TEST_SIGMA_M = 0.3  # the bank's lever member's prior σ on each axis of its error
 
 
 class Installation:
@@ -48,7 +50,9 @@ class Installation:
         self.bias_index: dict[int, int] = {}
         self.mp_index: dict[int, int] = {}
         self.range_columns: dict[int, tuple[int, ...]] = {}
-        self.lever_index: tuple[int, ...] = ()  # the lever arm's error states (none: off)
+        self.lever_index: tuple[int, ...] = ()  # the lever arm's error states (tight)
+        # whether the main filter estimates them (else it holds them at 0, known)
+        self.lever_estimated = cfg.lever_arm_sigma_m > 0
         self.bank: tuple[int, ...] = ()  # the anchors the bank's sub-filters leave out
         self._side_lost: dict[frozenset[int], bool] = {}  # side_lost's answers
         self.new_anchors = False  # reported since the last start: laid out before the next
@@ -81,16 +85,26 @@ class Installation:
         first = N_CORE + len(self.bias_index)
         self.mp_index = ({a: first + i for i, a in enumerate(ids)}
                          if cfg.multipath_states and tight else {})
-        # the lever arm's error, three constant states after those (off: none)
+        # the lever arm's error, three constant states after those: estimated by the main
+        # filter with [fusion] lever_arm_sigma_m, else by the bank's lever member alone
         last = first + len(self.mp_index)
-        self.lever_index = (last, last + 1, last + 2) if cfg.lever_arm_sigma_m > 0 and tight \
-            else ()
-        # the bank's sub-filters, one leaving each anchor out (integrity): tight only, where
-        # each range is a row of its own
-        self.bank = tuple(ids) if tight else ()
+        self.lever_index = (last, last + 1, last + 2) if tight else ()
+        # the bank's sub-filters, one leaving each anchor out (integrity), and the lever
+        # member: tight only, where each range is a row of its own
+        self.bank = (tuple(ids) + (() if self.lever_estimated else (LEVER_MEMBER,))
+                     if tight else ())
         # each anchor's range-model state columns, for its range rows
         self.range_columns = {a: tuple(c for index in (self.bias_index, self.mp_index)
                                        if (c := index.get(a)) is not None) for a in ids}
+
+    def bank_variances(self) -> Array:
+        """What each of the bank's sub-filters adds to the main filter's variances at every
+        start anew (K × n): the lever member its prior on the lever arm's error."""
+        n = N_CORE + len(self.bias_index) + len(self.mp_index) + len(self.lever_index)
+        out = np.zeros((len(self.bank), n))
+        if LEVER_MEMBER in self.bank:
+            out[self.bank.index(LEVER_MEMBER), list(self.lever_index)] = LEVER_TEST_SIGMA_M**2
+        return out
 
     def side_lost(self, excluded: set[int]) -> bool:
         """Whether leaving ``excluded`` out loses the side of the anchors' plane: the whole

@@ -13,6 +13,16 @@ fault stays found: no protection level holds then, and the monitor says so, unti
 ``ALARM_HOLD_S`` after the last test over its threshold (a fault a test or two misses
 between its detections is still there).
 
+**The lever arm.** The bank's lever member (``LEVER_MEMBER``) leaves no anchor out but
+estimates the lever arm's error, which the main filter holds at zero (``imu.lever_arm_m``
+taken as true, unless ``[fusion] lever_arm_sigma_m`` has it estimated). As the body turns,
+a lever arm off moves that member away from the main filter: its separation over its
+threshold is the fault ``lever_arm_inconsistent``, no level holds while it lasts, and
+the status names ``imu.lever_arm_m`` with where the member puts the antenna. It is not
+taken on (measured: a mounting turned about z also moves that member, and a filter that
+then estimated the lever arm was healthy while 0.5 m off); nor is the member's level part
+of the protection levels, which an unobserved lever arm would make its prior's.
+
 The bank starts anew with the main filter (a start, a restored covariance, a position
 reset, an exclusion): its separations then say nothing yet, so for ``WARM_S`` after that
 the levels over the anchors' faults are not known (the monitor says so: after a start, as
@@ -21,8 +31,12 @@ part of aligning; later, as ``position_uncertain``).
 
 from __future__ import annotations
 
-from uwbd.fusion.checks.separation import SeparationTest
+import numpy as np
+
+from uwbd.fusion.checks.separation import LEVER_MEMBER, SeparationTest
 from uwbd.fusion.core.eskf import Eskf
+from uwbd.fusion.core.layout import N_CORE
+from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.policy.estimate import Estimate, Findings
 from uwbd.fusion.policy.fusing import MIN_KEPT_ANCHORS
 from uwbd.fusion.policy.installation import Installation
@@ -82,24 +96,38 @@ class Integrity:
         if test is None:
             test = self._tests[count] = SeparationTest(
                 count, self.limits.integrity_risk, self.limits.false_alert_probability,
-                self._bias_per_sigma)
+                self._bias_per_sigma, LEVER_MEMBER in ekf.bank)
         sep = monitor.separation = test.test(ekf.bank, ekf.P, ekf.bank_d, ekf.bank_P)
         monitor.separation_warm = warm = t_ns - self._since_ns >= WARM_S * NS
         suspect = sep.suspect if warm else None
         if suspect is not None:
             self._alarm_ns = t_ns
+            monitor.separation_suspect = suspect
+            if suspect == LEVER_MEMBER:  # where that member puts the antenna
+                self.findings.lever_arm_m = self._lever_of(ekf, ekf.bank.index(suspect))
         monitor.separation_alarm = warm and t_ns - self._alarm_ns < ALARM_HOLD_S * NS
+        if not monitor.separation_alarm:
+            self.findings.lever_arm_m = None  # (a finding lasts as long as its alarm)
         if suspect is None:
             self._run = (-1, 0)
             return
         anchor, tests = self._run
         self._run = (suspect, tests + 1 if anchor == suspect else 1)
-        if self._run[1] >= EXCLUDE_AFTER:
+        if self._run[1] < EXCLUDE_AFTER:
+            return
+        if suspect != LEVER_MEMBER:  # (a lever arm off stays found: see the module doc)
             self._exclude(t_ns, ekf, suspect)
+
+    def _lever_of(self, ekf: Eskf, member: int) -> Array:
+        """The lever arm (body, m) by the bank's ``member``."""
+        columns = list(self.installation.lever_index)
+        error = ekf.b_r[[c - N_CORE for c in columns]] + ekf.bank_d[member, columns]
+        return np.asarray(self.installation.plain_lever + error, dtype=float)
 
     def _exclude(self, t_ns: int, ekf: Eskf, anchor: int) -> None:
         findings = self.findings
-        left = set(ekf.bank) - set(findings.separated) - set(findings.consistency.findings)
+        left = set(ekf.bank) - {LEVER_MEMBER} - set(findings.separated) \
+            - set(findings.consistency.findings)
         if len(left - {anchor}) < MIN_KEPT_ANCHORS:
             return  # too few to leave one out: found, not excluded
         ekf.adopt(ekf.bank.index(anchor))

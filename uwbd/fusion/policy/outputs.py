@@ -67,6 +67,11 @@ def diagnostics(health: Health, mirror: MirrorSide, findings: Findings,
             # with [fusion] lever_arm_sigma_m: where the data put the antenna (body, m)
             **({"lever_arm_estimate_m": [round(float(c), 4) for c in lever_estimate_m]}
                if lever_estimate_m is not None else {}),
+            # the lever-arm test found imu.lever_arm_m off: where it puts the antenna
+            **({"lever_arm_finding": {
+                "key": "imu.lever_arm_m",
+                "estimate_m": [round(float(c), 3) for c in findings.lever_arm_m]}}
+               if findings.lever_arm_m is not None else {}),
             **({"mounting_finding": mounting} if mounting else {})}
 
 

@@ -90,7 +90,8 @@ class Recovery:
         start = start_state(cfg, self.window, fix, recent, list(self.fixes), waited_long,
                             self._carry, *self._state_sizes(),
                             rest_m=rest[0].position_m if rest is not None else None,
-                            bank=self.installation.bank, core=self._core)
+                            bank=self.installation.bank,
+                            bank_var=self.installation.bank_variances(), core=self._core)
         if start is None:
             return
         self._begin(start, t_ns)
@@ -156,7 +157,7 @@ class Recovery:
                      0.0, 0)
         start = start_state(self.cfg, self.window, fix, [], [], True, carry,
                             *self._state_sizes(), bank=self.installation.bank,
-                            core=self._core)
+                            bank_var=self.installation.bank_variances(), core=self._core)
         if start is not None:
             self.est.relevel = None
             self.est.monitor.imu_gap = False

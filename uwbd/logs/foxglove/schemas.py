@@ -332,6 +332,12 @@ STATUS_SCHEMA = _obj("uwbd.Status", "once a second: the filter's health, counter
     "lever_arm_estimate_m": {"type": "array", "items": {"type": "number"},
                              "description": "with [fusion] lever_arm_sigma_m: the lever arm "
                              "the data give (IMU -> antenna, body axes, m)"},
+    "lever_arm_finding": _obj("uwbd.LeverArmFinding", "the lever-arm test finds the "
+                              "configured lever arm off (fault lever_arm_inconsistent)", {
+        "key": {"type": "string", "description": "the config key to check: imu.lever_arm_m"},
+        "estimate_m": {"type": "array", "items": {"type": "number"},
+                       "description": "the lever arm the bank's lever member gives (IMU -> "
+                       "antenna, body axes, m)"}}),
     "ranges_inconsistent": {"type": "array", "items": {"type": "integer"},
                             "description": "the ranges disagree with each other: the "
                             "anchors suspected (empty: they agree)"},
