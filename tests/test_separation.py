@@ -123,6 +123,26 @@ def test_a_lever_arm_off_is_named_with_where_the_bank_puts_the_antenna() -> None
     assert blind.beyond_pl > 100, blind
 
 
+def test_an_anchor_found_among_too_few_to_leave_one_out_is_named_in_the_status() -> None:
+    """A handheld under four anchors, one's ranges 0.9 m short: the bank finds it, but
+    leaving one of four out would leave too few, so it stays in and found. The status's
+    ``anchor_suspected`` names the anchor the separation points at, most often the faulty
+    one; no level holds meanwhile, so no pose is healthy beyond the alert limits."""
+    case = draw_case(48)
+    assert case.fault == "range_offset" and len(case.sim.anchors_m) == 4
+    named: list[int] = []
+
+    def watch(flt: Filter) -> None:
+        suspected = flt.diagnostics().get("anchor_suspected")
+        if suspected is not None:
+            assert "its surveyed position or its range offset" in suspected["finding"]
+            named.append(suspected["anchor"])
+
+    scored, left_out, _ = _run(48, watch=watch)
+    assert not left_out and scored.healthy_beyond_alert == 0, scored
+    assert named and max(set(named), key=named.count) == case.anchor, named
+
+
 def test_a_biased_anchor_is_found_by_the_bank_and_left_out() -> None:
     """A ground robot under nine anchors of mixed heights, one anchor's ranges 0.46 m short.
     The bank's separation names it and the filter takes the sub-filter that never used it:

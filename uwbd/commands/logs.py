@@ -113,6 +113,8 @@ def _why_no_pose(contents: LogContents) -> str:
 def _findings(diagnostics: dict[str, Any]) -> list[str]:
     """What the filter found of the installation by the end of a replay, a line each."""
     lines = [str(f["finding"]) for f in diagnostics.get("anchor_findings", [])]
+    if "anchor_suspected" in diagnostics:
+        lines.append(str(diagnostics["anchor_suspected"]["finding"]))
     if diagnostics.get("ranges_inconsistent"):
         lines.append("the ranges disagree with each other: anchors suspected "
                      + ", ".join(map(str, diagnostics["ranges_inconsistent"])))

@@ -151,7 +151,8 @@ REFERENCE: dict[str, dict[str, Entry]] = {
                                          "over the anchors"),
         "lever_arm_sigma_m": Entry(_F.lever_arm_sigma_m, "> 0: the lever arm's error "
                                    "estimated as three states with this prior σ per axis "
-                                   "(the status's `lever_arm_estimate_m`); 0: as given"),
+                                   "(the status's `lever_arm_estimate_m`); 0: as given, "
+                                   "and tested (the fault `lever_arm_inconsistent`)"),
     },
     "range_model": {
         "tag_degree": Entry(0, "the tag antenna's direction term, degree of its spherical "

@@ -271,6 +271,8 @@ def run_case(case: Case, faulty: bool) -> Score:
         if flt.t_ns is not None and flt.t_ns >= after_ns:
             named.update(flt.findings.consistency.findings)
             named.update(flt.findings.separated)  # (the bank's separation left it out)
+            if flt.findings.suspect is not None:  # the separation's alarm names it
+                named.add(flt.findings.suspect[0])
             if flt.findings.lever_arm_m is not None:  # the lever-arm test fired
                 named.add(LEVER_MEMBER)
 

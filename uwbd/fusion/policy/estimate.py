@@ -55,8 +55,10 @@ class Findings:
     # the anchors the bank's separation left out (policy.integrity): until when
     separated: dict[int, int] = field(default_factory=dict)
     anchor_stats: dict[int, AnchorStats] = field(default_factory=dict)
-    # the lever-arm test's finding (policy.integrity): where its sub-filter puts the antenna
-    # (body, m)
+    # the separation test's finding while its alarm holds (policy.integrity): the anchor
+    # it names and how far the sub-filter without it is from the filter (m); or the lever
+    # arm, where its sub-filter puts the antenna (body, m)
+    suspect: tuple[int, float] | None = None
     lever_arm_m: Array | None = None
 
     def forget(self) -> None:
@@ -65,7 +67,7 @@ class Findings:
         self.raim.clear()
         self.separated.clear()
         self.excluded.clear()
-        self.lever_arm_m = None
+        self.suspect = self.lever_arm_m = None
         self.mounting_yaw.clear()  # (the body velocity was the old heading's)
 
 

@@ -103,11 +103,14 @@ class Integrity:
         if suspect is not None:
             self._alarm_ns = t_ns
             monitor.separation_suspect = suspect
+            member = ekf.bank.index(suspect)
             if suspect == LEVER_MEMBER:  # where that member puts the antenna
-                self.findings.lever_arm_m = self._lever_of(ekf, ekf.bank.index(suspect))
+                self.findings.lever_arm_m = self._lever_of(ekf, member)
+            else:
+                self.findings.suspect = (suspect, float(np.linalg.norm(ekf.bank_d[member, :3])))
         monitor.separation_alarm = warm and t_ns - self._alarm_ns < ALARM_HOLD_S * NS
-        if not monitor.separation_alarm:
-            self.findings.lever_arm_m = None  # (a finding lasts as long as its alarm)
+        if not monitor.separation_alarm:  # (a finding lasts as long as its alarm)
+            self.findings.suspect = self.findings.lever_arm_m = None
         if suspect is None:
             self._run = (-1, 0)
             return

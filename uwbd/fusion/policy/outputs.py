@@ -67,6 +67,15 @@ def diagnostics(health: Health, mirror: MirrorSide, findings: Findings,
             # with [fusion] lever_arm_sigma_m: where the data put the antenna (body, m)
             **({"lever_arm_estimate_m": [round(float(c), 4) for c in lever_estimate_m]}
                if lever_estimate_m is not None else {}),
+            # the separation test names an anchor it has not left out (too few others)
+            **({"anchor_suspected": {
+                "anchor": findings.suspect[0],
+                "separation_m": round(findings.suspect[1], 3),
+                "finding": f"anchor {findings.suspect[0]}: the estimate without its ranges is "
+                           f"{findings.suspect[1]:.2f} m from the one with them, beyond "
+                           "chance: its surveyed position or its range offset is likely "
+                           "wrong (check the survey, uwbd survey, and the anchor)"}}
+               if findings.suspect is not None else {}),
             # the lever-arm test found imu.lever_arm_m off: where it puts the antenna
             **({"lever_arm_finding": {
                 "key": "imu.lever_arm_m",

@@ -332,6 +332,12 @@ STATUS_SCHEMA = _obj("uwbd.Status", "once a second: the filter's health, counter
     "lever_arm_estimate_m": {"type": "array", "items": {"type": "number"},
                              "description": "with [fusion] lever_arm_sigma_m: the lever arm "
                              "the data give (IMU -> antenna, body axes, m)"},
+    "anchor_suspected": _obj("uwbd.AnchorSuspected", "the solution-separation test names "
+                             "an anchor it has not left out (fault anchor_inconsistent)", {
+        "anchor": {"type": "integer", "description": "its id"},
+        "separation_m": _num("how far the estimate without its ranges is from the one with "
+                             "them (m)"),
+        "finding": {"type": "string", "description": "what a technician should check"}}),
     "lever_arm_finding": _obj("uwbd.LeverArmFinding", "the lever-arm test finds the "
                               "configured lever arm off (fault lever_arm_inconsistent)", {
         "key": {"type": "string", "description": "the config key to check: imu.lever_arm_m"},
