@@ -485,6 +485,10 @@ def test_the_bank_advances_with_the_main_filter_in_c_as_in_the_reference(
     for f in (fast, slow):
         f.rotate_heading(0.3, 0.1)
     same_bank()
+    for f in (fast, slow):  # the lever member alone anew; the others keep what they know
+        f.restart_member(len(bank) - 1)
+        assert not f.bank_d[-1].any() and f.bank_d[:-1].any()
+    same_bank()
     R = fast.R
     assert np.abs(fast.bank_d[:, TH_] @ R[2]).max() < 1e-12  # no heading offset left
     assert np.abs(fast.bank_d[:, :3]).max() > 0  # what they know of the position kept

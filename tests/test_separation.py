@@ -101,9 +101,10 @@ def test_a_lever_arm_off_is_named_with_where_the_bank_puts_the_antenna() -> None
     """A ground robot under eight anchors, told a lever arm 0.42 m off. As it turns, the
     bank's lever member (the lever arm estimated, no anchor left out) separates from the
     main filter: the fault ``lever_arm_inconsistent``, the status naming
-    ``imu.lever_arm_m`` with an estimate horizontally within 0.1 m of the true one. One
-    pose's error is beyond its levels, none healthy beyond the alert limits; without the
-    lever member nothing finds it and 459 poses are beyond their levels."""
+    ``imu.lever_arm_m`` with an estimate horizontally within 0.1 m of the true one. Until
+    it is found (about 17 s after the heading's alignment, from which the member learns)
+    51 poses' errors are beyond their levels, none is healthy beyond the alert limits;
+    without the lever member nothing finds it and 462 poses are beyond their levels."""
     case = draw_case(30)
     assert case.fault == "lever_arm" and case.size > 0.4
     found: list[np.ndarray] = []
@@ -115,12 +116,33 @@ def test_a_lever_arm_off_is_named_with_where_the_bank_puts_the_antenna() -> None
             found.append(np.array(finding["estimate_m"]))
 
     scored, _, _ = _run(30, watch=watch)
-    assert scored.beyond_pl <= 2 and scored.healthy_beyond_alert == 0, scored
+    assert scored.beyond_pl <= 60 and scored.healthy_beyond_alert == 0, scored
     assert found and np.hypot(*(found[-1] - case.sim.lever_arm_m)[:2]) < 0.1, found[-1]
     told_lever = np.array(told(case, simulate(case.sim), True).lever_arm_m)
     assert np.hypot(*(told_lever - case.sim.lever_arm_m)[:2]) > 0.3
     blind, _, _ = _run(30, lever=False)
-    assert blind.beyond_pl > 100, blind
+    assert blind.beyond_pl > 300, blind
+
+
+def test_the_lever_member_learns_from_the_heading_s_alignment_on() -> None:
+    """A fault-free handheld run whose heading is held for its first 12 s: before the
+    alignment the unknown heading moves the ranges as a lever arm 0.5 m off would, so the
+    lever member starts anew once the heading is known. Without that restart the lever-arm
+    test fired on this correct installation for most of the run (measured 1495 poses)."""
+    case = draw_case(50)
+    sim = simulate(case.sim)
+    frames = list(merge(sim.imu, ranges_of(case, sim, False)))
+
+    def no_restart(flt: Filter) -> None:  # (from the first message on, before alignment)
+        flt.integrity.heading_aligned = lambda ekf: None  # type: ignore[method-assign]
+
+    def lever_alarms(restart: bool) -> int:
+        poses, _, _ = run_filter(told(case, sim, False), frames, pose_period_ns=NS // 10,
+                                 watch=None if restart else no_restart)
+        return sum("lever_arm_inconsistent" in q.health.faults for q in poses)
+
+    assert lever_alarms(True) == 0
+    assert lever_alarms(False) > 500
 
 
 def test_an_anchor_found_among_too_few_to_leave_one_out_is_named_in_the_status() -> None:

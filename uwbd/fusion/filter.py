@@ -337,6 +337,7 @@ class Filter:
             ekf.rotate_heading(*result)
             self.est.aligned = True
             self.est.counters["heading_alignments"] += 1
+            self.integrity.heading_aligned(ekf)
 
     def _track_fixes(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                      fix: LsqFix | None) -> None:

@@ -59,17 +59,22 @@ static void set_identity(double *A, Py_ssize_t n)
         A[i * n + i] = 1.0;
 }
 
-/* The bank started anew from the main filter: d_k = 0, P_k = P + diag(bank_var_k). */
-static void bank_reset(State *self)
+/* Sub-filter k started anew from the main filter: d_k = 0, P_k = P + diag(bank_var_k). */
+static void member_reset(State *self, Py_ssize_t k)
 {
     Py_ssize_t n = self->n;
-    memset(self->bank_d, 0, sizeof(double) * (size_t)(self->bank * n));
-    for (Py_ssize_t k = 0; k < self->bank; k++) {
-        double *Pk = self->bank_P + k * n * n;
-        memcpy(Pk, self->P, sizeof(double) * (size_t)(n * n));
-        for (Py_ssize_t i = 0; i < n; i++)
-            Pk[i * n + i] += self->bank_var[k * n + i];
-    }
+    double *Pk = self->bank_P + k * n * n;
+    memset(self->bank_d + k * n, 0, sizeof(double) * (size_t)n);
+    memcpy(Pk, self->P, sizeof(double) * (size_t)(n * n));
+    for (Py_ssize_t i = 0; i < n; i++)
+        Pk[i * n + i] += self->bank_var[k * n + i];
+}
+
+/* The bank started anew: every sub-filter. */
+static void bank_reset(State *self)
+{
+    for (Py_ssize_t k = 0; k < self->bank; k++)
+        member_reset(self, k);
 }
 
 /* State(p, v, q, b_g, b_a, b_r, P0, q_rate, tau, markov_var, gravity, bank, bank_var): n
@@ -1026,6 +1031,24 @@ static PyObject *state_adopt(State *self, PyObject *const *args, Py_ssize_t narg
     Py_RETURN_NONE;
 }
 
+/* restart(k): sub-filter k alone started anew from the main filter (d_k = 0, P_k = P + its
+ * variances): what it learnt before is dropped (the lever member's, at the heading's
+ * alignment, before which it soaked up the unknown heading). */
+static PyObject *state_restart(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (check_args(nargs, 1, "restart"))
+        return NULL;
+    Py_ssize_t k = PyLong_AsSsize_t(args[0]);
+    if (k == -1 && PyErr_Occurred())
+        return NULL;
+    if (k < 0 || k >= self->bank) {
+        PyErr_Format(PyExc_IndexError, "restart: sub-filter %zd of %zd", k, self->bank);
+        return NULL;
+    }
+    member_reset(self, k);
+    Py_RETURN_NONE;
+}
+
 /* move_to(p, v): the position and velocity set (a position reset to a UWB fix); the bank
  * anew. */
 static PyObject *state_move_to(State *self, PyObject *const *args, Py_ssize_t nargs)
@@ -1177,6 +1200,7 @@ static PyMethodDef state_methods[] = {
     METHOD(set_covariance, "set_covariance(P): P restored."),
     METHOD(move_to, "move_to(p, v): position and velocity set."),
     METHOD(adopt, "adopt(k): the main filter becomes sub-filter k; the bank anew."),
+    METHOD(restart, "restart(k): sub-filter k alone started anew from the main filter."),
     METHOD(pose_numbers, "pose_numbers(aligned) -> the pose's numbers or None."),
     {NULL, NULL, 0, NULL},
 };

@@ -108,21 +108,15 @@ class Eskf:
             + 2 * (qy * qz - qw * qx) * fz
         az = 2 * (qx * qz - qw * qy) * fx + 2 * (qy * qz + qw * qx) * fy \
             + (1 - 2 * (qx * qx + qy * qy)) * fz
-        self._sum_fn[0] += ax * dt
-        self._sum_fn[1] += ay * dt
-        self._sum_fn[2] += az * dt
-        self._sum_w[0] += wx
-        self._sum_w[1] += wy
-        self._sum_w[2] += wz
+        fn, w = self._sum_fn, self._sum_w
+        fn[0], fn[1], fn[2] = fn[0] + ax * dt, fn[1] + ay * dt, fn[2] + az * dt
+        w[0], w[1], w[2] = w[0] + wx, w[1] + wy, w[2] + wz
         self._T += dt
         az -= self.gravity_mps2
         p, v = self.p, self.v
-        p[0] += (v[0] + 0.5 * ax * dt) * dt
-        p[1] += (v[1] + 0.5 * ay * dt) * dt
-        p[2] += (v[2] + 0.5 * az * dt) * dt
-        v[0] += ax * dt
-        v[1] += ay * dt
-        v[2] += az * dt
+        p[0], p[1], p[2] = (p[0] + (v[0] + 0.5 * ax * dt) * dt, p[1] + (v[1] + 0.5 * ay * dt) * dt,
+                            p[2] + (v[2] + 0.5 * az * dt) * dt)
+        v[0], v[1], v[2] = v[0] + ax * dt, v[1] + ay * dt, v[2] + az * dt
         self.q = turned(self.q, wx, wy, wz)
 
     # -- covariance propagation: once per update interval --------------------------------
@@ -432,6 +426,11 @@ class Eskf:
         self.P = self.bank_P[k].copy()
         self.inject(self.bank_d[k].copy())
         self._bank_reset()
+
+    def restart_member(self, k: int) -> None:
+        """The bank's sub-filter ``k`` alone started anew from the main filter."""
+        d, Pk = bank_started(self.P, self.bank_var[k:k + 1])
+        self.bank_d[k], self.bank_P[k] = d[0], Pk[0]
 
     def pose_numbers(self, aligned: bool) -> PoseNumbers | None:
         """The pose's numbers (:func:`~.pose.pose_numbers`)."""

@@ -170,6 +170,9 @@ class CoreEskf(Eskf):
         self._state.adopt(k)
         self.bank_resets += 1
 
+    def restart_member(self, k: int) -> None:
+        self._state.restart(k)
+
     def pose_numbers(self, aligned: bool) -> PoseNumbers | None:
         numbers: PoseNumbers | None = self._state.pose_numbers(aligned)
         return numbers

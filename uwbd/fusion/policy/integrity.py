@@ -31,6 +31,8 @@ part of aligning; later, as ``position_uncertain``).
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from uwbd.fusion.checks.separation import LEVER_MEMBER, SeparationTest
@@ -67,6 +69,7 @@ class Integrity:
         self._run: tuple[int, int] = (-1, 0)  # the anchor named by the last tests, how often
         self._alarm_ns = -(2**63)  # the last test over its threshold
         self._strikes: dict[int, int] = {}  # how often each anchor was left out
+        self._lever_since_ns = -(2**63)  # the lever member started anew alone
 
     def after_update(self, t_ns: int) -> None:
         """The test, when due, on the state's bank; the exclusion it calls for; the anchors
@@ -97,7 +100,11 @@ class Integrity:
             test = self._tests[count] = SeparationTest(
                 count, self.limits.integrity_risk, self.limits.false_alert_probability,
                 self._bias_per_sigma, LEVER_MEMBER in ekf.bank)
-        sep = monitor.separation = test.test(ekf.bank, ekf.P, ekf.bank_d, ekf.bank_P)
+        sep = test.test(ekf.bank, ekf.P, ekf.bank_d, ekf.bank_P)
+        if t_ns - self._lever_since_ns < WARM_S * NS:  # the lever member not judged yet
+            sep = dataclasses.replace(sep, ratios={a: r for a, r in sep.ratios.items()
+                                                   if a != LEVER_MEMBER})
+        monitor.separation = sep
         monitor.separation_warm = warm = t_ns - self._since_ns >= WARM_S * NS
         suspect = sep.suspect if warm else None
         if suspect is not None:
@@ -120,6 +127,14 @@ class Integrity:
             return
         if suspect != LEVER_MEMBER:  # (a lever arm off stays found: see the module doc)
             self._exclude(t_ns, ekf, suspect)
+
+    def heading_aligned(self, ekf: Eskf) -> None:
+        """The heading just aligned: the lever member starts anew (while the heading was
+        held, the lever arm's states soaked up what the unknown heading did to the ranges,
+        and a fault-free run looked like a lever arm 0.5 m off)."""
+        if LEVER_MEMBER in ekf.bank:
+            ekf.restart_member(ekf.bank.index(LEVER_MEMBER))
+            self._lever_since_ns = self.est.t_ns or 0  # (judged once warm again)
 
     def _lever_of(self, ekf: Eskf, member: int) -> Array:
         """The lever arm (body, m) by the bank's ``member``."""
