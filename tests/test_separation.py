@@ -125,16 +125,19 @@ def test_a_lever_arm_off_is_named_with_where_the_bank_puts_the_antenna() -> None
 
 
 def test_the_lever_member_learns_from_the_heading_s_alignment_on() -> None:
-    """A fault-free handheld run whose heading is held for its first 12 s: before the
-    alignment the unknown heading moves the ranges as a lever arm 0.5 m off would, so the
-    lever member starts anew once the heading is known. Without that restart the lever-arm
-    test fired on this correct installation for most of the run (measured 1495 poses)."""
-    case = draw_case(50)
+    """A fault-free ground robot: before the heading's alignment the unknown heading moves
+    the ranges as a lever arm off would, so the lever member starts anew once the heading
+    is known. Without that restart the lever-arm test fires on this correct installation
+    (measured: 743 of 1673 poses)."""
+    case = draw_case(43)
     sim = simulate(case.sim)
     frames = list(merge(sim.imu, ranges_of(case, sim, False)))
 
     def no_restart(flt: Filter) -> None:  # (from the first message on, before alignment)
-        flt.integrity.heading_aligned = lambda ekf: None  # type: ignore[method-assign]
+        def judged_from_now(ekf: object) -> None:  # judged as after a restart, none made
+            flt.integrity._lever_from_ns = (flt.est.t_ns or 0) + 5 * NS
+
+        flt.integrity.heading_aligned = judged_from_now  # type: ignore[method-assign]
 
     def lever_alarms(restart: bool) -> int:
         poses, _, _ = run_filter(told(case, sim, False), frames, pose_period_ns=NS // 10,
@@ -142,7 +145,7 @@ def test_the_lever_member_learns_from_the_heading_s_alignment_on() -> None:
         return sum("lever_arm_inconsistent" in q.health.faults for q in poses)
 
     assert lever_alarms(True) == 0
-    assert lever_alarms(False) > 500
+    assert lever_alarms(False) > 300
 
 
 def test_an_anchor_found_among_too_few_to_leave_one_out_is_named_in_the_status() -> None:

@@ -9,6 +9,7 @@ raises into the pipeline and costs one comparison per pose.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -54,9 +55,20 @@ class Narrator:
         phase = str(health.get("phase", ""))
         if phase and phase != self._phase:
             self._phase_changed(phase, str(status.get("filter", phase)))
-        findings = {f.get("anchor"): f for f in status.get("anchor_findings", [])}
-        for anchor in findings.keys() - self._findings_said:  # said again only once it agreed
-            LOG.warning("%s", findings[anchor].get("finding", f"anchor {anchor} disagrees"))
+        findings: dict[Any, str] = {
+            f.get("anchor"): str(f.get("finding", f"anchor {f.get('anchor')} disagrees"))
+            for f in status.get("anchor_findings", [])}
+        suspected = status.get("anchor_suspected")
+        if suspected:  # the separation's, among too few to leave it out
+            findings["separation", suspected.get("anchor")] = str(suspected.get("finding"))
+        lever = status.get("lever_arm_finding")
+        if lever:
+            x, y, z = lever.get("estimate_m", (math.nan,) * 3)
+            findings["lever"] = (f"the lever arm looks off: the data put the antenna at "
+                                 f"({x:+.2f}, {y:+.2f}, {z:+.2f}) m (IMU -> antenna, body "
+                                 f"axes); check {lever.get('key', 'imu.lever_arm_m')}")
+        for key in findings.keys() - self._findings_said:  # said again only once it agreed
+            LOG.warning("%s", findings[key])
         self._findings_said = set(findings)
         mounting = str(status.get("mounting_finding", ""))
         if mounting and mounting != self._mounting_said:

@@ -24,6 +24,7 @@ issue's alert limits (0.5 m horizontal, 1.0 m vertical). Seeds 0–999 are the s
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures
 import dataclasses
 import math
@@ -208,8 +209,9 @@ class Score:
 
 def score(case: Case, sim: Simulation, poses: list[Pose], findings: list[int],
           mounting_said: bool) -> Score:
-    """``findings``: the anchors the filter named at any time; ``mounting_said``: whether
-    it said the mounting (a finding or the fault)."""
+    """``findings``: what the filter named after the warm-up (anchors; ``LEVER_MEMBER``:
+    the lever arm), named most often first: a run names its fault when that comes first;
+    ``mounting_said``: whether it said the mounting (a finding or the fault)."""
     t0 = sim.truth_t_ns[0] + WARM_UP_S * NS
     poses = [q for q in poses if q.t_ns >= t0]
     redundant = vertically_redundant(case.sim.anchors_m, sim.truth_p_m)
@@ -229,8 +231,9 @@ def score(case: Case, sim: Simulation, poses: list[Pose], findings: list[int],
                                                 & (case.vehicle != "ground"))
     detected = bool(findings) or mounting_said or any(
         f in INSTALLATION_FAULTS for q in poses for f in q.health.faults)
-    named = (case.anchor in findings) if case.anchor >= 0 else mounting_said \
-        if case.fault == "mounting" else LEVER_MEMBER in findings
+    first = findings[0] if findings else None
+    named = first == case.anchor if case.anchor >= 0 else mounting_said \
+        if case.fault == "mounting" else first == LEVER_MEMBER
     return Score(len(poses), int(((eh > hpl) | (ev > vpl)).sum()),
                  int((healthy & beyond_alert).sum()), int(healthy.sum()), redundant, detected,
                  named,
@@ -264,23 +267,22 @@ def run_case(case: Case, faulty: bool) -> Score:
     """One run of the case, fault-free or with its fault, scored."""
     sim = simulate(case.sim)
     cfg = told(case, sim, faulty)
-    named: set[int] = set()
+    named: collections.Counter[int] = collections.Counter()  # messages naming each
     after_ns = sim.truth_t_ns[0] + WARM_UP_S * NS
 
-    def watch(flt: Filter) -> None:  # the anchors named after the warm-up, not only at the end
+    def watch(flt: Filter) -> None:  # what is named after the warm-up, message by message
         if flt.t_ns is not None and flt.t_ns >= after_ns:
-            named.update(flt.findings.consistency.findings)
-            named.update(flt.findings.separated)  # (the bank's separation left it out)
-            if flt.findings.suspect is not None:  # the separation's alarm names it
-                named.add(flt.findings.suspect[0])
-            if flt.findings.lever_arm_m is not None:  # the lever-arm test fired
-                named.add(LEVER_MEMBER)
+            findings = flt.findings
+            named.update({*findings.consistency.findings, *findings.separated,
+                          # the separation's alarm names it; the lever-arm test fired
+                          *([findings.suspect[0]] if findings.suspect is not None else []),
+                          *([LEVER_MEMBER] if findings.lever_arm_m is not None else [])})
 
     poses, _, _ = run_filter(cfg, merge(sim.imu, ranges_of(case, sim, faulty)),
                              pose_period_ns=NS // 10, watch=watch)
     mounting = any("mounting" in f for q in poses if q.t_ns >= after_ns
                    for f in (*q.health.faults, *q.health.notes))
-    return score(case, sim, poses, sorted(named), mounting)
+    return score(case, sim, poses, [a for a, _ in named.most_common()], mounting)
 
 
 @dataclass(frozen=True)

@@ -52,10 +52,13 @@ class Separation:
 
     @property
     def suspect(self) -> int | None:
-        """The anchor whose separation is over its threshold the most (None: none is)."""
-        if not self.ratios:
+        """The anchor whose separation is over its threshold the most (None: none is). The
+        lever member is not one: it takes each anchor's ranges, and its states may take up
+        part of a faulty anchor's error."""
+        anchors = [a for a in self.ratios if a != LEVER_MEMBER]
+        if not anchors:
             return None
-        anchor = max(self.ratios, key=self.ratios.__getitem__)
+        anchor = max(anchors, key=self.ratios.__getitem__)
         return anchor if self.ratios[anchor] > 1.0 else None
 
 

@@ -50,7 +50,7 @@ import collections
 import math
 from statistics import NormalDist
 
-from uwbd.fusion.checks.separation import LEVER_MEMBER, Separation
+from uwbd.fusion.checks.separation import Separation
 from uwbd.fusion.settings import HealthLimits
 from uwbd.fusion.types import Health, Phase
 
@@ -92,7 +92,7 @@ class HealthMonitor:
         self.side_lost = False  # and with them the side of the rest's plane: no height
         self.separation_starting = False  # its warm-up is the start's (not a restart's)
         self.separation_alarm = False  # an anchor's fault found, lately, and not left out
-        self.separation_suspect: int | None = None  # the bank's member it named last
+        self.lever_alarm = False  # the lever member found the lever arm off, lately
         risk = limits.integrity_risk
         self._k_horizontal = math.sqrt(-2.0 * math.log(risk))  # Rayleigh, on the major axis
         self._k_vertical = NormalDist().inv_cdf(1.0 - risk / 2.0)  # two-sided
@@ -156,6 +156,7 @@ class HealthMonitor:
         self.offset_m = (0.0, 0.0, 0.0)
         # (the anchors left out, and the side lost with them, are the findings': kept)
         self.separation, self.separation_warm, self.separation_alarm = None, False, False
+        self.lever_alarm = False
         self.separation_starting = False
         self._after_reset = True  # recovering until a window of innovations agrees
 
@@ -217,9 +218,9 @@ class HealthMonitor:
                    else self._k_vertical * k * vertical_sigma_m + abs(dz) + gv * b)
             sep = self.separation
             warming = sep is not None and not self.separation_warm
-            if warming or self.separation_alarm:
+            if warming or self.separation_alarm or self.lever_alarm:
                 # the levels over the anchors' faults: not known yet, or an anchor's fault
-                # found and not yet left out (no level holds then)
+                # found and not yet left out, or the lever arm's (no level holds then)
                 hpl = vpl = None
             if sep is not None:  # and the levels over each anchor's fault
                 hpl = None if hpl is None else max(hpl, sep.horizontal_m + gh * b)
@@ -233,11 +234,9 @@ class HealthMonitor:
                 faults.append("position_uncertain")
             # an anchor found wrong and not left out (too few others); one left out is a
             # note, the rest judged by the levels
-            lever = self.separation_alarm and self.separation_suspect == LEVER_MEMBER
-            if set(self.anchor_suspects) - set(self.excluded) or \
-                    (self.separation_alarm and not lever):
+            if set(self.anchor_suspects) - set(self.excluded) or self.separation_alarm:
                 faults.append("anchor_inconsistent")
-            if lever:
+            if self.lever_alarm:
                 faults.append("lever_arm_inconsistent")
             if self.ranges_inconsistent:
                 faults.append("ranges_inconsistent")

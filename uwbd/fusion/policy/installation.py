@@ -52,7 +52,7 @@ class Installation:
         self.range_columns: dict[int, tuple[int, ...]] = {}
         self.lever_index: tuple[int, ...] = ()  # the lever arm's error states (tight)
         # whether the main filter estimates them (else it holds them at 0, known)
-        self.lever_estimated = cfg.lever_arm_sigma_m > 0
+        self.lever_estimated = cfg.lever_arm_sigma_m > 0 and cfg.mode is Mode.TIGHT
         self.bank: tuple[int, ...] = ()  # the anchors the bank's sub-filters leave out
         self._side_lost: dict[frozenset[int], bool] = {}  # side_lost's answers
         self.new_anchors = False  # reported since the last start: laid out before the next
