@@ -97,8 +97,7 @@ def findings(poses: list[Pose], truth_t_ns: np.ndarray | None = None,
         poses = [q for q in poses if q.t_ns >= truth_t_ns[0] + skip_s * NS]
     n = len(poses)
     said = {k: sum(k in q.health.faults or k in q.health.notes for q in poses)
-            for k in ("ranges_inconsistent", "anchor_inconsistent", "anchor_excluded",
-                      "lever_arm_inconsistent")}
+            for k in ("anchor_inconsistent", "anchor_excluded", "lever_arm_inconsistent")}
     text = ", ".join(f"{k} {v}/{n}" for k, v in said.items())
     if truth_t_ns is None or truth_p_m is None or not n:
         return text

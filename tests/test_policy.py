@@ -154,9 +154,9 @@ def test_the_phase_returns_to_tracking_only_after_the_faults_have_been_gone_a_wh
     monitor = HealthMonitor(HealthLimits(clear_hold_s=0.5))
     monitor.uwb_outcome(T0, True, 1.0)
     assert tracking(monitor, T0) is Phase.TRACKING
-    monitor.ranges_inconsistent = (3,)
+    monitor.mounting_inconsistent = True
     assert tracking(monitor, T0 + NS // 10) is Phase.DEGRADED
-    monitor.ranges_inconsistent = ()
+    monitor.mounting_inconsistent = False
     monitor.uwb_outcome(T0 + NS // 5, True, 1.0)
     held = monitor.assess(T0 + NS // 5, True, True, 0.05, True)
     assert held.phase is Phase.DEGRADED and not held.faults and "faults_clearing" in held.notes

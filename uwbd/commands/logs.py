@@ -115,9 +115,6 @@ def _findings(diagnostics: dict[str, Any]) -> list[str]:
     lines = [str(f["finding"]) for f in diagnostics.get("anchor_findings", [])]
     if "anchor_suspected" in diagnostics:
         lines.append(str(diagnostics["anchor_suspected"]["finding"]))
-    if diagnostics.get("ranges_inconsistent"):
-        lines.append("the ranges disagree with each other: anchors suspected "
-                     + ", ".join(map(str, diagnostics["ranges_inconsistent"])))
     if diagnostics.get("mounting_finding"):
         lines.append(str(diagnostics["mounting_finding"]))
     if "lever_arm_finding" in diagnostics:

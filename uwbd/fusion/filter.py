@@ -188,7 +188,7 @@ class Filter:
 
     def diagnostics(self, now_ns: int | None = None) -> dict[str, Any]:
         """For the status: the health record (at ``now_ns``, as :meth:`health`), the mirror
-        side, per-anchor range statistics, findings and the snapshot test's suspects."""
+        side, per-anchor range statistics and the findings."""
         lever = self.est.lever if self.installation.lever_estimated and self.est.ekf is not None \
             else None
         return outputs.diagnostics(self.health(now_ns), self.installation.mirror,

@@ -49,7 +49,7 @@ VEHICLES = ("ground", "handheld", "drone")
 HORIZONTAL_ALERT_M, VERTICAL_ALERT_M = 0.5, 1.0  # the filter is told them too (told)
 # the faults that say the installation is wrong (not the estimate's own state)
 INSTALLATION_FAULTS = frozenset({"anchor_inconsistent", "lever_arm_inconsistent",
-                                 "ranges_inconsistent", "mounting_inconsistent"})
+                                 "mounting_inconsistent"})
 REPORT_SEEDS_FROM = 1000  # seeds below: the tuning set; from here: the reported set
 WARM_UP_S = 10.0  # a start may be unhealthy until its tests have one window
 

@@ -5,8 +5,8 @@
  *   uwbd_single_faults  Baarda's single-fault estimate of each range of an epoch,
  *                       b_j = (S⁻¹ν)_j / (S⁻¹)_jj and its weight (S⁻¹)_jj (the anchor test;
  *                       State.range_check brings ν and S = H P Hᵀ + R)
- *   raim_snapshot       one snapshot's weighted least squares for a position offset
- *                       (the window test) */
+ *   snapshot_gain       one snapshot's least-squares gain of a position offset: what a
+ *                       bias on every range can do (the protection levels' bias term) */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
@@ -70,45 +70,43 @@ int uwbd_single_faults(double *S, const double *nu, Py_ssize_t k, double *b, dou
     return 0;
 }
 
-/* raim_snapshot(rows) -> (dp, gain, sse, free, reduction) or None: the rows are tuples
- * (…, y, w, ux, uy, uz) whose last five items are an innovation, its weight and the unit
- * vector anchor → tag. Solved for one offset δp = S y, S = (UᵀWU + εI)⁻¹UᵀW (ε = 1e-9 tr):
- * δp (3), the gain Σ_j |S_ij| (3), the SSE Σ w r², each row's 1 − leverage and its
- * w r² / max(1 − leverage, 1e-3); None when the normal matrix is singular. The reference:
- * window_raim.solve_snapshot. */
-PyObject *uwbd_raim_snapshot(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+/* snapshot_gain(rows) -> (gx, gy, gz) or None: the rows are tuples (…, w, ux, uy, uz) whose
+ * last four items are a range's weight and the unit vector anchor → tag. The least-squares
+ * gain of one position offset, S = (UᵀWU + εI)⁻¹UᵀW (ε = 1e-9 tr), as Σ_j |S_ij| per axis:
+ * the most position error a bias of 1 m on every range can make; None when the normal
+ * matrix is singular. The reference: window_raim.snapshot_gain. */
+PyObject *uwbd_snapshot_gain(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)self;
     if (nargs != 1 || !PyList_Check(args[0])) {
-        PyErr_SetString(PyExc_TypeError, "raim_snapshot(rows: a list of tuples)");
+        PyErr_SetString(PyExc_TypeError, "snapshot_gain(rows: a list of tuples)");
         return NULL;
     }
     Py_ssize_t k = PyList_GET_SIZE(args[0]);
-    double *buf = PyMem_Malloc(sizeof(double) * (size_t)(6 * k + 1));
+    double *buf = PyMem_Malloc(sizeof(double) * (size_t)(4 * k + 1));
     if (buf == NULL)
         return PyErr_NoMemory();
-    double *y = buf, *w = y + k, *U = w + k, *r = U + 3 * k;
+    double *w = buf, *U = w + k;
     for (Py_ssize_t a = 0; a < k; a++) {
         PyObject *row = PyList_GET_ITEM(args[0], a);
         Py_ssize_t len = PyTuple_Check(row) ? PyTuple_GET_SIZE(row) : 0;
-        if (len < 5) {
+        if (len < 4) {
             PyMem_Free(buf);
-            PyErr_SetString(PyExc_TypeError, "raim_snapshot: rows end in (y, w, ux, uy, uz)");
+            PyErr_SetString(PyExc_TypeError, "snapshot_gain: rows end in (w, ux, uy, uz)");
             return NULL;
         }
-        double v[5];
-        for (int j = 0; j < 5; j++) {
-            v[j] = PyFloat_AsDouble(PyTuple_GET_ITEM(row, len - 5 + j));
+        double v[4];
+        for (int j = 0; j < 4; j++) {
+            v[j] = PyFloat_AsDouble(PyTuple_GET_ITEM(row, len - 4 + j));
             if (v[j] == -1.0 && PyErr_Occurred()) {
                 PyMem_Free(buf);
                 return NULL;
             }
         }
-        y[a] = v[0];
-        w[a] = v[1];
-        U[3 * a] = v[2];
-        U[3 * a + 1] = v[3];
-        U[3 * a + 2] = v[4];
+        w[a] = v[0];
+        U[3 * a] = v[1];
+        U[3 * a + 1] = v[2];
+        U[3 * a + 2] = v[3];
     }
     double N[9] = {0}, Ni[9];
     for (Py_ssize_t a = 0; a < k; a++)
@@ -122,42 +120,11 @@ PyObject *uwbd_raim_snapshot(PyObject *self, PyObject *const *args, Py_ssize_t n
         PyMem_Free(buf);
         Py_RETURN_NONE;
     }
-    double dp[3] = {0, 0, 0}, gain[3] = {0, 0, 0};
+    double gain[3] = {0, 0, 0};
     for (Py_ssize_t a = 0; a < k; a++)
-        for (int i = 0; i < 3; i++) {
-            double s = (Ni[3 * i] * U[3 * a] + Ni[3 * i + 1] * U[3 * a + 1] +
-                        Ni[3 * i + 2] * U[3 * a + 2]) * w[a];
-            dp[i] += s * y[a];
-            gain[i] += fabs(s);
-        }
-    double sse = 0.0;
-    PyObject *free_list = PyList_New(k), *red_list = PyList_New(k);
-    if (free_list == NULL || red_list == NULL)
-        goto fail;
-    for (Py_ssize_t a = 0; a < k; a++) {
-        const double *u = U + 3 * a;
-        r[a] = y[a] - (u[0] * dp[0] + u[1] * dp[1] + u[2] * dp[2]);
-        double h = 0.0;
-        for (int j = 0; j < 3; j++)
-            h += (u[0] * Ni[j] + u[1] * Ni[3 + j] + u[2] * Ni[6 + j]) * u[j];
-        double free = 1.0 - w[a] * h, wr2 = w[a] * (r[a] * r[a]);
-        sse += wr2;
-        PyObject *f = PyFloat_FromDouble(free);
-        PyObject *x = PyFloat_FromDouble(wr2 / (free > 1e-3 ? free : 1e-3));
-        if (f == NULL || x == NULL) {
-            Py_XDECREF(f);
-            Py_XDECREF(x);
-            goto fail;
-        }
-        PyList_SET_ITEM(free_list, a, f);
-        PyList_SET_ITEM(red_list, a, x);
-    }
+        for (int i = 0; i < 3; i++)
+            gain[i] += fabs((Ni[3 * i] * U[3 * a] + Ni[3 * i + 1] * U[3 * a + 1] +
+                             Ni[3 * i + 2] * U[3 * a + 2]) * w[a]);
     PyMem_Free(buf);
-    return Py_BuildValue("(ddd)(ddd)dNN", dp[0], dp[1], dp[2], gain[0], gain[1], gain[2], sse,
-                         free_list, red_list);
-fail:
-    Py_XDECREF(free_list);
-    Py_XDECREF(red_list);
-    PyMem_Free(buf);
-    return NULL;
+    return Py_BuildValue("(ddd)", gain[0], gain[1], gain[2]);
 }

@@ -144,8 +144,8 @@ static PyMethodDef core_methods[] = {
      "Each range's leverage at x (multilaterate's outlier test); None if singular."},
     {"window_moments", (PyCFunction)(void (*)(void))uwbd_window_moments, METH_FASTCALL,
      "ImuWindow._judge's mean and std of the six axes over the last span_ns, or None."},
-    {"raim_snapshot", (PyCFunction)(void (*)(void))uwbd_raim_snapshot, METH_FASTCALL,
-     "window_raim.solve_snapshot: one snapshot's offset, gain, SSE and reductions, or None."},
+    {"snapshot_gain", (PyCFunction)(void (*)(void))uwbd_snapshot_gain, METH_FASTCALL,
+     "window_raim.snapshot_gain: one snapshot's gain of a position offset, or None."},
     {NULL, NULL, 0, NULL},
 };
 

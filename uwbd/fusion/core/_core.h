@@ -76,7 +76,7 @@ int uwbd_single_faults(double *S, const double *nu, Py_ssize_t k, double *b, dou
 PyObject *uwbd_gauss_newton(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 PyObject *uwbd_leverages(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 PyObject *uwbd_window_moments(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
-PyObject *uwbd_raim_snapshot(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
+PyObject *uwbd_snapshot_gain(PyObject *self, PyObject *const *args, Py_ssize_t nargs);
 
 /* -- the State type (_state.c) ---------------------------------------------------------- */
 extern PyTypeObject UwbdStateType;

@@ -4,8 +4,9 @@ share, each concern a dataclass handed to the parts that read or change it.
 * :class:`Estimate` — the core's numbers (``ekf``; ``None`` before a start and while
   restarting), their time, the heading (held, or aligned), the range rows' lever arm now,
   and the counters and health evidence every part adds to;
-* :class:`Findings` — what the installation checks have found: the anchor test, the snapshot
-  test, the mounting, the anchors left out and each anchor's range statistics.
+* :class:`Findings` — what the installation checks have found: the anchor test, the
+  separation's suspect and the lever arm, the mounting, the anchors left out, each
+  anchor's range statistics; and the ranges' geometry the bias term takes.
 
 The parts keep their own state (the IMU side its last samples, the recovery its restart in
 progress, the fusion its row policies); none reads another's but through these two.
@@ -46,7 +47,7 @@ class Estimate:
 class Findings:
     """What the installation checks found (see module doc)."""
 
-    raim: WindowRaim  # the snapshot test (made with the filter's core)
+    raim: WindowRaim  # the ranges' geometry for the bias term (made with the filter's core)
     consistency: AnchorConsistency = field(
         default_factory=lambda: AnchorConsistency(ConsistencyLimits()))
     mounting_yaw: MountingYaw = field(default_factory=MountingYaw)

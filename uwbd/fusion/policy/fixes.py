@@ -34,7 +34,6 @@ from statistics import NormalDist
 
 import numpy as np
 
-from uwbd.fusion.checks.window_raim import ratio_quantile
 from uwbd.fusion.core.lsq import LsqFix, common_offset, multilaterate
 from uwbd.fusion.core.native import Core
 from uwbd.fusion.core.rotation import Array
@@ -180,3 +179,11 @@ def consistent(fix: LsqFix, anchors: Array, ranges: Array, sigma_m: float,
         return False
     solved = common_offset(anchors, ranges, fix.position_m) if len(ranges) >= 5 else None
     return solved is None or abs(solved[0]) <= 3.0 * math.hypot(tag_delay_sigma_m, sigma_m)
+
+
+def ratio_quantile(z: float, dof: float) -> float:
+    """The quantile of χ²(dof)/dof at the standard normal's ``z`` (Wilson–Hilferty: within
+    1 % from dof 3)."""
+    dof = max(dof, 1.0)
+    a = 2.0 / (9.0 * dof)
+    return (1.0 - a + z * math.sqrt(a)) ** 3

@@ -152,10 +152,10 @@ class EpochFusion:
 
     def check_anchors(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                        r_scale: Array) -> None:
-        """The epoch's ranges, before the update, to the two tests of the installation:
-        tight, with the heading known (the lever arm's direction). The snapshot test
-        (:mod:`~uwbd.fusion.checks.window_raim`: do the ranges agree?), each range's
-        variance its own plus the multipath state's; and the anchor test
+        """The epoch's ranges, before the update, to the anchor test and the bias term's
+        geometry: tight, with the heading known (the lever arm's direction). The snapshots'
+        gain (:mod:`~uwbd.fusion.checks.window_raim`: what a bias on every range can do),
+        each range's variance its own plus the multipath state's; and the anchor test
         (:mod:`~uwbd.fusion.checks.anchor_consistency`: which one disagrees?), three
         ranges at least (a single range cannot be told from the others), about ten
         epochs a second (its σ takes them as that correlated)."""
@@ -175,22 +175,19 @@ class EpochFusion:
                               var if anchor_test else None, self.installation.range_columns)
         if checked is None:  # an antenna on an anchor: no line to test
             return
-        U, y, b, d = checked
+        U, _, b, d = checked
         if anchor_test:
             consistency.last_ns = t_ns
             if b is not None and d is not None:
                 consistency.add_estimates(t_ns, ids, b, d)
             monitor.anchor_suspects = tuple(sorted(consistency.findings))
-        if snapshot:  # (of the anchors in use: one left out is the anchor test's to judge)
+        if snapshot:  # (of the anchors in use)
             var = var + cfg.multipath_sigma_m**2 if cfg.multipath_states else var
             out = self.findings.excluded
             if out and any(a in out for a in ids):
                 keep = np.array([a not in out for a in ids])
-                ids, y, U, var = [a for a in ids if a not in out], y[keep], U[keep], var[keep]
-            raim.add(t_ns, ids, y, U, var)
-            monitor.ranges_inconsistent = raim.inconsistent
-            monitor.inflation = raim.ratio
-            monitor.offset_m = raim.offset_m
+                ids, U, var = [a for a in ids if a not in out], U[keep], var[keep]
+            raim.add(t_ns, ids, U, var)
             monitor.bias_gain = raim.bias_gain
 
     def exclude_findings(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,

@@ -21,15 +21,13 @@ positive definiteness along a measurement), ``innovations_inconsistent`` (most o
 above 1), ``imu_rejected`` (a sample was rejected within the last second), ``imu_gap``,
 ``range_timeout`` (no accepted range for ``range_timeout_s``), ``position_uncertain``
 (a protection level not known, or over its alert limit: the larger of the bank's solution
-separation's, :mod:`uwbd.fusion.checks.separation`, and ``K √k σ + |δp| + g b`` at
-``integrity_risk``, σ the horizontal ellipse's major axis or σz, ``k`` the snapshot test's
-inflation, ``δp`` its mean offset of the state and ``g`` its geometry's position error per
-metre of a bias ``range_bias_bound_m`` on every range, horizontal or vertical; with
+separation's, :mod:`uwbd.fusion.checks.separation`, and ``K σ + g b`` at
+``integrity_risk``, σ the horizontal ellipse's major axis or σz, and ``g`` the ranges'
+geometry's position error per metre of a bias ``range_bias_bound_m`` on every range
+(:mod:`uwbd.fusion.checks.window_raim`), horizontal or vertical; with
 ``height_needed`` off, the horizontal's alone), ``anchor_inconsistent`` (an anchor's
 ranges disagree with the others' and it is not left out:
 :mod:`uwbd.fusion.checks.anchor_consistency` or the separation; the status names it),
-``ranges_inconsistent`` (the ranges disagree with each other beyond their noise:
-:mod:`uwbd.fusion.checks.window_raim`; the status names the candidates),
 ``mounting_inconsistent`` (with NHC on, the vehicle moves sideways in body axes: a
 mounting turned about z, :mod:`uwbd.fusion.checks.mounting_yaw`; the status's
 ``mounting_finding`` says by how much).
@@ -78,12 +76,8 @@ class HealthMonitor:
         self.last_reset: tuple[int, str, float | None] | None = None
         self.mirror_unresolved = False
         self.anchor_suspects: tuple[int, ...] = ()  # checks.anchor_consistency's findings
-        # checks.window_raim's: the candidates when the ranges disagree, and the window's
-        # χ² per degree of freedom (≥ 1), which inflates the protection levels
-        self.ranges_inconsistent: tuple[int, ...] = ()
-        self.inflation = 1.0
-        self.offset_m = (0.0, 0.0, 0.0)  # and its mean offset of the state (m, ENU)
-        self.bias_gain = (0.0, 0.0)  # and its position error per metre of range bias (h, v)
+        # checks.window_raim's: the position error per metre of range bias (h, v)
+        self.bias_gain = (0.0, 0.0)
         # the bank's solution separation (checks.separation, policy.integrity): its last
         # test, and whether the bank has run long enough since it started anew to judge by
         self.separation: Separation | None = None
@@ -151,9 +145,7 @@ class HealthMonitor:
         self._rejected, self._nis_sum, self._rejected_run = 0, 0.0, 0
         self._inconsistent_since_ns = None
         self._rejudging = False
-        self.anchor_suspects = self.ranges_inconsistent = ()
-        self.inflation = 1.0
-        self.offset_m = (0.0, 0.0, 0.0)
+        self.anchor_suspects = ()
         # (the anchors left out, and the side lost with them, are the findings': kept)
         self.separation, self.separation_warm, self.separation_alarm = None, False, False
         self.lever_alarm = False
@@ -207,15 +199,11 @@ class HealthMonitor:
         hpl = vpl = None
         h_ok = v_ok = starting = False
         if running:
-            k = math.sqrt(self.inflation)
             major = position_sigma_m if major_sigma_m is None else major_sigma_m
-            dx, dy, dz = self.offset_m  # where the ranges alone put the tag: a bias to bound
-            gh, gv = self.bias_gain  # and what the ranges' unmodelled biases can do
+            gh, gv = self.bias_gain  # what the ranges' unmodelled biases can do
             b = lim.range_bias_bound_m
-            hpl = (None if major is None
-                   else self._k_horizontal * k * major + math.hypot(dx, dy) + gh * b)
-            vpl = (None if vertical_sigma_m is None
-                   else self._k_vertical * k * vertical_sigma_m + abs(dz) + gv * b)
+            hpl = None if major is None else self._k_horizontal * major + gh * b
+            vpl = None if vertical_sigma_m is None else self._k_vertical * vertical_sigma_m + gv * b
             sep = self.separation
             warming = sep is not None and not self.separation_warm
             if warming or self.separation_alarm or self.lever_alarm:
@@ -238,8 +226,6 @@ class HealthMonitor:
                 faults.append("anchor_inconsistent")
             if self.lever_alarm:
                 faults.append("lever_arm_inconsistent")
-            if self.ranges_inconsistent:
-                faults.append("ranges_inconsistent")
             if self.mounting_inconsistent:
                 faults.append("mounting_inconsistent")
         notes = (("anchor_excluded",) if self.excluded else ()) + (

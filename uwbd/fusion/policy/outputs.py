@@ -51,7 +51,7 @@ def pose_of(est: Estimate, t_ns: int, numbers: PoseNumbers) -> Pose:
 def diagnostics(health: Health, mirror: MirrorSide, findings: Findings,
                 lever_estimate_m: Array | None) -> dict[str, Any]:
     """For the status: the health record, the mirror side, per-anchor range statistics,
-    findings and the snapshot test's suspects, the lever arm's estimate where it is one."""
+    findings, the lever arm's estimate where it is one."""
     m = mirror
     mounting = findings.mounting_finding or findings.mounting_yaw.text()
     return {"health": health.as_dict(),
@@ -60,8 +60,6 @@ def diagnostics(health: Health, mirror: MirrorSide, findings: Findings,
             "anchors": {str(a): s.as_dict() for a, s in sorted(findings.anchor_stats.items())},
             "anchor_findings": [f.as_dict() for _, f in
                                 sorted(findings.consistency.findings.items())],
-            # the snapshot test fails: the anchors it suspects (checks.window_raim)
-            "ranges_inconsistent": list(findings.raim.inconsistent),
             # the bank's separation left these out, and takes each back then (t_ns)
             "anchors_excluded": {str(a): until for a, until in sorted(findings.separated.items())},
             # with [fusion] lever_arm_sigma_m: where the data put the antenna (body, m)

@@ -344,9 +344,6 @@ STATUS_SCHEMA = _obj("uwbd.Status", "once a second: the filter's health, counter
         "estimate_m": {"type": "array", "items": {"type": "number"},
                        "description": "the lever arm the bank's lever member gives (IMU -> "
                        "antenna, body axes, m)"}}),
-    "ranges_inconsistent": {"type": "array", "items": {"type": "integer"},
-                            "description": "the ranges disagree with each other: the "
-                            "anchors suspected (empty: they agree)"},
     "heading_observable": {"type": "boolean", "description": "the heading is known"},
     "poses": {"type": "integer", "description": "poses so far"},
     "fusion_counters": _open_map(_COUNT, "filter events by name"),
