@@ -21,9 +21,9 @@ from hypothesis import strategies as st
 
 from drivers.frames import ImuSample
 from uwbd.config import parse
+from uwbd.fusion.checks.bias_gain import snapshot_gain
 from uwbd.fusion.checks.imu_check import ImuCheck, ImuLimits, new_imu_check
 from uwbd.fusion.checks.intrinsics import ImuIntrinsics, body_maps, to_body
-from uwbd.fusion.checks.window_raim import snapshot_gain
 from uwbd.fusion.core import native
 from uwbd.fusion.core.eskf import Eskf
 from uwbd.fusion.core.layout import N_CORE, TH_, V_
@@ -625,7 +625,7 @@ def test_the_checks_leave_an_antenna_on_an_anchor_and_a_singular_s_alone() -> No
 @settings(max_examples=60, deadline=None)
 @given(st.integers(0, 2**31), st.integers(5, 12), st.booleans())
 def test_the_snapshot_gain_matches_the_reference(seed: int, k: int, flat: bool) -> None:
-    """snapshot_gain (C) against window_raim.snapshot_gain (five rows at least, as the window
+    """snapshot_gain (C) against bias_gain.snapshot_gain (five rows at least, as the window
     takes them); a snapshot whose rays all lie in one plane (``flat``) is nearly singular
     and still agrees."""
     rng = np.random.default_rng(seed)

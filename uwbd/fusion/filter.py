@@ -59,8 +59,8 @@ from typing import Any
 import numpy as np
 
 from drivers.frames import AnchorRanges, ImuSample, UwbRanges
+from uwbd.fusion.checks.bias_gain import BiasGain
 from uwbd.fusion.checks.gating import GatingCounters, gate
-from uwbd.fusion.checks.window_raim import RaimLimits, WindowRaim
 from uwbd.fusion.core import native
 from uwbd.fusion.core.eskf import Eskf
 from uwbd.fusion.core.layout import BA_, BG_, N_CORE, TH_
@@ -109,7 +109,7 @@ class Filter:
         self.installation = Installation(config, self.ranges, core)
         self.est = Estimate(monitor, new_aligner(config), self.installation.plain_lever,
                             record)
-        self.findings = Findings(WindowRaim(RaimLimits(), core))
+        self.findings = Findings(BiasGain(core))
         self.window = ImuWindow(max(config.static_window_s, config.init_static_s), config.rest,
                                 config.gravity_mps2, core=core)
         self.stillness = UwbStillness()

@@ -1,5 +1,5 @@
 /* The numbers of the installation checks (docs/ekf.md §6); the decisions on them stay in
- * Python (uwbd/fusion/checks/anchor_consistency.py and window_raim.py, which hold the
+ * Python (uwbd/fusion/checks/anchor_consistency.py and bias_gain.py, which hold the
  * reference of each function here; tests/test_core.py compares the two):
  *
  *   uwbd_single_faults  Baarda's single-fault estimate of each range of an epoch,
@@ -74,7 +74,7 @@ int uwbd_single_faults(double *S, const double *nu, Py_ssize_t k, double *b, dou
  * last four items are a range's weight and the unit vector anchor → tag. The least-squares
  * gain of one position offset, S = (UᵀWU + εI)⁻¹UᵀW (ε = 1e-9 tr), as Σ_j |S_ij| per axis:
  * the most position error a bias of 1 m on every range can make; None when the normal
- * matrix is singular. The reference: window_raim.snapshot_gain. */
+ * matrix is singular. The reference: bias_gain.snapshot_gain. */
 PyObject *uwbd_snapshot_gain(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)self;

@@ -145,7 +145,7 @@ static PyMethodDef core_methods[] = {
     {"window_moments", (PyCFunction)(void (*)(void))uwbd_window_moments, METH_FASTCALL,
      "ImuWindow._judge's mean and std of the six axes over the last span_ns, or None."},
     {"snapshot_gain", (PyCFunction)(void (*)(void))uwbd_snapshot_gain, METH_FASTCALL,
-     "window_raim.snapshot_gain: one snapshot's gain of a position offset, or None."},
+     "bias_gain.snapshot_gain: one snapshot's gain of a position offset, or None."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -18,8 +18,8 @@ import collections
 from dataclasses import dataclass, field
 
 from uwbd.fusion.checks.anchor_consistency import AnchorConsistency, ConsistencyLimits
+from uwbd.fusion.checks.bias_gain import BiasGain
 from uwbd.fusion.checks.mounting_yaw import MountingYaw
-from uwbd.fusion.checks.window_raim import WindowRaim
 from uwbd.fusion.core.eskf import Eskf
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.policy.alignment import HeadingAligner
@@ -47,7 +47,7 @@ class Estimate:
 class Findings:
     """What the installation checks found (see module doc)."""
 
-    raim: WindowRaim  # the ranges' geometry for the bias term (made with the filter's core)
+    geometry: BiasGain  # the ranges' geometry for the bias term (made with the filter's core)
     consistency: AnchorConsistency = field(
         default_factory=lambda: AnchorConsistency(ConsistencyLimits()))
     mounting_yaw: MountingYaw = field(default_factory=MountingYaw)
@@ -65,7 +65,7 @@ class Findings:
     def forget(self) -> None:
         """At a restart: the evidence was against the old estimate."""
         self.consistency.clear()
-        self.raim.clear()
+        self.geometry.clear()
         self.separated.clear()
         self.excluded.clear()
         self.suspect = self.lever_arm_m = None

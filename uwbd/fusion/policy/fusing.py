@@ -154,7 +154,7 @@ class EpochFusion:
                        r_scale: Array) -> None:
         """The epoch's ranges, before the update, to the anchor test and the bias term's
         geometry: tight, with the heading known (the lever arm's direction). The snapshots'
-        gain (:mod:`~uwbd.fusion.checks.window_raim`: what a bias on every range can do),
+        gain (:mod:`~uwbd.fusion.checks.bias_gain`: what a bias on every range can do),
         each range's variance its own plus the multipath state's; and the anchor test
         (:mod:`~uwbd.fusion.checks.anchor_consistency`: which one disagrees?), three
         ranges at least (a single range cannot be told from the others), about ten
@@ -162,8 +162,8 @@ class EpochFusion:
         ekf, cfg = self.est.ekf, self.cfg
         if ekf is None or not ids or cfg.mode is not Mode.TIGHT or not self.est.aligned:
             return
-        raim, consistency = self.findings.raim, self.findings.consistency
-        snapshot = raim.due(t_ns, ids)
+        geometry, consistency = self.findings.geometry, self.findings.consistency
+        snapshot = geometry.due(t_ns, ids)
         anchor_test = len(ids) >= 3 and t_ns - consistency.last_ns >= CHECK_EVERY_NS
         if not (snapshot or anchor_test):
             return
@@ -187,8 +187,8 @@ class EpochFusion:
             if out and any(a in out for a in ids):
                 keep = np.array([a not in out for a in ids])
                 ids, U, var = [a for a in ids if a not in out], U[keep], var[keep]
-            raim.add(t_ns, ids, U, var)
-            monitor.bias_gain = raim.bias_gain
+            geometry.add(t_ns, ids, U, var)
+            monitor.bias_gain = geometry.bias_gain
 
     def exclude_findings(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                           r_scale: Array, reports: list[FusionReport]

@@ -24,7 +24,7 @@ above 1), ``imu_rejected`` (a sample was rejected within the last second), ``imu
 separation's, :mod:`uwbd.fusion.checks.separation`, and ``K σ + g b`` at
 ``integrity_risk``, σ the horizontal ellipse's major axis or σz, and ``g`` the ranges'
 geometry's position error per metre of a bias ``range_bias_bound_m`` on every range
-(:mod:`uwbd.fusion.checks.window_raim`), horizontal or vertical; with
+(:mod:`uwbd.fusion.checks.bias_gain`), horizontal or vertical; with
 ``height_needed`` off, the horizontal's alone), ``anchor_inconsistent`` (an anchor's
 ranges disagree with the others' and it is not left out:
 :mod:`uwbd.fusion.checks.anchor_consistency` or the separation; the status names it),
@@ -76,7 +76,7 @@ class HealthMonitor:
         self.last_reset: tuple[int, str, float | None] | None = None
         self.mirror_unresolved = False
         self.anchor_suspects: tuple[int, ...] = ()  # checks.anchor_consistency's findings
-        # checks.window_raim's: the position error per metre of range bias (h, v)
+        # checks.bias_gain's: the position error per metre of range bias (h, v)
         self.bias_gain = (0.0, 0.0)
         # the bank's solution separation (checks.separation, policy.integrity): its last
         # test, and whether the bank has run long enough since it started anew to judge by

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import collections
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -28,18 +27,14 @@ SNAPSHOT_EVERY_NS = 95_000_000  # epochs
 SINGLE_EVERY_NS = 190_000_000
 JUDGE_EVERY_NS = 500_000_000
 MIN_ANCHORS = 5  # a snapshot needs two ranges more than the offset's three
+WINDOW_S = 8.0  # the gain is the mean over this many seconds of snapshots
 
 
-@dataclass(frozen=True)
-class RaimLimits:
-    window_s: float = 8.0
-
-
-class WindowRaim:
+class BiasGain:
     """The window of snapshots and its mean gain (see module doc)."""
 
-    def __init__(self, limits: RaimLimits, core: Core) -> None:
-        self.limits = limits
+    def __init__(self, core: Core, window_s: float = WINDOW_S) -> None:
+        self.window_s = window_s
         self._core = core  # the snapshot's least squares: C, or the reference (None)
         self._latest: dict[int, tuple[int, float, float, float, float]] = {}  # t, 1/var, u
         self._snapshot_ns = -(2**63)
@@ -77,7 +72,7 @@ class WindowRaim:
         self._snapshot(t_ns, [r[1:] for r in latest.values() if r[0] >= recent])
         if t_ns - self._judged_ns >= JUDGE_EVERY_NS:
             self._judged_ns = t_ns
-            self._forget_before(t_ns - int(self.limits.window_s * NS))
+            self._forget_before(t_ns - int(self.window_s * NS))
             n = len(self._entries)
             gx, gy, gz = (c / n for c in self._gain_sum) if n else (0.0, 0.0, 0.0)
             self.bias_gain = (math.hypot(gx, gy), gz)

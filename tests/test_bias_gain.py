@@ -1,4 +1,4 @@
-"""The ranges' geometry the protection levels' bias term takes (checks.window_raim) and the
+"""The ranges' geometry the protection levels' bias term takes (checks.bias_gain) and the
 filter's own levels (policy.health): on synthetic snapshots, and in the filter on simulated
 runs with the installation right and wrong."""
 
@@ -13,7 +13,7 @@ from truth import position_errors
 
 from drivers.frames import ImuSample
 from uwbd.config import parse
-from uwbd.fusion.checks.window_raim import RaimLimits, WindowRaim, snapshot_gain
+from uwbd.fusion.checks.bias_gain import BiasGain, snapshot_gain
 from uwbd.fusion.core import native
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.policy.health import HealthMonitor
@@ -37,7 +37,7 @@ def test_the_window_s_gain_is_what_a_bias_on_every_range_does_to_a_fix() -> None
     (horizontal as the norm of x and y), the most a bias of 1 m on every range moves a
     least-squares fix; innovations play no part; a restart forgets."""
     rng = np.random.default_rng(4)
-    window = WindowRaim(RaimLimits(), native.core)
+    window = BiasGain(native.core)
     ids = [0, 1, 2, 3, 4, 5]
     var = np.full(6, 0.1**2)
     u = _directions(rng, 6)
@@ -57,7 +57,7 @@ def test_single_ranges_make_snapshots_of_each_anchors_latest() -> None:
     """One range a message, 8 anchors in turn at 160 Hz: the window gathers each anchor's
     latest into snapshots, and its gain is the one of those 8 directions."""
     rng = np.random.default_rng(5)
-    window = WindowRaim(RaimLimits(), native.core)
+    window = BiasGain(native.core)
     u = _directions(rng, 8)
     for k in range(160 * 4):
         a = k % 8
