@@ -11,15 +11,13 @@ import numpy as np
 import pytest
 from truth import position_errors
 
-from drivers.frames import ImuSample
 from uwbd.config import parse
 from uwbd.fusion.checks.bias_gain import BiasGain, snapshot_gain
 from uwbd.fusion.core import native
-from uwbd.fusion.filter import Filter
 from uwbd.fusion.policy.health import HealthMonitor
 from uwbd.fusion.settings import HealthLimits
 from uwbd.fusion.types import Pose
-from uwbd.tools.evaluate import merge
+from uwbd.tools.evaluate import merge, run_filter
 from uwbd.tools.logtools import simulation_toml
 from uwbd.tools.simulator import SimConfig, simulate
 
@@ -78,16 +76,8 @@ def _run(sim_cfg: SimConfig, move_anchor: tuple[float, float, float] | None
         anchors = dict(cfg.anchors_m)
         anchors[3] = tuple(a + d for a, d in zip(anchors[3], move_anchor, strict=True))  # type: ignore[assignment]
         cfg = dataclasses.replace(cfg, anchors_m=anchors)
-    flt = Filter(cfg)
-    poses = []
-    for frame in merge(sim.imu, sim.uwb):
-        if isinstance(frame, ImuSample):
-            flt.predict(frame)
-            continue
-        flt.update(frame)
-        pose = flt.pose()
-        if pose is not None and pose.t_ns > sim.truth_t_ns[0] + 8 * NS:
-            poses.append(pose)
+    poses, _, _ = run_filter(cfg, merge(sim.imu, sim.uwb))  # (a pose after every message)
+    poses = [p for p in poses if p.t_ns > sim.truth_t_ns[0] + 8 * NS]
     return poses, position_errors(poses, sim)
 
 
