@@ -118,10 +118,7 @@ def _findings(diagnostics: dict[str, Any]) -> list[str]:
     if diagnostics.get("mounting_finding"):
         lines.append(str(diagnostics["mounting_finding"]))
     if "lever_arm_finding" in diagnostics:
-        x, y, z = diagnostics["lever_arm_finding"]["estimate_m"]
-        lines.append(f"the lever arm looks off: the data put the antenna at ({x:+.2f}, "
-                     f"{y:+.2f}, {z:+.2f}) m (IMU -> antenna, body axes; check "
-                     "imu.lever_arm_m)")
+        lines.append(str(diagnostics["lever_arm_finding"]["finding"]))
     if "lever_arm_estimate_m" in diagnostics:
         x, y, z = diagnostics["lever_arm_estimate_m"]
         lines.append(f"lever arm by the data: ({x:+.3f}, {y:+.3f}, {z:+.3f}) m "

@@ -9,7 +9,6 @@ raises into the pipeline and costs one comparison per pose.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from typing import Any
 
@@ -63,10 +62,7 @@ class Narrator:
             findings["separation", suspected.get("anchor")] = str(suspected.get("finding"))
         lever = status.get("lever_arm_finding")
         if lever:
-            x, y, z = lever.get("estimate_m", (math.nan,) * 3)
-            findings["lever"] = (f"the lever arm looks off: the data put the antenna at "
-                                 f"({x:+.2f}, {y:+.2f}, {z:+.2f}) m (IMU -> antenna, body "
-                                 f"axes); check {lever.get('key', 'imu.lever_arm_m')}")
+            findings["lever"] = str(lever.get("finding", "the lever arm looks off"))
         for key in findings.keys() - self._findings_said:  # said again only once it agreed
             LOG.warning("%s", findings[key])
         self._findings_said = set(findings)

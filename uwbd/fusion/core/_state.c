@@ -15,15 +15,14 @@
  * The state is one block of doubles, exported read-only through the buffer protocol:
  * p (3), v (3), q (4: w x y z), b_g (3), b_a (3), b_r (m), P (n×n, row-major), last_dx (n),
  * with n = 15 + m; then the bank (§6, integrity): K sub-filters, each leaving one anchor's
- * ranges out (or, with variances of its own added at each start, estimating states the main
- * filter holds known: the lever arm's), as their offsets from the nominal state d_k (K×n) and covariances P_k
- * (K×n×n). Every operation above advances the bank with the main filter: the same Φ and
- * Q, the same rows with the main filter's weights (its decisions), but anchor k's rows
- * left out of sub-filter k; the heading's turn turns them too; a restore, a move or an
- * adoption starts the bank anew from the main filter (d_k = 0, P_k = P + its variances).
- * Python reads the
- * block as numpy views (eskf.CoreEskf) and changes it only through the operations. The
- * reference is eskf.Eskf, in pure Python. */
+ * ranges out (or, with variances of its own added at each start, estimating states the
+ * main filter holds known: the lever arm's), as their offsets from the nominal state d_k
+ * (K×n) and covariances P_k (K×n×n). Every operation above advances the bank with the main
+ * filter: the same Φ and Q, the same rows with the main filter's weights (its decisions),
+ * but anchor k's rows left out of sub-filter k; the heading's turn turns them too; a
+ * restore, a move or an adoption starts the bank anew from the main filter (d_k = 0,
+ * P_k = P + its variances). Python reads the block as numpy views (eskf.CoreEskf) and
+ * changes it only through the operations. The reference is eskf.Eskf, in pure Python. */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>

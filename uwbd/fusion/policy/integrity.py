@@ -22,10 +22,10 @@ heading looks like a lever arm off), the bank warm and no anchor found (the memb
 every anchor's ranges, and its states may take up part of an anchor's fault), is the fault
 ``lever_arm_inconsistent``, held ``LEVER_HOLD_S`` after its last detection; no level holds
 meanwhile, and the status names ``imu.lever_arm_m`` with where the member puts the
-antenna. It is not
-taken on (measured: a mounting turned about z also moves that member, and a filter that
-then estimated the lever arm was healthy while 0.5 m off); nor is the member's level part
-of the protection levels, which an unobserved lever arm would make its prior's.
+antenna. It is not taken on (measured: a mounting turned about z also moves that member,
+and a filter that then estimated the lever arm was healthy while 0.5 m off); nor is the
+member's level part of the protection levels, which an unobserved lever arm would make
+its prior's.
 
 The bank starts anew with the main filter (a start, a restored covariance, a position
 reset, an exclusion): its separations then say nothing yet, so for ``WARM_S`` after that

@@ -77,7 +77,10 @@ def diagnostics(health: Health, mirror: MirrorSide, findings: Findings,
             # the lever-arm test found imu.lever_arm_m off: where it puts the antenna
             **({"lever_arm_finding": {
                 "key": "imu.lever_arm_m",
-                "estimate_m": [round(float(c), 3) for c in findings.lever_arm_m]}}
+                "estimate_m": [round(float(c), 3) for c in findings.lever_arm_m],
+                "finding": "the lever arm looks off: the data put the antenna at ({:+.2f}, "
+                           "{:+.2f}, {:+.2f}) m (IMU -> antenna, body axes); check "
+                           "imu.lever_arm_m".format(*findings.lever_arm_m)}}
                if findings.lever_arm_m is not None else {}),
             **({"mounting_finding": mounting} if mounting else {})}
 

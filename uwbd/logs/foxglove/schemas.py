@@ -343,7 +343,8 @@ STATUS_SCHEMA = _obj("uwbd.Status", "once a second: the filter's health, counter
         "key": {"type": "string", "description": "the config key to check: imu.lever_arm_m"},
         "estimate_m": {"type": "array", "items": {"type": "number"},
                        "description": "the lever arm the bank's lever member gives (IMU -> "
-                       "antenna, body axes, m)"}}),
+                       "antenna, body axes, m)"},
+        "finding": {"type": "string", "description": "what a technician should check"}}),
     "heading_observable": {"type": "boolean", "description": "the heading is known"},
     "poses": {"type": "integer", "description": "poses so far"},
     "fusion_counters": _open_map(_COUNT, "filter events by name"),
