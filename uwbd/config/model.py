@@ -29,7 +29,7 @@ IMU_INTRINSIC_KEYS = (*IMU_INTRINSIC_VECTORS, "gyro_deadband_rps", "gravity_mps2
 LOG_DIRECTORY = "logs"
 ROTATE_MB = 256.0
 ROTATE_MINUTES = 60.0
-POSE_RATE_HZ = 50.0
+POSE_RATE_HZ = 1e9 / FilterConfig.pose_period_ns  # (50: the filter's policy period's)
 STATUS_PERIOD_S = 1.0
 ALIGNER_WAIT_MS = 0.0
 STALL_AFTER_S = 1.0  # no byte this long: the port is stalled
@@ -184,5 +184,6 @@ class Config:
             gating=GatingPolicy(min_anchors=f.get("min_anchors", gating.min_anchors),
                                 max_range_m=f.get("max_range_m", gating.max_range_m)),
             health=HealthLimits(**{k: f[k] for k in _HEALTH_KEYS if k in f}),
+            pose_period_ns=self.pose_period_ns,
             **given,
         )

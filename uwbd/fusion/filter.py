@@ -24,6 +24,10 @@ the sequence it runs; each step's policy has a module of its own:
 * :mod:`.policy.propagation` — each IMU sample judged, kept and integrated;
 * :mod:`.policy.recovery` — the start, the restarts and what triggers them;
 * :mod:`.policy.fusing` — one epoch's rows fused and each row's outcome;
+* :mod:`.policy.constraints` — the ZUPT, NHC and height rows due, the tilt against gravity;
+* :mod:`.policy.period` — a pose period's single ranges and IMU samples, queued and fused
+  in one call of the core; the policy runs with every epoch and, for single ranges, once a
+  pose period (its decisions may land up to a period late);
 * :mod:`.policy.integrity` — the bank's solution separation (:mod:`.checks.separation`):
   protection levels over each anchor's fault, and which anchor's separation is too large;
 * :mod:`.policy.outputs` — the pose, the health record, the diagnostics;
@@ -65,10 +69,11 @@ from uwbd.fusion.core import native
 from uwbd.fusion.core.eskf import Eskf
 from uwbd.fusion.core.layout import BA_, BG_, N_CORE, TH_
 from uwbd.fusion.core.lsq import LsqFix
-from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.core.rotation import Array, body_point
 from uwbd.fusion.core.smoother import EpochRecord, Nominal
-from uwbd.fusion.models.measurements import Rows, height_rows, nhc_rows, zupt_rows
+from uwbd.fusion.models.measurements import Rows
 from uwbd.fusion.policy import outputs
+from uwbd.fusion.policy.constraints import Constraints
 from uwbd.fusion.policy.estimate import Estimate, Findings, new_aligner
 from uwbd.fusion.policy.fixes import RangeWindow
 from uwbd.fusion.policy.fusing import EpochFusion
@@ -76,17 +81,15 @@ from uwbd.fusion.policy.health import HealthMonitor
 from uwbd.fusion.policy.installation import Installation
 from uwbd.fusion.policy.integrity import Integrity
 from uwbd.fusion.policy.mirror import MirrorSide
+from uwbd.fusion.policy.period import MIN_PROPAGATE_S, Message, PeriodQueue
 from uwbd.fusion.policy.propagation import NUMERICAL_ERRORS, ImuPropagation
-from uwbd.fusion.policy.recovery import NS, Recovery
+from uwbd.fusion.policy.recovery import Recovery
 from uwbd.fusion.policy.rest import ImuWindow, UwbStillness
 from uwbd.fusion.settings import FilterConfig, Mode
 from uwbd.fusion.types import FusionReport, Health, Pose
 
 Vec3 = tuple[float, float, float]
 HELD_YAW_SIGMA_RAD = 1e-3  # the heading's σ while it is held, before the coarse alignment
-MIN_PROPAGATE_S = 0.02  # and at most this often: P grows little in 20 ms
-CONSTRAINT_EVERY_NS = 95_000_000  # ZUPT, NHC, known height: about 10 Hz
-TILT_CHECK_EVERY_NS = NS // 2
 
 
 class Filter:
@@ -121,33 +124,58 @@ class Filter:
         self.integrity = Integrity(config.health, config.range_sigma_m, self.est,
                                    self.findings, self.installation)
         self._lever = tuple(float(c) for c in config.lever_arm_m)
-        self._constraints_ns = -(2**63)  # when ZUPT, NHC and height rows were last added
-        self._tilt_check_ns = -(2**63)
+        self.constraints = Constraints(config, self.est, self.findings, self.window,
+                                       self.stillness, self.imu, self.recovery, self.fusion)
+        self._policy_ns = -(2**63)  # the policy's last run (once a pose period)
+        # the period's single ranges and samples, fused at its end (or when read)
+        self.queue = PeriodQueue(config, self.est, self.findings, self.installation, self.imu,
+                                 self.window, self.fusion, self.recovery, self._fuse_queued)
+        self._models_ranges = bool(config.range_model.enabled
+                                   or config.range_model.anchor_degree)
 
     # -- what the parts share, for the caller --------------------------------------------
     @property
     def ekf(self) -> Eskf | None:
         """The state's numbers (``None`` before the start and while restarting)."""
+        self._fuse_queue()
         return self.est.ekf
 
     @property
     def t_ns(self) -> int | None:
         """The time of the nominal state."""
+        self._fuse_queue()
         return self.est.t_ns
 
     @property
     def counters(self) -> collections.Counter[str]:
         """What happened, counted."""
+        self._fuse_queue()
         return self.est.counters
+
+    def flush(self) -> list[FusionReport]:
+        """The period's queued ranges and samples fused now; the reports :meth:`update` has
+        not handed on yet (the last of a run's)."""
+        self._fuse_queue()
+        reports, self.queue.reports = self.queue.reports, []
+        return reports
+
+    def _fuse_queue(self) -> None:
+        """Anything that reads the state fuses the queued period first."""
+        if self.queue:
+            self.queue.fuse()
 
     # -- inputs ---------------------------------------------------------------------------
     def predict(self, imu: ImuSample) -> None:
         """Integrate one IMU sample (sensor axes); bad samples are counted, never used."""
-        self.imu.predict(imu)
+        self.predict_many((imu,))
 
     def predict_many(self, samples: Sequence[ImuSample]) -> None:
-        """A read's samples, in time order: what :meth:`predict` does to each."""
-        self.imu.predict_many(samples)
+        """A read's samples, in time order: what :meth:`predict` does to each (queued among
+        a period's single ranges)."""
+        if not self.queue:
+            self.imu.predict_many(samples)
+        elif not self.queue.add_samples(samples):
+            self.queue.fuse()
 
     def update(self, uwb: UwbRanges | AnchorRanges) -> list[FusionReport]:
         """Fuse one UWB message (an epoch, or a single range); one report per measurement.
@@ -155,16 +183,20 @@ class Filter:
         if not isinstance(uwb, UwbRanges):
             return []
         try:
-            return self._update(uwb)
+            reports = self._update(uwb)
         except NUMERICAL_ERRORS as err:
             self.recovery.internal_error(uwb.t_ns, err)
-            return []
+            reports = []
+        if self.queue.reports:  # (the period's queued ranges', fused since)
+            reports, self.queue.reports = self.queue.reports + reports, []
+        return reports
 
     # -- outputs --------------------------------------------------------------------------
     def health(self, now_ns: int | None = None) -> Health:
         """The health record, rebuilt from the evidence, at the state's time or at
         ``now_ns`` if later (the daemon's status on the wall clock: silent ports make the
         time since the last range and the last IMU sample grow, and the health says so)."""
+        self._fuse_queue()
         t_ns = self.est.t_ns if self.est.t_ns is not None else self.imu.imu_t_ns
         if t_ns is not None and now_ns is not None and now_ns > t_ns:
             t_ns = now_ns
@@ -177,6 +209,7 @@ class Filter:
     def pose(self) -> Pose | None:
         """The pose now, or ``None`` before the start, while restarting, or when any of
         its numbers is not finite (which also restarts the filter)."""
+        self._fuse_queue()
         ekf, t_ns = self.est.ekf, self.est.t_ns
         if ekf is None or t_ns is None:
             return None
@@ -216,8 +249,14 @@ class Filter:
         if len(ids) == 0:
             return reports
         self.ranges.add(uwb.t_ns, ids, anchors, ranges)
+        if self._queueable(uwb.t_ns, len(uwb.ranges) >= 2):
+            if not self.queue.add_range((uwb.t_ns, ids, anchors, ranges, r_scale)):
+                self.queue.fuse()
+            return reports
+        self._fuse_queue()
         fix = self._epoch_fix(uwb.t_ns, ids, anchors, ranges)
-        return self._fuse_message(uwb.t_ns, ids, anchors, ranges, r_scale, fix, reports)
+        return self._fuse_message(uwb.t_ns, ids, anchors, ranges, r_scale, fix, reports,
+                                  len(uwb.ranges) >= 2)
 
     def _epoch_fix(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array
                    ) -> LsqFix | None:
@@ -231,14 +270,53 @@ class Filter:
         return fix
 
     def _fuse_message(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
-                      r_scale: Array, fix: LsqFix | None, reports: list[FusionReport]
-                      ) -> list[FusionReport]:
+                      r_scale: Array, fix: LsqFix | None, reports: list[FusionReport],
+                      epoch: bool) -> list[FusionReport]:
         """The rest of :meth:`_update` once the message's ranges are kept and its fix is
-        made."""
+        made: the policy (:meth:`_decide`) with every epoch and, for single ranges while
+        tracking, once a pose period; the numbers (:meth:`_fuse_numbers`) for every message
+        (the policy's decisions may land up to a period late)."""
+        if self.est.ekf is None or not self.est.aligned or self.cfg.mode is not Mode.TIGHT \
+                or epoch or t_ns - self._policy_ns >= self.cfg.pose_period_ns:
+            return self._decide(t_ns, ids, anchors, ranges, r_scale, fix, reports)
+        if self.est.t_ns is not None and t_ns < self.est.t_ns:
+            self.est.counters["uwb_late"] += 1
+            return reports
+        self.imu.predict_to(t_ns)
+        linked, Phi, _ = self._propagate()
+        ranges = self._range_model(ids, anchors, ranges)
+        self.queue.period.append((t_ns, ids, anchors, ranges, r_scale))
+        excluded = self.findings.excluded  # (as the period's policy left them)
+        if excluded and any(a in excluded for a in ids):
+            ids, anchors, ranges, r_scale = self.fusion.leave_out(t_ns, excluded, ids, anchors,
+                                                                  ranges, r_scale, reports)
+        return self._fuse_numbers(t_ns, ids, anchors, ranges, r_scale, None, [], reports,
+                                  linked, Phi)
+
+    def _queueable(self, t_ns: int, epoch: bool) -> bool:
+        """A single range inside a pose period while tracking (tight, no range model, not
+        recording): queued, fused at the period's end (:mod:`.policy.period`)."""
+        return not epoch and t_ns - self._policy_ns < self.cfg.pose_period_ns \
+            and self.est.aligned and self.est.ekf is not None and self.est.relevel is None \
+            and self.cfg.mode is Mode.TIGHT and self.records is None and not self._models_ranges
+
+    def _fuse_queued(self, message: Message) -> list[FusionReport]:
+        """A queued range the core did not take: the message's own step."""
+        t_ns, ids, anchors, ranges, r_scale = message
+        return self._fuse_message(t_ns, ids, anchors, ranges, r_scale, None, [], False)
+
+    def _decide(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
+                r_scale: Array, fix: LsqFix | None, reports: list[FusionReport]
+                ) -> list[FusionReport]:
+        """A message with the policy: the start, the heading, the constraints due, the
+        installation checks on the period's ranges, the exclusions, the integrity test, the
+        fading and the divergence checks."""
+        self._policy_ns = t_ns
         if self.installation.mirror.take_flip():
             self.recovery.restart(t_ns, "mirror side flipped by the ranges")
         self.est.monitor.mirror_unresolved = self.installation.mirror.unresolved
         if self.est.ekf is None:
+            self.queue.period.clear()
             if self.installation.new_anchors:  # reported since the last start: laid out now
                 self.installation.new_anchors = False
                 self.installation.lay_out()
@@ -249,40 +327,63 @@ class Filter:
             self.est.counters["uwb_late"] += 1  # older than the state: the aligner's job
             return reports
         self.imu.predict_to(t_ns)
-        ekf = self.est.ekf
-        if ekf.interval_s >= MIN_PROPAGATE_S or self.records is not None or not self.est.aligned:
-            ekf.propagate()  # single ranges at 100+ Hz share one propagation per 20 ms
-        Phi, dv = ekf.take_epoch(self.records is not None)
-        # the smoother can step back from this epoch over a plain Kalman prediction only
-        linked = self.est.aligned and not self.imu.coasted
-        self.imu.coasted = False
+        linked, Phi, dv = self._propagate()
         if not self.est.aligned:
             self._hold_heading(t_ns, dv, fix)
         self._track_fixes(t_ns, ids, anchors, ranges, fix)
-        constraints: list[Rows] = []
-        if t_ns - self._constraints_ns >= CONSTRAINT_EVERY_NS:
-            # pseudo-measurements at a fixed rate: at 170 single ranges a second they would
-            # otherwise weigh 17 times what they do with 10 Hz epochs
-            self._constraints_ns = t_ns
-            constraints = self._constraints()
-        prior = self._snapshot() if self.records is not None else None
-        ranges = self.fusion.apply_range_model(
-            ids, anchors, ranges, self._antenna() if self.cfg.range_model.anchor_degree else None)
-        lever_index = self.installation.lever_index
-        if lever_index:  # the rows' lever: the given one (or phase centre) + its error
-            base = self.est.lever if self.cfg.range_model.enabled \
-                else self.installation.plain_lever
-            self.est.lever = base + ekf.b_r[lever_index[0] - N_CORE:][:3]
+        constraints = self.constraints.due(t_ns)
+        ranges = self._range_model(ids, anchors, ranges)
+        for message in self.queue.period:  # the period's single ranges, in order, then this
+            self.fusion.check_anchors(*message)
+        self.queue.period.clear()
         self.fusion.check_anchors(t_ns, ids, anchors, ranges, r_scale)
         ids, anchors, ranges, r_scale = self.fusion.exclude_findings(t_ns, ids, anchors,
                                                                      ranges, r_scale, reports)
+        return self._fuse_numbers(t_ns, ids, anchors, ranges, r_scale, fix, constraints,
+                                  reports, linked, Phi, decide=True)
+
+    def _propagate(self) -> tuple[bool, Array | None, Vec3]:
+        """The covariance to the message (single ranges at 100+ Hz share one propagation per
+        20 ms); whether the smoother can step back over this epoch's prediction (a plain
+        Kalman one: no gap coasted), and the epoch's Φ (kept when recording) and Δv."""
+        ekf = self.est.ekf
+        assert ekf is not None
+        if ekf.interval_s >= MIN_PROPAGATE_S or self.records is not None or not self.est.aligned:
+            ekf.propagate()
+        Phi, dv = ekf.take_epoch(self.records is not None)
+        linked = self.est.aligned and not self.imu.coasted
+        self.imu.coasted = False
+        return linked, Phi, dv
+
+    def _range_model(self, ids: list[int], anchors: Array, ranges: Array) -> Array:
+        """The ranges corrected by the range model; the rows' lever arm: the given one (or
+        the phase centre) plus its error states' estimate."""
+        ekf = self.est.ekf
+        assert ekf is not None
+        ranges = self.fusion.apply_range_model(
+            ids, anchors, ranges, self._antenna() if self.cfg.range_model.anchor_degree else None)
+        lever_index = self.installation.lever_index
+        if lever_index:
+            base = self.est.lever if self.cfg.range_model.enabled \
+                else self.installation.plain_lever
+            self.est.lever = base + ekf.b_r[lever_index[0] - N_CORE:][:3]
+        return ranges
+
+    def _fuse_numbers(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
+                      r_scale: Array, fix: LsqFix | None, constraints: list[Rows],
+                      reports: list[FusionReport], linked: bool, Phi: Array | None,
+                      decide: bool = False) -> list[FusionReport]:
+        """The message's rows fused and reported; with ``decide``, then the integrity test,
+        the fading and the divergence checks; the smoother's record."""
+        prior = self._snapshot() if self.records is not None else None
         reports += self.fusion.fuse_epoch(t_ns, ids, anchors, ranges, r_scale, fix, constraints)
-        self.integrity.after_update(t_ns)
-        self.recovery.fade(t_ns, ids, anchors, ranges)
-        if self.recovery.check_divergence(t_ns, ids, anchors, ranges):
-            linked = False
-        elif self.est.ekf is not None:
-            self.recovery.last_good_P = self.est.ekf.P.copy()
+        if decide:
+            self.integrity.after_update(t_ns)
+            self.recovery.fade(t_ns, ids, anchors, ranges)
+            if self.recovery.check_divergence(t_ns, ids, anchors, ranges):
+                linked = False
+            elif self.est.ekf is not None:
+                self.recovery.last_good_P = self.est.ekf.P.copy()
         if prior is not None and self.records is not None and self.est.ekf is not None:
             assert Phi is not None
             self.records.append(EpochRecord(t_ns, *prior, *self._snapshot(),
@@ -298,15 +399,8 @@ class Filter:
     def _antenna(self) -> Array | None:
         """The antenna's position by the estimate (a start point for least squares)."""
         ekf = self.est.ekf
-        if ekf is not None:  # p + R l, in floats: this runs for every UWB message
-            (px, py, pz), (w, x, y, z), (lx, ly, lz) = ekf.p, ekf.q, self._lever
-            return np.array((
-                px + ((1 - 2 * (y * y + z * z)) * lx + 2 * (x * y - w * z) * ly
-                      + 2 * (x * z + w * y) * lz),
-                py + (2 * (x * y + w * z) * lx + (1 - 2 * (x * x + z * z)) * ly
-                      + 2 * (y * z - w * x) * lz),
-                pz + (2 * (x * z - w * y) * lx + 2 * (y * z + w * x) * ly
-                      + (1 - 2 * (x * x + y * y)) * lz)))
+        if ekf is not None:
+            return np.array(body_point(ekf.p, ekf.q, self._lever))
         return self.recovery.fixes[-1][1] if self.recovery.fixes else None
 
     def _hold_heading(self, t_ns: int, dv: Vec3, fix: LsqFix | None) -> None:
@@ -348,39 +442,3 @@ class Filter:
             if fix is not None:
                 self.stillness.add(t_ns, fix)
         self.stillness.forget_before(t_ns)
-
-    def _constraints(self) -> list[Rows]:
-        ekf = self.est.ekf
-        assert ekf is not None
-        cfg = self.cfg
-        rows = []
-        # constant velocity looks like rest to an IMU: require a slow estimate, and a state
-        # that the ranges have not moved either (a ZUPT would otherwise pin v at 0 for good)
-        slow = math.hypot(*ekf.v) < cfg.zupt_max_speed_mps and self.stillness.still()
-        t_ns = self.est.t_ns or 0
-        tilt_check_due = t_ns - self._tilt_check_ns >= TILT_CHECK_EVERY_NS
-        still_imu = ((slow and cfg.zupt) or tilt_check_due) and self.imu.fresh() \
-            and self.imu.check.burst_s(t_ns) == 0.0 and self.window.static(cfg.static_window_s)
-        if tilt_check_due:
-            self._tilt_check_ns = t_ns
-            # the IMU still and the UWB fixes too, whatever the velocity estimate says (a
-            # wrong tilt makes it wrong): the mean specific force is gravity's reaction
-            if still_imu and self.stillness.still(allow_noise=True):
-                self.recovery.check_tilt_against_gravity()
-            else:
-                self.recovery.tilt_unchecked()
-        self.fusion.at_rest = bool(cfg.zupt and slow and still_imu and self.est.relevel is None)
-        if self.fusion.at_rest:
-            self.est.counters["zupt"] += 1
-            rows.append(zupt_rows(ekf, cfg.zupt_sigma_mps))
-        if cfg.nhc:
-            rows.append(nhc_rows(ekf, cfg.nhc_sigma_mps))
-            if self.est.aligned and not self.fusion.at_rest:  # the direction of travel in body axes
-                vx, vy, _ = (ekf.R.T @ np.asarray(ekf.v)).tolist()
-                self.findings.mounting_yaw.add(vx, vy)
-                self.est.monitor.mounting_inconsistent = \
-                    self.findings.mounting_yaw.error_deg is not None
-        if cfg.known_height_m is not None:
-            rows.append(height_rows(ekf, cfg.known_height_m, cfg.height_sigma_m))
-        return rows
-

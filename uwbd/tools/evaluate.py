@@ -56,6 +56,7 @@ def run_filter(config: FilterConfig, frames: Iterable[Frame], record: bool = Fal
         if pose is not None:
             poses.append(pose)
             last_ns = pose.t_ns
+    reports += flt.flush()
     return poses, reports, flt
 
 

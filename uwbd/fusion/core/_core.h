@@ -89,5 +89,14 @@ double uwbd_state_interval(PyObject *state);
 /* -- the IMU front (_imu.c): each sample judged, mapped to body axes, integrated --------- */
 extern PyTypeObject UwbdImuFrontType;
 int uwbd_imu_front_ready(void); /* its constants made and the type readied: 0, or -1 */
+/* One sample (sensor axes) through the front while it is the common one: later than *last
+ * by at most max_gap_s and later than *state_ns. 0: judged good, mapped (body axes into
+ * ab, gb), integrated into state (propagated when its interval reaches every_s), *last and
+ * *state_ns its time; -1: not the common sample (not judged: the policy's); 1 + r: the
+ * screen rejected it, for the reason uwbd_front_reason(front, 1 + r) (borrowed). */
+int uwbd_front_step(PyObject *front, PyObject *state, long long t_ns, const double a[3],
+                    const double g[3], long long *last, long long *state_ns, double max_gap,
+                    double every, double ab[3], double gb[3]);
+PyObject *uwbd_front_reason(PyObject *front, int r);
 
 #endif

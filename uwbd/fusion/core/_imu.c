@@ -162,18 +162,15 @@ static PyObject *front_step_many(ImuFront *s, PyObject *const *args, Py_ssize_t 
         }
         if (sample_args(&PyTuple_GET_ITEM(sample, 0), &t_ns, a, g) < 0)
             goto fail;
-        if (t_ns <= last || (double)(t_ns - last) / 1e9 > max_gap || t_ns <= state_ns)
+        double ab[3], gb[3];
+        int r = uwbd_front_step((PyObject *)s, args[0], t_ns, a, g, &last, &state_ns, max_gap,
+                                every, ab, gb);
+        if (r < 0)
             break; /* not the common sample: the policy's */
-        int r = judge(s, t_ns, a, g);
-        if (r >= 0) {
-            reason = s->reasons[r];
+        if (r > 0) {
+            reason = s->reasons[r - 1];
             break;
         }
-        double ab[3], gb[3];
-        to_body(s, a, g, ab, gb);
-        uwbd_state_predict(args[0], ab, gb, (double)(t_ns - state_ns) / 1e9);
-        if (uwbd_state_interval(args[0]) >= every)
-            uwbd_state_propagate(args[0]);
         PyObject *row = Py_BuildValue("(Ldddddd)", t_ns, ab[0], ab[1], ab[2], gb[0], gb[1],
                                       gb[2]);
         if (row == NULL || PyList_Append(rows, row) < 0) {
@@ -181,12 +178,34 @@ static PyObject *front_step_many(ImuFront *s, PyObject *const *args, Py_ssize_t 
             goto fail;
         }
         Py_DECREF(row);
-        last = state_ns = t_ns;
     }
     return Py_BuildValue("(NO)", rows, reason);
 fail:
     Py_DECREF(rows);
     return NULL;
+}
+
+int uwbd_front_step(PyObject *front, PyObject *state, long long t_ns, const double a[3],
+                    const double g[3], long long *last, long long *state_ns, double max_gap,
+                    double every, double ab[3], double gb[3])
+{
+    ImuFront *s = (ImuFront *)front;
+    if (t_ns <= *last || (double)(t_ns - *last) / 1e9 > max_gap || t_ns <= *state_ns)
+        return -1;
+    int r = judge(s, t_ns, a, g);
+    if (r >= 0)
+        return 1 + r;
+    to_body(s, a, g, ab, gb);
+    uwbd_state_predict(state, ab, gb, (double)(t_ns - *state_ns) / 1e9);
+    if (uwbd_state_interval(state) >= every)
+        uwbd_state_propagate(state);
+    *last = *state_ns = t_ns;
+    return 0;
+}
+
+PyObject *uwbd_front_reason(PyObject *front, int r)
+{
+    return ((ImuFront *)front)->reasons[r - 1];
 }
 
 static PyObject *front_burst_s(ImuFront *s, PyObject *const *args, Py_ssize_t nargs)

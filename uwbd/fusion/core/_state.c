@@ -464,6 +464,20 @@ static PyObject *state_propagate(State *self, PyObject *const *args, Py_ssize_t 
 /* take_epoch(with_phi) -> (Φ_core (225 floats) or None, decays (m) or None, Σ R f Δt):
  * since the last call, the product of every propagation's Φ and the INS's own velocity
  * change; both start anew. */
+/* The epoch's Δv, Φ and decays start anew (take_epoch, after it has read them). */
+static void epoch_restart(State *self)
+{
+    memset(self->dv_epoch, 0, sizeof self->dv_epoch);
+    if (self->epoch_propagated) {
+        self->epoch_propagated = 0;
+        if (self->keep_transition) {
+            set_identity(self->Phi_epoch, N_CORE);
+            for (Py_ssize_t a = 0; a < self->m; a++)
+                self->decay_epoch[a] = 1.0;
+        }
+    }
+}
+
 static PyObject *state_take_epoch(State *self, PyObject *const *args, Py_ssize_t nargs)
 {
     if (check_args(nargs, 1, "take_epoch"))
@@ -484,15 +498,7 @@ static PyObject *state_take_epoch(State *self, PyObject *const *args, Py_ssize_t
         Py_XDECREF(dv);
         return NULL;
     }
-    memset(self->dv_epoch, 0, sizeof self->dv_epoch);
-    if (self->epoch_propagated) {
-        self->epoch_propagated = 0;
-        if (self->keep_transition) {
-            set_identity(self->Phi_epoch, N_CORE);
-            for (Py_ssize_t a = 0; a < self->m; a++)
-                self->decay_epoch[a] = 1.0;
-        }
-    }
+    epoch_restart(self);
     return Py_BuildValue("(NNN)", phi, decay, dv);
 }
 
@@ -733,6 +739,48 @@ static int rows_room(State *self, Py_ssize_t need)
     return 0;
 }
 
+/* fuse_ranges' work on numbers: the k range rows (mm_range.c; a range with no line to
+ * linearise a zero row, its outcome None), then e extra rows (He e×n, ye, Re), fused as
+ * update fuses them; ids: the ranges' anchors. The rows' outcomes, or NULL with an error. */
+static PyObject *epoch_rows(State *self, const double lever[3], const double *anchors,
+                            const double *ranges, const double *var, Py_ssize_t k,
+                            PyObject *columns, PyObject *lever_columns, const double *He,
+                            const double *ye, const double *Re, Py_ssize_t e,
+                            PyObject *decide, Py_ssize_t c0, Py_ssize_t c1, PyObject *ids)
+{
+    Py_ssize_t n = self->n, m = k + e;
+    if (rows_room(self, m * n + 2 * m + k) < 0)
+        return NULL;
+    double *H = self->rows, *y = H + m * n, *R = y + m, *dist = R + m;
+    memset(H, 0, sizeof(double) * (size_t)(k * n));
+    if (uwbd_range_rows(self->p, self->q, lever, anchors, ranges, k, self->br, n, columns,
+                        lever_columns, H, y, dist) < 0)
+        return NULL;
+    memcpy(R, var, sizeof(double) * k);
+    int lineless = 0; /* a range with no line: a zero row, which changes nothing */
+    for (Py_ssize_t a = 0; a < k; a++)
+        if (!UWBD_LINE_OF(dist[a])) {
+            memset(H + a * n, 0, sizeof(double) * n);
+            y[a] = 0.0;
+            lineless = 1;
+        }
+    if (e) {
+        memcpy(H + k * n, He, sizeof(double) * e * n);
+        memcpy(y + k, ye, sizeof(double) * e);
+        memcpy(R + k, Re, sizeof(double) * e);
+    }
+    long long *anchor = row_anchors(ids, m); /* (ids: the ranges' anchors) */
+    if (anchor == NULL)
+        return NULL;
+    PyObject *out = fuse_rows(self, H, y, R, m, decide, c0, c1, anchor);
+    PyMem_Free(anchor);
+    if (out != NULL && lineless) /* and its row is None */
+        for (Py_ssize_t a = 0; a < k; a++)
+            if (!UWBD_LINE_OF(dist[a]))
+                PyList_SetItem(out, a, Py_NewRef(Py_None));
+    return out;
+}
+
 /* fuse_ranges(lever, anchors (k×3), ranges (k), var (k), columns, lever_columns, H_extra,
  *             y_extra, R_extra, decide, c0, c1, ids) -> rows
  * A tight epoch: the range rows (mm_range.c), then the extra rows (ZUPT, NHC, height), as
@@ -764,40 +812,206 @@ static PyObject *state_fuse_ranges(State *self, PyObject *const *args, Py_ssize_
     if (get_rows(args[6], args[7], args[8], n, extra, &e, names) < 0)
         goto done;
     rows = 1;
-    Py_ssize_t m = k + e;
-    if (rows_room(self, m * n + 2 * m + k) < 0)
-        goto done;
-    double *H = self->rows, *y = H + m * n, *R = y + m, *dist = R + m;
-    memset(H, 0, sizeof(double) * (size_t)(k * n));
-    if (uwbd_range_rows(self->p, self->q, lever, view[1].buf, view[0].buf, k, self->br, n,
-                        args[4], args[5], H, y, dist) < 0)
-        goto done;
-    memcpy(R, view[2].buf, sizeof(double) * k);
-    int lineless = 0; /* a range with no line: a zero row, which changes nothing */
-    for (Py_ssize_t a = 0; a < k; a++)
-        if (!UWBD_LINE_OF(dist[a])) {
-            memset(H + a * n, 0, sizeof(double) * n);
-            y[a] = 0.0;
-            lineless = 1;
-        }
-    memcpy(H + k * n, extra[1].buf, sizeof(double) * e * n);
-    memcpy(y + k, extra[0].buf, sizeof(double) * e);
-    memcpy(R + k, extra[2].buf, sizeof(double) * e);
-    long long *anchor = row_anchors(args[12], m); /* (ids: the ranges' anchors) */
-    if (anchor == NULL)
-        goto done;
-    out = fuse_rows(self, H, y, R, m, args[9], c0, c1, anchor);
-    PyMem_Free(anchor);
-    if (out != NULL && lineless) /* and its row is None */
-        for (Py_ssize_t a = 0; a < k; a++)
-            if (!UWBD_LINE_OF(dist[a]))
-                PyList_SetItem(out, a, Py_NewRef(Py_None));
+    out = epoch_rows(self, lever, view[1].buf, view[0].buf, view[2].buf, k, args[4], args[5],
+                     extra[1].buf, extra[0].buf, extra[2].buf, e, args[9], c0, c1, args[12]);
 done:
     for (int i = 0; i < got; i++)
         PyBuffer_Release(&view[i]);
     if (rows)
         release_rows(extra);
     return out;
+}
+
+static int clamp_P(double *P, Py_ssize_t n, const double *L, double *scale);
+
+/* One range of fuse_period, a (t_ns, anchor id, anchor (3), range, var, columns) tuple
+ * (id None: its anchor is left out, the range has no row): the state predicted to its time with the last sample (body axes, ab gb), propagated
+ * when the interval reaches min_prop_s, the epoch's sums started anew, its row fused and
+ * P clamped (limit). 1 when it is not the common range (earlier than the state, or the
+ * last good sample older than max_gap_s: the policy's), else 0 with its outcome in *row
+ * (None where it has no line), or -1 with an error. */
+static int period_range(State *self, PyObject *item, const double base[3],
+                        PyObject *lever_columns, Py_ssize_t lever_at, PyObject *decide,
+                        const double *limit, long long *state_ns, long long good_ns,
+                        const double ab[3], const double gb[3], double max_gap,
+                        double min_prop_s, int *clamped, int *predicted, PyObject **row)
+{
+    double anchor[3], range, var, lever[3];
+    if (!PyTuple_Check(item) || PyTuple_GET_SIZE(item) != 6) {
+        PyErr_SetString(PyExc_TypeError,
+                        "fuse_period: ranges are (t_ns, id, anchor, range, var, columns)");
+        return -1;
+    }
+    long long t_ns = PyLong_AsLongLong(PyTuple_GET_ITEM(item, 0));
+    range = PyFloat_AsDouble(PyTuple_GET_ITEM(item, 3));
+    var = PyFloat_AsDouble(PyTuple_GET_ITEM(item, 4));
+    if (PyErr_Occurred() || uwbd_get_vec(PyTuple_GET_ITEM(item, 2), anchor, 3, "anchor"))
+        return -1;
+    if (t_ns < *state_ns)
+        return 1;
+    double dt = (double)(t_ns - *state_ns) / 1e9;
+    if (dt > 0) {
+        if ((double)(t_ns - good_ns) / 1e9 > max_gap)
+            return 1; /* the IMU is not fresh: coasting is the policy's */
+        uwbd_state_predict((PyObject *)self, ab, gb, dt);
+        *state_ns = t_ns;
+        *predicted = 1;
+    }
+    if (self->T >= min_prop_s)
+        uwbd_state_propagate((PyObject *)self);
+    epoch_restart(self);
+    if (PyTuple_GET_ITEM(item, 1) == Py_None) { /* its anchor left out: no row */
+        *row = Py_NewRef(Py_None);
+        return 0;
+    }
+    for (int i = 0; i < 3; i++)
+        lever[i] = base[i] + (lever_at >= 0 ? self->br[lever_at + i] : 0.0);
+    PyObject *columns = PyTuple_Pack(1, PyTuple_GET_ITEM(item, 5));
+    PyObject *ids = columns ? PyTuple_Pack(1, PyTuple_GET_ITEM(item, 1)) : NULL;
+    PyObject *out = ids ? epoch_rows(self, lever, anchor, &range, &var, 1, columns,
+                                     lever_columns, NULL, NULL, NULL, 0, decide, 0, 0, ids)
+                        : NULL;
+    Py_XDECREF(columns);
+    Py_XDECREF(ids);
+    if (out == NULL)
+        return -1;
+    *row = Py_NewRef(PyList_GET_ITEM(out, 0));
+    Py_DECREF(out);
+    Py_ssize_t n = self->n;
+    *clamped += clamp_P(self->P, n, limit, self->work);
+    for (Py_ssize_t k = 0; k < self->bank; k++)
+        clamp_P(self->bank_P + k * n * n, n, limit, self->work);
+    return 0;
+}
+
+/* fuse_period(front, order, samples, ranges, lever, lever_columns, decide, limit, clock,
+ *             last_imu)
+ *     -> (done, reason, rows, outcomes, last_ns, state_ns, good_ns, last_imu, clamps,
+ *         predicted)
+ * A pose period's measurements in the order they came (order: one byte per item, b"i" the
+ * next of samples, (t_ns, acc, gyro) in sensor axes; b"r" the next of ranges, see
+ * period_range), while each is the common one: a sample through the IMU front (_imu.c:
+ * judged, mapped, integrated), a range predicted to with the last sample, fused (decide:
+ * its RowPolicy; lever: the lever arm given, its error states' columns lever_columns added)
+ * and P clamped to limit (clamp). clock: (last_ns, state_ns, good_ns, max_gap_s,
+ * propagate_every_s, min_propagate_s): the last sample's time, the state's, the last good
+ * sample's; last_imu: that sample in body axes (6). Stops at the first item that is not the
+ * common one (done: its index; reason: the front's reason when it rejected that sample,
+ * else None); rows: the samples integrated (t_ns, acc_b..., gyro_b...), as the rest window
+ * keeps them; outcomes: each range's (ν, S, w, numerical) or None; clamps: how often the
+ * main filter's P was clamped; predicted: whether a range moved the state's time. The
+ * reference is the policy's own step per item (Filter._flush on the pure-Python core). */
+static PyObject *state_fuse_period(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (check_args(nargs, 10, "fuse_period"))
+        return NULL;
+    if (!PyObject_TypeCheck(args[0], &UwbdImuFrontType) || !PyBytes_Check(args[1]) ||
+        !PyList_Check(args[2]) || !PyList_Check(args[3]) || !PyTuple_Check(args[5])) {
+        PyErr_SetString(PyExc_TypeError, "fuse_period(front: ImuFront, order: bytes, samples: "
+                                         "list, ranges: list, lever, lever_columns: tuple, ...)");
+        return NULL;
+    }
+    double base[3], clock[6], last_imu[6];
+    long long last_ns, state_ns, good_ns;
+    if (uwbd_get_vec(args[4], base, 3, "lever") || uwbd_get_vec(args[9], last_imu, 6, "last_imu"))
+        return NULL;
+    if (!PyTuple_Check(args[8]) || PyTuple_GET_SIZE(args[8]) != 6) {
+        PyErr_SetString(PyExc_TypeError, "fuse_period: clock is (last_ns, state_ns, good_ns, "
+                                         "max_gap_s, propagate_every_s, min_propagate_s)");
+        return NULL;
+    }
+    last_ns = PyLong_AsLongLong(PyTuple_GET_ITEM(args[8], 0));
+    state_ns = PyLong_AsLongLong(PyTuple_GET_ITEM(args[8], 1));
+    good_ns = PyLong_AsLongLong(PyTuple_GET_ITEM(args[8], 2));
+    for (int i = 3; i < 6; i++)
+        clock[i] = PyFloat_AsDouble(PyTuple_GET_ITEM(args[8], i));
+    if (PyErr_Occurred())
+        return NULL;
+    Py_ssize_t lever_at = -1;
+    if (PyTuple_GET_SIZE(args[5]) > 0) {
+        lever_at = PyLong_AsSsize_t(PyTuple_GET_ITEM(args[5], 0)) - N_CORE;
+        if (PyErr_Occurred())
+            return NULL;
+        if (lever_at < 0 || lever_at + 3 > self->m) {
+            PyErr_SetString(PyExc_ValueError, "fuse_period: lever_columns outside b_r");
+            return NULL;
+        }
+    }
+    Py_buffer Lb;
+    if (uwbd_get_doubles(args[7], &Lb, self->n, 0, "limit") < 0)
+        return NULL;
+    const char *order = PyBytes_AS_STRING(args[1]);
+    Py_ssize_t count = PyBytes_GET_SIZE(args[1]), done = 0, si = 0, ri = 0;
+    PyObject *rows = PyList_New(0), *outcomes = PyList_New(0), *reason = Py_None;
+    int clamps = 0, predicted = 0;
+    if (rows == NULL || outcomes == NULL)
+        goto fail;
+    for (; done < count; done++) {
+        if (order[done] == 'i') {
+            if (si >= PyList_GET_SIZE(args[2]))
+                break;
+            PyObject *sample = PyList_GET_ITEM(args[2], si);
+            long long t_ns;
+            double a[3], g[3], ab[3], gb[3];
+            if (!PyTuple_Check(sample) || PyTuple_GET_SIZE(sample) != 3) {
+                PyErr_SetString(PyExc_TypeError, "fuse_period: samples are (t_ns, acc, gyro)");
+                goto fail;
+            }
+            t_ns = PyLong_AsLongLong(PyTuple_GET_ITEM(sample, 0));
+            if ((t_ns == -1 && PyErr_Occurred()) ||
+                uwbd_get_vec(PyTuple_GET_ITEM(sample, 1), a, 3, "acc") ||
+                uwbd_get_vec(PyTuple_GET_ITEM(sample, 2), g, 3, "gyro"))
+                goto fail;
+            int r = uwbd_front_step(args[0], (PyObject *)self, t_ns, a, g, &last_ns, &state_ns,
+                                    clock[3], clock[4], ab, gb);
+            if (r != 0) {
+                if (r > 0)
+                    reason = uwbd_front_reason(args[0], r);
+                break;
+            }
+            PyObject *row = Py_BuildValue("(Ldddddd)", t_ns, ab[0], ab[1], ab[2], gb[0], gb[1],
+                                          gb[2]);
+            if (row == NULL || PyList_Append(rows, row) < 0) {
+                Py_XDECREF(row);
+                goto fail;
+            }
+            Py_DECREF(row);
+            memcpy(last_imu, ab, sizeof ab);
+            memcpy(last_imu + 3, gb, sizeof gb);
+            good_ns = t_ns;
+            si++;
+        } else {
+            if (ri >= PyList_GET_SIZE(args[3]))
+                break;
+            PyObject *row = NULL;
+            int r = period_range(self, PyList_GET_ITEM(args[3], ri), base, args[5], lever_at,
+                                 args[6], Lb.buf, &state_ns, good_ns, last_imu, last_imu + 3,
+                                 clock[3], clock[5], &clamps, &predicted, &row);
+            if (r < 0)
+                goto fail;
+            if (r > 0)
+                break;
+            int appended = PyList_Append(outcomes, row);
+            Py_DECREF(row);
+            if (appended < 0)
+                goto fail;
+            ri++;
+        }
+    }
+    PyBuffer_Release(&Lb);
+    PyObject *imu = uwbd_floats(last_imu, 6, 0);
+    if (imu == NULL) {
+        Py_DECREF(rows);
+        Py_DECREF(outcomes);
+        return NULL;
+    }
+    return Py_BuildValue("(nONNLLLNiO)", done, reason, rows, outcomes, last_ns, state_ns,
+                         good_ns, imu, clamps, predicted ? Py_True : Py_False);
+fail:
+    PyBuffer_Release(&Lb);
+    Py_XDECREF(rows);
+    Py_XDECREF(outcomes);
+    return NULL;
 }
 
 /* range_check(lever, anchors (k×3), ranges (k), var (k) or None, columns, out)
@@ -1190,6 +1404,9 @@ static PyMethodDef state_methods[] = {
                    "§5."),
     METHOD(fuse_ranges, "fuse_ranges(lever, anchors, ranges, var, columns, lever_columns, H, "
                         "y, R, decide, c0, c1, ids) -> rows: a tight epoch, §4-5."),
+    METHOD(fuse_period, "fuse_period(front, order, samples, ranges, lever, lever_columns, "
+                        "decide, limit, clock, last_imu) -> (done, reason, rows, outcomes, "
+                        "last_ns, state_ns, good_ns, last_imu, clamps, predicted)."),
     METHOD(range_check, "range_check(lever, anchors, ranges, var, columns, out) -> None or "
                         "bool: U, y and single-fault estimates for the checks, §6."),
     METHOD(rotate_heading, "rotate_heading(dpsi, yaw_sigma): the coarse heading's turn."),

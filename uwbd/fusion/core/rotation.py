@@ -89,3 +89,16 @@ def turned(q: Sequence[float] | Array, tx: float, ty: float, tz: float) -> list[
     nz = qw * dz + qx * dy - qy * dx + qz * dw
     norm = math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
     return [nw / norm, nx / norm, ny / norm, nz / norm]
+
+
+def body_point(p: Sequence[float] | Array, q: Sequence[float] | Array,
+               lever: Sequence[float]) -> tuple[float, float, float]:
+    """``p + R(q) l``: a point fixed to the body (the antenna at lever arm ``l``) in the
+    navigation frame, in floats (it runs for every UWB message)."""
+    (px, py, pz), (w, x, y, z), (lx, ly, lz) = p, q, lever
+    return (px + ((1 - 2 * (y * y + z * z)) * lx + 2 * (x * y - w * z) * ly
+                  + 2 * (x * z + w * y) * lz),
+            py + (2 * (x * y + w * z) * lx + (1 - 2 * (x * x + z * z)) * ly
+                  + 2 * (y * z - w * x) * lz),
+            pz + (2 * (x * z - w * y) * lx + 2 * (y * z + w * x) * ly
+                  + (1 - 2 * (x * x + y * y)) * lz))

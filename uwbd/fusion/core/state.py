@@ -144,6 +144,19 @@ class CoreEskf(Eskf):
             c0, c1, ids)
         return rows
 
+    def fuse_period(self, front: Any, order: bytes, samples: list[Any], ranges: list[Any],
+                    lever_m: list[float], lever_columns: tuple[int, ...], decide: RowPolicy,
+                    max_core_sigma: Array, max_aux_sigma: float,
+                    clock: tuple[int, int, int, float, float, float], last_imu: Sequence[float]
+                    ) -> tuple[int, str | None, list[tuple[float, ...]], list[RawRow | None],
+                               int, int, int, tuple[float, ...], int, bool]:
+        """A pose period's items in one call (``_core.State.fuse_period``; the policy's
+        side: :mod:`uwbd.fusion.policy.period`), P clamped as :meth:`clamp_covariance`."""
+        out: Any = self._state.fuse_period(
+            front, order, samples, ranges, lever_m, lever_columns, decide,
+            self._clamp_limit_of(max_core_sigma, max_aux_sigma), clock, last_imu)
+        return out
+
     def inject(self, dx: Array) -> None:
         """(On the C core a correction enters only through an update.)"""
         raise TypeError("CoreEskf.inject: the C core injects inside its updates")

@@ -216,6 +216,13 @@ class EpochFusion:
             self.est.monitor.side_lost = self.installation.side_lost(excluded)
         if not out:
             return ids, anchors, ranges, r_scale
+        return self.leave_out(t_ns, out, ids, anchors, ranges, r_scale, reports)
+
+    def leave_out(self, t_ns: int, out: set[int], ids: list[int], anchors: Array,
+                  ranges: Array, r_scale: Array, reports: list[FusionReport]
+                  ) -> tuple[list[int], Array, Array, Array]:
+        """The message without the ranges of the anchors ``out`` (each reported,
+        ``anchor_excluded``)."""
         left = [FusionReport(t_ns, "range", str(a), math.nan, math.nan, math.nan, False,
                              "anchor_excluded") for a in ids if a in out]
         self.est.counters["range_excluded"] += len(left)
@@ -243,6 +250,10 @@ class EpochFusion:
                 d[list(columns)] += EXCLUSION_RANGE_STATE_VAR_M2
         ekf.add_variances(d)
         return False
+
+    def range_policy(self) -> RowPolicy:
+        """The policy of a single range's row (tracking: every state corrected)."""
+        return self._row_policy([("range", "")], True)
 
     def _row_policy(self, keys: list[tuple[str, str]], fix_ok: bool) -> RowPolicy:
         # the first letter of each row's kind: "r"ange, "p"osition, any other gated plainly
@@ -274,11 +285,11 @@ class EpochFusion:
                   outcome: Sequence[RawRow]) -> list[FusionReport]:
         """Each row's report, counters, health evidence and anchor statistics; then the
         covariance kept within bounds."""
-        reports = self._row_outcomes(t_ns, keys, outcome)
+        reports = self.row_outcomes(t_ns, keys, outcome)
         self._keep_covariance_sane()
         return reports
 
-    def _row_outcomes(self, t_ns: int, keys: list[tuple[str, str]],
+    def row_outcomes(self, t_ns: int, keys: list[tuple[str, str]],
                       outcome: Sequence[RawRow]) -> list[FusionReport]:
         gate_1 = self._gate_1
         reports = []

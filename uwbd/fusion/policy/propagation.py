@@ -65,7 +65,7 @@ class ImuPropagation:
         """A read's samples, in time order, each integrated or counted. While tracking, the
         C IMU front steps over the common ones (judged good, no gap, after the state) in one
         call (``ImuFront.step_many``: the rule is the front's); the policy takes each other
-        sample, one at a time (:meth:`_one`)."""
+        sample, one at a time (:meth:`step_one`)."""
         k, n = 0, len(samples)
         while k < n:
             ekf, prev, t_state = self.est.ekf, self.imu_t_ns, self.est.t_ns
@@ -89,10 +89,10 @@ class ImuPropagation:
                     return
             else:
                 reason = None
-            self._one(samples[k], reason)  # judged and rejected, or not the common sample
+            self.step_one(samples[k], reason)  # judged and rejected, or not the common sample
             k += 1
 
-    def _one(self, imu: ImuSample, reason: str | None) -> None:
+    def step_one(self, imu: ImuSample, reason: str | None) -> None:
         """One sample the policy takes: ``reason``, why the front rejected it, or None where
         it is not the common one (then judged here)."""
         try:
