@@ -482,6 +482,12 @@ def test_the_bank_advances_with_the_main_filter_in_c_as_in_the_reference(
             f.widen(slice(3, 6), 1.5)
             f.clamp_covariance(np.full(N_CORE, 0.5), 0.3)
         same_bank()
+    # the separation test's numbers, from the C state's memory as from the reference's
+    (main_h, main_v, members), (ref_h, ref_v, ref_members) = \
+        fast.separation_numbers(), slow.separation_numbers()
+    assert len(members) == len(bank)
+    np.testing.assert_allclose([main_h, main_v, *np.ravel(members)],
+                               [ref_h, ref_v, *np.ravel(ref_members)], rtol=1e-9, atol=1e-12)
     for f in (fast, slow):
         f.rotate_heading(0.3, 0.1)
     same_bank()

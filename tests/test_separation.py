@@ -17,6 +17,7 @@ import pytest
 
 from drivers.frames import ImuSample
 from uwbd.fusion.checks.separation import SeparationTest
+from uwbd.fusion.core.bank import separation_numbers
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.settings import FilterConfig
 from uwbd.tools.campaign import (
@@ -58,17 +59,17 @@ def test_the_threshold_the_bias_allowance_and_the_levels_are_the_documented_ones
     k_md = math.sqrt(-2 * math.log(1e-3 / 3))
     assert plain.k_fa_h == pytest.approx(k_fa) and plain.k_md_h == pytest.approx(k_md)
     assert plain.k_md_v == pytest.approx(NormalDist().inv_cdf(1 - 1e-3 / 6))
-    sep = plain.test((4, 7), P, offsets, Pk)
+    sep = plain.test((4, 7), separation_numbers(P, offsets, Pk))
     t = k_fa * 0.03
     assert sep.ratios[7] == pytest.approx(0.3 / t) and sep.suspect == 7  # (0.3 m > 0.14 m)
     sigma_k = math.sqrt(0.01 + 0.0009)
     assert sep.horizontal_m == pytest.approx(0.3 + k_md * sigma_k)  # |Δ| over T: itself
     # the ranges' nominal bias widens every threshold by √m b/σ_r σ_Δ
-    allowance = biased.test((4, 7), P, offsets, Pk)
+    allowance = biased.test((4, 7), separation_numbers(P, offsets, Pk))
     assert allowance.ratios[7] == pytest.approx(0.3 / ((k_fa + math.sqrt(2) * 0.5) * 0.03))
     quiet = _bank(P, [[0.0, 0.0, 0.0], [0.15, 0.0, 0.0]], [0.0009, 0.0009])
-    assert plain.test((4, 7), P, *quiet).suspect == 7  # 0.15 m: over K_fa σ_Δ alone
-    assert biased.test((4, 7), P, *quiet).suspect is None  # within the bias allowance
+    assert plain.test((4, 7), separation_numbers(P, *quiet)).suspect == 7  # 0.15 m: over K_fa σ_Δ alone
+    assert biased.test((4, 7), separation_numbers(P, *quiet)).suspect is None  # within the bias allowance
 
 
 def _run(seed: int, bank: bool = True, lever: bool = True,

@@ -21,8 +21,8 @@ sub-filter ``k``, so ``Δ_k`` shows it.
   sub-filter). Where the geometry without an anchor sees little, ``σ_k`` and ``T_k``
   grow, and so does the level.
 
-The arithmetic runs on the bank's numbers as numpy arrays, once per call, for every
-sub-filter at once.
+The covariances' numbers come from the state (``separation_numbers``: the C core's, or
+:func:`uwbd.fusion.core.bank.separation_numbers`); the thresholds and levels are made here.
 """
 
 from __future__ import annotations
@@ -31,9 +31,7 @@ import math
 from dataclasses import dataclass
 from statistics import NormalDist
 
-import numpy as np
-
-from uwbd.fusion.core.rotation import Array
+from uwbd.fusion.core.bank import SeparationNumbers
 
 MIN_SEPARATION_SIGMA_M = 1e-3  # σ of a separation is at least this (just after a new start)
 # the bank's member that leaves no anchor out but estimates the lever arm, which the main
@@ -83,37 +81,24 @@ class SeparationTest:
         # ‖s‖ σ_r is the separation's σ: √m (b / σ_r) σ_Δ more, on every threshold
         self.k_bias = math.sqrt(count) * bias_per_sigma
 
-    def test(self, anchors: tuple[int, ...], P: Array, bank_d: Array, bank_P: Array
-             ) -> Separation:
-        """The main filter's covariance ``P``, the bank's offsets ``d_k`` and covariances
-        ``P_k``, one per anchor in ``anchors``."""
-        Pk = bank_P[:, :3, :3]
-        D = Pk - P[:3, :3]
-        sep_h = np.maximum(_major(D), MIN_SEPARATION_SIGMA_M)
-        sep_v = np.sqrt(np.maximum(D[:, 2, 2], MIN_SEPARATION_SIGMA_M**2))
-        t_h = (self.k_fa_h + self.k_bias) * sep_h
-        t_v = (self.k_fa_v + self.k_bias) * sep_v
-        own_h = self.k_md_h * _major(Pk)
-        own_v = self.k_md_v * np.sqrt(np.maximum(Pk[:, 2, 2], 0.0))
-        delta = bank_d[:, :3]
-        d_h, d_v = np.hypot(delta[:, 0], delta[:, 1]), np.abs(delta[:, 2])
-        ratio = np.maximum(d_h / t_h, d_v / t_v)
-        main_h = self.k_md_h * float(_major(P[None, :3, :3])[0])
-        main_v = self.k_md_v * math.sqrt(max(float(P[2, 2]), 0.0))
-        # a separation over its threshold: that sub-filter may be the fault-free one, and
-        # the main filter as far from the truth as it is from it and its own error
-        # the levels over the anchors' faults (the lever member detects; an unobserved lever
-        # arm would make its level the prior's)
-        anchor = np.array(anchors) >= 0
-        return Separation(
-            max(main_h, float(np.max((np.maximum(t_h, d_h) + own_h)[anchor], initial=0.0))),
-            max(main_v, float(np.max((np.maximum(t_v, d_v) + own_v)[anchor], initial=0.0))),
-            dict(zip(anchors, ratio.tolist(), strict=True)))
-
-
-def _major(C: Array) -> Array:
-    """σ along the major axis of each horizontal ellipse of ``C`` (…×3×3), 0 where the
-    numbers say less."""
-    xx, xy, yy = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
-    half = (xx - yy) / 2
-    return np.sqrt(np.maximum((xx + yy) / 2 + np.sqrt(half * half + xy * xy), 0.0))
+    def test(self, anchors: tuple[int, ...], numbers: SeparationNumbers) -> Separation:
+        """The bank's numbers (:func:`~uwbd.fusion.core.bank.separation_numbers`: the main
+        filter's and, in order, those of the sub-filter of each of ``anchors``)."""
+        main_major, main_var_z, members = numbers
+        k_h, k_v = self.k_fa_h + self.k_bias, self.k_fa_v + self.k_bias
+        k_md_h, k_md_v = self.k_md_h, self.k_md_v
+        level_h = level_v = 0.0
+        ratios = {}
+        for anchor, (sep_major, sep_var_z, own_major, own_var_z, d_h, d_v) in zip(
+                anchors, members, strict=True):
+            t_h = k_h * max(sep_major, MIN_SEPARATION_SIGMA_M)
+            t_v = k_v * math.sqrt(max(sep_var_z, MIN_SEPARATION_SIGMA_M**2))
+            ratios[anchor] = max(d_h / t_h, d_v / t_v)
+            if anchor >= 0:  # the levels over the anchors' faults (the lever member detects;
+                # an unobserved lever arm would make its level the prior's); a separation over
+                # its threshold: that sub-filter may be the fault-free one, and the main
+                # filter as far from the truth as it is from it and its own error
+                level_h = max(level_h, max(t_h, d_h) + k_md_h * own_major)
+                level_v = max(level_v, max(t_v, d_v) + k_md_v * math.sqrt(max(own_var_z, 0.0)))
+        return Separation(max(k_md_h * main_major, level_h),
+                          max(k_md_v * math.sqrt(max(main_var_z, 0.0)), level_v), ratios)

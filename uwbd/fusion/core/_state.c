@@ -6,10 +6,12 @@
  *   coast          §3   constant velocity without the IMU
  *   update         §5   rows fused one scalar at a time, then injected and reset
  *   fuse_ranges    §4+5 an epoch's range rows (mm_range.c) and extra rows, fused
+ *   fuse_period    §2-5 a pose period's IMU samples and single ranges, in one call
  *   range_check    §6   an epoch's innovations and single-fault estimates, for the checks
  *   rotate_heading §6   the coarse heading alignment's turn
  *   clamp, widen, add_variances, set_covariance, move_to: §6's covariance and state repairs
  *   adopt          §6   the main filter becomes one of the bank's sub-filters
+ *   separation_numbers  §6   the bank's numbers for the separation test
  *   pose_numbers        the pose's numbers
  *
  * The state is one block of doubles, exported read-only through the buffer protocol:
@@ -1284,6 +1286,45 @@ static PyObject *state_move_to(State *self, PyObject *const *args, Py_ssize_t na
  * The covariance over position and the attitude error turned into the navigation frame,
  * [[Ppp, Ppθ Rᵀ], [R Pθp, R Pθθ Rᵀ]], row-major, made symmetric; while the heading is not
  * aligned its yaw row and column are 0 and its variance π². */
+/* σ along the major axis of the horizontal ellipse of a covariance's position block (C,
+ * row stride n), 0 where the numbers say less (bank.major_sigma). */
+static double major_sigma(const double *C, Py_ssize_t n)
+{
+    double xx = C[0], xy = C[1], yy = C[n + 1], half = (xx - yy) / 2;
+    double m = (xx + yy) / 2 + sqrt(half * half + xy * xy);
+    return sqrt(m > 0.0 ? m : 0.0);
+}
+
+/* separation_numbers() -> (major σ of P, P_zz, [(major σ and zz of P_k − P, major σ and zz
+ * of P_k, |d_k| horizontal, |d_k| vertical)] per sub-filter): the numbers the solution
+ * separation judges (checks/separation.py; the reference is bank.separation_numbers). */
+static PyObject *state_separation_numbers(State *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)args;
+    if (check_args(nargs, 0, "separation_numbers"))
+        return NULL;
+    Py_ssize_t n = self->n;
+    const double *P = self->P;
+    PyObject *members = PyList_New(self->bank);
+    if (members == NULL)
+        return NULL;
+    for (Py_ssize_t k = 0; k < self->bank; k++) {
+        const double *Pk = self->bank_P + k * n * n, *d = self->bank_d + k * n;
+        double D[3 * 3];
+        for (int i = 0; i < 3; i++)
+            for (int j = 0; j < 3; j++)
+                D[i * 3 + j] = Pk[i * n + j] - P[i * n + j];
+        PyObject *row = Py_BuildValue("(dddddd)", major_sigma(D, 3), D[8], major_sigma(Pk, n),
+                                      Pk[2 * n + 2], hypot(d[0], d[1]), fabs(d[2]));
+        if (row == NULL) {
+            Py_DECREF(members);
+            return NULL;
+        }
+        PyList_SET_ITEM(members, k, row);
+    }
+    return Py_BuildValue("(ddN)", major_sigma(P, n), P[2 * n + 2], members);
+}
+
 static PyObject *state_pose_numbers(State *self, PyObject *const *args, Py_ssize_t nargs)
 {
     if (check_args(nargs, 1, "pose_numbers"))
@@ -1417,6 +1458,8 @@ static PyMethodDef state_methods[] = {
     METHOD(move_to, "move_to(p, v): position and velocity set."),
     METHOD(adopt, "adopt(k): the main filter becomes sub-filter k; the bank anew."),
     METHOD(restart, "restart(k): sub-filter k alone started anew from the main filter."),
+    METHOD(separation_numbers, "separation_numbers() -> (major σ, zz of P, [per sub-filter: "
+                               "major σ, zz of P_k − P and of P_k, |d_k| h and v])."),
     METHOD(pose_numbers, "pose_numbers(aligned) -> the pose's numbers or None."),
     {NULL, NULL, 0, NULL},
 };

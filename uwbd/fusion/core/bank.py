@@ -95,3 +95,31 @@ def clamped(P: Array, limit: Array) -> Array:
     if negative.any():
         P[np.diag_indices(len(P))] = np.where(negative, 1e-9, np.diag(P))
     return P
+
+
+# the main filter's major-axis σ and vertical variance; per sub-filter k: those of P_k − P,
+# those of P_k, and its offset's horizontal and vertical size
+SeparationNumbers = tuple[float, float, list[tuple[float, float, float, float, float, float]]]
+
+
+def separation_numbers(P: Array, bank_d: Array, bank_P: Array) -> SeparationNumbers:
+    """The numbers the solution separation (:mod:`uwbd.fusion.checks.separation`) judges,
+    in the position states: the main filter's σ along the major axis of its horizontal
+    ellipse and its vertical variance; and for each sub-filter ``k`` the same two of
+    ``P_k − P`` (the separation's covariance) and of ``P_k``, and ``|d_k|`` horizontally and
+    vertically. The reference of the C core's ``State.separation_numbers``."""
+    Pk = bank_P[:, :3, :3]
+    D = Pk - P[:3, :3]
+    rows = np.stack([major_sigma(D), D[:, 2, 2], major_sigma(Pk), Pk[:, 2, 2],
+                     np.hypot(bank_d[:, 0], bank_d[:, 1]), np.abs(bank_d[:, 2])], axis=1)
+    members = [(a, b, c, d, e, f) for a, b, c, d, e, f in rows.tolist()]
+    return float(major_sigma(P[None, :3, :3])[0]), float(P[2, 2]), members
+
+
+def major_sigma(C: Array) -> Array:
+    """σ along the major axis of each horizontal ellipse of ``C`` (…×3×3), 0 where the
+    numbers say less."""
+    xx, xy, yy = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
+    half = (xx - yy) / 2
+    result: Array = np.sqrt(np.maximum((xx + yy) / 2 + np.sqrt(half * half + xy * xy), 0.0))
+    return result

@@ -4,10 +4,9 @@ Symbols follow the derivation: ``p v q b_g b_a b_r`` nominal, ``δx`` error, ``F
 S K y``. The per-IMU-sample path (:meth:`Eskf.predict`) is plain float arithmetic; the
 covariance is propagated once per update interval (:meth:`Eskf.propagate`).
 
-This class is the reference, written as docs/ekf.md reads: where the C core is built the
-filter runs :class:`uwbd.fusion.core.state.CoreEskf` instead, the same operations on a state the
-C type owns (``_core.State``), and tests/test_core.py holds the two to each other.
-"""
+The reference, as docs/ekf.md reads: where the C core is built the filter runs
+:class:`uwbd.fusion.core.state.CoreEskf`, the same operations on the C type's state
+(``_core.State``); tests/test_core.py holds the two to each other."""
 
 from __future__ import annotations
 
@@ -16,6 +15,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from uwbd.fusion.core import bank as bank_ops
 from uwbd.fusion.core.bank import bank_started, bank_update, bank_variances, clamped, symmetric
 from uwbd.fusion.core.layout import BA_, BG_, N_CORE, P_, TH_, V_
 from uwbd.fusion.core.noise import GRAVITY_MPS2, ImuNoise, process_noise
@@ -39,9 +39,8 @@ class Eskf:
     b_g: list[float] | Array
     b_a: list[float] | Array
 
-    def __init__(self, p: Vector, v: Vector, q: Vector,
-                 P0: Array, noise: ImuNoise, n_range_bias: int = 0,
-                 b_g: Vector = (0.0, 0.0, 0.0),
+    def __init__(self, p: Vector, v: Vector, q: Vector, P0: Array, noise: ImuNoise,
+                 n_range_bias: int = 0, b_g: Vector = (0.0, 0.0, 0.0),
                  b_a: Vector = (0.0, 0.0, 0.0), aux_tau_s: Array | None = None,
                  aux_sigma: Array | None = None, gravity_mps2: float = GRAVITY_MPS2,
                  b_r: Vector | None = None, bank: Sequence[int] = (),
@@ -80,18 +79,16 @@ class Eskf:
         self._dv_epoch = [0.0, 0.0, 0.0]
         self._epoch_propagated = False  # Φ and the decays differ from I and 1
         # constants of propagate() and update()
-        self._I = np.eye(self.n)
-        self._I_core = np.eye(N_CORE)
-        self._diag = np.diag_indices(self.n)
+        self._I, self._I_core, self._diag = np.eye(self.n), np.eye(N_CORE), np.diag_indices(self.n)
         self._F_template = np.zeros((N_CORE, N_CORE))
         self._F_template[P_, V_] = np.eye(3)
         self._F_template[TH_, BG_] = -np.eye(3)
         self._q_rate, self._tau, var = process_noise(noise, n_range_bias, aux_tau_s, aux_sigma)
         self._markov = np.flatnonzero(np.isfinite(self._tau))
-        self._markov_var = var[self._markov]
+        self._markov_var = var[self._markov]  # (the Gauss–Markov states')
         self._no_decay = np.ones(n_range_bias)
         self._decay_epoch = self._no_decay.copy()
-        self._clamp_key: tuple[Array, float] | None = None
+        self._clamp_key: tuple[Array, float] | None = None  # (made once: _clamp_limit_of)
         self._clamp_limit = np.zeros(0)
 
     # -- nominal propagation: every IMU sample -------------------------------------------
@@ -431,6 +428,10 @@ class Eskf:
         """The bank's sub-filter ``k`` alone started anew from the main filter."""
         d, Pk = bank_started(self.P, self.bank_var[k:k + 1])
         self.bank_d[k], self.bank_P[k] = d[0], Pk[0]
+
+    def separation_numbers(self) -> bank_ops.SeparationNumbers:
+        """The bank's numbers for the separation test (:func:`.bank.separation_numbers`)."""
+        return bank_ops.separation_numbers(self.P, self.bank_d, self.bank_P)
 
     def pose_numbers(self, aligned: bool) -> PoseNumbers | None:
         """The pose's numbers (:func:`~.pose.pose_numbers`)."""

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from uwbd.fusion.core.bank import bank_variances
+from uwbd.fusion.core.bank import SeparationNumbers, bank_variances
 from uwbd.fusion.core.eskf import Eskf, Vector
 from uwbd.fusion.core.layout import N_CORE, NOMINAL, NOMINAL_AUX
 from uwbd.fusion.core.native import Core
@@ -185,6 +185,9 @@ class CoreEskf(Eskf):
 
     def restart_member(self, k: int) -> None:
         self._state.restart(k)
+
+    def separation_numbers(self) -> SeparationNumbers:
+        return self._state.separation_numbers()
 
     def pose_numbers(self, aligned: bool) -> PoseNumbers | None:
         numbers: PoseNumbers | None = self._state.pose_numbers(aligned)

@@ -108,7 +108,7 @@ class Integrity:
             test = self._tests[len(ekf.bank), lever] = SeparationTest(
                 len(ekf.bank), self.limits.integrity_risk, self.limits.false_alert_probability,
                 self._bias_per_sigma, lever)
-        sep = monitor.separation = test.test(ekf.bank, ekf.P, ekf.bank_d, ekf.bank_P)
+        sep = monitor.separation = test.test(ekf.bank, ekf.separation_numbers())
         monitor.separation_warm = warm = t_ns - self._since_ns >= WARM_S * NS
         suspect = sep.suspect if warm else None
         if suspect is not None:
