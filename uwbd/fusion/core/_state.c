@@ -827,16 +827,15 @@ done:
 static int clamp_P(double *P, Py_ssize_t n, const double *L, double *scale);
 
 /* One range of fuse_period, a (t_ns, anchor id, anchor (3), range, var, columns) tuple
- * (id None: its anchor is left out, the range has no row): the state predicted to its time with the last sample (body axes, ab gb), propagated
- * when the interval reaches min_prop_s, the epoch's sums started anew, its row fused and
- * P clamped (limit). 1 when it is not the common range (earlier than the state, or the
- * last good sample older than max_gap_s: the policy's), else 0 with its outcome in *row
- * (None where it has no line), or -1 with an error. */
+ * (id None: its anchor is left out, the range has no row): the state predicted to its time
+ * with the last sample (body axes, ab gb) when later, propagated when the interval reaches
+ * min_prop_s, the epoch's sums started anew, its row fused and P clamped (limit). 0 with
+ * its outcome in *row (None where it has no line), or -1 with an error. */
 static int period_range(State *self, PyObject *item, const double base[3],
                         PyObject *lever_columns, Py_ssize_t lever_at, PyObject *decide,
-                        const double *limit, long long *state_ns, long long good_ns,
-                        const double ab[3], const double gb[3], double max_gap,
-                        double min_prop_s, int *clamped, int *predicted, PyObject **row)
+                        const double *limit, long long *state_ns, const double ab[3],
+                        const double gb[3], double min_prop_s, int *clamped, int *predicted,
+                        PyObject **row)
 {
     double anchor[3], range, var, lever[3];
     if (!PyTuple_Check(item) || PyTuple_GET_SIZE(item) != 6) {
@@ -849,12 +848,8 @@ static int period_range(State *self, PyObject *item, const double base[3],
     var = PyFloat_AsDouble(PyTuple_GET_ITEM(item, 4));
     if (PyErr_Occurred() || uwbd_get_vec(PyTuple_GET_ITEM(item, 2), anchor, 3, "anchor"))
         return -1;
-    if (t_ns < *state_ns)
-        return 1;
     double dt = (double)(t_ns - *state_ns) / 1e9;
     if (dt > 0) {
-        if ((double)(t_ns - good_ns) / 1e9 > max_gap)
-            return 1; /* the IMU is not fresh: coasting is the policy's */
         uwbd_state_predict((PyObject *)self, ab, gb, dt);
         *state_ns = t_ns;
         *predicted = 1;
@@ -888,21 +883,20 @@ static int period_range(State *self, PyObject *item, const double base[3],
 
 /* fuse_period(front, order, samples, ranges, lever, lever_columns, decide, limit, clock,
  *             last_imu)
- *     -> (done, reason, rows, outcomes, last_ns, state_ns, good_ns, last_imu, clamps,
- *         predicted)
+ *     -> (done, reason, rows, outcomes, last_ns, state_ns, last_imu, clamps, predicted)
  * A pose period's measurements in the order they came (order: one byte per item, b"i" the
  * next of samples, (t_ns, acc, gyro) in sensor axes; b"r" the next of ranges, see
- * period_range), while each is the common one: a sample through the IMU front (_imu.c:
- * judged, mapped, integrated), a range predicted to with the last sample, fused (decide:
- * its RowPolicy; lever: the lever arm given, its error states' columns lever_columns added)
- * and P clamped to limit (clamp). clock: (last_ns, state_ns, good_ns, max_gap_s,
- * propagate_every_s, min_propagate_s): the last sample's time, the state's, the last good
- * sample's; last_imu: that sample in body axes (6). Stops at the first item that is not the
- * common one (done: its index; reason: the front's reason when it rejected that sample,
+ * period_range; the policy hands only ranges it judged common): a sample through the IMU
+ * front (_imu.c: the common sample judged, mapped, integrated), a range predicted to with
+ * the last sample, fused (decide: its RowPolicy; lever: the lever arm given, its error
+ * states' columns lever_columns added) and P clamped to limit (clamp). clock: (last_ns,
+ * state_ns, max_gap_s, propagate_every_s, min_propagate_s): the last sample's time, the
+ * state's; last_imu: the last good sample in body axes (6). Stops at the first sample that
+ * is not the common one (done: its index; reason: the front's reason when it rejected it,
  * else None); rows: the samples integrated (t_ns, acc_b..., gyro_b...), as the rest window
  * keeps them; outcomes: each range's (ν, S, w, numerical) or None; clamps: how often the
  * main filter's P was clamped; predicted: whether a range moved the state's time. The
- * reference is the policy's own step per item (Filter._flush on the pure-Python core). */
+ * reference is the policy's own step per item (policy/period.py on the pure-Python core). */
 static PyObject *state_fuse_period(State *self, PyObject *const *args, Py_ssize_t nargs)
 {
     if (check_args(nargs, 10, "fuse_period"))
@@ -913,19 +907,18 @@ static PyObject *state_fuse_period(State *self, PyObject *const *args, Py_ssize_
                                          "list, ranges: list, lever, lever_columns: tuple, ...)");
         return NULL;
     }
-    double base[3], clock[6], last_imu[6];
-    long long last_ns, state_ns, good_ns;
+    double base[3], clock[5], last_imu[6];
+    long long last_ns, state_ns;
     if (uwbd_get_vec(args[4], base, 3, "lever") || uwbd_get_vec(args[9], last_imu, 6, "last_imu"))
         return NULL;
-    if (!PyTuple_Check(args[8]) || PyTuple_GET_SIZE(args[8]) != 6) {
-        PyErr_SetString(PyExc_TypeError, "fuse_period: clock is (last_ns, state_ns, good_ns, "
+    if (!PyTuple_Check(args[8]) || PyTuple_GET_SIZE(args[8]) != 5) {
+        PyErr_SetString(PyExc_TypeError, "fuse_period: clock is (last_ns, state_ns, "
                                          "max_gap_s, propagate_every_s, min_propagate_s)");
         return NULL;
     }
     last_ns = PyLong_AsLongLong(PyTuple_GET_ITEM(args[8], 0));
     state_ns = PyLong_AsLongLong(PyTuple_GET_ITEM(args[8], 1));
-    good_ns = PyLong_AsLongLong(PyTuple_GET_ITEM(args[8], 2));
-    for (int i = 3; i < 6; i++)
+    for (int i = 2; i < 5; i++)
         clock[i] = PyFloat_AsDouble(PyTuple_GET_ITEM(args[8], i));
     if (PyErr_Occurred())
         return NULL;
@@ -965,7 +958,7 @@ static PyObject *state_fuse_period(State *self, PyObject *const *args, Py_ssize_
                 uwbd_get_vec(PyTuple_GET_ITEM(sample, 2), g, 3, "gyro"))
                 goto fail;
             int r = uwbd_front_step(args[0], (PyObject *)self, t_ns, a, g, &last_ns, &state_ns,
-                                    clock[3], clock[4], ab, gb);
+                                    clock[2], clock[3], ab, gb);
             if (r != 0) {
                 if (r > 0)
                     reason = uwbd_front_reason(args[0], r);
@@ -980,19 +973,15 @@ static PyObject *state_fuse_period(State *self, PyObject *const *args, Py_ssize_
             Py_DECREF(row);
             memcpy(last_imu, ab, sizeof ab);
             memcpy(last_imu + 3, gb, sizeof gb);
-            good_ns = t_ns;
             si++;
         } else {
             if (ri >= PyList_GET_SIZE(args[3]))
                 break;
             PyObject *row = NULL;
-            int r = period_range(self, PyList_GET_ITEM(args[3], ri), base, args[5], lever_at,
-                                 args[6], Lb.buf, &state_ns, good_ns, last_imu, last_imu + 3,
-                                 clock[3], clock[5], &clamps, &predicted, &row);
-            if (r < 0)
+            if (period_range(self, PyList_GET_ITEM(args[3], ri), base, args[5], lever_at, args[6],
+                             Lb.buf, &state_ns, last_imu, last_imu + 3, clock[4], &clamps,
+                             &predicted, &row) < 0)
                 goto fail;
-            if (r > 0)
-                break;
             int appended = PyList_Append(outcomes, row);
             Py_DECREF(row);
             if (appended < 0)
@@ -1007,8 +996,8 @@ static PyObject *state_fuse_period(State *self, PyObject *const *args, Py_ssize_
         Py_DECREF(outcomes);
         return NULL;
     }
-    return Py_BuildValue("(nONNLLLNiO)", done, reason, rows, outcomes, last_ns, state_ns,
-                         good_ns, imu, clamps, predicted ? Py_True : Py_False);
+    return Py_BuildValue("(nONNLLNiO)", done, reason, rows, outcomes, last_ns, state_ns, imu,
+                         clamps, predicted ? Py_True : Py_False);
 fail:
     PyBuffer_Release(&Lb);
     Py_XDECREF(rows);
@@ -1447,7 +1436,7 @@ static PyMethodDef state_methods[] = {
                         "y, R, decide, c0, c1, ids) -> rows: a tight epoch, §4-5."),
     METHOD(fuse_period, "fuse_period(front, order, samples, ranges, lever, lever_columns, "
                         "decide, limit, clock, last_imu) -> (done, reason, rows, outcomes, "
-                        "last_ns, state_ns, good_ns, last_imu, clamps, predicted)."),
+                        "last_ns, state_ns, last_imu, clamps, predicted)."),
     METHOD(range_check, "range_check(lever, anchors, ranges, var, columns, out) -> None or "
                         "bool: U, y and single-fault estimates for the checks, §6."),
     METHOD(rotate_heading, "rotate_heading(dpsi, yaw_sigma): the coarse heading's turn."),

@@ -147,9 +147,9 @@ class CoreEskf(Eskf):
     def fuse_period(self, front: Any, order: bytes, samples: list[Any], ranges: list[Any],
                     lever_m: list[float], lever_columns: tuple[int, ...], decide: RowPolicy,
                     max_core_sigma: Array, max_aux_sigma: float,
-                    clock: tuple[int, int, int, float, float, float], last_imu: Sequence[float]
+                    clock: tuple[int, int, float, float, float], last_imu: Sequence[float]
                     ) -> tuple[int, str | None, list[tuple[float, ...]], list[RawRow | None],
-                               int, int, int, tuple[float, ...], int, bool]:
+                               int, int, tuple[float, ...], int, bool]:
         """A pose period's items in one call (``_core.State.fuse_period``; the policy's
         side: :mod:`uwbd.fusion.policy.period`), P clamped as :meth:`clamp_covariance`."""
         out: Any = self._state.fuse_period(

@@ -5,8 +5,9 @@ While tracking, :class:`~uwbd.fusion.filter.Filter` runs its policy with every e
 for single ranges, once a pose period; the single ranges in between and the IMU samples
 that come among them are queued here, in the order they came, and fused when the period
 ends (or anything reads the state): ``State.fuse_period`` takes each item while it is the
-common one (a sample the IMU front passes with no gap, a range after the state with a
-fresh IMU: the C core's rule), and returns each range's outcome; any other item goes
+common one (a sample the IMU front passes with no gap: the front's rule; a range not
+earlier than the state, with a fresh IMU: :func:`.propagation.fresh_at`, judged here), and
+returns each range's outcome; any other item goes
 through the policy's own step (:meth:`ImuPropagation.step_one`, the filter's message
 step), which is also how the pure-Python core takes every item: the reference the C core
 is held to (tests/test_period.py). Its own state is the queue; the outcomes go to the
@@ -26,7 +27,12 @@ from uwbd.fusion.core.state import CoreEskf
 from uwbd.fusion.policy.estimate import Estimate, Findings
 from uwbd.fusion.policy.fusing import MAX_RANGE_BIAS_SIGMA_M, MAX_SIGMA, EpochFusion
 from uwbd.fusion.policy.installation import Installation
-from uwbd.fusion.policy.propagation import NUMERICAL_ERRORS, PROPAGATE_EVERY_S, ImuPropagation
+from uwbd.fusion.policy.propagation import (
+    NUMERICAL_ERRORS,
+    PROPAGATE_EVERY_S,
+    ImuPropagation,
+    fresh_at,
+)
 from uwbd.fusion.policy.recovery import Recovery
 from uwbd.fusion.policy.rest import ImuWindow
 from uwbd.fusion.settings import FilterConfig
@@ -127,6 +133,28 @@ class PeriodQueue:
             and self.est.aligned and imu.imu_t_ns is not None and imu.good_imu_ns is not None \
             and imu.last_imu is not None and self.est.t_ns is not None
 
+    def _common_prefix(self, order: bytes, samples: list[Any], ranges: list[Any]) -> int:
+        """How many items the core may take: up to the first range that is not the common
+        one (earlier than the state: late; later, with the IMU not fresh: to coast through),
+        the samples before it taken as common (the core stops at one that is not)."""
+        state_ns, good_ns = self.est.t_ns, self.imu.good_imu_ns
+        assert state_ns is not None and good_ns is not None
+        max_gap_s = self.cfg.max_imu_gap_s
+        si = ri = 0
+        for k, kind in enumerate(order):
+            if kind == _SAMPLE:
+                t_ns = samples[si][0]
+                si += 1
+                if t_ns > state_ns:
+                    state_ns = good_ns = t_ns
+                continue
+            t_ns = ranges[ri][0]
+            ri += 1
+            if t_ns < state_ns or (t_ns > state_ns and not fresh_at(t_ns, good_ns, max_gap_s)):
+                return k
+            state_ns = t_ns
+        return len(order)
+
     def _fuse_core(self, order: bytes, samples: list[Any], ranges: list[Any],
                    items: list[ImuSample | Message]) -> tuple[int, str | None]:
         """The items on the C core while each is the common one: how many, and the IMU
@@ -136,16 +164,20 @@ class PeriodQueue:
         assert isinstance(ekf, CoreEskf) and imu.last_imu is not None
         lever_index = self.installation.lever_index
         plain = self.installation.plain_lever
-        assert imu.imu_t_ns is not None and est.t_ns is not None and imu.good_imu_ns is not None
-        done, reason, rows, outcomes, last_ns, state_ns, good_ns, last, clamps, predicted = \
-            ekf.fuse_period(self._front, order, samples, ranges, plain.tolist(), lever_index,
-                            self.fusion.range_policy(), MAX_SIGMA, MAX_RANGE_BIAS_SIGMA_M,
-                            (imu.imu_t_ns, est.t_ns, imu.good_imu_ns, self.cfg.max_imu_gap_s,
-                             PROPAGATE_EVERY_S, MIN_PROPAGATE_S),
+        assert imu.imu_t_ns is not None and est.t_ns is not None
+        count = self._common_prefix(order, samples, ranges)
+        if count == 0:
+            return 0, None
+        done, reason, rows, outcomes, last_ns, state_ns, last, clamps, predicted = \
+            ekf.fuse_period(self._front, order[:count], samples, ranges, plain.tolist(),
+                            lever_index, self.fusion.range_policy(), MAX_SIGMA,
+                            MAX_RANGE_BIAS_SIGMA_M, (imu.imu_t_ns, est.t_ns,
+                                                     self.cfg.max_imu_gap_s, PROPAGATE_EVERY_S,
+                                                     MIN_PROPAGATE_S),
                             (*imu.last_imu[0], *imu.last_imu[1]))
         if rows:
             self.window.add_rows(rows)
-            imu.imu_t_ns, imu.good_imu_ns = last_ns, good_ns
+            imu.imu_t_ns, imu.good_imu_ns = last_ns, int(rows[-1][0])
             imu.last_imu = ((last[0], last[1], last[2]), (last[3], last[4], last[5]))
         est.t_ns = state_ns
         if predicted:

@@ -173,7 +173,7 @@ class ImuPropagation:
         state's time by default)."""
         now = self.est.t_ns if t_ns is None else t_ns
         return self.est.relevel is None and self.good_imu_ns is not None and now is not None \
-            and (now - self.good_imu_ns) / NS <= self.cfg.max_imu_gap_s
+            and fresh_at(now, self.good_imu_ns, self.cfg.max_imu_gap_s)
 
     def predict_to(self, t_ns: int) -> None:
         """Bring the state to the measurement time: hold the last IMU sample while it is fresh
@@ -197,3 +197,9 @@ class ImuPropagation:
         """A rejected IMU sample hid ``dt`` of motion: widen velocity and attitude for it."""
         self.recovery.inflate(velocity_mps=COAST_ACCEL_SIGMA_MPS2 * math.sqrt(dt),
                       attitude_rad=UNSEEN_RATE_SIGMA_RPS * math.sqrt(dt))
+
+
+def fresh_at(t_ns: int, good_ns: int, max_gap_s: float) -> bool:
+    """The rule: a good IMU sample at ``good_ns`` is fresh at ``t_ns`` (at most an IMU gap
+    before it); the state is then brought to ``t_ns`` with it, else it coasts."""
+    return (t_ns - good_ns) / NS <= max_gap_s
