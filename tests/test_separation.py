@@ -67,9 +67,10 @@ def test_the_threshold_the_bias_allowance_and_the_levels_are_the_documented_ones
     # the ranges' nominal bias widens every threshold by √m b/σ_r σ_Δ
     allowance = biased.test((4, 7), separation_numbers(P, offsets, Pk))
     assert allowance.ratios[7] == pytest.approx(0.3 / ((k_fa + math.sqrt(2) * 0.5) * 0.03))
-    quiet = _bank(P, [[0.0, 0.0, 0.0], [0.15, 0.0, 0.0]], [0.0009, 0.0009])
-    assert plain.test((4, 7), separation_numbers(P, *quiet)).suspect == 7  # 0.15 m: over K_fa σ_Δ alone
-    assert biased.test((4, 7), separation_numbers(P, *quiet)).suspect is None  # within the bias allowance
+    quiet = separation_numbers(P, *_bank(P, [[0.0, 0.0, 0.0], [0.15, 0.0, 0.0]],
+                                         [0.0009, 0.0009]))
+    assert plain.test((4, 7), quiet).suspect == 7  # 0.15 m: over K_fa σ_Δ alone
+    assert biased.test((4, 7), quiet).suspect is None  # within the bias allowance
 
 
 def _run(seed: int, bank: bool = True, lever: bool = True,
