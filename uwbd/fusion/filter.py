@@ -13,7 +13,8 @@ the sequence it runs; each step's policy has a module of its own:
 * :mod:`.policy.fixes` and :mod:`.policy.mirror` — UWB-only fixes from epochs or a window of single
   ranges, on the right side of a plane of anchors;
 * :mod:`.policy.initialise` — the state at start (at rest, or while moving) and after a restart;
-* :mod:`.policy.alignment` — the coarse heading from INS against UWB velocity changes;
+* :mod:`.policy.alignment` and :mod:`.policy.heading` — the coarse heading from INS against
+  UWB velocity changes, and the heading held until then;
 * :mod:`.models.measurements` — the rows of each measurement model (range, fix, ZUPT, NHC, height);
 * :mod:`.policy.robust` — de-weighting NLOS ranges, per-anchor statistics;
 * :mod:`.policy.health` — the health record, and the evidence for restarts;
@@ -27,7 +28,8 @@ the sequence it runs; each step's policy has a module of its own:
 * :mod:`.policy.constraints` — the ZUPT, NHC and height rows due, the tilt against gravity;
 * :mod:`.policy.period` — a pose period's single ranges and IMU samples, queued and fused
   in one call of the core; the policy runs with every epoch and, for single ranges, once a
-  pose period (its decisions may land up to a period late);
+  pose period after them (:meth:`Filter._period_policy`: its decisions may land up to a
+  period late);
 * :mod:`.policy.integrity` — the bank's solution separation (:mod:`.checks.separation`):
   protection levels over each anchor's fault, and which anchor's separation is too large;
 * :mod:`.policy.outputs` — the pose, the health record, the diagnostics;
@@ -67,7 +69,7 @@ from uwbd.fusion.checks.bias_gain import BiasGain
 from uwbd.fusion.checks.gating import GatingCounters, gate
 from uwbd.fusion.core import native
 from uwbd.fusion.core.eskf import Eskf
-from uwbd.fusion.core.layout import BA_, BG_, N_CORE, TH_
+from uwbd.fusion.core.layout import N_CORE
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.core.rotation import Array, body_point
 from uwbd.fusion.core.smoother import EpochRecord, Nominal
@@ -77,6 +79,7 @@ from uwbd.fusion.policy.constraints import Constraints
 from uwbd.fusion.policy.estimate import Estimate, Findings, new_aligner
 from uwbd.fusion.policy.fixes import RangeWindow
 from uwbd.fusion.policy.fusing import EpochFusion
+from uwbd.fusion.policy.heading import hold_heading
 from uwbd.fusion.policy.health import HealthMonitor
 from uwbd.fusion.policy.installation import Installation
 from uwbd.fusion.policy.integrity import Integrity
@@ -89,7 +92,7 @@ from uwbd.fusion.settings import FilterConfig, Mode
 from uwbd.fusion.types import FusionReport, Health, Pose
 
 Vec3 = tuple[float, float, float]
-HELD_YAW_SIGMA_RAD = 1e-3  # the heading's σ while it is held, before the coarse alignment
+_NO_ANCHORS, _NONE = np.zeros((0, 3)), np.zeros(0)
 
 
 class Filter:
@@ -129,9 +132,11 @@ class Filter:
         self._policy_ns = -(2**63)  # the policy's last run (once a pose period)
         # the period's single ranges and samples, fused at its end (or when read)
         self.queue = PeriodQueue(config, self.est, self.findings, self.installation, self.imu,
-                                 self.window, self.fusion, self.recovery, self._fuse_queued)
-        self._models_ranges = bool(config.range_model.enabled
-                                   or config.range_model.anchor_degree)
+                                 self.window, self.fusion, self.recovery, self._fuse_single)
+        # single ranges queue unless a range model corrects each at its state, or the
+        # smoother records each update
+        self._queues = not (config.range_model.enabled or config.range_model.anchor_degree
+                            or record)
 
     # -- what the parts share, for the caller --------------------------------------------
     @property
@@ -249,14 +254,20 @@ class Filter:
         if len(ids) == 0:
             return reports
         self.ranges.add(uwb.t_ns, ids, anchors, ranges)
-        if self._queueable(uwb.t_ns, len(uwb.ranges) >= 2):
-            if not self.queue.add_range((uwb.t_ns, ids, anchors, ranges, r_scale)):
-                self.queue.fuse()
+        message = (uwb.t_ns, ids, anchors, ranges, r_scale)
+        if len(uwb.ranges) < 2 and self._tracking():  # a single range: its numbers now or
+            if self._queues:  # at the period's end; the policy once a period, after them
+                if not self.queue.add_range(message):
+                    self.queue.fuse()
+            else:
+                reports += self._fuse_single(message)
+            if uwb.t_ns - self._policy_ns >= self.cfg.pose_period_ns:
+                self._fuse_queue()
+                self._period_policy(message, reports)
             return reports
         self._fuse_queue()
         fix = self._epoch_fix(uwb.t_ns, ids, anchors, ranges)
-        return self._fuse_message(uwb.t_ns, ids, anchors, ranges, r_scale, fix, reports,
-                                  len(uwb.ranges) >= 2)
+        return self._decide(uwb.t_ns, ids, anchors, ranges, r_scale, fix, reports)
 
     def _epoch_fix(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array
                    ) -> LsqFix | None:
@@ -269,16 +280,20 @@ class Filter:
             self.recovery.fixes.append((t_ns, fix.position_m))
         return fix
 
-    def _fuse_message(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
-                      r_scale: Array, fix: LsqFix | None, reports: list[FusionReport],
-                      epoch: bool) -> list[FusionReport]:
-        """The rest of :meth:`_update` once the message's ranges are kept and its fix is
-        made: the policy (:meth:`_decide`) with every epoch and, for single ranges while
-        tracking, once a pose period; the numbers (:meth:`_fuse_numbers`) for every message
-        (the policy's decisions may land up to a period late)."""
-        if self.est.ekf is None or not self.est.aligned or self.cfg.mode is not Mode.TIGHT \
-                or epoch or t_ns - self._policy_ns >= self.cfg.pose_period_ns:
-            return self._decide(t_ns, ids, anchors, ranges, r_scale, fix, reports)
+    def _tracking(self) -> bool:
+        """Tight, started, the heading aligned, not re-levelling: single ranges take the
+        period's path (their numbers, then the policy once a period)."""
+        return self.est.aligned and self.est.ekf is not None and self.est.relevel is None \
+            and self.cfg.mode is Mode.TIGHT
+
+    def _fuse_single(self, message: Message) -> list[FusionReport]:
+        """A single range's numbers: the state brought to it, its row fused and reported
+        (an anchor the policy left out: reported, its row left out); a range queued when
+        the state has since stopped tracking takes the whole step (:meth:`_decide`)."""
+        t_ns, ids, anchors, ranges, r_scale = message
+        if not self._tracking():
+            return self._decide(t_ns, ids, anchors, ranges, r_scale, None, [])
+        reports: list[FusionReport] = []
         if self.est.t_ns is not None and t_ns < self.est.t_ns:
             self.est.counters["uwb_late"] += 1
             return reports
@@ -293,17 +308,34 @@ class Filter:
         return self._fuse_numbers(t_ns, ids, anchors, ranges, r_scale, None, [], reports,
                                   linked, Phi)
 
-    def _queueable(self, t_ns: int, epoch: bool) -> bool:
-        """A single range inside a pose period while tracking (tight, no range model, not
-        recording): queued, fused at the period's end (:mod:`.policy.period`)."""
-        return not epoch and t_ns - self._policy_ns < self.cfg.pose_period_ns \
-            and self.est.aligned and self.est.ekf is not None and self.est.relevel is None \
-            and self.cfg.mode is Mode.TIGHT and self.records is None and not self._models_ranges
-
-    def _fuse_queued(self, message: Message) -> list[FusionReport]:
-        """A queued range the core did not take: the message's own step."""
-        t_ns, ids, anchors, ranges, r_scale = message
-        return self._fuse_message(t_ns, ids, anchors, ranges, r_scale, None, [], False)
+    def _period_policy(self, message: Message, reports: list[FusionReport]) -> None:
+        """The policy at the end of a period of single ranges (``message``: its last): the
+        mirror side, the fixes for stillness, the constraints due, the installation checks
+        on the period's ranges and the exclusions they call for, the separation test,
+        fading and the divergence checks."""
+        t_ns, ids, anchors, ranges, _ = message
+        self._policy_ns = t_ns
+        if self.installation.mirror.take_flip():
+            self.recovery.restart(t_ns, "mirror side flipped by the ranges")
+        self.est.monitor.mirror_unresolved = self.installation.mirror.unresolved
+        if self.est.ekf is None or self.est.t_ns is None:
+            return
+        self._track_fixes(t_ns, ids, anchors, ranges, None)
+        constraints = self.constraints.due(self.est.t_ns)
+        period = self.queue.period
+        for checked in period:  # the period's single ranges, in order
+            self.fusion.check_anchors(*checked)
+        self.fusion.decide_exclusions(sorted({a for m in period for a in m[1]}))
+        period.clear()
+        if constraints:
+            linked, Phi, _ = self._propagate()
+            self._fuse_numbers(self.est.t_ns, [], _NO_ANCHORS, _NONE, _NONE, None, constraints,
+                               reports, linked, Phi)
+        self.integrity.after_update(t_ns)
+        self.recovery.fade(t_ns, ids, anchors, ranges)
+        if not self.recovery.check_divergence(t_ns, ids, anchors, ranges) \
+                and self.est.ekf is not None:
+            self.recovery.last_good_P = self.est.ekf.P.copy()
 
     def _decide(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                 r_scale: Array, fix: LsqFix | None, reports: list[FusionReport]
@@ -328,8 +360,9 @@ class Filter:
             return reports
         self.imu.predict_to(t_ns)
         linked, Phi, dv = self._propagate()
-        if not self.est.aligned:
-            self._hold_heading(t_ns, dv, fix)
+        if not self.est.aligned and hold_heading(self.est, t_ns, dv, fix):
+            assert self.est.ekf is not None  # (the heading aligned: the bank's lever member
+            self.integrity.heading_aligned(self.est.ekf)  # starts anew)
         self._track_fixes(t_ns, ids, anchors, ranges, fix)
         constraints = self.constraints.due(t_ns)
         ranges = self._range_model(ids, anchors, ranges)
@@ -402,36 +435,6 @@ class Filter:
         if ekf is not None:
             return np.array(body_point(ekf.p, ekf.q, self._lever))
         return self.recovery.fixes[-1][1] if self.recovery.fixes else None
-
-    def _hold_heading(self, t_ns: int, dv: Vec3, fix: LsqFix | None) -> None:
-        """Until aligned the heading is held (an EKF linearised about a large yaw error
-        turns falsely confident within a second of motion); then :class:`HeadingAligner`
-        tells the yaw error and the EKF takes over with its σ."""
-        ekf = self.est.ekf
-        assert ekf is not None
-        self.est.aligner.add_ins_dv(dv)
-        # the heading is unknown: the INS's horizontal Δv may point anywhere; for a heading
-        # error uniform over ±180° the RMS error of a turned Δv is √2 |Δv|, so the fixes
-        # must be free to say where it went
-        extra = np.zeros(ekf.n)
-        extra[3:5] = 2.0 * (dv[0] ** 2 + dv[1] ** 2)
-        ekf.add_variances(extra)
-        ekf.rotate_heading(0.0, HELD_YAW_SIGMA_RAD)
-        if fix is None or not self.est.aligner.wants_fix(t_ns):
-            return
-        # the INS's yaw, and what its horizontal accelerometer and gyro biases may still be
-        w, x, y, z = ekf.q
-        P = ekf.P
-        result = self.est.aligner.add_fix(
-            t_ns, fix, math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)),
-            math.sqrt(max(P[BA_.start, BA_.start] + P[BA_.start + 1, BA_.start + 1], 0) / 2),
-            math.sqrt(max(P[BG_.start, BG_.start] + P[BG_.start + 1, BG_.start + 1], 0) / 2),
-            math.sqrt(max(P[TH_.start, TH_.start] + P[TH_.start + 1, TH_.start + 1], 0) / 2))
-        if result is not None:
-            ekf.rotate_heading(*result)
-            self.est.aligned = True
-            self.est.counters["heading_alignments"] += 1
-            self.integrity.heading_aligned(ekf)
 
     def _track_fixes(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                      fix: LsqFix | None) -> None:

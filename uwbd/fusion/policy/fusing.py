@@ -197,12 +197,21 @@ class EpochFusion:
         separation, :mod:`.integrity`) are left out of the update (each reported,
         ``anchor_excluded``), as long as four other anchors remain; the test goes on judging
         them against the state, and they return once they agree."""
+        out = self.decide_exclusions(ids)
+        if not out:
+            return ids, anchors, ranges, r_scale
+        return self.leave_out(t_ns, out, ids, anchors, ranges, r_scale, reports)
+
+    def decide_exclusions(self, ids: Sequence[int]) -> set[int]:
+        """Which of ``ids`` are left out (found by the consistency test while enough others
+        remain, or by the separation); those newly so leave the state (an adoption, or the
+        state widened), and the health is told. Returns them."""
         findings = self.findings
         found, separated = findings.consistency.findings, findings.separated
         if len(self.installation.anchors) - len(found.keys() | separated.keys()) \
                 < MIN_KEPT_ANCHORS:
             found = {}  # (the separation's are left out only while enough remain)
-        # the anchors left out: those still found, and this message's found ones
+        # the anchors left out: those still found, and these ids' found ones
         out = {a for a in ids if a in found or a in separated}
         excluded = {a for a in findings.excluded if a in found or a in separated} | out
         adopted = False  # (one adoption a message: it starts the bank anew)
@@ -214,9 +223,7 @@ class EpochFusion:
         if said != self.est.monitor.excluded:  # (the health's view, refreshed on a change)
             self.est.monitor.excluded = said
             self.est.monitor.side_lost = self.installation.side_lost(excluded)
-        if not out:
-            return ids, anchors, ranges, r_scale
-        return self.leave_out(t_ns, out, ids, anchors, ranges, r_scale, reports)
+        return out
 
     def leave_out(self, t_ns: int, out: set[int], ids: list[int], anchors: Array,
                   ranges: Array, r_scale: Array, reports: list[FusionReport]
