@@ -35,12 +35,10 @@ the sequence it runs; each step's policy has a module of its own:
 * :mod:`.policy.outputs` — the pose, the health record, the diagnostics;
 * :mod:`.core.eskf` — the algebra (docs/ekf.md).
 
-Each of those parts is an object with its own state, handed the shared state it reads; the
-filter below holds them and runs them in sequence (no part inherits another's attributes).
-
-The numbers (state, covariance, the algebra on them) are :class:`~uwbd.fusion.core.eskf.Eskf`'s,
-on the C core where it is built (:class:`~uwbd.fusion.core.state.CoreEskf`); every decision is
-made here and in the modules above.
+Each part is an object with its own state, handed the shared state it reads; the filter
+holds them and runs them in sequence. The numbers are :class:`~uwbd.fusion.core.eskf.Eskf`'s
+(on the C core, :class:`~uwbd.fusion.core.state.CoreEskf`); every decision is made here and
+in the modules above.
 
 Life cycle: **waiting** (collect IMU and fixes), start at rest or while moving, **aligning**
 (heading held until the vehicle has moved enough), **tracking**. A rejected IMU burst or an
@@ -51,8 +49,7 @@ with a finite state only restores the last finite covariance). Innovations incon
 a while move the position to a UWB fix, but only to one that is consistent itself (NLOS does
 not pull the state away); diverging again within 10 s restarts from UWB, biases dropped. At
 rest (IMU and UWB fixes both still), an attitude 10° against gravity for a second is
-levelled anew.
-Without ranges the state coasts and its covariance grows.
+levelled anew. Without ranges the state coasts and its covariance grows.
 """
 
 from __future__ import annotations
@@ -317,7 +314,7 @@ class Filter:
         self._policy_ns = t_ns
         if self.installation.mirror.take_flip():
             self.recovery.restart(t_ns, "mirror side flipped by the ranges")
-        self.est.monitor.mirror_unresolved = self.installation.mirror.unresolved
+        self._said_mirror()
         if self.est.ekf is None or self.est.t_ns is None:
             return
         self._track_fixes(t_ns, ids, anchors, ranges, None)
@@ -346,7 +343,7 @@ class Filter:
         self._policy_ns = t_ns
         if self.installation.mirror.take_flip():
             self.recovery.restart(t_ns, "mirror side flipped by the ranges")
-        self.est.monitor.mirror_unresolved = self.installation.mirror.unresolved
+        self._said_mirror()
         if self.est.ekf is None:
             self.queue.period.clear()
             if self.installation.new_anchors:  # reported since the last start: laid out now
@@ -422,6 +419,11 @@ class Filter:
             self.records.append(EpochRecord(t_ns, *prior, *self._snapshot(),
                                             Phi if linked else None))
         return reports
+
+    def _said_mirror(self) -> None:
+        mirror, monitor = self.installation.mirror, self.est.monitor
+        monitor.mirror_unresolved, monitor.mirror_flipped = mirror.unresolved, \
+            mirror.flipped_unresolved
 
     def _snapshot(self) -> tuple[Nominal, Array]:
         ekf = self.est.ekf

@@ -34,7 +34,8 @@ mounting turned about z, :mod:`uwbd.fusion.checks.mounting_yaw`; the status's
 Notes do not make the estimate unhealthy: ``anchor_excluded`` (an anchor found wrong is
 left out; the rest agree), ``height_uncertain`` (with ``height_needed`` off, the vertical
 level not known or over its limit), ``mirror_unresolved`` (coplanar anchors, side
-not yet told by the data, the configured or default side in use), ``mounting_suspect``
+not yet told by the data, the configured or default side in use; once the data have flipped
+it and not resolved it, no vertical level holds), ``mounting_suspect``
 (at the start at rest gravity was over 30° from the body's up axis: a wrong
 ``imu.mounting``, or a vehicle on a slope; the status's ``mounting_finding`` says which way),
 ``range_model_held`` (a ``[range_model]`` is configured but not applied yet: it needs the
@@ -75,6 +76,9 @@ class HealthMonitor:
         self.resets = 0
         self.last_reset: tuple[int, str, float | None] | None = None
         self.mirror_unresolved = False
+        # the data flipped the side of a plane of anchors away from the default and have not
+        # resolved it: a fault on one anchor can do that, so the height is not known
+        self.mirror_flipped = False
         self.anchor_suspects: tuple[int, ...] = ()  # checks.anchor_consistency's findings
         # checks.bias_gain's: the position error per metre of range bias (h, v)
         self.bias_gain = (0.0, 0.0)
@@ -213,7 +217,8 @@ class HealthMonitor:
             if sep is not None:  # and the levels over each anchor's fault
                 hpl = None if hpl is None else max(hpl, sep.horizontal_m + gh * b)
                 vpl = None if vpl is None else max(vpl, sep.vertical_m + gv * b)
-            if self.side_lost:  # the tag may be the mirror image: the height is not known
+            if self.side_lost or self.mirror_flipped:  # the tag may be the mirror image:
+                # the height is not known
                 vpl = None
             h_ok = hpl is not None and hpl <= lim.horizontal_alert_limit_m
             v_ok = vpl is not None and vpl <= lim.vertical_alert_limit_m

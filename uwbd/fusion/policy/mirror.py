@@ -84,6 +84,12 @@ class MirrorSide:
     def unresolved(self) -> bool:
         return not self.resolved
 
+    @property
+    def flipped_unresolved(self) -> bool:
+        """The data flipped the side away from the default or hint and have not resolved it
+        since (a fault on one anchor can make the mirror image fit better)."""
+        return not self.resolved and self.decided_by == "ranges (flipped)"
+
     def side_of(self, x: Array) -> float:
         """Signed distance of ``x`` from the plane (+: above)."""
         return float((x - self.centroid) @ self.normal)
