@@ -265,3 +265,23 @@ def test_an_anchor_no_longer_found_is_taken_back_and_the_health_says_so() -> Non
     assert not flt.findings.excluded and flt.est.monitor.excluded == ()
     pose = flt.pose()
     assert pose is not None and "anchor_excluded" not in pose.health.notes
+
+
+def test_a_side_the_data_flipped_and_never_resolved_gives_no_height() -> None:
+    """Single ranges under a flat ceiling of ten anchors, one anchor's ranges 0.73 m long
+    (report seed 1003): the mirror image fits the ranges better, the side flips and the
+    filter restarts 4.5 m above the ceiling. With the side flipped and not resolved no
+    vertical level holds, so no pose is healthy (416 were, saying tracking)."""
+    case = draw_case(1003)
+    case = dataclasses.replace(case, sim=dataclasses.replace(
+        case.sim, uwb_schedule="round_robin", uwb_rate_hz=170.0))
+    assert case.fault == "range_offset" and case.style == "flat"
+    sim = simulate(case.sim)
+    poses, _, flt = run_filter(told(case, sim, True), merge(sim.imu, ranges_of(case, sim, True)),
+                               pose_period_ns=NS // 10)
+    assert flt.counters["restart_mirror_side_flipped_by_the_ranges"] >= 1
+    assert flt.installation.mirror.flipped_unresolved
+    assert score(case, sim, poses, [], False).healthy_beyond_alert == 0
+    last_10_s = poses[-100:]  # (long after the flip, at 15 s of 90)
+    assert all(q.health.vertical_protection_m is None and not q.health.healthy
+               for q in last_10_s)
