@@ -98,5 +98,10 @@ int uwbd_front_step(PyObject *front, PyObject *state, long long t_ns, const doub
                     const double g[3], long long *last, long long *state_ns, double max_gap,
                     double every, double ab[3], double gb[3]);
 PyObject *uwbd_front_reason(PyObject *front, int r);
+/* One (t_ns, acc, gyro) tuple through uwbd_front_step, its row (t_ns, acc_b..., gyro_b...)
+ * appended to rows when integrated: as uwbd_front_step, or -2 with an error set. */
+int uwbd_front_take(PyObject *front, PyObject *state, PyObject *sample, long long *last,
+                    long long *state_ns, double max_gap, double every, PyObject *rows,
+                    double ab[3], double gb[3]);
 
 #endif

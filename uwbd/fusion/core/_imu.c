@@ -153,31 +153,17 @@ static PyObject *front_step_many(ImuFront *s, PyObject *const *args, Py_ssize_t 
     if (rows == NULL)
         return NULL;
     for (Py_ssize_t k = 0; k < PyList_GET_SIZE(args[1]); k++) {
-        PyObject *sample = PyList_GET_ITEM(args[1], k);
-        long long t_ns;
-        double a[3], g[3];
-        if (!PyTuple_Check(sample) || PyTuple_GET_SIZE(sample) != 3) {
-            PyErr_SetString(PyExc_TypeError, "step_many: samples are (t_ns, acc, gyro)");
-            goto fail;
-        }
-        if (sample_args(&PyTuple_GET_ITEM(sample, 0), &t_ns, a, g) < 0)
-            goto fail;
         double ab[3], gb[3];
-        int r = uwbd_front_step((PyObject *)s, args[0], t_ns, a, g, &last, &state_ns, max_gap,
-                                every, ab, gb);
-        if (r < 0)
+        int r = uwbd_front_take((PyObject *)s, args[0], PyList_GET_ITEM(args[1], k), &last,
+                                &state_ns, max_gap, every, rows, ab, gb);
+        if (r == -2)
+            goto fail;
+        if (r == -1)
             break; /* not the common sample: the policy's */
         if (r > 0) {
             reason = s->reasons[r - 1];
             break;
         }
-        PyObject *row = Py_BuildValue("(Ldddddd)", t_ns, ab[0], ab[1], ab[2], gb[0], gb[1],
-                                      gb[2]);
-        if (row == NULL || PyList_Append(rows, row) < 0) {
-            Py_XDECREF(row);
-            goto fail;
-        }
-        Py_DECREF(row);
     }
     return Py_BuildValue("(NO)", rows, reason);
 fail:
@@ -200,6 +186,30 @@ int uwbd_front_step(PyObject *front, PyObject *state, long long t_ns, const doub
     if (uwbd_state_interval(state) >= every)
         uwbd_state_propagate(state);
     *last = *state_ns = t_ns;
+    return 0;
+}
+
+int uwbd_front_take(PyObject *front, PyObject *state, PyObject *sample, long long *last,
+                    long long *state_ns, double max_gap, double every, PyObject *rows,
+                    double ab[3], double gb[3])
+{
+    long long t_ns;
+    double a[3], g[3];
+    if (!PyTuple_Check(sample) || PyTuple_GET_SIZE(sample) != 3) {
+        PyErr_SetString(PyExc_TypeError, "IMU samples are (t_ns, acc, gyro) tuples");
+        return -2;
+    }
+    if (sample_args(&PyTuple_GET_ITEM(sample, 0), &t_ns, a, g) < 0)
+        return -2;
+    int r = uwbd_front_step(front, state, t_ns, a, g, last, state_ns, max_gap, every, ab, gb);
+    if (r != 0)
+        return r;
+    PyObject *row = Py_BuildValue("(Ldddddd)", t_ns, ab[0], ab[1], ab[2], gb[0], gb[1], gb[2]);
+    if (row == NULL || PyList_Append(rows, row) < 0) {
+        Py_XDECREF(row);
+        return -2;
+    }
+    Py_DECREF(row);
     return 0;
 }
 

@@ -945,32 +945,16 @@ static PyObject *state_fuse_period(State *self, PyObject *const *args, Py_ssize_
         if (order[done] == 'i') {
             if (si >= PyList_GET_SIZE(args[2]))
                 break;
-            PyObject *sample = PyList_GET_ITEM(args[2], si);
-            long long t_ns;
-            double a[3], g[3], ab[3], gb[3];
-            if (!PyTuple_Check(sample) || PyTuple_GET_SIZE(sample) != 3) {
-                PyErr_SetString(PyExc_TypeError, "fuse_period: samples are (t_ns, acc, gyro)");
+            double ab[3], gb[3];
+            int r = uwbd_front_take(args[0], (PyObject *)self, PyList_GET_ITEM(args[2], si),
+                                    &last_ns, &state_ns, clock[2], clock[3], rows, ab, gb);
+            if (r == -2)
                 goto fail;
-            }
-            t_ns = PyLong_AsLongLong(PyTuple_GET_ITEM(sample, 0));
-            if ((t_ns == -1 && PyErr_Occurred()) ||
-                uwbd_get_vec(PyTuple_GET_ITEM(sample, 1), a, 3, "acc") ||
-                uwbd_get_vec(PyTuple_GET_ITEM(sample, 2), g, 3, "gyro"))
-                goto fail;
-            int r = uwbd_front_step(args[0], (PyObject *)self, t_ns, a, g, &last_ns, &state_ns,
-                                    clock[2], clock[3], ab, gb);
             if (r != 0) {
                 if (r > 0)
                     reason = uwbd_front_reason(args[0], r);
                 break;
             }
-            PyObject *row = Py_BuildValue("(Ldddddd)", t_ns, ab[0], ab[1], ab[2], gb[0], gb[1],
-                                          gb[2]);
-            if (row == NULL || PyList_Append(rows, row) < 0) {
-                Py_XDECREF(row);
-                goto fail;
-            }
-            Py_DECREF(row);
             memcpy(last_imu, ab, sizeof ab);
             memcpy(last_imu + 3, gb, sizeof gb);
             si++;
