@@ -280,7 +280,7 @@ def test_a_side_the_data_flipped_and_never_resolved_gives_no_height() -> None:
     poses, _, flt = run_filter(told(case, sim, True), merge(sim.imu, ranges_of(case, sim, True)),
                                pose_period_ns=NS // 10)
     assert flt.counters["restart_mirror_side_flipped_by_the_ranges"] >= 1
-    assert flt.installation.mirror.flipped_unresolved
+    assert flt.installation.mirror.side_doubted
     assert score(case, sim, poses, [], False).healthy_beyond_alert == 0
     last_10_s = poses[-100:]  # (long after the flip, at 15 s of 90)
     assert all(q.health.vertical_protection_m is None and not q.health.healthy

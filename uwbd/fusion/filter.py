@@ -422,8 +422,8 @@ class Filter:
 
     def _said_mirror(self) -> None:
         mirror, monitor = self.installation.mirror, self.est.monitor
-        monitor.mirror_unresolved, monitor.mirror_flipped = mirror.unresolved, \
-            mirror.flipped_unresolved
+        monitor.mirror_flipped = mirror.side_doubted  # (in doubt: the note stays)
+        monitor.mirror_unresolved = mirror.unresolved or mirror.side_doubted
 
     def _snapshot(self) -> tuple[Nominal, Array]:
         ekf = self.est.ekf

@@ -35,7 +35,7 @@ Notes do not make the estimate unhealthy: ``anchor_excluded`` (an anchor found w
 left out; the rest agree), ``height_uncertain`` (with ``height_needed`` off, the vertical
 level not known or over its limit), ``mirror_unresolved`` (coplanar anchors, side
 not yet told by the data, the configured or default side in use; once the data have flipped
-it and not resolved it, no vertical level holds), ``mounting_suspect``
+it, no vertical level holds until a hint says the side), ``mounting_suspect``
 (at the start at rest gravity was over 30° from the body's up axis: a wrong
 ``imu.mounting``, or a vehicle on a slope; the status's ``mounting_finding`` says which way),
 ``range_model_held`` (a ``[range_model]`` is configured but not applied yet: it needs the
@@ -76,8 +76,8 @@ class HealthMonitor:
         self.resets = 0
         self.last_reset: tuple[int, str, float | None] | None = None
         self.mirror_unresolved = False
-        # the data flipped the side of a plane of anchors away from the default and have not
-        # resolved it: a fault on one anchor can do that, so the height is not known
+        # the data flipped the side of a plane of anchors away from the default (a fault on
+        # one anchor can, and then resolve it wrongly): the height is not known
         self.mirror_flipped = False
         self.anchor_suspects: tuple[int, ...] = ()  # checks.anchor_consistency's findings
         # checks.bias_gain's: the position error per metre of range bias (h, v)

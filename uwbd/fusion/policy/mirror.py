@@ -14,8 +14,10 @@ starts from. :class:`MirrorSide` holds the two hypotheses:
    (half the difference of their χ², each fix's share clipped at ±3 so that one NLOS range
    cannot decide) is summed. At +``threshold`` the side is resolved; at −``threshold`` it
    flips and the filter restarts on the other side. Until then the side is ``unresolved``
-   (said in the status). Over exactly coplanar anchors the two χ² are equal and the ratio
-   stays at 0: the default or hint is kept, and the status says so. A fix counts only
+   (said in the status); once flipped, it stays in doubt (no vertical protection level)
+   until a hint says it, as a fault on one anchor can flip it and resolve it wrongly.
+   Over exactly coplanar anchors the two χ² are equal and the ratio stays at 0: the
+   default or hint is kept, and the status says so. A fix counts only
    where the two solutions' ranges differ by more than the errors that do not average out
    could make them (each anchor's delay, the tag's, the slow multipath: ``bias_sigma_m``; all
    ranges together, ``DISTINCT_Z`` σ): over anchors a few centimetres off one plane, a
@@ -57,6 +59,7 @@ class MirrorSide:
         self.threshold = threshold
         self.llr = 0.0
         self.flipped = False
+        self.flips = 0  # how often the data flipped the side
         self.plane_z = float(np.mean(anchors_m[:, 2])) if len(anchors_m) else 0.0
         # the plane through the anchors: centroid and unit normal, pointing up (for a wall,
         # "above" is the side the normal points to)
@@ -85,10 +88,12 @@ class MirrorSide:
         return not self.resolved
 
     @property
-    def flipped_unresolved(self) -> bool:
-        """The data flipped the side away from the default or hint and have not resolved it
-        since (a fault on one anchor can make the mirror image fit better)."""
-        return not self.resolved and self.decided_by == "ranges (flipped)"
+    def side_doubted(self) -> bool:
+        """The data have flipped the side away from the default: a fault on one anchor can
+        make the mirror image fit better, and then resolve the side on the wrong one (a
+        campaign case: a ground robot put 5 m above a 3.2 m ceiling), so the side stays in
+        doubt until a hint (``tag_side``, ``height_range_m``) says it."""
+        return self.flips > 0
 
     def side_of(self, x: Array) -> float:
         """Signed distance of ``x`` from the plane (+: above)."""
@@ -122,6 +127,7 @@ class MirrorSide:
             self.resolved, self.decided_by = True, "ranges"
         elif self.llr <= -self.threshold:
             self.sign, self.llr, self.flipped = -self.sign, 0.0, True
+            self.flips += 1
             self.decided_by = "ranges (flipped)"
 
     def take_flip(self) -> bool:
