@@ -3,6 +3,7 @@ anchors a metre apart, paths inside their rooms, the fault in what the filter is
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -16,6 +17,11 @@ def test_cases_are_seeded_and_within_their_rooms() -> None:
     drawn = [draw_case(seed) for seed in range(40)]
     assert {c.fault for c in drawn} == set(FAULTS)
     assert {c.style for c in drawn} == set(STYLES) and {c.vehicle for c in drawn} == set(VEHICLES)
+    # a third single ranges at 100-200 a second, the rest epochs at 10 Hz
+    single = [c for c in drawn if c.sim.uwb_schedule == "round_robin"]
+    assert 8 <= len(single) <= 20 and all(100 <= c.sim.uwb_rate_hz <= 200 for c in single)
+    assert all(c.sim.uwb_schedule == "epoch" and c.sim.uwb_rate_hz == 10.0
+               for c in drawn if c not in single)
     for c in drawn:
         anchors = np.array(c.sim.anchors_m)
         assert 4 <= len(anchors) <= 10
@@ -67,5 +73,7 @@ def test_fault_free_runs_the_campaign_once_lost_stay_honest() -> None:
     was refused as too low (72 m RMSE)."""
     ceiling = run_case(draw_case(37), False)
     assert ceiling.healthy_beyond_alert == 0 and ceiling.rmse_3d_m < 0.2
-    low = run_case(draw_case(8), False)
+    case = draw_case(8)  # (drawn with single ranges since; the case was one of epochs)
+    low = run_case(dataclasses.replace(case, sim=dataclasses.replace(
+        case.sim, uwb_schedule="epoch", uwb_rate_hz=10.0)), False)
     assert low.healthy_beyond_alert == 0 and low.rmse_3d_m < 1.0
