@@ -102,38 +102,44 @@ class HealthMonitor:
 
     # -- evidence -------------------------------------------------------------------------
     def uwb_outcome(self, t_ns: int, accepted: bool, nis: float) -> None:
-        """One UWB measurement (range or position axis) after the innovation test."""
-        last = self.last_range_ns
-        out = self._outcomes
-        if accepted and last is not None and t_ns - last > self.limits.range_timeout_s * NS:
-            # the window judged the state before the coast: this one is judged afresh (the
-            # first ranges after a long coast can pull it far, and leave it overconfident)
-            out.clear()
-            self._rejected, self._nis_sum = 0, 0.0
-            self._rejudging = True
+        """One UWB measurement (range or position axis) after the innovation test. The window
+        is inconsistent when the last four all failed, or, full, when too many failed or
+        their mean NIS is too large (in locals: this runs for every range)."""
+        out, lim = self._outcomes, self.limits
         if accepted:
+            last = self.last_range_ns
+            if last is not None and t_ns - last > lim.range_timeout_s * NS:
+                # the window judged the state before the coast: this one is judged afresh
+                # (the first ranges after a long coast can pull it far, and leave it
+                # overconfident)
+                out.clear()
+                self._rejected, self._nis_sum = 0, 0.0
+                self._rejudging = True
             self.last_range_ns = t_ns
             self._rejected_run = 0
         else:
             self._rejected_run += 1
         nis = nis if nis < 25.0 else 25.0  # NaN and inf too
         out.append((accepted, nis))
-        self._rejected += not accepted
-        self._nis_sum += nis
-        if len(out) > self.limits.window_count:
+        rejected, nis_sum = self._rejected + (not accepted), self._nis_sum + nis
+        n, count = len(out), lim.window_count
+        if n > count:
             old_accepted, old_nis = out.popleft()
-            self._rejected -= not old_accepted
-            self._nis_sum -= old_nis
-        if self._rejudging and len(out) >= self.limits.window_count:
+            rejected -= not old_accepted
+            nis_sum -= old_nis
+            n -= 1
+        self._rejected, self._nis_sum = rejected, nis_sum
+        full = n >= count
+        if self._rejudging and full:
             self._rejudging = False  # a full window since the ranges came back
-        if (self._after_reset and len(out) >= self.limits.window_count
-                and not self._window_inconsistent()):
+        inconsistent = self._rejected_run >= 4 or (full and (
+            rejected > lim.max_rejected_fraction * n or nis_sum / n > lim.max_mean_nis))
+        if self._after_reset and full and not inconsistent:
             self._after_reset = False  # a full window since the reset, and it agrees
-        if self._window_inconsistent():
-            if self._inconsistent_since_ns is None:
-                self._inconsistent_since_ns = t_ns
-        else:
+        if not inconsistent:
             self._inconsistent_since_ns = None
+        elif self._inconsistent_since_ns is None:
+            self._inconsistent_since_ns = t_ns
 
     def imu_rejected(self, t_ns: int) -> None:
         self._imu_fault_ns = t_ns
@@ -157,15 +163,6 @@ class HealthMonitor:
         self._after_reset = True  # recovering until a window of innovations agrees
 
     # -- judgements -----------------------------------------------------------------------
-    def _window_inconsistent(self) -> bool:
-        out, lim = self._outcomes, self.limits
-        if self._rejected_run >= 4:
-            return True  # the last four all failed: no need to wait for the window
-        if len(out) < lim.window_count:
-            return False
-        return (self._rejected > lim.max_rejected_fraction * len(out)
-                or self._nis_sum / len(out) > lim.max_mean_nis)
-
     @property
     def inconsistent(self) -> bool:
         """The recent UWB innovations are inconsistent with the state's covariance."""
