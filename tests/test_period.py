@@ -1,7 +1,7 @@
 """A pose period's single ranges and IMU samples fused in one call of the C core
 (uwbd.fusion.policy.period): the same numbers as the policy's own step per item, its
 reference, on runs where items leave the common path (IMU gaps, saturated and spiked
-samples, an anchor away, an anchor surveyed off and left out)."""
+samples, an anchor away, an anchor surveyed off and left out, ranges that arrive late)."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from drivers.frames import ImuSample
 from uwbd.fusion.core import native
 from uwbd.fusion.filter import Filter
 from uwbd.fusion.settings import Z_DOWN, FilterConfig
@@ -40,7 +41,7 @@ def _run(cfg: FilterConfig, frames: list, per_item: bool) -> tuple[list, list, F
     return poses, reports, flt
 
 
-@pytest.mark.parametrize("fault", ["imu", "anchor_off"])
+@pytest.mark.parametrize("fault", ["imu", "anchor_off", "late"])
 def test_the_core_fuses_a_period_as_the_policy_step_does(fault: str) -> None:
     sim_cfg = handheld_async(3)
     anchors = dict(enumerate(sim_cfg.anchors_m))
@@ -55,6 +56,10 @@ def test_the_core_fuses_a_period_as_the_policy_step_does(fault: str) -> None:
     cfg = FilterConfig(anchors_m=anchors, mounting_rotation=Z_DOWN,
                        lever_arm_m=sim_cfg.lever_arm_m)
     frames = list(merge(sim.imu, sim.uwb))
+    if fault == "late":  # every 50th range arrives after the next three IMU samples
+        for k in range(100, len(frames) - 4, 50):
+            if not isinstance(frames[k], ImuSample):
+                frames[k:k + 4] = [*frames[k + 1:k + 4], frames[k]]
     poses, reports, flt = _run(cfg, frames, per_item=False)
     ref_poses, ref_reports, ref = _run(cfg, frames, per_item=True)
 
@@ -74,5 +79,7 @@ def test_the_core_fuses_a_period_as_the_policy_step_does(fault: str) -> None:
     assert ref.queue.core_ranges == 0
     if fault == "imu":
         assert flt.counters["imu_gaps"] >= 2 and flt.counters["imu_saturated"] > 0
+    elif fault == "late":
+        assert flt.counters["uwb_late"] > 10  # (each through the policy's step)
     else:
         assert flt.counters["range_excluded"] > 0
