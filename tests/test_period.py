@@ -83,3 +83,26 @@ def test_the_core_fuses_a_period_as_the_policy_step_does(fault: str) -> None:
         assert flt.counters["uwb_late"] > 10  # (each through the policy's step)
     else:
         assert flt.counters["range_excluded"] > 0
+
+
+def test_the_policy_runs_once_a_pose_period_and_ten_times_a_second_at_least() -> None:
+    """Single ranges at 170 a second: the policy runs once a pose period (20 ms: about 50
+    times a second, not 170), and at a pose rate of 1 Hz still every 100 ms."""
+    sim_cfg = handheld_async(3)
+    sim = simulate(sim_cfg)
+    frames = list(merge(sim.imu, sim.uwb))
+    for period_ns, most_ns in ((POSE_PERIOD_NS, 20_000_000), (1_000_000_000, 100_000_000)):
+        cfg = FilterConfig(anchors_m=dict(enumerate(sim_cfg.anchors_m)),
+                           mounting_rotation=Z_DOWN, lever_arm_m=sim_cfg.lever_arm_m,
+                           pose_period_ns=period_ns)
+        runs: list[int] = []
+
+        def watch(flt: Filter) -> None:
+            if flt.est.aligned and (not runs or flt._policy_ns != runs[-1]):
+                runs.append(flt._policy_ns)
+
+        run_filter(cfg, frames, pose_period_ns=POSE_PERIOD_NS, watch=watch)
+        gaps = np.diff(runs[1:])  # (from the first run while tracking)
+        assert len(gaps) > 100
+        assert gaps.min() >= most_ns and np.median(gaps) < most_ns + 8_000_000
+        assert np.percentile(gaps, 99) < most_ns + 20_000_000  # (a message's spacing late)

@@ -89,6 +89,7 @@ from uwbd.fusion.settings import FilterConfig, Mode
 from uwbd.fusion.types import FusionReport, Health, Pose
 
 Vec3 = tuple[float, float, float]
+POLICY_EVERY_NS = 100_000_000  # with single ranges, at a slow pose rate: ten times a second
 _NO_ANCHORS, _NONE = np.zeros((0, 3)), np.zeros(0)
 
 
@@ -126,7 +127,8 @@ class Filter:
         self._lever = tuple(float(c) for c in config.lever_arm_m)
         self.constraints = Constraints(config, self.est, self.findings, self.window,
                                        self.stillness, self.imu, self.recovery, self.fusion)
-        self._policy_ns = -(2**63)  # the policy's last run (once a pose period)
+        self._policy_ns = -(2**63)  # the policy's last run: once a pose period, and at
+        self._policy_every_ns = min(config.pose_period_ns, POLICY_EVERY_NS)  # least this often
         # the period's single ranges and samples, fused at its end (or when read)
         self.queue = PeriodQueue(config, self.est, self.findings, self.installation, self.imu,
                                  self.window, self.fusion, self.recovery, self._fuse_single)
@@ -258,7 +260,7 @@ class Filter:
                     self.queue.fuse()
             else:
                 reports += self._fuse_single(message)
-            if uwb.t_ns - self._policy_ns >= self.cfg.pose_period_ns:
+            if uwb.t_ns - self._policy_ns >= self._policy_every_ns:
                 self._fuse_queue()
                 self._period_policy(message, reports)
             return reports
@@ -314,7 +316,7 @@ class Filter:
         self._policy_ns = t_ns
         if self.installation.mirror.take_flip():
             self.recovery.restart(t_ns, "mirror side flipped by the ranges")
-        self._said_mirror()
+        self.est.monitor.mirror_said(self.installation.mirror)
         if self.est.ekf is None or self.est.t_ns is None:
             return
         self._track_fixes(t_ns, ids, anchors, ranges, None)
@@ -343,7 +345,7 @@ class Filter:
         self._policy_ns = t_ns
         if self.installation.mirror.take_flip():
             self.recovery.restart(t_ns, "mirror side flipped by the ranges")
-        self._said_mirror()
+        self.est.monitor.mirror_said(self.installation.mirror)
         if self.est.ekf is None:
             self.queue.period.clear()
             if self.installation.new_anchors:  # reported since the last start: laid out now
@@ -419,11 +421,6 @@ class Filter:
             self.records.append(EpochRecord(t_ns, *prior, *self._snapshot(),
                                             Phi if linked else None))
         return reports
-
-    def _said_mirror(self) -> None:
-        mirror, monitor = self.installation.mirror, self.est.monitor
-        monitor.mirror_flipped = mirror.side_doubted  # (in doubt: the note stays)
-        monitor.mirror_unresolved = mirror.unresolved or mirror.side_doubted
 
     def _snapshot(self) -> tuple[Nominal, Array]:
         ekf = self.est.ekf

@@ -122,7 +122,8 @@ class FilterConfig:
     fix_interval_s: float = 0.1
     max_imu_gap_s: float = 0.5
     # the policy (health, installation checks, exclusion, recovery) runs with every epoch and,
-    # for single ranges while tracking, once a pose period ([pipeline] pose_rate_hz)
+    # for single ranges while tracking, once a pose period ([pipeline] pose_rate_hz; ten
+    # times a second at least)
     pose_period_ns: int = 20_000_000
     attitude_lost_after_s: float = 3.0  # an IMU gap or rejected burst this long: re-level
     health: HealthLimits = field(default_factory=HealthLimits)

@@ -50,6 +50,7 @@ import math
 from statistics import NormalDist
 
 from uwbd.fusion.checks.separation import Separation
+from uwbd.fusion.policy.mirror import MirrorSide
 from uwbd.fusion.settings import HealthLimits
 from uwbd.fusion.types import Health, Phase
 
@@ -140,6 +141,12 @@ class HealthMonitor:
             self._inconsistent_since_ns = None
         elif self._inconsistent_since_ns is None:
             self._inconsistent_since_ns = t_ns
+
+    def mirror_said(self, mirror: MirrorSide) -> None:
+        """The side of a plane of anchors: unresolved (a note), or flipped by the data and
+        in doubt (the note stays, and no vertical level holds)."""
+        self.mirror_flipped = mirror.side_doubted
+        self.mirror_unresolved = mirror.unresolved or mirror.side_doubted
 
     def imu_rejected(self, t_ns: int) -> None:
         self._imu_fault_ns = t_ns
