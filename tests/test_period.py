@@ -97,7 +97,7 @@ def test_the_policy_runs_once_a_pose_period_and_ten_times_a_second_at_least() ->
                            pose_period_ns=period_ns)
         runs: list[int] = []
 
-        def watch(flt: Filter) -> None:
+        def watch(flt: Filter, runs: list[int] = runs) -> None:
             if flt.est.aligned and (not runs or flt._policy_ns != runs[-1]):
                 runs.append(flt._policy_ns)
 
