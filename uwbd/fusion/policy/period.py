@@ -2,16 +2,16 @@
 C core (decision (a) of the estimator's rebuild).
 
 While tracking, :class:`~uwbd.fusion.filter.Filter` runs its policy with every epoch and,
-for single ranges, once a pose period; the single ranges in between and the IMU samples
+for single ranges, once a pose period after them; the single ranges and the IMU samples
 that come among them are queued here, in the order they came, and fused when the period
 ends (or anything reads the state): ``State.fuse_period`` takes each item while it is the
 common one (a sample the IMU front passes with no gap: the front's rule; a range not
 earlier than the state, with a fresh IMU: :func:`.propagation.fresh_at`, judged here), and
-returns each range's outcome; any other item goes
-through the policy's own step (:meth:`ImuPropagation.step_one`, the filter's message
-step), which is also how the pure-Python core takes every item: the reference the C core
-is held to (tests/test_period.py). Its own state is the queue; the outcomes go to the
-parts they did before (reports, counters, health evidence, anchor statistics).
+returns each range's outcome; any other item goes through the policy's own step
+(:meth:`ImuPropagation.step_one`, the filter's single-range step), which is also how the
+pure-Python core takes every item: the reference the C core is held to
+(tests/test_period.py). Its own state is the queue; the outcomes go to the parts they did
+before (reports, counters, health evidence, anchor statistics).
 """
 
 from __future__ import annotations
