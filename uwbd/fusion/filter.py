@@ -182,7 +182,8 @@ class Filter:
             self.queue.fuse()
 
     def update(self, uwb: UwbRanges | AnchorRanges) -> list[FusionReport]:
-        """Fuse one UWB message (an epoch, or a single range); one report per measurement.
+        """Fuse one UWB message (an epoch, or a single range: queued, fused at the period's
+        end); a report per measurement fused since the last call (:meth:`flush`: the last).
         Anchor-to-anchor ranges (a survey's input, not the tag's) are passed over."""
         if not isinstance(uwb, UwbRanges):
             return []
