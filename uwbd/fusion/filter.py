@@ -315,9 +315,7 @@ class Filter:
         fading and the divergence checks."""
         t_ns, ids, anchors, ranges, _ = message
         self._policy_ns = t_ns
-        if self.installation.mirror.take_flip():
-            self.recovery.restart(t_ns, "mirror side flipped by the ranges")
-        self.est.monitor.mirror_said(self.installation.mirror)
+        self._mirror_side(t_ns)
         if self.est.ekf is None or self.est.t_ns is None:
             return
         self._track_fixes(t_ns, ids, anchors, ranges, None)
@@ -331,11 +329,23 @@ class Filter:
             linked, Phi, _ = self._propagate()
             self._fuse_numbers(self.est.t_ns, [], _NO_ANCHORS, _NONE, _NONE, None, constraints,
                                reports, linked, Phi)
+        self._after_update(t_ns, ids, anchors, ranges)
+
+    def _after_update(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array) -> bool:
+        """The separation test, fading, the divergence checks: True if they moved the state."""
         self.integrity.after_update(t_ns)
         self.recovery.fade(t_ns, ids, anchors, ranges)
-        if not self.recovery.check_divergence(t_ns, ids, anchors, ranges) \
-                and self.est.ekf is not None:
+        if self.recovery.check_divergence(t_ns, ids, anchors, ranges):
+            return True
+        if self.est.ekf is not None:
             self.recovery.last_good_P = self.est.ekf.P.copy()
+        return False
+
+    def _mirror_side(self, t_ns: int) -> None:
+        """The data flipped the side of a plane of anchors: a restart; the health told."""
+        if self.installation.mirror.take_flip():
+            self.recovery.restart(t_ns, "mirror side flipped by the ranges")
+        self.est.monitor.mirror_said(self.installation.mirror)
 
     def _decide(self, t_ns: int, ids: list[int], anchors: Array, ranges: Array,
                 r_scale: Array, fix: LsqFix | None, reports: list[FusionReport]
@@ -344,9 +354,7 @@ class Filter:
         installation checks on the period's ranges, the exclusions, the integrity test, the
         fading and the divergence checks."""
         self._policy_ns = t_ns
-        if self.installation.mirror.take_flip():
-            self.recovery.restart(t_ns, "mirror side flipped by the ranges")
-        self.est.monitor.mirror_said(self.installation.mirror)
+        self._mirror_side(t_ns)
         if self.est.ekf is None:
             self.queue.period.clear()
             if self.installation.new_anchors:  # reported since the last start: laid out now
@@ -406,17 +414,11 @@ class Filter:
                       r_scale: Array, fix: LsqFix | None, constraints: list[Rows],
                       reports: list[FusionReport], linked: bool, Phi: Array | None,
                       decide: bool = False) -> list[FusionReport]:
-        """The message's rows fused and reported; with ``decide``, then the integrity test,
-        the fading and the divergence checks; the smoother's record."""
+        """The message's rows fused and reported (``decide``: :meth:`_after_update` too)."""
         prior = self._snapshot() if self.records is not None else None
         reports += self.fusion.fuse_epoch(t_ns, ids, anchors, ranges, r_scale, fix, constraints)
-        if decide:
-            self.integrity.after_update(t_ns)
-            self.recovery.fade(t_ns, ids, anchors, ranges)
-            if self.recovery.check_divergence(t_ns, ids, anchors, ranges):
-                linked = False
-            elif self.est.ekf is not None:
-                self.recovery.last_good_P = self.est.ekf.P.copy()
+        if decide and self._after_update(t_ns, ids, anchors, ranges):
+            linked = False
         if prior is not None and self.records is not None and self.est.ekf is not None:
             assert Phi is not None
             self.records.append(EpochRecord(t_ns, *prior, *self._snapshot(),

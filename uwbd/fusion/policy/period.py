@@ -79,14 +79,12 @@ class PeriodQueue:
         return len(self._items) < MAX_QUEUED
 
     def add_range(self, message: Message) -> bool:
-        """A single range queued (an anchor left out keeps the state's step, without its
-        row); False once the queue is full."""
+        """A single range queued; False once the queue is full."""
         t_ns, ids, anchors, ranges, r_scale = message
         anchor = ids[0]
         self._items.append(message)
         self._order.append(_RANGE)
-        self._ranges.append((t_ns, None if anchor in self.findings.excluded else anchor,
-                             anchors[0].tolist(), float(ranges[0]),
+        self._ranges.append((t_ns, anchor, anchors[0].tolist(), float(ranges[0]),
                              self.cfg.range_sigma_m**2 * float(r_scale[0]),
                              self.installation.range_columns.get(anchor, ())))
         return len(self._items) < MAX_QUEUED
@@ -168,6 +166,9 @@ class PeriodQueue:
         count = self._common_prefix(order, samples, ranges)
         if count == 0:
             return 0, None
+        excluded = self.findings.excluded  # (as the period's policy left them: an anchor
+        if excluded:  # left out keeps the state's step, without its row, id None)
+            ranges = [(r[0], None, *r[2:]) if r[1] in excluded else r for r in ranges]
         done, reason, rows, outcomes, last_ns, state_ns, last, clamps, predicted = \
             ekf.fuse_period(self._front, order[:count], samples, ranges, plain.tolist(),
                             lever_index, self.fusion.range_policy(), MAX_SIGMA,
