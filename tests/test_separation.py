@@ -179,17 +179,40 @@ def test_an_anchor_found_among_too_few_to_leave_one_out_is_named_in_the_status()
 
 
 def test_a_biased_anchor_is_found_by_the_bank_and_left_out() -> None:
-    """A ground robot under nine anchors of mixed heights, one anchor's ranges 0.46 m short.
-    The bank's separation names it and the filter takes the sub-filter that never used it:
-    no pose's error beyond its levels, none healthy beyond the alert limits. Without the
-    bank nothing finds it, and the error is beyond the levels on many poses (measured 63)."""
-    case = draw_case(59)
-    assert case.fault == "range_offset" and abs(case.size + 0.46) < 0.01
-    scored, left_out, flt = _run(59)
+    """A ground robot among seven anchors, six near the tag's height and one high, one
+    anchor's ranges 0.71 m long. At the start at rest the test cannot tell which anchor is
+    wrong: without the faulty one, or without another (its solution on the far side of the
+    low anchors' plane), the rest fit alike; so it leaves none out and starts no surer than
+    the distance between those solutions. The bank's separation then names the anchor and
+    the filter takes the sub-filter that never used it: no pose's error beyond its levels,
+    none healthy beyond the alert limits. Without the bank nothing finds it, and the error is
+    beyond the levels on most poses (measured 783)."""
+    case = draw_case(16)
+    assert case.fault == "range_offset" and abs(case.size - 0.71) < 0.01
+    first_sigma_m: list[float] = []
+
+    def watch(flt: Filter) -> None:
+        if flt.ekf is not None and not first_sigma_m:
+            first_sigma_m.append(float(np.sqrt(flt.ekf.P[2, 2])))
+
+    scored, left_out, flt = _run(16, watch=watch)
+    assert flt.counters["start_anchor_left_out"] == 0 and first_sigma_m[0] > 1.0, first_sigma_m
     assert left_out == {case.anchor} and flt.counters["anchors_separated"] >= 1
     assert scored.beyond_pl == 0 and scored.healthy_beyond_alert == 0
-    blind, nothing, _ = _run(59, bank=False)
-    assert not nothing and blind.beyond_pl > 20, blind
+    blind, nothing, _ = _run(16, bank=False)
+    assert not nothing and blind.beyond_pl > 200, blind
+
+
+def test_an_anchor_a_start_at_rest_sees_is_left_out_from_the_start() -> None:
+    """A ground robot under nine anchors of mixed heights, one anchor's ranges 0.46 m short:
+    the rest's test finds it at the start, with or without the bank, and no pose's error is
+    beyond its levels."""
+    case = draw_case(59)
+    assert case.fault == "range_offset" and abs(case.size + 0.46) < 0.01
+    for bank in (True, False):
+        scored, left_out, flt = _run(59, bank=bank)
+        assert flt.counters["start_anchor_left_out"] == 1 and left_out == {case.anchor}
+        assert scored.beyond_pl == 0 and scored.healthy_beyond_alert == 0, scored
 
 
 def test_an_anchor_surveyed_off_is_left_out_by_taking_the_sub_filter_without_it() -> None:

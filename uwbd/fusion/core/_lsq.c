@@ -93,11 +93,25 @@ static int inverse(int dims, double A[3][3], double *out)
     return 0;
 }
 
+/* Σ (|x − a_i| − r_i)² over k anchors and ranges */
+static double sum_squares(const double *anchors, const double *ranges, Py_ssize_t k,
+                          const double x[3])
+{
+    double total = 0.0;
+    for (Py_ssize_t a = 0; a < k; a++) {
+        double dx = x[0] - anchors[3 * a], dy = x[1] - anchors[3 * a + 1],
+               dz = x[2] - anchors[3 * a + 2];
+        double r = sqrt(dx * dx + dy * dy + dz * dz) - ranges[a];
+        total += r * r;
+    }
+    return total;
+}
+
 /* lsq._solve's iteration (see gauss_newton below) on k anchors and ranges, x in place;
  * the iterations, or 0 for no fix; out (3×3) the last step's (JᵀJ)⁻¹ when there is one. */
 static long iterate(const double *anchors, const double *ranges, Py_ssize_t k, double x[3],
-                    int dims, long max_iter, double converged, double accept_last,
-                    double *out)
+                    int dims, long max_iter, long max_halvings, double converged,
+                    double accept_last, double *out)
 {
     long iteration = 0, result = 0;
     double JtJ[3][3];
@@ -110,9 +124,19 @@ static long iterate(const double *anchors, const double *ranges, Py_ssize_t k, d
             Jtr[i] = -Jtr[i];
         if (solve_small(dims, JtJ, Jtr, step) < 0)
             break;
+        /* a step that raises the squares is halved (lsq.MAX_HALVINGS times at most) */
+        double before = sum_squares(anchors, ranges, k, x), trial[3] = {x[0], x[1], x[2]};
+        for (int h = 0;; h++) {
+            for (int i = 0; i < dims; i++)
+                trial[i] = x[i] + step[i];
+            if (h == max_halvings || !(sum_squares(anchors, ranges, k, trial) > before))
+                break;
+            for (int i = 0; i < dims; i++)
+                step[i] *= 0.5;
+        }
         double norm = 0.0;
         for (int i = 0; i < dims; i++) {
-            x[i] += step[i];
+            x[i] = trial[i];
             norm += step[i] * step[i];
         }
         norm = sqrt(norm);
@@ -131,8 +155,9 @@ static long iterate(const double *anchors, const double *ranges, Py_ssize_t k, d
 }
 
 /* gauss_newton(anchors (k×3), ranges (k), x (3, in place), dims, max_iterations,
- *              converged_m, accept_last_m, out (3×3)) -> iterations, or 0 for no fix
- * lsq._solve's iteration: steps (JᵀJ) δ = −Jᵀ r on the first `dims` coordinates until a
+ *              max_halvings, converged_m, accept_last_m, out (3×3)) -> iterations, or 0
+ * lsq._solve's iteration: steps (JᵀJ) δ = −Jᵀ r on the first `dims` coordinates, each
+ * halved while it raises the squares (max_halvings times at most), until a
  * step is below converged_m; after max_iterations a last step above accept_last_m is no
  * fix; a range from an anchor closer than 1 µm or a singular JᵀJ is no fix either. `out`
  * gets (JᵀJ)⁻¹ of the last step in its top-left dims×dims, the rest zero: the fix's
@@ -140,8 +165,8 @@ static long iterate(const double *anchors, const double *ranges, Py_ssize_t k, d
 PyObject *uwbd_gauss_newton(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)self;
-    if (nargs != 8) {
-        PyErr_SetString(PyExc_TypeError, "gauss_newton takes 8 arguments");
+    if (nargs != 9) {
+        PyErr_SetString(PyExc_TypeError, "gauss_newton takes 9 arguments");
         return NULL;
     }
     long dims = PyLong_AsLong(args[3]);
@@ -150,10 +175,13 @@ PyObject *uwbd_gauss_newton(PyObject *self, PyObject *const *args, Py_ssize_t na
     long max_iter = PyLong_AsLong(args[4]);
     if (max_iter == -1 && PyErr_Occurred())
         return NULL;
-    double converged = PyFloat_AsDouble(args[5]);
+    long max_halvings = PyLong_AsLong(args[5]);
+    if (max_halvings == -1 && PyErr_Occurred())
+        return NULL;
+    double converged = PyFloat_AsDouble(args[6]);
     if (converged == -1.0 && PyErr_Occurred())
         return NULL;
-    double accept_last = PyFloat_AsDouble(args[6]);
+    double accept_last = PyFloat_AsDouble(args[7]);
     if (accept_last == -1.0 && PyErr_Occurred())
         return NULL;
     if (dims != 2 && dims != 3) {
@@ -165,7 +193,11 @@ PyObject *uwbd_gauss_newton(PyObject *self, PyObject *const *args, Py_ssize_t na
         return NULL;
     }
     Py_buffer Ab, rb, xb, ob;
-    if (get_doubles(args[7], &ob, 9, 1, "out") < 0)
+    if (max_halvings < 0) {
+        PyErr_SetString(PyExc_ValueError, "max_halvings must not be negative");
+        return NULL;
+    }
+    if (get_doubles(args[8], &ob, 9, 1, "out") < 0)
         return NULL;
     if (get_doubles(args[1], &rb, -1, 0, "ranges") < 0) {
         PyBuffer_Release(&ob);
@@ -184,7 +216,8 @@ PyObject *uwbd_gauss_newton(PyObject *self, PyObject *const *args, Py_ssize_t na
         return NULL;
     }
     long result = iterate((const double *)Ab.buf, (const double *)rb.buf, k,
-                          (double *)xb.buf, (int)dims, max_iter, converged, accept_last,
+                          (double *)xb.buf, (int)dims, max_iter, max_halvings, converged,
+                          accept_last,
                           (double *)ob.buf);
     PyBuffer_Release(&rb);
     PyBuffer_Release(&Ab);

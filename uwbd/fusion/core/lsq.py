@@ -7,7 +7,10 @@ solves ``(JᵀJ) δ = −Jᵀ r``; the covariance of the fix is ``σ² (JᵀJ)�
   anchors that are (nearly) coplanar, where the vertical is poorly observed and mirrored.
 * Gauss–Newton converges only linearly where the vertical is weakly observed (a tag between
   two anchor planes): the iteration stops at a 1 mm step, or keeps a fix still moving by
-  < 1 cm after 20 steps.
+  < 1 cm after 20 steps. In the plane of most anchors it overshoots the height to and fro
+  (the squares' curvature there is what Gauss–Newton leaves out): a step that raises the
+  squares is halved until it does not (``MAX_HALVINGS`` at most), so the iteration only
+  goes downhill.
 * **One outlier**: with at least one range more than the unknowns need, the range with the
   largest studentised residual is dropped when that residual exceeds ``outlier_sigma``,
   and the fix is solved again. 5 σ by default: NLOS excess is typically >= 0.5 m, while
@@ -31,6 +34,7 @@ from uwbd.fusion.core.rotation import Array
 MAX_ITERATIONS = 20
 CONVERGED_M = 1e-3  # a step this small ends the iteration: far below any range noise
 ACCEPT_LAST_STEP_M = 1e-2  # after MAX_ITERATIONS, a fix still creeping this slowly is kept
+MAX_HALVINGS = 10  # a step is cut to 1/1024 at most
 
 
 @dataclass(frozen=True)
@@ -124,8 +128,8 @@ def _solve(anchors_all: Array, ranges_all: Array, used: Array, sigma_m: float,
         inverse = np.zeros((3, 3))
         iteration = core.gauss_newton(np.ascontiguousarray(anchors, dtype=float),
                                       np.ascontiguousarray(ranges, dtype=float), x,
-                                      dims, MAX_ITERATIONS, CONVERGED_M, ACCEPT_LAST_STEP_M,
-                                      inverse)
+                                      dims, MAX_ITERATIONS, MAX_HALVINGS, CONVERGED_M,
+                                      ACCEPT_LAST_STEP_M, inverse)
         if iteration == 0:
             return None
         cov = sigma_m**2 * inverse
@@ -158,7 +162,14 @@ def _iterate(anchors: Array, ranges: Array, x: Array, dims: int) -> tuple[int, A
             step = np.linalg.solve(JtJ, -J.T @ r)
         except np.linalg.LinAlgError:
             return None
-        x[:dims] += step
+        before = _sum_squares(anchors, ranges, x)
+        trial = x.copy()
+        for halving in range(MAX_HALVINGS + 1):
+            trial[:dims] = x[:dims] + step
+            if halving == MAX_HALVINGS or not _sum_squares(anchors, ranges, trial) > before:
+                break
+            step = step * 0.5
+        x[:dims] = trial[:dims]
         if float(np.linalg.norm(step)) < CONVERGED_M:
             break
         if iteration == MAX_ITERATIONS:
@@ -168,6 +179,10 @@ def _iterate(anchors: Array, ranges: Array, x: Array, dims: int) -> tuple[int, A
     inverse = np.zeros((3, 3))
     inverse[:dims, :dims] = np.linalg.inv(JtJ)
     return iteration, inverse
+
+
+def _sum_squares(anchors: Array, ranges: Array, x: Array) -> float:
+    return float(np.sum((np.linalg.norm(x - anchors, axis=1) - ranges) ** 2))
 
 
 def common_offset(anchors_m: Array, ranges_m: Array, x0: Array) -> tuple[float, Array] | None:

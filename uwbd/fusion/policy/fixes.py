@@ -31,6 +31,7 @@ import collections
 import math
 from collections.abc import Mapping, Sequence
 from statistics import NormalDist
+from typing import NamedTuple
 
 import numpy as np
 
@@ -43,6 +44,17 @@ NS = 1_000_000_000
 REST_Z = NormalDist().inv_cdf(1.0 - 1e-3)  # the rest's test fails a right installation
 # once in a thousand starts
 REST_MIN_RANGES = 5  # an anchor's ranges the rest's average needs
+
+
+class RestFix(NamedTuple):
+    """A start at rest's position: the fix, the anchor left out of it with its mean range's
+    excess over the fix's distance (None: none), and how far the solutions without one
+    anchor that the test could not tell from this one lie from it (0 when the set passed or
+    one anchor was found): the start's position is no surer than that."""
+
+    fix: LsqFix
+    left_out: tuple[int, float] | None
+    spread_m: float = 0.0
 
 
 class RangeWindow:
@@ -103,11 +115,10 @@ class RangeWindow:
 
     def rest_fix(self, epochs: list[tuple[list[int], Array]],
                  anchors_m: Mapping[int, Sequence[float]], offset_sigma_m: float
-                 ) -> tuple[LsqFix, tuple[int, float] | None] | None:
-        """The rest's epochs (anchor ids, ranges) as one fix, and the anchor left out of it
-        with its mean range's excess over the fix's distance (None: none); None when too few
-        anchors have enough ranges. ``offset_sigma_m``: what a range's offset may be, 1 σ
-        (see the module doc)."""
+                 ) -> RestFix | None:
+        """The rest's epochs (anchor ids, ranges) as one fix (:class:`RestFix`); None when
+        too few anchors have enough ranges. ``offset_sigma_m``: what a range's offset may
+        be, 1 σ (see the module doc)."""
         sums: dict[int, list[float]] = {}
         for ids, ranges in epochs:
             for a, r in zip(ids, ranges.tolist(), strict=True):
@@ -122,27 +133,33 @@ class RangeWindow:
                         + offset_sigma_m**2)
         dims = 2 if self.fixed_z is not None else 3
 
-        def solved(keep: Array) -> tuple[LsqFix, bool] | None:
-            x0 = self.side.start_point() if self.side.ambiguous and self.fixed_z is None \
-                else None
-            fix = multilaterate(anchors[keep], ranges[keep], float(np.max(sigma)), x0,
-                                self.fixed_z, outlier_sigma=math.inf, side=self.side.sign,
-                                core=self._core)
-            if fix is None:
+        def solved(keep: Array, near: Array | None = None) -> tuple[LsqFix, bool] | None:
+            best: tuple[float, LsqFix] | None = None
+            for x0 in self._rest_starts(anchors[keep], near):
+                fix = multilaterate(anchors[keep], ranges[keep], float(np.max(sigma)), x0,
+                                    self.fixed_z, outlier_sigma=math.inf,
+                                    side=self.side.sign, core=self._core)
+                if fix is not None:
+                    sse = float(np.sum((fix.residuals_m / sigma[keep]) ** 2))
+                    if best is None or sse < best[0]:
+                        best = (sse, fix)
+            if best is None:
                 return None
             dof = int(keep.sum()) - dims
-            sse = float(np.sum((fix.residuals_m / sigma[keep]) ** 2))
-            return fix, dof <= 0 or sse <= dof * ratio_quantile(REST_Z, dof)
+            return best[1], dof <= 0 or best[0] <= dof * ratio_quantile(REST_Z, dof)
 
         every = np.ones(len(ids), dtype=bool)
         whole = solved(every)
         if whole is None or whole[1] or len(ids) <= self.needed:
-            return (whole[0], None) if whole is not None else None
+            return RestFix(whole[0], None) if whole is not None else None
         candidates: list[tuple[float, int, LsqFix, float]] = []
+        spread_m = 0.0
         for k in range(len(ids)):
-            without = solved(every & (np.arange(len(ids)) != k))
+            without = solved(every & (np.arange(len(ids)) != k), whole[0].position_m)
             if without is None or not without[1]:
                 continue
+            spread_m = max(spread_m, float(np.linalg.norm(without[0].position_m
+                                                          - whole[0].position_m)))
             # the anchor against the others' solution and its uncertainty: an anchor whose
             # removal only takes away what the others' error needed to be seen (the height,
             # say) leaves a solution too loose to disagree with it
@@ -154,9 +171,24 @@ class RangeWindow:
             if w > REST_Z:
                 candidates.append((w, ids[k], fix, excess))
         if len(candidates) != 1:  # none explains it, or more than one could: not told
-            return whole[0], None
+            return RestFix(whole[0], None, spread_m)
         _, anchor, fix, excess = candidates[0]
-        return fix, (anchor, excess)
+        return RestFix(fix, (anchor, excess))
+
+    def _rest_starts(self, anchors: Array, near: Array | None) -> list[Array | None]:
+        """Where the rest's least squares starts: over anchors on one plane, the side's
+        point; else the linear solution, and points under, among and over the anchors
+        (above ``near``, a solution of all the ranges, else their centre). A tag near the
+        plane of most anchors has a second minimum through that plane, which one range off
+        can make the lower; and from far off, the search for a height the ranges barely
+        see does not converge: start from each, keep the best."""
+        if self.fixed_z is not None:
+            return [None]
+        if self.side.ambiguous:
+            return [self.side.start_point()]
+        x, y, z = (anchors.mean(axis=0) if near is None else near).tolist()
+        low, high = float(anchors[:, 2].min()), float(anchors[:, 2].max())
+        return [None, *(np.array([x, y, h]) for h in (low - 1.0, z, high + 1.0))]
 
     def _solve(self, anchors: Array, ranges: Array, x0: Array | None,
                weigh: bool) -> LsqFix | None:

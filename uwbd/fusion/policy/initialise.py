@@ -59,14 +59,17 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
                 recent: list[tuple[int, Array]], fixes: list[tuple[int, Array]],
                 waited_long: bool, carry: Start | None, n_bias: int,
                 lever_m: Array, n_multipath: int = 0, n_lever: int = 0,
-                rest_m: Array | None = None, bank: Sequence[int] = (),
+                rest_m: Array | None = None, rest_spread_m: float = 0.0,
+                bank: Sequence[int] = (),
                 bank_var: Array | None = None, *, core: Core
                 ) -> tuple[Eskf, str] | None:
     """The new filter state and how it started (``rest``, ``moving``, ``carried``), or
     ``None`` while the evidence is not enough yet. ``recent``: fixes of the last
     ``init_static_s``; ``fixes``: all kept ones (time-ordered); ``rest_m``: their epochs
     solved together (:meth:`~uwbd.fusion.policy.fixes.RangeWindow.rest_fix`), the position
-    at rest where given, else the fixes' mean; ``bank``: the anchors the bank's sub-filters
+    at rest where given, else the fixes' mean, and ``rest_spread_m`` how far the solutions
+    its test could not rule out lie from it (the start's position σ is at least that);
+    ``bank``: the anchors the bank's sub-filters
     each leave out."""
     means = window.means()
     if means is None:
@@ -95,7 +98,7 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
         v, bg = np.zeros(3), np.asarray(gyro)
         # at rest |f| = g: what is left over lies along the vertical, as an accel bias
         ba = (f_norm - cfg.gravity_mps2) * np.asarray(acc) / f_norm
-        sig_p, sig_v, sig_bg, how = sig_fix, 0.05, 0.005, "rest"
+        sig_p, sig_v, sig_bg, how = max(sig_fix, rest_spread_m), 0.05, 0.005, "rest"
     elif waited_long and len(fixes) >= 2:
         last = [(t, x) for t, x in fixes if t >= fixes[-1][0] - NS]
         if len(last) >= 5:

@@ -89,17 +89,18 @@ class Recovery:
                                         self.installation.anchors, self._offset_sigma())
         start = start_state(cfg, self.window, fix, recent, list(self.fixes), waited_long,
                             self._carry, *self._state_sizes(),
-                            rest_m=rest[0].position_m if rest is not None else None,
+                            rest_m=rest.fix.position_m if rest is not None else None,
+                            rest_spread_m=rest.spread_m if rest is not None else 0.0,
                             bank=self.installation.bank,
                             bank_var=self.installation.bank_variances(), core=self._core)
         if start is None:
             return
         self._begin(start, t_ns)
         self.est.monitor.last_range_ns = t_ns  # the start is a UWB fix
-        if rest is not None and rest[1] is not None and start[1] == "rest":
+        if rest is not None and rest.left_out is not None and start[1] == "rest":
             # the anchor test's finding from the start: its ranges are left out, and the
             # test, once the heading is known, confirms it or lets it go after its hold
-            anchor, excess_m = rest[1]
+            anchor, excess_m = rest.left_out
             self.findings.consistency.found(t_ns, anchor, excess_m, self._offset_sigma())
             self.est.counters["start_anchor_left_out"] += 1
 
