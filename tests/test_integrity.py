@@ -33,8 +33,8 @@ from uwbd.fusion.core.layout import N_CORE
 from uwbd.fusion.core.lsq import multilaterate
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.filter import Filter
+from uwbd.fusion.policy.health import height_bounds
 from uwbd.fusion.policy.mirror import MirrorSide
-from uwbd.fusion.policy.recovery import plausible_height
 from uwbd.fusion.settings import FilterConfig, Mode, RobustPolicy
 from uwbd.fusion.types import Phase, Pose
 from uwbd.service.pipeline import Pipeline, PoseList
@@ -667,6 +667,12 @@ def test_a_fix_at_a_ground_robots_height_under_a_high_ceiling_is_plausible() -> 
     """Campaign seed 8 (#43): anchors on a 3.8 m ceiling, the robot at 0.4 m; every reset's
     fix was refused as 'implausible' and the estimate ran 200 m away. The floor bounds it now;
     metres above the anchors or below the floor stays refused."""
+
+    def plausible_height(z: float, height_range_m: tuple[float, float] | None,
+                         anchor_heights: list[float]) -> bool:
+        low, high = height_bounds(height_range_m, anchor_heights)
+        return low <= z <= high
+
     ceiling = [3.8, 3.82, 3.77, 3.85]
     assert plausible_height(0.4, None, ceiling) and plausible_height(0.4, None, [8.0] * 4)
     assert not plausible_height(-3.5, None, ceiling) and not plausible_height(7.0, None, ceiling)

@@ -11,7 +11,7 @@ from uwbd.fusion.core import native
 from uwbd.fusion.core.lsq import LsqFix
 from uwbd.fusion.policy.alignment import HeadingAligner
 from uwbd.fusion.policy.fixes import RangeWindow
-from uwbd.fusion.policy.health import HealthMonitor
+from uwbd.fusion.policy.health import HealthMonitor, height_bounds
 from uwbd.fusion.policy.mirror import MirrorSide
 from uwbd.fusion.policy.rest import STILL_EVERY_NS, UwbStillness
 from uwbd.fusion.settings import HealthLimits
@@ -36,6 +36,22 @@ def test_consistent_innovations_track_and_a_run_of_rejections_is_inconsistent() 
     health = monitor.assess(T0 + 14 * NS // 10, True, True, 0.05, True)
     assert health.phase is Phase.DEGRADED and "innovations_inconsistent" in health.faults
     assert not monitor.diverged(T0 + 15 * NS // 10) and monitor.diverged(T0 + 33 * NS // 10)
+
+
+def test_an_estimate_at_a_height_the_tag_cannot_be_has_no_level() -> None:
+    """Anchors 0.4-2.5 m up: an estimate 3 m below the floor is wrong whatever its covariance
+    claims (campaign report seed 1017: four anchors, one's ranges 0.82 m long, the state 4 m
+    under the floor with a VPL of 1.5 m). No level holds, and the fault says why."""
+    monitor = HealthMonitor(HealthLimits())
+    monitor.heights_m = height_bounds(None, [0.4, 2.5, 1.1, 2.5])
+    for k in range(12):
+        monitor.uwb_outcome(T0 + k * NS // 10, True, 1.0)
+    fine = monitor.assess(T0 + NS, True, True, 0.05, True, 0.05, height_m=1.2)
+    assert fine.phase is Phase.TRACKING and fine.horizontal_protection_m is not None
+    for z in (-3.0, 6.0, math.nan):
+        wrong = monitor.assess(T0 + NS, True, True, 0.05, True, 0.05, height_m=z)
+        assert "height_implausible" in wrong.faults and not wrong.healthy
+        assert wrong.horizontal_protection_m is None and wrong.vertical_protection_m is None
 
 
 def test_a_high_mean_nis_over_the_window_is_inconsistent_though_all_pass() -> None:

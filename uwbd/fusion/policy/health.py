@@ -30,7 +30,9 @@ ranges disagree with the others' and it is not left out:
 :mod:`uwbd.fusion.checks.anchor_consistency` or the separation; the status names it),
 ``mounting_inconsistent`` (with NHC on, the vehicle moves sideways in body axes: a
 mounting turned about z, :mod:`uwbd.fusion.checks.mounting_yaw`; the status's
-``mounting_finding`` says by how much).
+``mounting_finding`` says by how much), ``height_implausible`` (the estimate is at a height
+the tag cannot be, :func:`height_bounds`: it is wrong, whatever its covariance claims, and
+no level holds).
 Notes do not make the estimate unhealthy: ``anchor_excluded`` (an anchor found wrong is
 left out; the rest agree), ``height_uncertain`` (with ``height_needed`` off, the vertical
 level not known or over its limit), ``mirror_unresolved`` (coplanar anchors, side
@@ -55,6 +57,26 @@ from uwbd.fusion.settings import HealthLimits
 from uwbd.fusion.types import Health, Phase
 
 NS = 1_000_000_000
+FIX_HEIGHT_MARGIN_M = 3.0  # a height this far above every anchor, or below every anchor
+# and below the floor by FLOOR_MARGIN_M (the navigation frame's z 0 taken as the floor), is
+# not one the tag can be at
+FLOOR_MARGIN_M = 0.5
+
+
+def height_bounds(height_range_m: tuple[float, float] | None,
+                  anchor_heights: list[float]) -> tuple[float, float]:
+    """The heights the tag can be at: ``height_range_m``; or else up to
+    ``FIX_HEIGHT_MARGIN_M`` above the highest anchor, and down to that margin below the
+    lowest anchor or ``FLOOR_MARGIN_M`` below the floor (z 0), whichever is lower. NLOS on
+    every anchor at once leaves residuals as small as a true fix's at a place metres above
+    or below any the tag can be, and a ground robot under anchors on a high ceiling is far
+    below every anchor but not below the floor."""
+    if height_range_m is not None:
+        return height_range_m
+    if not anchor_heights:
+        return -math.inf, math.inf
+    return (min(min(anchor_heights) - FIX_HEIGHT_MARGIN_M, -FLOOR_MARGIN_M),
+            max(anchor_heights) + FIX_HEIGHT_MARGIN_M)
 
 
 class HealthMonitor:
@@ -98,6 +120,7 @@ class HealthMonitor:
         self.mounting_suspect = False  # gravity far from body up at the start at rest
         self.mounting_inconsistent = False  # the vehicle moves sideways in body axes (NHC)
         self.range_model_held = False  # a range model configured, not applied yet (no heading)
+        self.heights_m = (-math.inf, math.inf)  # where the tag can be (height_bounds)
         self._after_reset = False
         self._fault_ns: int | None = None  # the last assessment with a fault
 
@@ -184,11 +207,11 @@ class HealthMonitor:
     def assess(self, t_ns: int, running: bool, heading_observable: bool,
                position_sigma_m: float | None, finite: bool,
                vertical_sigma_m: float | None = 0.0, imu_silent: bool = False,
-               major_sigma_m: float | None = None) -> Health:
+               major_sigma_m: float | None = None, height_m: float = 0.0) -> Health:
         """``position_sigma_m``: √(σx² + σy²); ``vertical_sigma_m``: σz (``None``: not
         known, uncertain); ``major_sigma_m``: the horizontal error ellipse's major axis
         (``None``: ``position_sigma_m``, which bounds it); ``imu_silent``: no good IMU
-        sample for longer than an IMU gap."""
+        sample for longer than an IMU gap; ``height_m``: the estimate's height."""
         lim = self.limits
         since = None if self.last_range_ns is None else (t_ns - self.last_range_ns) / NS
         faults = []
@@ -224,6 +247,10 @@ class HealthMonitor:
             if self.side_lost or self.mirror_flipped:  # the tag may be the mirror image:
                 # the height is not known
                 vpl = None
+            low, high = self.heights_m
+            if not low <= height_m <= high:  # (NaN too) the estimate cannot be right
+                faults.append("height_implausible")
+                hpl = vpl = None
             h_ok = hpl is not None and hpl <= lim.horizontal_alert_limit_m
             v_ok = vpl is not None and vpl <= lim.vertical_alert_limit_m
             starting = warming and self.separation_starting  # (aligning, below)

@@ -34,7 +34,7 @@ def health_at(est: Estimate, t_ns: int | None, good_imu_ns: int | None,
     finite = math.isfinite(sigma_xy + sigma_z + sum(ekf.p) + sum(ekf.v) + sum(ekf.q))
     observable = heading_observable(est.aligned, ekf.yaw_sigma_rad() ** 2)
     return est.monitor.assess(t_ns, True, observable, sigma_xy, finite, sigma_z, imu_silent,
-                              _major_sigma(P[0, 0], P[0, 1], P[1, 1]))
+                              _major_sigma(P[0, 0], P[0, 1], P[1, 1]), float(ekf.p[2]))
 
 
 def pose_of(est: Estimate, t_ns: int, numbers: PoseNumbers) -> Pose:
@@ -43,7 +43,8 @@ def pose_of(est: Estimate, t_ns: int, numbers: PoseNumbers) -> Pose:
     observable = heading_observable(est.aligned, covariance[35])  # yaw's variance
     health = est.monitor.assess(t_ns, True, observable, sigma_xy, True,
                                 math.sqrt(max(covariance[14], 0.0)), False,  # σz²: [2, 2]
-                                _major_sigma(covariance[0], covariance[1], covariance[7]))
+                                _major_sigma(covariance[0], covariance[1], covariance[7]),
+                                position[2])
     return Pose(t_ns, position, velocity, orientation, covariance, health.summary(),
                 observable, health)
 

@@ -23,6 +23,7 @@ from uwbd.fusion.core.native import Core
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.policy.estimate import Estimate, Findings, new_aligner
 from uwbd.fusion.policy.fixes import RangeWindow, consistent
+from uwbd.fusion.policy.health import height_bounds
 from uwbd.fusion.policy.initialise import Start, start_state
 from uwbd.fusion.policy.installation import Installation
 from uwbd.fusion.policy.rest import ImuWindow, UwbStillness
@@ -38,9 +39,6 @@ FADE_PER_S = 1.0  # variance growth rate while the innovations are inconsistent
 SLOW_FADE_PER_S = 0.25
 MAX_FADE_STEP_NS = NS // 5
 REPEATED_RESET_NS = 10 * NS  # a second divergence this soon after a position reset restarts
-FIX_HEIGHT_MARGIN_M = 3.0  # a reset's fix this far above every anchor, or below every anchor
-# and below the floor by FLOOR_MARGIN_M (the navigation frame's z 0 taken as the floor), is refused
-FLOOR_MARGIN_M = 0.5
 MAX_REST_TILT_DEG = 30.0  # gravity this far from body up at a start at rest: said
 
 
@@ -175,6 +173,10 @@ class Recovery:
         ekf.keep_transition = self.est.keep_transition  # Φ: only the smoother's
         self.est.ekf = ekf
         self.est.t_ns = t_ns
+        # the heights the tag can be at, over the anchors known now: a reset's fix, and the
+        # health (no level holds beyond them)
+        self.est.monitor.heights_m = height_bounds(
+            self.cfg.height_range_m, [a[2] for a in self.installation.anchors.values()])
         self._carry = None
         self._started_ns = None
         self.last_good_P = None
@@ -339,8 +341,9 @@ class Recovery:
                           self.ranges.needed)
 
     def _plausible_height(self, fix: LsqFix) -> bool:
-        return plausible_height(float(fix.position_m[2]), self.cfg.height_range_m,
-                                [pos[2] for pos in self.installation.anchors.values()])
+        """A fix at a height the tag can be at (:func:`~.health.height_bounds`)."""
+        low, high = self.est.monitor.heights_m
+        return low <= float(fix.position_m[2]) <= high
 
     def inflate(self, velocity_mps: float, attitude_rad: float, position_m: float = 0.0) -> None:
         ekf = self.est.ekf
@@ -350,20 +353,3 @@ class Recovery:
         d[V_] = velocity_mps**2
         d[TH_] = attitude_rad**2
         ekf.add_variances(d)
-
-
-def plausible_height(z: float, height_range_m: tuple[float, float] | None,
-                     anchor_heights: list[float]) -> bool:
-    """A fix's height ``z`` within ``height_range_m``; or else at most
-    ``FIX_HEIGHT_MARGIN_M`` above the highest anchor, and no lower than that margin below the
-    lowest anchor or ``FLOOR_MARGIN_M`` below the floor (z 0), whichever is lower: NLOS on
-    every anchor at once leaves residuals as small as a true fix's, at a place metres above
-    or below any the tag can be, and a ground robot under anchors on a high ceiling is far
-    below every anchor but not below the floor."""
-    if height_range_m is not None:
-        low, high = height_range_m
-        return low <= z <= high
-    if not anchor_heights:
-        return True
-    low = min(min(anchor_heights) - FIX_HEIGHT_MARGIN_M, -FLOOR_MARGIN_M)
-    return low <= z <= max(anchor_heights) + FIX_HEIGHT_MARGIN_M
