@@ -199,8 +199,13 @@ def test_a_start_at_rest_solves_its_epochs_together_and_leaves_out_the_one_ancho
     window = RangeWindow(1.0, 0.2, 0.1, MirrorSide(np.array(list(anchors.values())),
                                                    core=native.core), None, core=native.core)
     solved = window.rest_fix(epochs(np.zeros(6)), anchors, 0.03)
-    assert solved is not None and solved[1] is None
+    assert solved is not None and solved[1] is None and solved.spread_m == 0.0
     assert np.linalg.norm(solved[0].position_m - tag) < 0.05
+    # four anchors: nothing to spare for a test, and without any one of them the other
+    # three fit the tag or its mirror through their plane: the start is no surer than that
+    four = {a: anchors[a] for a in (0, 1, 2, 3)}
+    solved = window.rest_fix([(ids[:4], r[:4]) for ids, r in epochs(np.zeros(6))], four, 0.03)
+    assert solved is not None and solved[1] is None and solved.spread_m > 1.0, solved
     wrong = dict(anchors)
     wrong[3] = (11.0, -10.0, 5.0)
     solved = window.rest_fix(epochs(np.zeros(6)), wrong, 0.03)

@@ -203,6 +203,18 @@ def test_a_biased_anchor_is_found_by_the_bank_and_left_out() -> None:
     assert not nothing and blind.beyond_pl > 200, blind
 
 
+def test_four_anchors_one_surveyed_off_start_no_surer_than_any_three_allow() -> None:
+    """A handheld tag under four anchors, one surveyed 1.8 m off. With no range to spare,
+    the start cannot test its anchors, and a fit of all four hides the fault (2 m off in
+    height); it starts no surer than the solutions of any three, so the levels cover the
+    error on nearly every pose (measured: 30 poses beyond; 172 with the start's σ the fit's
+    own)."""
+    case = draw_case(47)
+    assert case.fault == "anchor_position" and len(case.sim.anchors_m) == 4
+    scored, _, _ = _run(47)
+    assert scored.beyond_pl < 60 and scored.healthy_beyond_alert == 0, scored
+
+
 def test_an_anchor_a_start_at_rest_sees_is_left_out_from_the_start() -> None:
     """A ground robot under nine anchors of mixed heights, one anchor's ranges 0.46 m short:
     the rest's test finds it at the start, with or without the bank, and no pose's error is

@@ -133,25 +133,39 @@ class RangeWindow:
                         + offset_sigma_m**2)
         dims = 2 if self.fixed_z is not None else 3
 
-        def solved(keep: Array, near: Array | None = None) -> tuple[LsqFix, bool] | None:
-            best: tuple[float, LsqFix] | None = None
+        def solutions(keep: Array, near: Array | None = None) -> list[tuple[float, LsqFix]]:
+            """Each start's solution of the anchors ``keep``, with its squares (over σ²)."""
+            out = []
             for x0 in self._rest_starts(anchors[keep], near):
                 fix = multilaterate(anchors[keep], ranges[keep], float(np.max(sigma)), x0,
                                     self.fixed_z, outlier_sigma=math.inf,
                                     side=self.side.sign, core=self._core)
                 if fix is not None:
-                    sse = float(np.sum((fix.residuals_m / sigma[keep]) ** 2))
-                    if best is None or sse < best[0]:
-                        best = (sse, fix)
-            if best is None:
+                    out.append((float(np.sum((fix.residuals_m / sigma[keep]) ** 2)), fix))
+            return out
+
+        def solved(keep: Array, near: Array | None = None) -> tuple[LsqFix, bool] | None:
+            found = solutions(keep, near)
+            if not found:
                 return None
+            sse, fix = min(found, key=lambda f: f[0])
             dof = int(keep.sum()) - dims
-            return best[1], dof <= 0 or best[0] <= dof * ratio_quantile(REST_Z, dof)
+            return fix, dof <= 0 or sse <= dof * ratio_quantile(REST_Z, dof)
 
         every = np.ones(len(ids), dtype=bool)
         whole = solved(every)
-        if whole is None or whole[1] or len(ids) <= self.needed:
-            return RestFix(whole[0], None) if whole is not None else None
+        if whole is None:
+            return None
+        if len(ids) <= self.needed and not self.side.ambiguous:
+            # no range to spare for naming one: any could be off (over anchors on one
+            # plane, the mirror side holds the question of the height)
+            here = whole[0].position_m
+            return RestFix(whole[0], None, max(
+                (float(np.linalg.norm(fix.position_m - here)) for k in range(len(ids))
+                 for _, fix in solutions(every & (np.arange(len(ids)) != k), here)),
+                default=0.0))
+        if whole[1]:
+            return RestFix(whole[0], None)
         candidates: list[tuple[float, int, LsqFix, float]] = []
         spread_m = 0.0
         for k in range(len(ids)):

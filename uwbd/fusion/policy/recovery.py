@@ -173,10 +173,7 @@ class Recovery:
         ekf.keep_transition = self.est.keep_transition  # Φ: only the smoother's
         self.est.ekf = ekf
         self.est.t_ns = t_ns
-        # the heights the tag can be at, over the anchors known now: a reset's fix, and the
-        # health (no level holds beyond them)
-        self.est.monitor.heights_m = height_bounds(
-            self.cfg.height_range_m, [a[2] for a in self.installation.anchors.values()])
+        self.est.monitor.heights_m = self._heights()  # the health's: no level beyond them
         self._carry = None
         self._started_ns = None
         self.last_good_P = None
@@ -340,9 +337,15 @@ class Recovery:
         return consistent(fix, anchors, ranges, cfg.range_sigma_m, cfg.tag_delay_sigma_m,
                           self.ranges.needed)
 
+    def _heights(self) -> tuple[float, float]:
+        """The heights the tag can be at, over the anchors known now (those the device
+        reports among them)."""
+        return height_bounds(self.cfg.height_range_m,
+                             [a[2] for a in self.installation.anchors.values()])
+
     def _plausible_height(self, fix: LsqFix) -> bool:
-        """A fix at a height the tag can be at (:func:`~.health.height_bounds`)."""
-        low, high = self.est.monitor.heights_m
+        """A restart's or a reset's fix at a height the tag can be at."""
+        low, high = self._heights()
         return low <= float(fix.position_m[2]) <= high
 
     def inflate(self, velocity_mps: float, attitude_rad: float, position_m: float = 0.0) -> None:
