@@ -38,6 +38,25 @@ def test_consistent_innovations_track_and_a_run_of_rejections_is_inconsistent() 
     assert not monitor.diverged(T0 + 15 * NS // 10) and monitor.diverged(T0 + 33 * NS // 10)
 
 
+def test_a_rest_heard_from_anchors_on_one_plane_stays_on_the_sides_side() -> None:
+    """Five anchors on a 2.5 m ceiling and one low one that the rest did not hear: the
+    heard anchors fit the tag and its mirror above the ceiling alike, and the start takes
+    the side's (below ceiling anchors), never the mirror, whatever the noise."""
+    anchors = {0: (0.0, 0.0, 2.5), 1: (8.0, 0.0, 2.52), 2: (8.0, 6.0, 2.48),
+               3: (0.0, 6.0, 2.5), 4: (4.0, 3.0, 2.51), 5: (4.0, 0.0, 0.3)}
+    side = MirrorSide(np.array(list(anchors.values())), core=native.core)
+    assert not side.ambiguous and side.sign == -1
+    tag = np.array([3.0, 2.0, 0.3])
+    heard = [0, 1, 2, 3, 4]
+    true = np.array([np.linalg.norm(tag - np.array(anchors[a])) for a in heard])
+    window = RangeWindow(1.0, 0.2, 0.1, side, None, core=native.core)
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        rest = [(heard, true + rng.normal(0, 0.1, 5)) for _ in range(20)]
+        solved = window.rest_fix(rest, anchors, 0.03)
+        assert solved is not None and solved.fix.position_m[2] < 2.0, (seed, solved)
+
+
 def test_an_estimate_at_a_height_the_tag_cannot_be_has_no_level() -> None:
     """Anchors 0.4-2.5 m up: an estimate 3 m below the floor is wrong whatever its covariance
     claims (campaign report seed 1017: four anchors, one's ranges 0.82 m long, the state 4 m

@@ -197,6 +197,7 @@ def test_a_biased_anchor_is_found_by_the_bank_and_left_out() -> None:
 
     scored, left_out, flt = _run(16, watch=watch)
     assert flt.counters["start_anchor_left_out"] == 0 and first_sigma_m[0] > 1.0, first_sigma_m
+    assert all(math.isfinite(h) for h in flt.est.monitor.heights_m)  # laid out at the start
     assert left_out == {case.anchor} and flt.counters["anchors_separated"] >= 1
     assert scored.beyond_pl == 0 and scored.healthy_beyond_alert == 0
     blind, nothing, _ = _run(16, bank=False)

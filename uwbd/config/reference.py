@@ -121,7 +121,9 @@ REFERENCE: dict[str, dict[str, Entry]] = {
                           "decide where the anchors are far enough off one plane that their "
                           "delays could not fake the other side)"),
         "height_range_m": Entry(None, "`[lowest, highest]` the tag can be: settles the side "
-                                "of a plane of anchors, and a fix outside it is refused",
+                                "of a plane of anchors, a fix outside it is refused, and an "
+                                "estimate outside it beyond its own σz is the fault "
+                                "`height_implausible`",
                                 "up to 3 m above the highest anchor, down to 3 m below the "
                                 "lowest or 0.5 m below z 0 (the floor), whichever is lower"),
         "zupt": Entry(_F.zupt, "zero-velocity updates at rest"),

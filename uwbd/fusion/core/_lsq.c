@@ -124,7 +124,13 @@ static long iterate(const double *anchors, const double *ranges, Py_ssize_t k, d
             Jtr[i] = -Jtr[i];
         if (solve_small(dims, JtJ, Jtr, step) < 0)
             break;
-        /* a step that raises the squares is halved (lsq.MAX_HALVINGS times at most) */
+        /* convergence is judged on the full step (a search cut short has not converged);
+         * the step taken is halved while it raises the squares (lsq.MAX_HALVINGS times at
+         * most) */
+        double norm = 0.0;
+        for (int i = 0; i < dims; i++)
+            norm += step[i] * step[i];
+        norm = sqrt(norm);
         double before = sum_squares(anchors, ranges, k, x), trial[3] = {x[0], x[1], x[2]};
         for (int h = 0;; h++) {
             for (int i = 0; i < dims; i++)
@@ -134,12 +140,8 @@ static long iterate(const double *anchors, const double *ranges, Py_ssize_t k, d
             for (int i = 0; i < dims; i++)
                 step[i] *= 0.5;
         }
-        double norm = 0.0;
-        for (int i = 0; i < dims; i++) {
+        for (int i = 0; i < dims; i++)
             x[i] = trial[i];
-            norm += step[i] * step[i];
-        }
-        norm = sqrt(norm);
         if (norm < converged) {
             result = iteration;
             break;
@@ -157,7 +159,7 @@ static long iterate(const double *anchors, const double *ranges, Py_ssize_t k, d
 /* gauss_newton(anchors (k×3), ranges (k), x (3, in place), dims, max_iterations,
  *              max_halvings, converged_m, accept_last_m, out (3×3)) -> iterations, or 0
  * lsq._solve's iteration: steps (JᵀJ) δ = −Jᵀ r on the first `dims` coordinates, each
- * halved while it raises the squares (max_halvings times at most), until a
+ * halved while it raises the squares (max_halvings times at most), until a full
  * step is below converged_m; after max_iterations a last step above accept_last_m is no
  * fix; a range from an anchor closer than 1 µm or a singular JᵀJ is no fix either. `out`
  * gets (JᵀJ)⁻¹ of the last step in its top-left dims×dims, the rest zero: the fix's

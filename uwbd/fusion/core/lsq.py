@@ -8,9 +8,10 @@ solves ``(JᵀJ) δ = −Jᵀ r``; the covariance of the fix is ``σ² (JᵀJ)�
 * Gauss–Newton converges only linearly where the vertical is weakly observed (a tag between
   two anchor planes): the iteration stops at a 1 mm step, or keeps a fix still moving by
   < 1 cm after 20 steps. In the plane of most anchors it overshoots the height to and fro
-  (the squares' curvature there is what Gauss–Newton leaves out): a step that raises the
-  squares is halved until it does not (``MAX_HALVINGS`` at most), so the iteration only
-  goes downhill.
+  (the squares' curvature there is what Gauss–Newton leaves out): the step taken is halved
+  while it raises the squares (``MAX_HALVINGS`` at most, after which it is taken as it
+  is), which damps the swing. Both tests above judge the full step: a search cut short
+  has not converged.
 * **One outlier**: with at least one range more than the unknowns need, the range with the
   largest studentised residual is dropped when that residual exceeds ``outlier_sigma``,
   and the fix is solved again. 5 σ by default: NLOS excess is typically >= 0.5 m, while
@@ -162,6 +163,7 @@ def _iterate(anchors: Array, ranges: Array, x: Array, dims: int) -> tuple[int, A
             step = np.linalg.solve(JtJ, -J.T @ r)
         except np.linalg.LinAlgError:
             return None
+        full = float(np.linalg.norm(step))  # judged whole: a search cut short has not converged
         before = _sum_squares(anchors, ranges, x)
         trial = x.copy()
         for halving in range(MAX_HALVINGS + 1):
@@ -170,10 +172,10 @@ def _iterate(anchors: Array, ranges: Array, x: Array, dims: int) -> tuple[int, A
                 break
             step = step * 0.5
         x[:dims] = trial[:dims]
-        if float(np.linalg.norm(step)) < CONVERGED_M:
+        if full < CONVERGED_M:
             break
         if iteration == MAX_ITERATIONS:
-            if not float(np.linalg.norm(step)) <= ACCEPT_LAST_STEP_M:
+            if not full <= ACCEPT_LAST_STEP_M:
                 return None  # diverging, oscillating or NaN: no fix
             break
     inverse = np.zeros((3, 3))

@@ -22,7 +22,10 @@ the only anchor that sees the height lets the rest pass by losing the height, no
 right) is a candidate, and exactly one candidate is left out of the start (fault
 detection and exclusion, as in RAIM). With none (several anchors' offsets, which the
 range-offset states then learn) or several (one anchor long, or another short, explain
-the place alike) the plain solution stands.
+the place alike) the plain solution stands, and the start is no surer than the distance
+to the solutions it could not rule out (:class:`RestFix`); so too with four anchors, which
+leave no range to spare for a test. Each set is solved from several starting points (a tag
+near the plane of most anchors has a second minimum on its far side) and the best kept.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from uwbd.fusion.core.lsq import LsqFix, common_offset, multilaterate
+from uwbd.fusion.core.lsq import LsqFix, common_offset, coplanar, multilaterate
 from uwbd.fusion.core.native import Core
 from uwbd.fusion.core.rotation import Array
 from uwbd.fusion.policy.mirror import MirrorSide
@@ -48,9 +51,9 @@ REST_MIN_RANGES = 5  # an anchor's ranges the rest's average needs
 
 class RestFix(NamedTuple):
     """A start at rest's position: the fix, the anchor left out of it with its mean range's
-    excess over the fix's distance (None: none), and how far the solutions without one
-    anchor that the test could not tell from this one lie from it (0 when the set passed or
-    one anchor was found): the start's position is no surer than that."""
+    excess over the fix's distance (None: none), and how far the solutions it could not rule
+    out lie from it (without one anchor, where the set failed and no one anchor was named;
+    with four anchors, any three's; else 0): the start's position is no surer than that."""
 
     fix: LsqFix
     left_out: tuple[int, float] | None
@@ -114,11 +117,12 @@ class RangeWindow:
         return [(ids, ranges) for t, ids, ranges in self.epochs if t >= since_ns]
 
     def rest_fix(self, epochs: list[tuple[list[int], Array]],
-                 anchors_m: Mapping[int, Sequence[float]], offset_sigma_m: float
-                 ) -> RestFix | None:
+                 anchors_m: Mapping[int, Sequence[float]], offset_sigma_m: float,
+                 heights_m: tuple[float, float] = (-math.inf, math.inf)) -> RestFix | None:
         """The rest's epochs (anchor ids, ranges) as one fix (:class:`RestFix`); None when
         too few anchors have enough ranges. ``offset_sigma_m``: what a range's offset may
-        be, 1 σ (see the module doc)."""
+        be, 1 σ (see the module doc); ``heights_m``: where the tag can be (a solution
+        elsewhere is no hypothesis to start as unsure as)."""
         sums: dict[int, list[float]] = {}
         for ids, ranges in epochs:
             for a, r in zip(ids, ranges.tolist(), strict=True):
@@ -133,10 +137,11 @@ class RangeWindow:
                         + offset_sigma_m**2)
         dims = 2 if self.fixed_z is not None else 3
 
-        def solutions(keep: Array, near: Array | None = None) -> list[tuple[float, LsqFix]]:
+        def solutions(keep: Array, near: Array | None = None,
+                      both_sides: bool = False) -> list[tuple[float, LsqFix]]:
             """Each start's solution of the anchors ``keep``, with its squares (over σ²)."""
             out = []
-            for x0 in self._rest_starts(anchors[keep], near):
+            for x0 in self._rest_starts(anchors[keep], near, both_sides):
                 fix = multilaterate(anchors[keep], ranges[keep], float(np.max(sigma)), x0,
                                     self.fixed_z, outlier_sigma=math.inf,
                                     side=self.side.sign, core=self._core)
@@ -159,11 +164,11 @@ class RangeWindow:
         if len(ids) <= self.needed and not self.side.ambiguous:
             # no range to spare for naming one: any could be off (over anchors on one
             # plane, the mirror side holds the question of the height)
-            here = whole[0].position_m
+            here, (low, high) = whole[0].position_m, heights_m
             return RestFix(whole[0], None, max(
                 (float(np.linalg.norm(fix.position_m - here)) for k in range(len(ids))
-                 for _, fix in solutions(every & (np.arange(len(ids)) != k), here)),
-                default=0.0))
+                 for _, fix in solutions(every & (np.arange(len(ids)) != k), here, True)
+                 if low <= fix.position_m[2] <= high), default=0.0))
         if whole[1]:
             return RestFix(whole[0], None)
         candidates: list[tuple[float, int, LsqFix, float]] = []
@@ -189,17 +194,22 @@ class RangeWindow:
         _, anchor, fix, excess = candidates[0]
         return RestFix(fix, (anchor, excess))
 
-    def _rest_starts(self, anchors: Array, near: Array | None) -> list[Array | None]:
-        """Where the rest's least squares starts: over anchors on one plane, the side's
-        point; else the linear solution, and points under, among and over the anchors
-        (above ``near``, a solution of all the ranges, else their centre). A tag near the
-        plane of most anchors has a second minimum through that plane, which one range off
-        can make the lower; and from far off, the search for a height the ranges barely
-        see does not converge: start from each, keep the best."""
+    def _rest_starts(self, anchors: Array, near: Array | None,
+                     both_sides: bool = False) -> list[Array | None]:
+        """Where the rest's least squares starts. Over anchors on one plane, the side's
+        point (the whole installation's plane, or, for those heard, the linear guess on the
+        side's side), unless ``both_sides`` asks for the tag and its mirror alike. Else the
+        linear solution, and points under, among and over the anchors (above ``near``, a
+        solution of all the ranges, else their centre): a tag near the plane of most
+        anchors has a second minimum through that plane, which one range off can make the
+        lower, and from far off the search for a height the ranges barely see does not
+        converge: start from each, keep the best."""
         if self.fixed_z is not None:
             return [None]
         if self.side.ambiguous:
             return [self.side.start_point()]
+        if coplanar(anchors) and not both_sides:
+            return [None]
         x, y, z = (anchors.mean(axis=0) if near is None else near).tolist()
         low, high = float(anchors[:, 2].min()), float(anchors[:, 2].max())
         return [None, *(np.array([x, y, h]) for h in (low - 1.0, z, high + 1.0))]

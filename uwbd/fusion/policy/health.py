@@ -32,7 +32,8 @@ ranges disagree with the others' and it is not left out:
 mounting turned about z, :mod:`uwbd.fusion.checks.mounting_yaw`; the status's
 ``mounting_finding`` says by how much), ``height_implausible`` (the estimate is at a height
 the tag cannot be, :func:`height_bounds`: it is wrong, whatever its covariance claims, and
-no level holds).
+no level holds; the body's height, beyond the tag's bounds widened by the lever arm and
+by ``K σz``).
 Notes do not make the estimate unhealthy: ``anchor_excluded`` (an anchor found wrong is
 left out; the rest agree), ``height_uncertain`` (with ``height_needed`` off, the vertical
 level not known or over its limit), ``mirror_unresolved`` (coplanar anchors, side
@@ -120,7 +121,8 @@ class HealthMonitor:
         self.mounting_suspect = False  # gravity far from body up at the start at rest
         self.mounting_inconsistent = False  # the vehicle moves sideways in body axes (NHC)
         self.range_model_held = False  # a range model configured, not applied yet (no heading)
-        self.heights_m = (-math.inf, math.inf)  # where the tag can be (height_bounds)
+        # where the body can be: the tag's heights (height_bounds), wider by the lever arm
+        self.heights_m = (-math.inf, math.inf)
         self._after_reset = False
         self._fault_ns: int | None = None  # the last assessment with a fault
 
@@ -247,8 +249,9 @@ class HealthMonitor:
             if self.side_lost or self.mirror_flipped:  # the tag may be the mirror image:
                 # the height is not known
                 vpl = None
-            low, high = self.heights_m
-            if not low <= height_m <= high:  # (NaN too) the estimate cannot be right
+            low, high = self.heights_m  # beyond its own σz too (NaN too): cannot be right
+            slack = self._k_vertical * (vertical_sigma_m or 0.0)
+            if not low - slack <= height_m <= high + slack:
                 faults.append("height_implausible")
                 hpl = vpl = None
             h_ok = hpl is not None and hpl <= lim.horizontal_alert_limit_m

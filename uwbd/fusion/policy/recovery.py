@@ -84,7 +84,8 @@ class Recovery:
         rest = None
         if self._carry is None and self.window.static(cfg.init_static_s):
             rest = self.ranges.rest_fix(self.ranges.recent_epochs(since),
-                                        self.installation.anchors, self._offset_sigma())
+                                        self.installation.anchors, self._offset_sigma(),
+                                        self._heights())
         start = start_state(cfg, self.window, fix, recent, list(self.fixes), waited_long,
                             self._carry, *self._state_sizes(),
                             rest_m=rest.fix.position_m if rest is not None else None,
@@ -173,7 +174,11 @@ class Recovery:
         ekf.keep_transition = self.est.keep_transition  # Φ: only the smoother's
         self.est.ekf = ekf
         self.est.t_ns = t_ns
-        self.est.monitor.heights_m = self._heights()  # the health's: no level beyond them
+        # the health's, for the body (the antenna is within the lever arm of it): no level
+        # beyond them
+        low, high = self._heights()
+        reach = float(np.linalg.norm(self.est.lever))
+        self.est.monitor.heights_m = (low - reach, high + reach)
         self._carry = None
         self._started_ns = None
         self.last_good_P = None
