@@ -35,6 +35,8 @@ def test_consistent_innovations_track_and_a_run_of_rejections_is_inconsistent() 
     assert monitor.inconsistent
     health = monitor.assess(T0 + 14 * NS // 10, True, True, 0.05, True)
     assert health.phase is Phase.DEGRADED and "innovations_inconsistent" in health.faults
+    # the covariance the levels come from is what the innovations contradict: none holds
+    assert health.horizontal_protection_m is None and health.vertical_protection_m is None
     assert not monitor.diverged(T0 + 15 * NS // 10) and monitor.diverged(T0 + 33 * NS // 10)
 
 

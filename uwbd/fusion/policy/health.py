@@ -239,9 +239,11 @@ class HealthMonitor:
             vpl = None if vertical_sigma_m is None else self._k_vertical * vertical_sigma_m + gv * b
             sep = self.separation
             warming = sep is not None and not self.separation_warm
-            if warming or self.separation_alarm or self.lever_alarm:
+            if (warming or self.separation_alarm or self.lever_alarm
+                    or self._inconsistent_since_ns is not None):
                 # the levels over the anchors' faults: not known yet, or an anchor's fault
-                # found and not yet left out, or the lever arm's (no level holds then)
+                # found and not yet left out, or the lever arm's; or the innovations say the
+                # covariance the levels come from is wrong (no level holds then)
                 hpl = vpl = None
             if sep is not None:  # and the levels over each anchor's fault
                 hpl = None if hpl is None else max(hpl, sep.horizontal_m + gh * b)
