@@ -35,9 +35,15 @@ def test_consistent_innovations_track_and_a_run_of_rejections_is_inconsistent() 
     assert monitor.inconsistent
     health = monitor.assess(T0 + 14 * NS // 10, True, True, 0.05, True)
     assert health.phase is Phase.DEGRADED and "innovations_inconsistent" in health.faults
-    # the covariance the levels come from is what the innovations contradict: none holds
+    # the covariance the levels come from is what the innovations contradict: none holds,
+    # and they return once the innovations agree again
     assert health.horizontal_protection_m is None and health.vertical_protection_m is None
     assert not monitor.diverged(T0 + 15 * NS // 10) and monitor.diverged(T0 + 33 * NS // 10)
+    for k in range(12):
+        monitor.uwb_outcome(T0 + 34 * NS // 10 + k * NS // 100, True, 1.0)
+    assert not monitor.inconsistent
+    back = monitor.assess(T0 + 5 * NS, True, True, 0.05, True)
+    assert back.horizontal_protection_m is not None and back.vertical_protection_m is not None
 
 
 def test_a_rest_heard_from_anchors_on_one_plane_stays_on_the_sides_side() -> None:

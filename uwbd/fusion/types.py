@@ -25,7 +25,7 @@ class Health(NamedTuple):
     notes: tuple[str, ...] = ()
     since_range_s: float | None = None  # since the last accepted UWB measurement
     position_sigma_m: float | None = None  # horizontal, √(σx² + σy²)
-    # the error bounds at the integrity risk (m): covariance inflated by the window test
+    # the error bounds at the integrity risk (m; docs/ekf.md §6), None where not known
     horizontal_protection_m: float | None = None
     vertical_protection_m: float | None = None
     resets: int = 0

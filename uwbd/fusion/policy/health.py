@@ -18,7 +18,8 @@ Phases (one at a time, in this order of precedence):
 Faults: ``state_not_finite``, ``innovation_below_noise`` (``S < R``: ``P`` lost its
 positive definiteness along a measurement), ``innovations_inconsistent`` (most of the last
 ``window_count`` UWB measurements, or the last four, fail the gate, or their NIS is far
-above 1), ``imu_rejected`` (a sample was rejected within the last second), ``imu_gap``,
+above 1: no level holds then), ``imu_rejected`` (a sample was rejected within the last
+second), ``imu_gap``,
 ``range_timeout`` (no accepted range for ``range_timeout_s``), ``position_uncertain``
 (a protection level not known, or over its alert limit: the larger of the bank's solution
 separation's, :mod:`uwbd.fusion.checks.separation`, and ``K σ + g b`` at
@@ -243,7 +244,8 @@ class HealthMonitor:
                     or self._inconsistent_since_ns is not None):
                 # the levels over the anchors' faults: not known yet, or an anchor's fault
                 # found and not yet left out, or the lever arm's; or the innovations say the
-                # covariance the levels come from is wrong (no level holds then)
+                # covariance the levels come from is wrong (no level holds then; the phase
+                # holds `degraded` a little longer, the levels return with consistency)
                 hpl = vpl = None
             if sep is not None:  # and the levels over each anchor's fault
                 hpl = None if hpl is None else max(hpl, sep.horizontal_m + gh * b)
