@@ -60,8 +60,7 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
                 waited_long: bool, carry: Start | None, n_bias: int,
                 lever_m: Array, n_multipath: int = 0, n_lever: int = 0,
                 rest_m: Array | None = None, rest_spread_m: float = 0.0,
-                bank: Sequence[int] = (),
-                bank_var: Array | None = None, *, core: Core
+                bank: Sequence[int] = (), bank_var: Array | None = None, *, core: Core
                 ) -> tuple[Eskf, str] | None:
     """The new filter state and how it started (``rest``, ``moving``, ``carried``), or
     ``None`` while the evidence is not enough yet. ``recent``: fixes of the last
@@ -69,8 +68,7 @@ def start_state(cfg: FilterConfig, window: ImuWindow, fix: LsqFix,
     solved together (:meth:`~uwbd.fusion.policy.fixes.RangeWindow.rest_fix`), the position
     at rest where given, else the fixes' mean, and ``rest_spread_m`` how far the solutions
     its test could not rule out lie from it (the start's position σ is at least that);
-    ``bank``: the anchors the bank's sub-filters
-    each leave out."""
+    ``bank``: the anchors the bank's sub-filters each leave out."""
     means = window.means()
     if means is None:
         return None
